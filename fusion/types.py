@@ -1,0 +1,188 @@
+"""The data types that flow through the toolkit.
+
+file -> loader -> `RawImu` -> calibration -> `ImuSamples` -> estimator -> `Trajectory`
+-> scoring. A `Recording` bundles what one session provides.
+
+Conventions (STYLE.md): batch-first arrays, float64 seconds, SI units (the accelerometer
+in g, said in the field name), scalar-first quaternions `R_world_body` with world z up.
+Arrays are stored read-only: nothing downstream can modify what a loader produced.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def _frozen(a: Any, dtype: type = float) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def _check_time(t: np.ndarray, what: str) -> None:
+    if t.ndim != 1 or len(t) == 0:
+        raise ValueError(f"{what}: time stamps must be a non-empty 1-D array, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{what}: time stamps contain NaN or Inf")
+    if len(t) > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError(f"{what}: time stamps are not strictly increasing")
+
+
+@dataclass(frozen=True, eq=False)
+class RawImu:
+    """Raw ADC counts as the board produced them, in one canonical layout.
+
+    t: (N,) float64 s (unix time), strictly increasing.
+    counts: (N, 6) native 10-bit counts in the order ax, ay, az, wx, wy, wz, *before* any
+        sign flip (the x/y accelerometer inversion is part of the board model, applied in
+        calibration). Loaders convert every file layout to this one.
+    source: where it came from (a path, or "sim").
+    """
+
+    t: np.ndarray
+    counts: np.ndarray
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _frozen(self.t))
+        object.__setattr__(self, "counts", _frozen(self.counts))
+        _check_time(self.t, self.source)
+        if self.counts.shape != (len(self.t), 6):
+            raise ValueError(
+                f"{self.source}: counts must be (N, 6) with N = {len(self.t)}, got {self.counts.shape}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class ImuSamples:
+    """Calibrated IMU samples, body frame.
+
+    t: (N,) float64 s, strictly increasing. Use `dt` (the real steps), never a constant.
+    gyr_rad_s: (N, 3) angular rate, rad/s, body frame.
+    acc_g: (N, 3) specific force, in g, body frame; reads `R.inv().apply([0, 0, 1])` at rest.
+    gyr_valid: (N,) bool, False where the gyro is known to be wrong (a dropout or
+        saturation detected by `fusion.checks`). Estimators must not integrate those samples.
+        All True unless a detector marked them.
+    source: where the samples came from, for messages.
+    """
+
+    t: np.ndarray
+    gyr_rad_s: np.ndarray
+    acc_g: np.ndarray
+    gyr_valid: np.ndarray | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _frozen(self.t))
+        object.__setattr__(self, "gyr_rad_s", _frozen(self.gyr_rad_s))
+        object.__setattr__(self, "acc_g", _frozen(self.acc_g))
+        valid = np.ones(len(self.t), bool) if self.gyr_valid is None else self.gyr_valid
+        object.__setattr__(self, "gyr_valid", _frozen(valid, bool))
+        _check_time(self.t, self.source)
+        n = len(self.t)
+        for name in ("gyr_rad_s", "acc_g"):
+            if getattr(self, name).shape != (n, 3):
+                raise ValueError(f"{self.source}: {name} must be (N, 3) with N = {n}, got {getattr(self, name).shape}")
+        if self.gyr_valid.shape != (n,):
+            raise ValueError(f"{self.source}: gyr_valid must be (N,) with N = {n}, got {self.gyr_valid.shape}")
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def dt(self) -> np.ndarray:
+        """(N - 1,) time steps, s."""
+        return np.diff(self.t)
+
+    def replace(self, **changes: Any) -> "ImuSamples":
+        """A copy with some fields changed (the original is untouched)."""
+        fields = dict(t=self.t, gyr_rad_s=self.gyr_rad_s, acc_g=self.acc_g, gyr_valid=self.gyr_valid, source=self.source)
+        fields.update(changes)
+        return ImuSamples(**fields)
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Orientations over time.
+
+    t: (N,) float64 s, strictly increasing.
+    quat_wxyz: (N, 4) unit quaternions `R_world_body`. Rows may be NaN where the source has
+        no orientation (VICON tracking gaps); `valid` tells which rows are usable.
+    diagnostics: estimator-specific extras for reports, e.g. `{"loss": (K,) cost per iteration}`.
+    """
+
+    t: np.ndarray
+    quat_wxyz: np.ndarray
+    diagnostics: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _frozen(self.t))
+        object.__setattr__(self, "quat_wxyz", _frozen(self.quat_wxyz))
+        _check_time(self.t, "trajectory")
+        if self.quat_wxyz.shape != (len(self.t), 4):
+            raise ValueError(f"trajectory: quat_wxyz must be (N, 4) with N = {len(self.t)}, got {self.quat_wxyz.shape}")
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @classmethod
+    def from_rotation(cls, t: np.ndarray, rotation: Rotation, **kwargs: Any) -> "Trajectory":
+        return cls(t, rotation.as_quat(scalar_first=True), **kwargs)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: rows holding a finite orientation."""
+        return np.all(np.isfinite(self.quat_wxyz), axis=1)
+
+    def rotation(self) -> Rotation:
+        """All rows as one SciPy `Rotation` (raises if any row is invalid)."""
+        return Rotation.from_quat(self.quat_wxyz, scalar_first=True)
+
+    def interpolate(self, t: np.ndarray) -> tuple[Rotation | None, np.ndarray]:
+        """Slerp the orientation at times `t` (N,).
+
+        Returns `(rotation, mask)`: `mask` (N,) bool marks the query times inside the span
+        whose two neighbouring rows are both valid (a query inside a NaN gap is *not*
+        interpolated across the gap); `rotation` holds the slerped orientations at
+        `t[mask]` (None if the mask is empty).
+        """
+        t = np.asarray(t, dtype=float)
+        valid = self.valid
+        # The row at or before each query, and the one after it.
+        right = np.searchsorted(self.t, t, side="right")
+        inside = (t >= self.t[0]) & (t <= self.t[-1])
+        left = np.clip(right - 1, 0, len(self.t) - 1)
+        right = np.clip(right, 0, len(self.t) - 1)
+        mask = inside & valid[left] & valid[right]
+        if not np.any(mask):
+            return None, mask
+        good = np.flatnonzero(valid)
+        if len(good) == 1:
+            return Rotation.from_quat(np.repeat(self.quat_wxyz[good], mask.sum(), axis=0), scalar_first=True), mask
+        slerp = Slerp(self.t[good], Rotation.from_quat(self.quat_wxyz[good], scalar_first=True))
+        return slerp(t[mask]), mask
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """One session: calibrated IMU samples, optional ground truth and camera.
+
+    id: the dataset id, e.g. "ece276a/3" or "sim".
+    imu: calibrated samples (what estimators see).
+    truth: VICON orientations on VICON's own clock (rows NaN in tracking gaps), or None.
+    raw: the raw counts the samples were calibrated from (for checks), or None for
+        recordings that come in physical units.
+    calibration: the calibration applied (a `fusion.calibration.Calibration`), or None.
+    camera: a camera source (see `fusion.camera`), or None.
+    """
+
+    id: str
+    imu: ImuSamples
+    truth: Trajectory | None = None
+    raw: RawImu | None = None
+    calibration: Any = None
+    camera: Any = None
