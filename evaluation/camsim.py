@@ -108,12 +108,9 @@ def scene_for(recording_id: str, data_dir: Any = None) -> np.ndarray:
         return procedural_scene()
     path = find_scene_file(data_dir)
     if path is None:
-        try:
-            from fusion import datasets  # the spine's default data directory, if any
+        from fusion.datasets import data_dir_from  # --data-dir, else $FUSION_DATA, else ./data
 
-            path = find_scene_file(datasets.default_data_dir())
-        except (ImportError, AttributeError, FileNotFoundError, ValueError):
-            path = None
+        path = find_scene_file(data_dir_from(None))
     if path is None:
         warnings.warn(f"{recording_id}: no {SCENE_FILE} under the data directory; rendering the procedural scene", stacklevel=2)
         return procedural_scene()

@@ -25,12 +25,13 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import cv2
 import numpy as np
 
-from fusion.camera import CameraModel, CameraSource
+from fusion.camera import CameraModel, CameraSource, load_camera
 from fusion.types import Trajectory
 
 Blend = Literal["last", "average", "feather"]
@@ -451,6 +452,8 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
         return _REFERENCES[key]
     _REFERENCES.clear()  # one recording at a time: bounded memory
     camera = recording.camera
+    if isinstance(camera, (str, Path)):  # the loaders give the camera file's path: read it now
+        camera = load_camera(camera)
     scene_image = None
     truth = recording.truth
     if camera is None and truth is not None:
