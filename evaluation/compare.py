@@ -38,6 +38,7 @@ class Result:
     max_deg: dict[str, float] | None
     trajectory: Trajectory | None = None
     score: Score | None = None
+    panorama: dict[str, float] | None = None  # `evaluation.panorama.panorama_scores`, with --panorama
 
     @property
     def us_per_sample(self) -> float:
@@ -52,7 +53,8 @@ class Result:
             "seconds": self.seconds,
             "rmse_deg": self.rmse_deg,
             "max_deg": self.max_deg,
-        }
+        } | ({"panorama": {k: (float(v) if np.isfinite(v) else None) for k, v in self.panorama.items()}}
+             if self.panorama is not None else {})  # JSON has no inf/NaN: identical panoramas give null
 
 
 def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
@@ -71,8 +73,10 @@ def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
     return out
 
 
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) -> Result:
-    """One job: estimate, time, score."""
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, panorama: bool = False,
+            data_dir: Any = None) -> Result:
+    """One job: estimate, time, score (and, with `panorama`, score its panorama against the
+    ground truth's: `evaluation.panorama.panorama_scores`; `data_dir` is where the scene is)."""
     estimator = estimators.build(spec)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
@@ -81,21 +85,27 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
     result_score = score(recording.truth, trajectory) if recording.truth is not None else None
+    pano = None
+    if panorama and (recording.truth is not None or recording.camera is not None):
+        from .panorama import panorama_scores
+
+        pano = panorama_scores(recording, trajectory, data_dir=data_dir)
     return Result(
         recording.id, spec.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
         result_score.max_deg if result_score else None,
-        trajectory, result_score,
+        trajectory, result_score, pano,
     )
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False) -> list[Result]:
+            progress: bool = False, panorama: bool = False, data_dir: Any = None) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
+    panorama: also score each estimate's panorama (`Result.panorama`); `data_dir` locates the scene.
     """
     spec_list = expand_all(_as_specs(specs))
     for spec in spec_list:  # fail on a bad name or parameter before any work
@@ -105,7 +115,7 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
     results = []
     for rec, spec in jobs:
         bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init))
+        results.append(run_one(rec, spec, init, panorama, data_dir))
         bar.update()
     bar.close()
     return results
@@ -139,10 +149,16 @@ def format_table(results: list[Result]) -> str:
     """A readable table: one row per recording x estimator, RMSE in degrees, and a mean row
     per estimator over the recordings that have ground truth."""
     header = ["dataset", "estimator", "total", "inclination", "heading", "us/sample"]
+    pano = any(r.panorama for r in results)
+    if pano:
+        header += ["pano dB", "SSIM", "covered"]
     rows = []
     for r in results:
         rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["-"] * 3
         rows.append([r.dataset, r.estimator, *rmse, f"{r.us_per_sample:.1f}"])
+        if pano:
+            p = r.panorama or {}
+            rows[-1] += [f"{p['psnr_db']:.1f}", f"{p['ssim']:.3f}", f"{p['covered_fraction']:.2f}"] if p else ["-"] * 3
     labels = list(dict.fromkeys(r.estimator for r in results))
     means = []
     for label in labels:
@@ -152,13 +168,15 @@ def format_table(results: list[Result]) -> str:
             continue
         mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
         us = np.mean([r.us_per_sample for r in mine])
-        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"])
+        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"] + ([""] * 3 if pano else []))
     widths = [max(len(str(row[i])) for row in [header, *rows, *means]) for i in range(len(header))]
 
     def line(row: list[str]) -> str:
         return "  ".join(str(c).ljust(w) if i < 2 else str(c).rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
 
-    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)",
+    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)"
+           + ("\npanorama: PSNR (dB) and SSIM against the ground-truth panorama over the pixels both cover; covered share of the sphere"
+              if pano else ""),
            line(header), line(["-" * w for w in widths])]
     out += [line(r) for r in rows]
     if means:
