@@ -327,3 +327,17 @@ def test_cli_compare_with_panorama(tmp_path, capsys, monkeypatch):
     assert p["frames_used"] == 180 and 0.3 < p["covered_fraction"] <= 1.0 and 0 < p["ssim"] < 1
     line = [ln.split() for ln in stdout.splitlines() if ln.startswith("sim ")][0]
     assert float(line[-3]) == pytest.approx(p["psnr_db"], abs=0.06)
+
+
+def test_recording_with_a_camera_file(tmp_path):
+    """The loaders give `Recording.camera` as the camera file's path: it is read and used
+    instead of rendering (no scene reference then)."""
+    truth = sweep(12, wobble_deg=10.0)
+    rendered = camsim.simulate_camera(truth, camsim.procedural_scene())
+    cam = np.stack([rendered.frame(k)[..., ::-1] for k in range(len(rendered))], axis=-1)  # RGB, H x W x 3 x K
+    path = tmp_path / "cam1.p"
+    _pickle(path, {"cam": cam, "ts": rendered.t[None, :]})
+    rec = Recording("ece276a/1", imu=None, truth=truth, camera=path)  # type: ignore[arg-type]
+    scores = panorama_scores(rec, truth)
+    assert scores["frames_used"] == 12 and scores["psnr_db"] == math.inf
+    assert math.isnan(scores["scene_psnr_db"])
