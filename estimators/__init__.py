@@ -6,10 +6,14 @@ from __future__ import annotations
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
+from .gd import GradientDescentSmoother
+from .gn import GaussNewtonSmoother
 from .params import EstimatorSpec, make_params, parse_specs
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,
+    "gd": GradientDescentSmoother,
+    "gn": GaussNewtonSmoother,
 }
 
 

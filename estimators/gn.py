@@ -19,8 +19,9 @@ its prior std. A variable the data cannot see keeps a posterior std near the pri
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Literal
 
 import numpy as np
 from scipy.linalg import solveh_banded
@@ -48,12 +49,15 @@ class SmootherParams:
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" none). scale_axes (scale): scale errors.
     bias_prior_rad_s, scale_prior: prior std of those variables around zero.
+    weighting: "noise" (information matrices from the noise stds above) or "seed" (the seeds'
+        scalar weights: motion `seed_motion_weight`, accelerometer 1, no Huber loss).
+    seed_motion_weight (wm): the seeds' motion weight (10 in one report).
     init: estimator whose output starts the optimisation ("dr", "ukf", ...).
     max_iter (iters), tol: stopping rule (relative cost decrease below tol).
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
     """
 
-    gyro_noise_rad_s: float = field(default=0.01, metadata={"alias": "sg"})
+    gyro_noise_rad_s: float = field(default=0.2, metadata={"alias": "sg"})
     acc_noise_g: float = field(default=0.05, metadata={"alias": "sa"})
     huber_g: float = field(default=0.1, metadata={"alias": "huber"})
     prior_std_rad: float = field(default=0.01, metadata={"alias": "p0"})
@@ -63,6 +67,8 @@ class SmootherParams:
     scale_axes: str = field(default="", metadata={"alias": "scale"})
     bias_prior_rad_s: float = 0.05
     scale_prior: float = 0.2
+    weighting: Literal["noise", "seed"] = "noise"
+    seed_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
     init: str = "dr"
     max_iter: int = field(default=50, metadata={"alias": "iters"})
     tol: float = 1e-7
@@ -70,7 +76,7 @@ class SmootherParams:
 
     def __post_init__(self) -> None:
         for name in ("gyro_noise_rad_s", "acc_noise_g", "huber_g", "prior_std_rad", "dropout_rate_std_rad_s",
-                     "bias_prior_rad_s", "scale_prior"):
+                     "bias_prior_rad_s", "scale_prior", "seed_motion_weight"):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"{name}={value!r}: must be positive")
@@ -81,12 +87,16 @@ class SmootherParams:
         if not self.tol >= 0:
             raise ValueError(f"tol={self.tol!r}: must be >= 0")
 
-    def weights(self, **overrides: Any) -> Weights:
+    def weights(self) -> Weights:
+        """The cost's `Weights` (the seeds' scalar weights when weighting="seed")."""
+        seed = self.weighting == "seed"
         return Weights(
-            gyro_noise_rad_s=self.gyro_noise_rad_s, acc_noise_g=self.acc_noise_g, huber_g=self.huber_g,
+            gyro_noise_rad_s=self.gyro_noise_rad_s, acc_noise_g=self.acc_noise_g,
+            huber_g=np.inf if seed else self.huber_g,
             prior_std_rad=self.prior_std_rad, dropout_rate_std_rad_s=self.dropout_rate_std_rad_s,
+            motion_weight=self.seed_motion_weight if seed else None, acc_weight=1.0 if seed else None,
             bias_axes=self.bias_axes, scale_axes=self.scale_axes, bias_prior_rad_s=self.bias_prior_rad_s,
-            scale_prior=self.scale_prior, **overrides,
+            scale_prior=self.scale_prior,
         )
 
 
@@ -168,6 +178,8 @@ class GaussNewtonSmoother(Estimator):
         converged = False
         bar = progress_bar(p.progress, p.max_iter, self.name)
         iterations = 0
+        start = time.perf_counter()
+        elapsed = [0.0]
         try:
             for iterations in range(1, p.max_iter + 1):
                 while True:
@@ -185,6 +197,7 @@ class GaussNewtonSmoother(Estimator):
                 q, theta = q_new, theta_new
                 lin = problem.linearize(q, theta)
                 losses.append(lin.cost)
+                elapsed.append(time.perf_counter() - start)
                 damping = max(damping / 10.0, 1e-12)
                 bar.update(1)
                 bar.set_postfix(cost=f"{lin.cost:.6g}")
@@ -196,6 +209,7 @@ class GaussNewtonSmoother(Estimator):
         bias, scale = problem.split_theta(theta)
         diagnostics = {
             "loss": np.array(losses),
+            "elapsed_s": np.array(elapsed),
             "iterations": iterations,
             "converged": converged,
             "gyro_bias_rad_s": bias,

@@ -203,13 +203,21 @@ class SmootherProblem:
         phi[~self.valid] = 0.0
         return phi
 
+    def step_quat(self, theta: np.ndarray) -> np.ndarray:
+        """(T-1, 4) exp([0, phi_t / 2]); cached for the last theta (gd evaluates it many times)."""
+        key = np.asarray(theta, float).tobytes()
+        if getattr(self, "_u_key", None) != key:
+            self._u = quat.from_rotvec(self.step_rotvec(theta))
+            self._u_key = key
+        return self._u
+
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
         """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3). Seed: motion residual."""
         return quat.to_rotvec(quat.multiply(quat.multiply(quat.conjugate(q_b), q_a), u))
 
     def residuals(self, q: np.ndarray, theta: np.ndarray) -> dict[str, np.ndarray]:
         """All residuals at (q (T, 4), theta (P,))."""
-        u = quat.from_rotvec(self.step_rotvec(theta))
+        u = self.step_quat(theta)
         return {
             "motion": self.motion_residual(q[:-1], q[1:], u),
             "acc": self.acc - quat.gravity_in_body(q),
@@ -244,7 +252,7 @@ class SmootherProblem:
         Motion t-1 (from q_old[t-1] to q_new[t]), motion t (q_new[t] to q_old[t+1]),
         accelerometer t and, for t = 0, the anchor. Used by the per-quaternion step search of `gd`.
         """
-        u = quat.from_rotvec(self.step_rotvec(theta))
+        u = self.step_quat(theta)
         out = np.zeros(len(q_new))
         r_fwd = self.motion_residual(q_new[:-1], q_old[1:], u)
         r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
