@@ -92,11 +92,18 @@ class GradientDescentSmoother(Estimator):
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
         problem = self.problem(imu, init_quat_wxyz)
         q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
+        q, diagnostics = self.solve(problem, q)
+        return Trajectory(imu.t, q, diagnostics=diagnostics)
+
+    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Projected gradient descent from q (T, 4) unit quaternions; returns (q, diagnostics)."""
+        p = self.params
         theta = np.zeros(0)
         T = len(q)
         alpha = np.full(T, p.step_rad)
         cost = problem.cost(q, theta)
         losses = [cost]
+        norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
         converged = False
         iterations = 0
         bar = progress_bar(p.progress, p.max_iter, self.name)
@@ -143,6 +150,7 @@ class GradientDescentSmoother(Estimator):
                 decrease = (cost - cost_new) / max(cost, 1e-300)
                 q, cost = q_new, cost_new
                 losses.append(cost)
+                norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
                 elapsed.append(time.perf_counter() - start)
                 bar.update(1)
                 if iterations % 50 == 0:
@@ -152,4 +160,8 @@ class GradientDescentSmoother(Estimator):
                     break
         finally:
             bar.close()
-        return Trajectory(imu.t, q, diagnostics={"loss": np.array(losses), "elapsed_s": np.array(elapsed), "iterations": iterations, "converged": converged})
+        diagnostics = {
+            "loss": np.array(losses), "elapsed_s": np.array(elapsed), "norm_error": np.array(norm_error),
+            "iterations": iterations, "converged": converged,
+        }
+        return q, diagnostics

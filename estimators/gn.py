@@ -171,9 +171,19 @@ class GaussNewtonSmoother(Estimator):
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
         problem = self.problem(imu, init_quat_wxyz)
         q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
+        q, diagnostics = self.solve(problem, q)
+        return Trajectory(imu.t, q, diagnostics=diagnostics)
+
+    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Levenberg-Marquardt from q (T, 4) unit quaternions (calibration variables from zero).
+
+        Returns the optimised (T, 4) quaternions and the diagnostics.
+        """
+        p = self.params
         theta = np.zeros(problem.n_theta)
         lin = problem.linearize(q, theta)
         losses = [lin.cost]
+        norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
         damping = 1e-6
         converged = False
         bar = progress_bar(p.progress, p.max_iter, self.name)
@@ -197,6 +207,7 @@ class GaussNewtonSmoother(Estimator):
                 q, theta = q_new, theta_new
                 lin = problem.linearize(q, theta)
                 losses.append(lin.cost)
+                norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
                 elapsed.append(time.perf_counter() - start)
                 damping = max(damping / 10.0, 1e-12)
                 bar.update(1)
@@ -210,6 +221,7 @@ class GaussNewtonSmoother(Estimator):
         diagnostics = {
             "loss": np.array(losses),
             "elapsed_s": np.array(elapsed),
+            "norm_error": np.array(norm_error),
             "iterations": iterations,
             "converged": converged,
             "gyro_bias_rad_s": bias,
@@ -219,7 +231,7 @@ class GaussNewtonSmoother(Estimator):
             "theta_std": theta_posterior_std(lin),
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
         }
-        return Trajectory(imu.t, q, diagnostics=diagnostics)
+        return q, diagnostics
 
 
 def problem_valid(imu: ImuSamples, p: SmootherParams) -> np.ndarray:

@@ -169,7 +169,7 @@ class SmootherProblem:
             sigma = np.where(valid, weights.gyro_noise_rad_s, weights.dropout_rate_std_rad_s) * dt
             w_motion = 1.0 / sigma**2
         w_acc = float(weights.acc_weight) if weights.acc_weight is not None else 1.0 / weights.acc_noise_g**2
-        huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) else np.inf
+        huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) and w_acc > 0 else np.inf
         bias_idx = np.array([AXES.index(a) for a in weights.bias_axes], int)
         scale_idx = np.array([AXES.index(a) for a in weights.scale_axes], int)
         w_theta = np.concatenate(
