@@ -47,13 +47,18 @@ ARMIJO = 0.5
 class GDParams(SmootherParams):
     """`SmootherParams` (the cost) plus the descent's own settings.
 
+    Defaults differ from `gn` in two places: the seeds' weighting (motion 10, accelerometer 1;
+    with the noise model's weights the problem is too ill-conditioned for gradient descent:
+    see benchmarks/bench_smoother.py) and a looser tolerance.
+
     update: "geodesic" (cos/sin step on the sphere) or "normalise" (step, then normalise).
     step_rad (alpha): largest per-quaternion step, rad of quaternion arc (rotation 2 alpha).
     halvings: halvings of the step-size search per iteration.
     """
 
-    max_iter: int = field(default=20000, metadata={"alias": "iters"})
-    tol: float = 1e-9
+    max_iter: int = field(default=5000, metadata={"alias": "iters"})
+    tol: float = 1e-6
+    weighting: Literal["noise", "seed"] = "seed"
     update: Literal["geodesic", "normalise"] = "geodesic"
     step_rad: float = field(default=0.05, metadata={"alias": "alpha"})
     halvings: int = 12

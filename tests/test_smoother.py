@@ -160,7 +160,7 @@ def test_gd_and_gn_reach_the_same_minimum():
     assert np.all(np.diff(gd.diagnostics["loss"]) <= 0) and np.all(np.diff(gn.diagnostics["loss"]) <= 0)
 
 
-@pytest.mark.parametrize("spec", ["gn", "gn:bias=xy,scale=xy", "gd:iters=50", "gd:iters=50,update=normalise"])
+@pytest.mark.parametrize("spec", ["gn", "gn:bias=xy,scale=xy", "gd:iters=50", "gd:iters=50,update=normalise", "gd:iters=50,weighting=noise"])
 def test_unit_norm_after_every_iteration(spec):
     imu, _, q0 = _sim_imu(5.0)
     est = build(spec + ",progress=false").estimate(imu, q0)
