@@ -71,8 +71,13 @@ def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
     return out
 
 
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) -> Result:
-    """One job: estimate, time, score."""
+def default_protocol(recording: Recording) -> str:
+    """"broad" for recordings that carry a movement mask (BROAD trials), else "full"."""
+    return "broad" if recording.movement is not None else "full"
+
+
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None) -> Result:
+    """One job: estimate, time, score (`protocol` None: the recording's default)."""
     estimator = estimators.build(spec)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
@@ -80,7 +85,9 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
-    result_score = score(recording.truth, trajectory) if recording.truth is not None else None
+    protocol = protocol or default_protocol(recording)
+    result_score = (score(recording.truth, trajectory, protocol, recording.movement)
+                    if recording.truth is not None else None)
     return Result(
         recording.id, spec.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
@@ -90,12 +97,14 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False) -> list[Result]:
+            progress: bool = False, protocol: str | None = None) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
+    protocol: scoring protocol, "full" or "broad" (`evaluation.metrics`), or None for each
+        recording's default (`default_protocol`).
     """
     spec_list = expand_all(_as_specs(specs))
     for spec in spec_list:  # fail on a bad name or parameter before any work
@@ -105,7 +114,7 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
     results = []
     for rec, spec in jobs:
         bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init))
+        results.append(run_one(rec, spec, init, protocol))
         bar.update()
     bar.close()
     return results
