@@ -131,7 +131,7 @@ def versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for package in ("fusion", "numpy", "scipy", "filterpy"):
+    for package in ("fusion", "numpy", "scipy", "filterpy", "vqf", "ahrs", "imufusion"):
         try:
             out[package] = md.version(package)
         except md.PackageNotFoundError:
