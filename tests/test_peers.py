@@ -135,6 +135,8 @@ def test_inputs_are_not_modified(peer):
 
 
 def test_parameters_use_the_library_names_as_aliases():
+    for lib in ("vqf", "ahrs", "imufusion"):
+        pytest.importorskip(lib)
     assert build("vqf:tauAcc=1.5").params.tau_acc_s == 1.5
     assert build("vqf-offline:restBiasEstEnabled=false").params.rest_bias_est is False
     assert build("madgwick:beta=0.1").params.gain == 0.1
