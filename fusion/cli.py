@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:  # bad input: one line, exit 1
         print(f"fusion: error: {exc}", file=sys.stderr)
         return 1
+    except ImportError as exc:  # an optional package (peers, h5py) is missing: the message says which
+        print(f"fusion: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("fusion: interrupted", file=sys.stderr)
         return 130

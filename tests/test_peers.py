@@ -222,3 +222,17 @@ def test_reference_figures_on_the_course_recordings(data_dir):
     means = {name: float(np.mean(v)) for name, v in rmse.items()}
     for name, ref in REFERENCE_INCLINATION_RMSE_DEG.items():
         assert abs(means[name] - ref) <= 0.3, f"{name}: {means[name]:.2f} deg vs reference {ref}"
+
+
+def test_cli_names_the_missing_extra(monkeypatch, capsys):
+    import estimators.peers as peers
+    from fusion.cli import main
+
+    def refuse(name, *args, **kwargs):
+        raise ModuleNotFoundError(f"No module named {name!r}")
+
+    monkeypatch.setattr(peers.importlib, "import_module", refuse)
+    assert main(["compare", "--estimators", "fusion-ahrs", "--dataset", "sim", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fusion: error: estimator 'fusion-ahrs' needs the optional package 'imufusion', which is not "
+                   "installed: pip install -e '.[peers]' (or pip install imufusion)"]
