@@ -13,6 +13,7 @@ from __future__ import annotations
 import platform
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Iterable
 
@@ -63,11 +64,27 @@ def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
 
 
 def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
-    """Replace the name `all` with every registered estimator (registry order)."""
+    """Replace the name `all` with every registered estimator (registry order).
+
+    `all` leaves out peers whose optional library is not installed (with a warning);
+    naming such a peer explicitly is an error that says what to install.
+    """
     out: list[EstimatorSpec] = []
     for spec in specs:
-        names = list(estimators.ESTIMATORS) if spec.name == "all" else [spec.name]
-        out.extend(EstimatorSpec(name, spec.overrides) for name in names)
+        if spec.name != "all":
+            out.append(spec)
+            continue
+        missing = []
+        for name in estimators.ESTIMATORS:
+            try:
+                estimators.build(EstimatorSpec(name))
+            except ImportError:
+                missing.append(name)
+                continue
+            out.append(EstimatorSpec(name, spec.overrides))
+        if missing:
+            warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
+                          f"(pip install -e '.[peers]')", stacklevel=2)
     return out
 
 
