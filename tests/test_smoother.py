@@ -173,10 +173,16 @@ def test_smoother_beats_every_filter_on_the_simulated_recording():
 
     imu, truth, q0 = _sim_imu(60.0)
     gn = score(truth, build("gn:progress=false").estimate(imu, q0)).rmse_deg
+    checked = []
     for name, cls in ESTIMATORS.items():
         if cls.causal:
-            filt = score(truth, build(name).estimate(imu, q0)).rmse_deg
+            try:
+                filt = score(truth, build(name).estimate(imu, q0)).rmse_deg
+            except ImportError:  # a peer whose optional library is not installed
+                continue
+            checked.append(name)
             assert gn["total"] < filt["total"] and gn["inclination"] < filt["inclination"], name
+    assert "dr" in checked  # measured: gn 5.06 / 1.14 deg; best filter 5.41 / 1.51 (fusion-ahrs / mahony)
 
 
 @pytest.mark.parametrize("name", ["gn", "gd"])
