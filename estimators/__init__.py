@@ -6,10 +6,15 @@ from __future__ import annotations
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
+from .ekf import EKF
 from .params import EstimatorSpec, make_params, parse_specs
+from .ukf import UKF, UKFBias
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,
+    "ukf": UKF,
+    "ukf-bias": UKFBias,
+    "ekf": EKF,
 }
 
 

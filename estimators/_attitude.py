@@ -1,0 +1,134 @@
+"""Small helpers shared by the recursive attitude filters (`ukf`, `ukf-bias`, `ekf`).
+
+Everything here works on one filter step's tiny arrays, so it is written for low per-call
+overhead (scalar `math` where a single quaternion is involved, one matmul instead of a
+stacked Hamilton product for a batch times one quaternion). The batch functions of
+`fusion.quaternion` remain the reference; `tests/test_ukf.py` cross-checks these against them.
+
+Conventions: quaternions scalar-first `[w, x, y, z]`, `R_world_body`; error rotation vectors
+are body-frame (right) perturbations, `q_true = q * exp(e / 2)`, as in
+`fusion.quaternion.relative_rotvec`.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_SQRT_FLOOR = 0.0
+
+
+def exp_quat(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
+    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats. Exact at v = 0."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle < 1e-12:
+        # sin(a/2)/a = 1/2 - a^2/48 + ...; a < 1e-12 makes the correction far below eps.
+        return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
+    s = math.sin(0.5 * angle) / angle
+    return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+
+
+def right_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `p * q = M @ p` for q = [w, x, y, z] (right multiplication)."""
+    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+
+
+def left_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `q * p = M @ p` for q = [w, x, y, z] (left multiplication)."""
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+
+
+def exp_batch(v: np.ndarray) -> np.ndarray:
+    """`exp([0, v / 2])` of (m, 3) rotation vectors -> (m, 4) quaternions. Exact at 0."""
+    angle = np.sqrt(np.einsum("ij,ij->i", v, v))
+    out = np.empty((len(v), 4))
+    out[:, 0] = np.cos(0.5 * angle)
+    # sin(a/2)/a via np.sinc (= sin(pi x)/(pi x)), which is 1/2 at a = 0: no division by zero.
+    out[:, 1:] = v * (0.5 * np.sinc(angle * (0.5 / np.pi)))[:, None]
+    return out
+
+
+def log_batch(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (m, 3) of (m, 4) unit quaternions, `2 log q`, shortest path.
+
+    q and -q give the same vector (the sign of w is folded in), so the angle lies in
+    [0, pi]: every error is wrapped to the representative nearest the identity (seed step 5).
+    """
+    w = q[:, 0]
+    vec = q[:, 1:]
+    s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
+    sign = np.where(w < 0.0, -1.0, 1.0)
+    # angle = 2 atan2(s, |w|); angle / s -> 2 / |w| as s -> 0 (|w| ~ 1 there).
+    aw = np.abs(w)
+    safe = s > 1e-12
+    scale = np.where(safe, 2.0 * np.arctan2(s, aw) / np.where(safe, s, 1.0), 2.0 / np.maximum(aw, 1e-300))
+    return vec * (sign * scale)[:, None]
+
+
+def gravity_batch(q: np.ndarray) -> np.ndarray:
+    """World up in the body frame, `R(q)^T e_z`, for (m, 4) quaternions -> (m, 3), g."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    out = np.empty((len(q), 3))
+    out[:, 0] = 2.0 * (x * z - w * y)
+    out[:, 1] = 2.0 * (y * z + w * x)
+    out[:, 2] = w * w - x * x - y * y + z * z
+    return out
+
+
+def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """A square root `L` with `L @ L.T = a` for a symmetric positive semi-definite matrix.
+
+    Cholesky first (fast). If it fails (a singular matrix, e.g. P = Q = 0 in the
+    dead-reckoning test, or round-off pushed an eigenvalue below zero), the documented
+    recovery: symmetrise, clip negative eigenvalues to zero and return `V sqrt(lambda)`,
+    a square root of the nearest PSD matrix. Returns `(L, recovered)`.
+    """
+    try:
+        return np.linalg.cholesky(a), False
+    except np.linalg.LinAlgError:
+        lam, vec = np.linalg.eigh(0.5 * (a + a.T))
+        return vec * np.sqrt(np.maximum(lam, _SQRT_FLOOR)), True
+
+
+def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, bool]:
+    """Symmetrise `p`; if an eigenvalue is below `floor` (or not finite), clip it there.
+
+    Returns `(p, repaired)`. Called after every update so that the covariance handed to
+    the next step is symmetric positive definite (the SPD test checks it).
+    """
+    p = 0.5 * (p + p.T)
+    if not np.all(np.isfinite(p)):
+        return np.eye(len(p)) * 1e-2, True
+    # Cheap test first: a Cholesky succeeds for SPD matrices.
+    try:
+        np.linalg.cholesky(p)
+        return p, False
+    except np.linalg.LinAlgError:
+        lam, vec = np.linalg.eigh(p)
+        return (vec * np.maximum(lam, floor)) @ vec.T, True
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, the 3x3 cross-product matrix: `skew(a) @ b = a x b`."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
+    """How much to scale R for this accelerometer sample (accelerometer gating).
+
+    `| |a| - 1 g |` measures how far the sample is from the gravity-only model.
+    gate "off": 1 (always use). "skip": inf (skip the update) when the deviation exceeds
+    `gate_g`, else 1. "inflate": `1 + (dev / gate_g)^2`, a smooth down-weighting that
+    leaves near-static samples untouched. Non-finite samples always give inf (skip).
+    """
+    ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    if not math.isfinite(norm):
+        return math.inf
+    if gate == "off":
+        return 1.0
+    dev = abs(norm - 1.0)
+    if gate == "skip":
+        return math.inf if dev > gate_g else 1.0
+    r = dev / gate_g
+    return 1.0 + r * r
