@@ -1,0 +1,167 @@
+"""Run estimators over recordings and score them: the library behind `fusion compare`.
+
+    from evaluation.compare import compare
+    results = compare(["dr", "ukf:R=1e-3"], [fusion.datasets.load("ece276a/1")])
+
+Every (recording, estimator) pair is one job: build the estimator from its spec, time
+`estimate` on the recording's calibrated samples from the shared initial orientation, score
+it against the truth when there is one. Results come back in a stable order: recordings as
+given, estimators as given within each recording.
+"""
+from __future__ import annotations
+
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any, Iterable
+
+import numpy as np
+
+import estimators
+from estimators.params import EstimatorSpec, parse_specs
+from fusion.datasets import initial_orientation
+from fusion.types import Recording, Trajectory
+
+from .metrics import KINDS, Score, score
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """One recording x estimator. `rmse_deg`/`max_deg` are None without ground truth."""
+
+    dataset: str
+    estimator: str
+    samples: int
+    seconds: float
+    rmse_deg: dict[str, float] | None
+    max_deg: dict[str, float] | None
+    trajectory: Trajectory | None = None
+    score: Score | None = None
+
+    @property
+    def us_per_sample(self) -> float:
+        return 1e6 * self.seconds / max(self.samples, 1)
+
+    def to_json(self) -> dict[str, Any]:
+        """The row of `results.json` (the keys are a documented format: see README)."""
+        return {
+            "dataset": self.dataset,
+            "estimator": self.estimator,
+            "samples": self.samples,
+            "seconds": self.seconds,
+            "rmse_deg": self.rmse_deg,
+            "max_deg": self.max_deg,
+        }
+
+
+def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
+    out: list[EstimatorSpec] = []
+    for spec in specs:
+        out.extend(parse_specs(spec) if isinstance(spec, str) else [spec])
+    return out
+
+
+def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
+    """Replace the name `all` with every registered estimator (registry order)."""
+    out: list[EstimatorSpec] = []
+    for spec in specs:
+        names = list(estimators.ESTIMATORS) if spec.name == "all" else [spec.name]
+        out.extend(EstimatorSpec(name, spec.overrides) for name in names)
+    return out
+
+
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) -> Result:
+    """One job: estimate, time, score."""
+    estimator = estimators.build(spec)
+    q0 = initial_orientation(recording, init)
+    start = time.perf_counter()
+    trajectory = estimator.estimate(recording.imu, q0)
+    seconds = time.perf_counter() - start
+    if not np.all(np.isfinite(trajectory.quat_wxyz)):
+        raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
+    result_score = score(recording.truth, trajectory) if recording.truth is not None else None
+    return Result(
+        recording.id, spec.label, len(recording.imu), seconds,
+        result_score.rmse_deg if result_score else None,
+        result_score.max_deg if result_score else None,
+        trajectory, result_score,
+    )
+
+
+def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
+            progress: bool = False) -> list[Result]:
+    """Every estimator on every recording, in a stable order (recording-major).
+
+    specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
+    init: `truth`, `accel`, `identity`, or None for each recording's default.
+    progress: show a progress bar on stderr.
+    """
+    spec_list = expand_all(_as_specs(specs))
+    for spec in spec_list:  # fail on a bad name or parameter before any work
+        estimators.build(spec)
+    jobs = [(rec, spec) for rec in recordings for spec in spec_list]
+    bar = _progress(len(jobs), progress)
+    results = []
+    for rec, spec in jobs:
+        bar.set_description(f"{rec.id} {spec.label}")
+        results.append(run_one(rec, spec, init))
+        bar.update()
+    bar.close()
+    return results
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, file=sys.stderr, unit="run", leave=False)
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python and the packages that shape the numbers."""
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version()}
+    for package in ("fusion", "numpy", "scipy", "filterpy"):
+        try:
+            out[package] = md.version(package)
+        except md.PackageNotFoundError:
+            out[package] = "not installed"
+    return out
+
+
+def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, Any]:
+    """The document `--json` writes: `results`, `settings`, `versions`."""
+    return {"results": [r.to_json() for r in results], "settings": settings, "versions": versions()}
+
+
+def format_table(results: list[Result]) -> str:
+    """A readable table: one row per recording x estimator, RMSE in degrees, and a mean row
+    per estimator over the recordings that have ground truth."""
+    header = ["dataset", "estimator", "total", "inclination", "heading", "us/sample"]
+    rows = []
+    for r in results:
+        rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["-"] * 3
+        rows.append([r.dataset, r.estimator, *rmse, f"{r.us_per_sample:.1f}"])
+    labels = list(dict.fromkeys(r.estimator for r in results))
+    means = []
+    for label in labels:
+        scored = [r for r in results if r.estimator == label and r.rmse_deg]
+        mine = [r for r in results if r.estimator == label]
+        if len({r.dataset for r in results}) < 2:
+            continue
+        mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
+        us = np.mean([r.us_per_sample for r in mine])
+        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"])
+    widths = [max(len(str(row[i])) for row in [header, *rows, *means]) for i in range(len(header))]
+
+    def line(row: list[str]) -> str:
+        return "  ".join(str(c).ljust(w) if i < 2 else str(c).rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+
+    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)",
+           line(header), line(["-" * w for w in widths])]
+    out += [line(r) for r in rows]
+    if means:
+        out.append(line(["-" * w for w in widths]))
+        out += [line(r) for r in means]
+    return "\n".join(out)

@@ -1,0 +1,199 @@
+"""Finding recordings in a data directory, selecting them by id, and loading them.
+
+A data directory is laid out like the course releases, possibly nested:
+
+    <data>/ece276a/imu/imuRaw3.p     <data>/ece276a/vicon/viconRot3.p    [<data>/ece276a/cam/cam3.p]
+    <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
+    <data>/mylab/walk.csv            (generic CSV, see `fusion.loaders.load_csv`)
+
+Each recording gets an id: its folder relative to the data directory (or, for recordings
+directly in it, the data directory's own name) plus its number, e.g. `ece276a/3`; a CSV
+file's id is its path without the suffix. The built-in simulated recording is always `sim`.
+
+The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`.
+"""
+from __future__ import annotations
+
+import fnmatch
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import loaders
+from .calibration import BoardModel, calibrate
+from .types import Recording
+
+SIM_ID = "sim"
+_IMU_FILE = re.compile(r"imuRaw(\d+)\.(p|mat)$")
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where one recording's files are. `kind` is "course", "csv" or "sim"."""
+
+    id: str
+    kind: str
+    imu: Path | None = None
+    vicon: Path | None = None
+    cam: Path | None = None
+
+
+def data_dir_from(arg: str | os.PathLike | None = None) -> Path:
+    """`arg`, else `$FUSION_DATA`, else `./data`."""
+    return Path(arg or os.environ.get("FUSION_DATA") or "data")
+
+
+def _natural_key(text: str) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def _sibling(imu_dir: Path, folder: str, stem: str, number: str, suffix: str) -> Path | None:
+    for ext in (suffix, ".p", ".mat"):
+        path = imu_dir.parent / folder / f"{stem}{number}{ext}"
+        if path.is_file():
+            return path
+    return None
+
+
+def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
+    """Every recording below `data_dir`, by id, in natural order; `sim` always last.
+
+    A missing directory is not an error (a fresh clone has none): only `sim` is found.
+    """
+    root = data_dir_from(data_dir)
+    found: dict[str, Source] = {}
+    if root.is_dir():
+        for path in sorted(root.rglob("*")):
+            if not path.is_file():
+                continue
+            match = _IMU_FILE.match(path.name)
+            if match and path.parent.name == "imu":
+                folder = path.parent.parent.relative_to(root).as_posix()
+                prefix = root.resolve().name if folder == "." else folder
+                number, suffix = match.group(1), path.suffix
+                rid = f"{prefix}/{number}"
+                if rid in found:  # imuRaw3.p and imuRaw3.mat in one folder: keep the first
+                    continue
+                found[rid] = Source(
+                    rid, "course", path,
+                    vicon=_sibling(path.parent, "vicon", "viconRot", number, suffix),
+                    cam=_sibling(path.parent, "cam", "cam", number, suffix),
+                )
+            elif path.suffix.lower() == ".csv":
+                rid = path.relative_to(root).with_suffix("").as_posix()
+                found[rid] = Source(rid, "csv", path)
+    ordered = {k: found[k] for k in sorted(found, key=_natural_key)}
+    ordered[SIM_ID] = Source(SIM_ID, "sim")
+    return ordered
+
+
+def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[Source]:
+    """Sources for `all`, a comma list of ids, globs (`ece276a/*`) or paths to files.
+
+    `all` means every real recording found, or `sim` when there is none. Raises with the
+    list of available ids when a name matches nothing.
+    """
+    available = discover(data_dir)
+    real = [s for rid, s in available.items() if rid != SIM_ID]
+    chosen: list[Source] = []
+    for token in (tok.strip() for tok in selection.split(",")):
+        if not token:
+            continue
+        if token == "all":
+            matches = real or [available[SIM_ID]]
+        elif token in available:
+            matches = [available[token]]
+        elif any(ch in token for ch in "*?["):
+            matches = [s for rid, s in available.items() if fnmatch.fnmatchcase(rid, token)]
+        elif Path(token).is_file():
+            matches = [_source_for_file(Path(token))]
+        else:
+            matches = []
+        if not matches:
+            root = data_dir_from(data_dir)
+            names = ", ".join(available) if len(available) <= 30 else ", ".join(list(available)[:30]) + ", ..."
+            raise ValueError(f"dataset {token!r} not found in {root} (available: {names})")
+        chosen.extend(s for s in matches if s not in chosen)
+    if not chosen:
+        raise ValueError(f"dataset selection {selection!r} names no recording")
+    return chosen
+
+
+def _source_for_file(path: Path) -> Source:
+    match = _IMU_FILE.match(path.name)
+    if path.suffix.lower() == ".csv":
+        return Source(path.with_suffix("").as_posix(), "csv", path)
+    if match:
+        number = match.group(1)
+        return Source(
+            f"{path.parent.parent.name}/{number}", "course", path,
+            vicon=_sibling(path.parent, "vicon", "viconRot", number, path.suffix),
+            cam=_sibling(path.parent, "cam", "cam", number, path.suffix),
+        )
+    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat or .csv)")
+
+
+def load_imu(path: Path):
+    """Raw counts from a course IMU file, whichever release it comes from."""
+    return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
+
+
+def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
+    """Read and calibrate one recording."""
+    if source.kind == "sim":
+        from .sim import simulate
+
+        raw, truth = simulate(board=board)
+        calib = calibrate(raw, board)
+        return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
+    if source.kind == "csv":
+        imu, truth = loaders.load_csv(source.imu)
+        return Recording(source.id, imu, truth)
+    raw = load_imu(source.imu)
+    calib = calibrate(raw, board)
+    truth = loaders.load_vicon(source.vicon) if source.vicon else None
+    if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
+        raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
+    return Recording(source.id, calib.apply(raw), truth, raw, calib, camera=source.cam)
+
+
+def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
+    """One recording by id (e.g. `ece276a/3`, `sim`) or path."""
+    (source,) = select(dataset_id, data_dir)[:1]
+    return load_source(source, board)
+
+
+INIT_MODES = ("truth", "accel", "identity")
+
+
+def initial_orientation(recording: Recording, mode: str | None = None) -> np.ndarray:
+    """(4,) quat_wxyz every estimator starts from, at `recording.imu.t[0]`.
+
+    - `truth`: the ground truth at the first IMU sample inside its span (the default with truth);
+    - `accel`: tilt from the accelerometer averaged over the first rest, zero yaw (the default without);
+    - `identity`: what the seed reports did.
+    """
+    from scipy.spatial.transform import Rotation
+
+    mode = mode or ("truth" if recording.truth is not None else "accel")
+    if mode == "identity":
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    if mode == "truth":
+        if recording.truth is None:
+            raise ValueError(f"{recording.id}: --init truth needs ground truth, and this recording has none")
+        rot, mask = recording.truth.interpolate(recording.imu.t)
+        if rot is None:
+            raise ValueError(f"{recording.id}: no IMU sample falls inside the ground truth's span")
+        return rot[0].as_quat(scalar_first=True)
+    if mode == "accel":
+        calib = recording.calibration
+        stop = calib.rest_start[1] if calib is not None else min(len(recording.imu), 50)
+        up_body = recording.imu.acc_g[:stop].mean(axis=0)
+        # The rotation taking the measured up direction (body) to world z, with no yaw.
+        rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up_body])
+        yaw = rot.as_euler("ZYX")[0]
+        return (Rotation.from_euler("Z", -yaw) * rot).as_quat(scalar_first=True)
+    raise ValueError(f"unknown --init {mode!r}; use one of {', '.join(INIT_MODES)}")

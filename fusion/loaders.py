@@ -1,0 +1,249 @@
+"""Readers for every file format of the course recordings, and a generic CSV.
+
+Each loader turns one file layout into the canonical types of `fusion.types` and nothing
+else: IMU files become `RawImu` (native ADC counts, order ax ay az wx wy wz, no sign flip)
+or, for files in physical units, `ImuSamples`; VICON files become a `Trajectory`. Raw layouts
+(`7 x T`, `6 x T`, `3 x 3 x K`) are converted here and nowhere else.
+
+Formats (see `../shared/data/README.md`):
+- ECE276A `imuRawN.p`: float 7 x T; row 0 unix time, rows 1-6 ax ay az wx wy wz, with ax and
+  ay already negated by the course (`-raw`); undone here so all formats give the same counts.
+- ECE276A-2018 `imuRawN.p`: dict `vals` uint16 6 x T (ax ay az wz wx wy, not negated), `ts` 1 x T.
+- ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy, not negated), `ts` 1 x T.
+- VICON `viconRotN.p` / `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
+- Generic CSV (`load_csv`): a header line and columns `t` (s), `gx gy gz` (rad/s),
+  `ax ay az` (m/s^2), optionally `qw qx qy qz` (ground truth `R_world_body`).
+
+Pickles can run code when loaded: only open pickle files you trust. As a guard, pickles are
+read with a restricted unpickler that only builds numpy arrays and plain containers and
+refuses any other class.
+
+Every problem raises `ValueError` (or `FileNotFoundError`) naming the file, in one line.
+Time stamps that are not strictly increasing are repaired, with a warning saying how many
+samples were dropped, as long as the repair keeps most of the recording; otherwise rejected.
+"""
+from __future__ import annotations
+
+import io
+import pickle
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .types import ImuSamples, RawImu, Trajectory
+
+G = 9.80665  # m/s^2 per g (CSV files are in m/s^2)
+
+# Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
+# .mat and 2018 files.
+_FROM_AZ_WZ_WX_WY = [0, 1, 2, 4, 5, 3]
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    """Builds numpy arrays, dtypes and plain containers; refuses every other global."""
+
+    _ALLOWED = {
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.core.numeric", "_frombuffer"),
+        ("numpy._core.numeric", "_frombuffer"),
+        ("builtins", "dict"),
+        ("builtins", "list"),
+        ("builtins", "tuple"),
+        ("collections", "OrderedDict"),
+        ("_codecs", "encode"),
+    }
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in self._ALLOWED:
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name} (only numpy arrays and plain containers)")
+
+
+def _read_pickle(path: Path) -> Any:
+    data = _read_bytes(path)
+    try:
+        return _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
+    except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
+        raise ValueError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from None
+
+
+def _read_mat(path: Path) -> dict[str, Any]:
+    import scipy.io
+
+    _read_bytes(path)  # existence and emptiness checks with a clear message
+    try:
+        return scipy.io.loadmat(str(path))
+    except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
+        raise ValueError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: {exc})") from None
+
+
+def _read_bytes(path: Path) -> bytes:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    data = path.read_bytes()
+    if not data:
+        raise ValueError(f"{path}: file is empty")
+    return data
+
+
+def _field(obj: Any, key: str, path: Path) -> np.ndarray:
+    if not isinstance(obj, dict) or key not in obj:
+        have = sorted(k for k in obj if not str(k).startswith("__")) if isinstance(obj, dict) else type(obj).__name__
+        raise ValueError(f"{path}: expected a field {key!r}, found {have}")
+    return _numeric(obj[key], path, key)
+
+
+def _numeric(value: Any, path: Path, what: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise ValueError(f"{path}: {what} is not numeric (dtype {arr.dtype})")
+    return arr.astype(float)
+
+
+def _time_row(ts: np.ndarray, n: int, path: Path) -> np.ndarray:
+    t = np.ravel(ts)
+    if len(t) != n:
+        raise ValueError(f"{path}: {len(t)} time stamps for {n} samples")
+    return t
+
+
+def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Keep the samples whose stamp is finite and later than every earlier kept stamp.
+
+    Returns `(t, *arrays)` restricted to those samples; warns with the count it dropped.
+    Raises if fewer than half the samples (or fewer than 2) survive.
+    """
+    t = np.asarray(t, dtype=float)
+    if len(t) == 0:
+        raise ValueError(f"{path}: no samples")
+    finite = np.isfinite(t)
+    running_max = np.maximum.accumulate(np.where(finite, t, -np.inf))
+    keep = finite.copy()
+    keep[1:] &= t[1:] > running_max[:-1]
+    dropped = int(len(t) - keep.sum())
+    if keep.sum() < max(2, len(t) // 2):
+        raise ValueError(f"{path}: time stamps are not increasing ({dropped} of {len(t)} samples out of order or not finite)")
+    if dropped:
+        warnings.warn(f"{path}: dropped {dropped} samples with non-finite, duplicate or backwards time stamps", stacklevel=2)
+    return (t[keep], *(a[keep] for a in arrays))
+
+
+def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
+    if counts.ndim != 2 or counts.shape[0] < 2:
+        raise ValueError(f"{path}: IMU values must be a 6 x T array, got shape {counts.shape}")
+    if not np.all(np.isfinite(counts)):
+        raise ValueError(f"{path}: IMU values contain NaN or Inf")
+    t, counts = repair_time(t, path, counts)
+    return RawImu(t, counts, source=str(path))
+
+
+def load_imu_pickle(path: str | Path) -> RawImu:
+    """ECE276A `imuRawN.p`, either release (7 x T array, or the 2018 dict `vals`/`ts`)."""
+    path = Path(path)
+    obj = _read_pickle(path)
+    if isinstance(obj, dict):  # 2018 release: same layout as the .mat files
+        vals = _field(obj, "vals", path)
+        if vals.ndim != 2 or vals.shape[0] != 6:
+            raise ValueError(f"{path}: 'vals' must be 6 x T, got shape {vals.shape}")
+        return _raw_imu(_time_row(_field(obj, "ts", path), vals.shape[1], path), vals[_FROM_AZ_WZ_WX_WY].T, path)
+    if not isinstance(obj, np.ndarray):
+        raise ValueError(f"{path}: expected a 7 x T array or a dict with 'vals' and 'ts', found {type(obj).__name__}")
+    arr = _numeric(obj, path, "the array")
+    if arr.ndim != 2 or arr.shape[0] != 7:
+        raise ValueError(f"{path}: expected a 7 x T array (time + 6 channels), got shape {arr.shape}")
+    counts = arr[1:].T.copy()
+    counts[:, :2] *= -1.0  # this release negated ax and ay; back to native counts
+    return _raw_imu(arr[0], counts, path)
+
+
+def load_imu_mat(path: str | Path) -> RawImu:
+    """ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy), `ts` 1 x T."""
+    path = Path(path)
+    mat = _read_mat(path)
+    vals = _field(mat, "vals", path)
+    if vals.ndim != 2 or vals.shape[0] != 6:
+        raise ValueError(f"{path}: 'vals' must be 6 x T, got shape {vals.shape}")
+    return _raw_imu(_time_row(_field(mat, "ts", path), vals.shape[1], path), vals[_FROM_AZ_WZ_WX_WY].T, path)
+
+
+def load_vicon(path: str | Path) -> Trajectory:
+    """VICON `viconRotN.p` or `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
+
+    Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them.
+    """
+    path = Path(path)
+    obj = _read_mat(path) if path.suffix == ".mat" else _read_pickle(path)
+    rots = _field(obj, "rots", path)
+    if rots.ndim != 3 or rots.shape[:2] != (3, 3):
+        raise ValueError(f"{path}: 'rots' must be 3 x 3 x K, got shape {rots.shape}")
+    t = _time_row(_field(obj, "ts", path), rots.shape[2], path)
+    matrices = np.moveaxis(rots, 2, 0)  # (K, 3, 3)
+    t, matrices = repair_time(t, path, matrices)
+    return Trajectory(t, matrices_to_quat(matrices, path))
+
+
+def matrices_to_quat(matrices: np.ndarray, path: Path | str) -> np.ndarray:
+    """(K, 3, 3) rotation matrices -> (K, 4) wxyz; non-finite rows stay NaN.
+
+    Rejects matrices that are far from orthonormal (a wrong layout would be).
+    """
+    from scipy.spatial.transform import Rotation
+
+    quat = np.full((len(matrices), 4), np.nan)
+    good = np.all(np.isfinite(matrices), axis=(1, 2))
+    if not np.any(good):
+        raise ValueError(f"{path}: no finite rotation matrix")
+    m = matrices[good]
+    err = np.abs(np.einsum("kij,kil->kjl", m, m) - np.eye(3)).max()
+    if err > 1e-2:
+        raise ValueError(f"{path}: 'rots' are not rotation matrices (|R^T R - I| up to {err:.3g})")
+    quat[good] = Rotation.from_matrix(m).as_quat(scalar_first=True)
+    return quat
+
+
+CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
+CSV_TRUTH = ("qw", "qx", "qy", "qz")
+
+
+def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
+    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz]`.
+
+    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; the
+    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth).
+    """
+    path = Path(path)
+    text = _read_bytes(path).decode("utf-8", errors="replace").splitlines()
+    header = [h.strip().lower() for h in text[0].split(",")]
+    missing = [c for c in CSV_COLUMNS if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing CSV columns {', '.join(missing)} (need {','.join(CSV_COLUMNS)}[,{','.join(CSV_TRUTH)}])")
+    try:
+        table = np.loadtxt(text[1:], delimiter=",", ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: unreadable CSV row ({exc})") from None
+    if table.shape[0] < 2 or table.shape[1] != len(header):
+        raise ValueError(f"{path}: need at least 2 rows of {len(header)} columns, got shape {table.shape}")
+    col = {name: table[:, i] for i, name in enumerate(header)}
+    gyr = np.column_stack([col[c] for c in ("gx", "gy", "gz")])
+    acc = np.column_stack([col[c] for c in ("ax", "ay", "az")]) / G
+    if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
+        raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
+    has_truth = all(c in header for c in CSV_TRUTH)
+    quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
+    t, gyr, acc, quat = repair_time(col["t"], path, gyr, acc, quat)
+    imu = ImuSamples(t, gyr, acc, source=str(path))
+    if not has_truth:
+        return imu, None
+    norm = np.linalg.norm(quat, axis=1)
+    ok = np.isfinite(norm)
+    if np.any(np.abs(norm[ok] - 1.0) > 1e-3):
+        raise ValueError(f"{path}: truth quaternions (qw,qx,qy,qz) are not unit quaternions")
+    quat[ok] /= norm[ok, None]
+    return imu, Trajectory(t, quat)

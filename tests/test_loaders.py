@@ -1,0 +1,161 @@
+"""Loaders: the three formats agree on real recordings; broken files give one clear line."""
+import pickle
+import warnings
+
+import numpy as np
+import pytest
+import scipy.io
+
+from fusion import datasets, loaders
+
+NUMBERS = range(1, 10)
+
+
+@pytest.mark.parametrize("n", NUMBERS)
+def test_three_formats_give_identical_calibrated_samples(data_dir, n):
+    a = datasets.load(f"ece276a/{n}", data_dir)
+    b = datasets.load(f"ece276a-2018/{n}", data_dir)
+    c = datasets.load(f"ese650/{n}", data_dir)
+    for other in (b, c):
+        assert np.array_equal(a.raw.counts, other.raw.counts)
+        assert np.array_equal(a.imu.t, other.imu.t)
+        assert np.array_equal(a.imu.gyr_rad_s, other.imu.gyr_rad_s)
+        assert np.array_equal(a.imu.acc_g, other.imu.acc_g)
+    assert b.truth is None  # the 2018 release has no VICON; it still loads
+    np.testing.assert_allclose(a.truth.quat_wxyz, c.truth.quat_wxyz, equal_nan=True)
+
+
+def test_discovery_ids_and_order(data_dir):
+    ids = list(datasets.discover(data_dir))
+    assert [i for i in ids if i.startswith("ece276a/")] == [f"ece276a/{n}" for n in NUMBERS]  # natural order
+    assert ids[-1] == "sim"
+    assert set(f"ese650/{n}" for n in NUMBERS) <= set(ids)
+    # pointing at a course folder itself keeps its name in the ids
+    assert list(datasets.discover(data_dir / "ese650"))[:2] == ["ese650/1", "ese650/2"]
+    assert [s.id for s in datasets.select("ece276a/[12],ese650/3", data_dir)] == ["ece276a/1", "ece276a/2", "ese650/3"]
+
+
+@pytest.mark.parametrize("n", [6, 7])
+def test_vicon_gaps_are_kept_as_nan(data_dir, n):
+    truth = loaders.load_vicon(data_dir / f"ece276a/vicon/viconRot{n}.p")
+    missing = (~truth.valid).sum()
+    assert 100 < missing < 200  # the README: some 130 missing samples
+
+
+def test_canonical_counts_layout(data_dir):
+    raw = loaders.load_imu_mat(data_dir / "ese650/imu/imuRaw1.mat")
+    mat = scipy.io.loadmat(data_dir / "ese650/imu/imuRaw1.mat")
+    np.testing.assert_array_equal(raw.counts[:, 3], mat["vals"][4])  # wx is the 5th row of vals
+    np.testing.assert_array_equal(raw.counts[:, 5], mat["vals"][3])  # wz the 4th
+
+
+# --- broken files -------------------------------------------------------------------------
+
+def write_pickle(path, obj):
+    with open(path, "wb") as f:
+        pickle.dump(obj, f)
+    return path
+
+
+def good_array(n=300):
+    t = 1.3e9 + np.arange(n) * 0.01
+    vals = np.tile([-511.0, -501.0, 605.0, 373.0, 375.0, 369.0], (n, 1)).T
+    return np.vstack([t, vals])
+
+
+def test_good_synthetic_pickle_loads(tmp_path):
+    raw = loaders.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", good_array()))
+    assert raw.counts.shape == (300, 6)
+    assert raw.counts[0, 0] == 511.0  # the release's negation undone
+
+
+@pytest.mark.parametrize("obj, message", [
+    (np.zeros((6, 10)), "expected a 7 x T array"),
+    ({"ts": np.zeros((1, 5))}, "expected a field 'vals'"),
+    ({"vals": np.zeros((5, 5)), "ts": np.zeros((1, 5))}, "'vals' must be 6 x T"),
+    ({"vals": np.zeros((6, 5)), "ts": np.zeros((1, 4))}, "4 time stamps for 5 samples"),
+    ("a string", "expected a 7 x T array or a dict"),
+    (np.array([["a"] * 5] * 7), "not numeric"),
+])
+def test_wrong_structure_pickles(tmp_path, obj, message):
+    path = write_pickle(tmp_path / "imuRaw1.p", obj)
+    with pytest.raises(ValueError, match=message) as info:
+        loaders.load_imu_pickle(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_truncated_and_empty_files(tmp_path):
+    data = pickle.dumps(good_array())
+    (tmp_path / "cut.p").write_bytes(data[: len(data) // 2])
+    (tmp_path / "empty.p").write_bytes(b"")
+    (tmp_path / "cut.mat").write_bytes(b"MATLAB 5.0 MAT-file" + b"\0" * 50)
+    with pytest.raises(ValueError, match="not a readable pickle"):
+        loaders.load_imu_pickle(tmp_path / "cut.p")
+    with pytest.raises(ValueError, match="file is empty"):
+        loaders.load_imu_pickle(tmp_path / "empty.p")
+    with pytest.raises(ValueError, match="not a readable MATLAB file"):
+        loaders.load_imu_mat(tmp_path / "cut.mat")
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        loaders.load_imu_mat(tmp_path / "missing.mat")
+
+
+def test_restricted_unpickler_refuses_code(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    path = write_pickle(tmp_path / "imuRaw1.p", Evil())
+    with pytest.raises(ValueError, match="refusing to load builtins.print"):
+        loaders.load_imu_pickle(path)
+
+
+def test_nan_time_stamps_and_values(tmp_path):
+    arr = good_array()
+    arr[0, :] = np.nan
+    with pytest.raises(ValueError, match="time stamps are not increasing"):
+        loaders.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
+    arr = good_array()
+    arr[3, 10] = np.inf
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        loaders.load_imu_pickle(write_pickle(tmp_path / "b.p", arr))
+
+
+def test_duplicate_and_backward_stamps_are_repaired_with_a_warning(tmp_path):
+    arr = good_array()
+    arr[0, 100] = arr[0, 99]  # duplicate
+    arr[0, 200] = arr[0, 150]  # backwards
+    with pytest.warns(UserWarning, match="dropped 2 samples"):
+        raw = loaders.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
+    assert len(raw.t) == 298 and np.all(np.diff(raw.t) > 0)
+
+
+def test_vicon_wrong_layout(tmp_path):
+    path = write_pickle(tmp_path / "viconRot1.p", {"rots": np.random.default_rng(0).normal(size=(3, 3, 20)), "ts": np.arange(20.0)[None]})
+    with pytest.raises(ValueError, match="not rotation matrices"):
+        loaders.load_vicon(path)
+
+
+def test_csv_roundtrip_and_errors(tmp_path):
+    n = 50
+    t = np.arange(n) * 0.01
+    rows = np.column_stack([t, np.full((n, 3), 0.1), np.tile([0, 0, 9.80665], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1))])
+    path = tmp_path / "walk.csv"
+    np.savetxt(path, rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz", comments="")
+    imu, truth = loaders.load_csv(path)
+    np.testing.assert_allclose(imu.acc_g[:, 2], 1.0)
+    assert truth is not None and len(truth) == n
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,gx\n0,1\n")
+    with pytest.raises(ValueError, match="missing CSV columns t, gy"):
+        loaders.load_csv(bad)
+
+
+def test_vicon_without_overlap(tmp_path):
+    arr = good_array()
+    imu_dir, vicon_dir = tmp_path / "lab" / "imu", tmp_path / "lab" / "vicon"
+    imu_dir.mkdir(parents=True)
+    vicon_dir.mkdir()
+    write_pickle(imu_dir / "imuRaw1.p", arr)
+    write_pickle(vicon_dir / "viconRot1.p", {"rots": np.tile(np.eye(3)[..., None], (1, 1, 10)), "ts": (arr[0, -1] + 100 + np.arange(10.0))[None]})
+    with pytest.raises(ValueError, match="does not overlap"):
+        datasets.load("lab/1", tmp_path)
