@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf
 
 _SQRT_FLOOR = 0.0
 
@@ -26,6 +27,37 @@ def exp_quat(vx: float, vy: float, vz: float) -> tuple[float, float, float, floa
         return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
     s = math.sin(0.5 * angle) / angle
     return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+
+
+def mul_floats(a: tuple, b: tuple) -> tuple[float, float, float, float]:
+    """Hamilton product of two quaternions given as 4 floats each (no array overhead)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def unit_array(q: tuple) -> np.ndarray:
+    """(4,) array of a quaternion given as floats, renormalised."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return np.array((w / n, x / n, y / n, z / n))
+
+
+def inv_sym3(s: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric 3x3 matrix by its adjugate (numpy.linalg.inv costs more here).
+
+    The caller guarantees positive definiteness (a covariance plus R > 0).
+    """
+    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    return np.array(((A, B, C), (B, D, E), (C, E, F))) / det
 
 
 def right_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
@@ -41,10 +73,12 @@ def left_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
 def exp_batch(v: np.ndarray) -> np.ndarray:
     """`exp([0, v / 2])` of (m, 3) rotation vectors -> (m, 4) quaternions. Exact at 0."""
     angle = np.sqrt(np.einsum("ij,ij->i", v, v))
+    half = 0.5 * angle
     out = np.empty((len(v), 4))
-    out[:, 0] = np.cos(0.5 * angle)
-    # sin(a/2)/a via np.sinc (= sin(pi x)/(pi x)), which is 1/2 at a = 0: no division by zero.
-    out[:, 1:] = v * (0.5 * np.sinc(angle * (0.5 / np.pi)))[:, None]
+    out[:, 0] = np.cos(half)
+    # sin(a/2)/a, which is 1/2 at a = 0: divide only where a > 0 (no division by zero).
+    ratio = np.divide(np.sin(half), angle, out=np.full(len(v), 0.5), where=angle > 0.0)
+    out[:, 1:] = v * ratio[:, None]
     return out
 
 
@@ -54,25 +88,30 @@ def log_batch(q: np.ndarray) -> np.ndarray:
     q and -q give the same vector (the sign of w is folded in), so the angle lies in
     [0, pi]: every error is wrapped to the representative nearest the identity (seed step 5).
     """
-    w = q[:, 0]
     vec = q[:, 1:]
     s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
-    sign = np.where(w < 0.0, -1.0, 1.0)
-    # angle = 2 atan2(s, |w|); angle / s -> 2 / |w| as s -> 0 (|w| ~ 1 there).
-    aw = np.abs(w)
-    safe = s > 1e-12
-    scale = np.where(safe, 2.0 * np.arctan2(s, aw) / np.where(safe, s, 1.0), 2.0 / np.maximum(aw, 1e-300))
-    return vec * (sign * scale)[:, None]
+    w = q[:, 0]
+    # angle / s = 2 atan2(s, |w|) / s; for s -> 0 atan2(s, |w|) = s / |w| in floating point,
+    # so the floor on s only matters at s == 0, where vec is 0 anyway (no division by zero).
+    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
+    return vec * np.copysign(scale, w)[:, None]
+
+
+# g_j(q) = q^T G_j q for the three components of R(q)^T e_z (one matmul + one einsum).
+_GRAVITY_FORMS = np.zeros((4, 3, 4))
+_GRAVITY_FORMS[[3, 1, 2, 0], 0, [1, 3, 0, 2]] = [1.0, 1.0, -1.0, -1.0]  # 2 (xz - wy)
+_GRAVITY_FORMS[[3, 2, 1, 0], 1, [2, 3, 0, 1]] = 1.0  # 2 (yz + wx)
+_GRAVITY_FORMS[[0, 1, 2, 3], 2, [0, 1, 2, 3]] = [1.0, -1.0, -1.0, 1.0]  # w^2 - x^2 - y^2 + z^2
+_GRAVITY_FORMS = _GRAVITY_FORMS.reshape(4, 12)
 
 
 def gravity_batch(q: np.ndarray) -> np.ndarray:
-    """World up in the body frame, `R(q)^T e_z`, for (m, 4) quaternions -> (m, 3), g."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    out = np.empty((len(q), 3))
-    out[:, 0] = 2.0 * (x * z - w * y)
-    out[:, 1] = 2.0 * (y * z + w * x)
-    out[:, 2] = w * w - x * x - y * y + z * z
-    return out
+    """World up in the body frame, `R(q)^T e_z`, for (m, 4+) quaternions -> (m, 3), g.
+
+    Only columns 0-3 (wxyz) are read, so a state array `[q, b]` can be passed directly.
+    """
+    q = q[:, :4]
+    return np.einsum("mjk,mk->mj", (q @ _GRAVITY_FORMS).reshape(len(q), 3, 4), q)
 
 
 def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -83,11 +122,11 @@ def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
     recovery: symmetrise, clip negative eigenvalues to zero and return `V sqrt(lambda)`,
     a square root of the nearest PSD matrix. Returns `(L, recovered)`.
     """
-    try:
-        return np.linalg.cholesky(a), False
-    except np.linalg.LinAlgError:
-        lam, vec = np.linalg.eigh(0.5 * (a + a.T))
-        return vec * np.sqrt(np.maximum(lam, _SQRT_FLOOR)), True
+    c, info = dpotrf(a, lower=1, clean=1)  # LAPACK Cholesky, without numpy.linalg's overhead
+    if info == 0:
+        return c, False
+    lam, vec = np.linalg.eigh(0.5 * (a + a.T))
+    return vec * np.sqrt(np.maximum(lam, _SQRT_FLOOR)), True
 
 
 def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, bool]:
@@ -99,13 +138,11 @@ def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, 
     p = 0.5 * (p + p.T)
     if not np.all(np.isfinite(p)):
         return np.eye(len(p)) * 1e-2, True
-    # Cheap test first: a Cholesky succeeds for SPD matrices.
-    try:
-        np.linalg.cholesky(p)
+    # Cheap test first: a Cholesky succeeds exactly for SPD matrices.
+    if dpotrf(p, lower=1)[1] == 0:
         return p, False
-    except np.linalg.LinAlgError:
-        lam, vec = np.linalg.eigh(p)
-        return (vec * np.maximum(lam, floor)) @ vec.T, True
+    lam, vec = np.linalg.eigh(p)
+    return (vec * np.maximum(lam, floor)) @ vec.T, True
 
 
 def skew(v: np.ndarray) -> np.ndarray:

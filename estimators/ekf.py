@@ -36,7 +36,7 @@ import numpy as np
 
 from fusion.types import ImuSamples
 
-from ._attitude import acc_variance_scale, exp_quat, left_matrix, repair_covariance
+from ._attitude import acc_variance_scale, exp_quat, inv_sym3, mul_floats, repair_covariance, unit_array
 from .base import RecursiveEstimator
 from .ukf import Gate, _check_nonneg
 
@@ -55,14 +55,14 @@ class EKFParams:
     """
 
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=1e-1, metadata={"alias": "R"})
+    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     bias_walk_rad2_s3: float = field(default=1e-6, metadata={"alias": "Qb"})
     init_bias_var_rad2_s2: float = field(default=1e-4, metadata={"alias": "Pb0"})
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "inflate"
-    gate_g: float = 0.1
+    gate_g: float = 0.05
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
 
     def __post_init__(self) -> None:
@@ -141,14 +141,14 @@ class EKF(RecursiveEstimator):
         p = self.params
         Q = self._Qrate * dt_s
         F = self._F
-        q, b = self.q, self.b
+        q, b = self.q.tolist(), self.b
         if gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2]):
             tx, ty, tz = (gyr_rad_s - b) * dt_s if p.estimate_bias else gyr_rad_s * dt_s
         else:  # no rate integration; inflate the attitude noise instead
             tx = ty = tz = 0.0
             Q = Q + self._Qbad * (dt_s * dt_s)
         d = exp_quat(tx, ty, tz)
-        q = left_matrix(q[0], q[1], q[2], q[3]) @ np.array(d)  # q exp(theta / 2)
+        q = mul_floats(q, d)  # q exp(theta / 2), as 4 floats
         F[:3, :3] = _rotation_matrix(*d).T  # Sola eq. 268
         if self.n == 6:
             F[:3, 3:] = -dt_s * _right_jacobian(tx, ty, tz)
@@ -164,16 +164,16 @@ class EKF(RecursiveEstimator):
             R = self._R * scale
             PHt = P @ H.T
             S = H @ PHt + R
-            K = PHt @ np.linalg.inv(S)
+            K = PHt @ inv_sym3(S)
             dx = K @ (acc_g - h)
-            q = left_matrix(q[0], q[1], q[2], q[3]) @ np.array(exp_quat(dx[0], dx[1], dx[2]))
+            q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
             if self.n == 6:
                 self.b = b + dx[3:]
             IKH = self._I - K @ H
             P = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
         else:
             self.n_skipped += 1
-        self.q = q / math.sqrt(q @ q)
+        self.q = unit_array(q)
         self.P, repaired = repair_covariance(P)
         self.n_cov_repaired += repaired
         self._cov[k + 1] = self.P

@@ -85,11 +85,14 @@ from ._attitude import (
     exp_batch,
     exp_quat,
     gravity_batch,
+    inv_sym3,
     left_matrix,
+    mul_floats,
     log_batch,
     repair_covariance,
     right_matrix,
     sqrt_psd,
+    unit_array,
 )
 from .base import RecursiveEstimator
 
@@ -154,7 +157,7 @@ class UKFParams:
     """
 
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=1e-1, metadata={"alias": "R"})
+    acc_noise_g2: float = field(default=1e-2, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     sigma: Sigma = "kraft"
     kappa: float = 1.0
@@ -191,7 +194,7 @@ class UKFBiasParams:
     """
 
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=1e-1, metadata={"alias": "R"})
+    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     bias_walk_rad2_s3: float = field(default=1e-6, metadata={"alias": "Qb"})
     init_bias_var_rad2_s2: float = field(default=1e-4, metadata={"alias": "Pb0"})
@@ -201,7 +204,7 @@ class UKFBiasParams:
     beta: float = 2.0
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "inflate"
-    gate_g: float = 0.1
+    gate_g: float = 0.05
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
     mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
     mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
@@ -302,7 +305,7 @@ def quaternion_mean(
     Returns `(mean (4,), residuals (m, 3) rad about the mean, iterations used)`; when the
     cap is hit the last iterate is returned (the caller counts it).
     """
-    qw, qx, qy, qz = (float(v) for v in start)
+    qw, qx, qy, qz = start.tolist()
     for it in range(1, max_iter + 1):
         err = log_batch(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
         e = weights @ err
@@ -382,6 +385,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self.x[0] = 1.0
         self._offsets = np.zeros((2 * n + 1, n))
         self._residuals = np.zeros((2 * n + 1, n))
+        self._Wc_col = self.Wc[:, None].copy()
         self.mean_iterations = 0
         self.sqrt_recovered = False
 
@@ -443,30 +447,28 @@ class QuaternionUKF(UnscentedKalmanFilter):
             self.x = np.concatenate([q, bm])
         else:
             self.x = q
-        self.P = res.T @ (self.Wc[:, None] * res)  # step 5: P_pred (Q entered in step 2)
+        self.P = res.T @ (self._Wc_col * res)  # step 5: P_pred (Q entered in step 2)
         self.x_prior = self.x
         self.P_prior = self.P
 
     def update(self, z: np.ndarray, R: np.ndarray) -> None:  # type: ignore[override]
         """Seed steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
-        Wm, Wc, res = self.Wm, self.Wc, self._residuals
         Z = gravity_batch(self.sigmas_f)  # step 6 (reads columns 0-3)
-        zp = Wm @ Z  # step 7
+        zp = self.Wm @ Z  # step 7
         dZ = Z - zp
-        WdZ = Wc[:, None] * dZ
+        WdZ = self._Wc_col * dZ
         S = dZ.T @ WdZ + R  # step 8: P_zz
-        Pxz = res.T @ WdZ  # step 8: P_xz
-        K = Pxz @ np.linalg.inv(S)  # step 9
+        Pxz = self._residuals.T @ WdZ  # step 8: P_xz
+        K = Pxz @ inv_sym3(S)  # step 9
         y = z - zp
-        dx = K @ y
+        dx = (K @ y).tolist()
         x = self.x
-        q = left_matrix(x[0], x[1], x[2], x[3]) @ np.array(exp_quat(dx[0], dx[1], dx[2]))  # step 9
-        q /= math.sqrt(q @ q)
+        q = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
         if self.has_bias:
             self.x = np.concatenate([q, x[4:] + dx[3:]])
         else:
             self.x = q
-        self.P = self.P - K @ S @ K.T
+        self.P = self.P - Pxz @ K.T  # step 9: P - K P_zz K^T, with K P_zz = P_xz
         self.K, self.S, self.y = K, S, y
 
     # -- reference path: FilterPy hooks, one point at a time --
