@@ -57,12 +57,13 @@ class EKFParams:
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
     acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    bias_walk_rad2_s3: float = field(default=1e-6, metadata={"alias": "Qb"})
-    init_bias_var_rad2_s2: float = field(default=1e-4, metadata={"alias": "Pb0"})
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
+    heading_free: bool = field(default=True, metadata={"alias": "hf"})
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "inflate"
-    gate_g: float = 0.05
+    gate_g: float = 0.2
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
 
     def __post_init__(self) -> None:
@@ -165,6 +166,12 @@ class EKF(RecursiveEstimator):
             PHt = P @ H.T
             S = H @ PHt + R
             K = PHt @ inv_sym3(S)
+            if p.heading_free:
+                # Remove the attitude correction about the predicted vertical h (|h| = 1):
+                # K <- (I - h h^T) K on the attitude rows; the Joseph form stays exact.
+                K[:3] -= np.outer(h, h @ K[:3])
+                if self.n == 6:
+                    K[3:] -= np.outer(h, h @ K[3:])
             dx = K @ (acc_g - h)
             q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
             if self.n == 6:

@@ -128,6 +128,11 @@ def _check_common(p: Any, owner: str) -> None:
         raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {p.mean_max_iter!r}")
     if p.impl not in ("lean", "filterpy"):
         raise ValueError(f"{owner}: impl must be lean or filterpy, got {p.impl!r}")
+    if p.impl == "filterpy" and p.heading_free:
+        raise ValueError(
+            f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
+            "use heading_free=false (hf=false) with it"
+        )
     # Builds the sigma-point weights once, so an impossible scheme fails here, not mid-run.
     QuaternionSigmaPoints(6 if hasattr(p, "bias_walk_rad2_s3") else 3, p.sigma, p.kappa, p.alpha, p.beta)
 
@@ -166,6 +171,7 @@ class UKFParams:
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "off"
     gate_g: float = 0.1
+    heading_free: bool = field(default=False, metadata={"alias": "hf"})
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
     mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
     mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
@@ -196,15 +202,16 @@ class UKFBiasParams:
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
     acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    bias_walk_rad2_s3: float = field(default=1e-6, metadata={"alias": "Qb"})
-    init_bias_var_rad2_s2: float = field(default=1e-4, metadata={"alias": "Pb0"})
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
     sigma: Sigma = "kraft"
     kappa: float = 1.0
     alpha: float = 1.0
     beta: float = 2.0
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "inflate"
-    gate_g: float = 0.05
+    gate_g: float = 0.2
+    heading_free: bool = field(default=True, metadata={"alias": "hf"})
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
     mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
     mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
@@ -388,6 +395,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self._Wc_col = self.Wc[:, None].copy()
         self.mean_iterations = 0
         self.sqrt_recovered = False
+        self.heading_free = False
 
     # -- models (per point, used by the reference path) --
     def fx_rotate(self, x: np.ndarray, dt: float, gyr_rad_s: np.ndarray) -> np.ndarray:
@@ -460,6 +468,17 @@ class QuaternionUKF(UnscentedKalmanFilter):
         S = dZ.T @ WdZ + R  # step 8: P_zz
         Pxz = self._residuals.T @ WdZ  # step 8: P_xz
         K = Pxz @ inv_sym3(S)  # step 9
+        if self.heading_free:
+            # Not in the seed: drop the correction about the predicted vertical (see UKFBiasParams).
+            h = zp / math.sqrt(zp @ zp)
+            K[:3] -= np.outer(h, h @ K[:3])
+            if self.has_bias:
+                K[3:] -= np.outer(h, h @ K[3:])
+            # Covariance for a general gain: P - K Pxz^T - Pxz K^T + K S K^T.
+            KPxz = K @ Pxz.T
+            self.P = self.P - KPxz - KPxz.T + K @ S @ K.T
+        else:
+            self.P = self.P - Pxz @ K.T  # step 9: P - K P_zz K^T, with K P_zz = P_xz
         y = z - zp
         dx = (K @ y).tolist()
         x = self.x
@@ -468,7 +487,6 @@ class QuaternionUKF(UnscentedKalmanFilter):
             self.x = np.concatenate([q, x[4:] + dx[3:]])
         else:
             self.x = q
-        self.P = self.P - Pxz @ K.T  # step 9: P - K P_zz K^T, with K P_zz = P_xz
         self.K, self.S, self.y = K, S, y
 
     # -- reference path: FilterPy hooks, one point at a time --
@@ -501,6 +519,7 @@ class UKF(RecursiveEstimator):
         n = 6 if self.with_bias else 3
         points = QuaternionSigmaPoints(n, p.sigma, p.kappa, p.alpha, p.beta)
         kf = QuaternionUKF(points, p.mean_tol_rad, p.mean_max_iter)
+        kf.heading_free = p.heading_free
         kf.x = np.concatenate([q0 / np.linalg.norm(q0), np.zeros(n - 3)])
         P0 = np.zeros((n, n))
         P0[:3, :3] = np.eye(3) * p.init_var_rad2

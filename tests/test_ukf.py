@@ -163,6 +163,26 @@ def test_registry_and_aliases():
     assert UKFParams.seed().acc_noise_g2 == 1e-4
 
 
+def test_filterpy_impl_refuses_heading_free():
+    with pytest.raises(ValueError, match="heading_free"):
+        UKFBiasParams(impl="filterpy")
+
+
+@pytest.mark.parametrize("spec", ["ukf:hf=true", "ukf-bias", "ekf"])
+def test_heading_free_update_does_not_turn_about_the_vertical(spec):
+    # One step with zero rate and a tilted accelerometer reading: the correction must be a
+    # rotation about a horizontal (world) axis, i.e. leave the heading unchanged.
+    t = np.array([0.0, 0.01])
+    q0 = quat.normalize(np.array([0.9, 0.2, -0.3, 0.25]))
+    g = quat.gravity_in_body(q0)
+    acc = np.stack([g, quat.normalize(g + np.array([0.05, -0.08, 0.02]))])
+    imu = ImuSamples(t, np.zeros((2, 3)), acc)
+    est = build(spec + ("," if ":" in spec else ":") + "P0=1e-2").estimate(imu, q0)
+    world_step = quat.to_rotvec(quat.multiply(est.quat_wxyz[1], quat.conjugate(q0)))
+    assert np.linalg.norm(world_step) > 1e-3  # the update did something
+    assert abs(world_step[2]) < 1e-6 * np.linalg.norm(world_step) + 1e-12
+
+
 def test_bad_initial_quaternion_raises():
     imu, truth = synthetic(20)
     with pytest.raises(ValueError, match="init_quat_wxyz"):
@@ -193,8 +213,9 @@ def test_lean_step_equals_filterpy_reference(cls):
     imu, truth = synthetic(300, noise=0.02, bias=(0.02, -0.01, 0.03))
     # The lean step takes the residuals about the final mean to first order in the last
     # mean update (< mean_tol_rad); with a tight tolerance both paths agree to rounding.
-    a = cls(cls.Params(mean_tol_rad=1e-14)).estimate(imu, truth[0])
-    b = cls(cls.Params(impl="filterpy", mean_tol_rad=1e-14)).estimate(imu, truth[0])
+    # FilterPy's update has no gain projection, so heading_free is off for both.
+    a = cls(cls.Params(mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
+    b = cls(cls.Params(impl="filterpy", mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
     assert np.allclose(a.quat_wxyz, b.quat_wxyz, rtol=0, atol=1e-12)
     assert np.allclose(a.diagnostics["cov"], b.diagnostics["cov"], rtol=0, atol=1e-14)
 
