@@ -168,7 +168,7 @@ class UKFParams:
     calibration, --init truth, mean RMSE inclination / total (deg):
         Q = 1e-4: R = 1e-3 2.11/17.4, R = 1e-2 3.14/17.1
         Q = 1e-3: R = 1e-4 2.70/38.2 (*), 1e-3 2.26/22.7, 3e-3 2.09/18.4, 1e-2 2.11/17.4 (default),
-                  3e-2 2.42/16.7, 1e-1 4.54/21.1 (*)
+                  3e-2 2.42/16.7, 1e-1 3.14/17.1
         Q = 1e-2: R = 1e-4 2.98/56.2 (the seed), 1e-2 2.27/22.7, 3e-2 2.10/18.5, 1e-1 2.10/17.6
     (* measured with a provisional calibration before the spine landed.) Equal Q/R give equal scores;
     Q/R = 0.1-0.3 /s is the plateau of inclination, 0.1 /s keeps the total under 18 deg.

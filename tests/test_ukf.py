@@ -41,10 +41,6 @@ def inclination_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
-def angle_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
-    return np.degrees(np.linalg.norm(quat.relative_rotvec(q_true, q_est), axis=1))
-
-
 # ---------------------------------------------------------------- helpers cross-checked
 def test_lean_helpers_match_fusion_quaternion():
     rng = np.random.default_rng(1)
