@@ -7,6 +7,9 @@ from __future__ import annotations
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
 from .ekf import EKF
+from .peers import (  # optional libraries, imported when built: pip install -e '.[peers]'
+    AhrsEKFPeer, BasicVQFPeer, FusionPeer, MadgwickPeer, MahonyPeer, OfflineVQFPeer, VQFPeer,
+)
 from .params import EstimatorSpec, make_params, parse_specs
 from .ukf import UKF, UKFBias
 
@@ -15,6 +18,13 @@ ESTIMATORS: dict[str, type[Estimator]] = {
     "ukf": UKF,
     "ukf-bias": UKFBias,
     "ekf": EKF,
+    "vqf": VQFPeer,
+    "vqf-basic": BasicVQFPeer,
+    "vqf-offline": OfflineVQFPeer,
+    "madgwick": MadgwickPeer,
+    "mahony": MahonyPeer,
+    "ahrs-ekf": AhrsEKFPeer,
+    "fusion-ahrs": FusionPeer,
 }
 
 
