@@ -6,7 +6,7 @@ convention as `ukf`), covariance P (6x6; 3x3 with `estimate_bias=False`).
 
 Predict (gyro as control input, as in `ukf` step 1):
     theta = (w - b) dt,  q <- q exp(theta / 2)
-    F = [[R(theta)^T, -J_r(theta) dt], [0, I]]          (Sola 2017, eq. 268-269; analytic)
+    F = [[R(theta)^T, -J_r(theta) dt], [0, I]]          (Sola 2017, error-state kinematics; analytic)
     P <- F P F^T + diag(Q dt I, Qb dt I)
 Update (accelerometer = gravity in the body frame, as in `ukf` steps 6-7):
     h(q) = R(q)^T e_z,  H = [[h]x, 0]                    (exp(e)^T h ~ h + h x e)
@@ -100,7 +100,7 @@ def _rotation_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
 
 
 def _right_jacobian(tx: float, ty: float, tz: float) -> np.ndarray:
-    """SO(3) right Jacobian J_r(theta) (Sola 2017, eq. 143); I - [theta]x / 2 near 0."""
+    """SO(3) right Jacobian J_r(theta) (Sola 2017, the SO(3) right Jacobian); I - [theta]x / 2 near 0."""
     a2 = tx * tx + ty * ty + tz * tz
     S = np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])
     if a2 < 1e-12:
@@ -154,7 +154,7 @@ class EKF(RecursiveEstimator):
             Q = Q + self._Qbad * (dt_s * dt_s)
         d = exp_quat(tx, ty, tz)
         q = mul_floats(q, d)  # q exp(theta / 2), as 4 floats
-        F[:3, :3] = _rotation_matrix(*d).T  # Sola eq. 268
+        F[:3, :3] = _rotation_matrix(*d).T  # Sola 2017: error transition R(theta)^T
         if self.n == 6:
             F[:3, 3:] = -dt_s * _right_jacobian(tx, ty, tz)
         P = F @ self.P @ F.T + Q

@@ -7,19 +7,20 @@ State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, ra
 1. control input: the gyro, `q_delta = exp(w dt / 2)` (with `w - b_i` per sigma point for
    `ukf-bias`);
 2. sigma points: the columns of `+-sqrt(c (P + Q))` (Kraft: c = n, 2n points, equal weights;
-   process noise enters *before* the transform, Kraft 2003 eq. 29-31);
+   process noise enters *before* the transform, as in Kraft 2003);
 3. each turned into a quaternion by the exponential map, `X_i = q exp(W_i / 2)`;
-4. propagated, `Y_i = X_i q_delta` (Kraft eq. 33-34);
+4. propagated, `Y_i = X_i q_delta`;
 5. the iterative quaternion mean: error rotation vectors `e_i = log(q_t^-1 Y_i)`, wrapped
    to the shortest rotation (angle in [0, pi], so q and -q agree), averaged with the mean
    weights and re-applied, `q_t <- q_t exp(e/2)`, until `|e| < mean_tol_rad` or
-   `mean_max_iter` iterations (Kraft eq. 52-56); `P_pred = sum Wc e_i e_i^T`;
+   `mean_max_iter` iterations (Kraft's gradient-descent mean); `P_pred = sum Wc e_i e_i^T`;
 6. predicted measurement per sigma point: gravity in the body frame `Z_i = R(Y_i)^T e_z`
-   (Kraft eq. 37, the accelerometer part);
+   (the accelerometer part of Kraft's measurement model);
 7. its mean `z = sum Wm Z_i`;
-8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R`, `P_xz = sum Wc e_i (Z_i - z)^T` (eq. 68-70);
+8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R`, `P_xz = sum Wc e_i (Z_i - z)^T`;
 9. gain `K = P_xz P_zz^-1`, update through the exponential map `q <- q exp(K (a - z) / 2)`,
-   `P <- P_pred - K P_zz K^T` (eq. 72-75).
+   `P <- P_pred - K P_zz K^T`.
+Kraft's equation numbers are not cited: the code follows the seed report's step numbers.
 
 What FilterPy (2.0.0) provides and what is replaced
 ----------------------------------------------------
@@ -327,7 +328,7 @@ class QuaternionSigmaPoints:
 def quaternion_mean(
     quats: np.ndarray, weights: np.ndarray, start: np.ndarray, tol: float = 1e-9, max_iter: int = 20
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Iterative weighted mean of unit quaternions (seed step 5; Kraft 2003 eq. 52-56).
+    """Iterative weighted mean of unit quaternions (seed step 5; Kraft 2003).
 
     quats: (m, 4) wxyz; weights: (m,) summing to 1, >= 0; start: (4,) first guess.
     Repeats `e_i = log(q_t^-1 q_i)` (wrapped: q_i and -q_i give the same e_i),
