@@ -34,10 +34,8 @@ import time
 import numpy as np
 
 from fusion import quaternion as quat
-from fusion.types import ImuSamples, Trajectory
 
-from .base import Estimator
-from .gn import SmootherParams, initial_trajectory, problem_valid, progress_bar
+from .gn import BatchSmoother, SmootherParams, progress_bar
 from .smoother_cost import SmootherProblem
 
 ARMIJO = 0.5
@@ -73,15 +71,11 @@ class GDParams(SmootherParams):
             raise ValueError(f"halvings={self.halvings}: must be at least 1")
 
 
-class GradientDescentSmoother(Estimator):
+class GradientDescentSmoother(BatchSmoother):
     """Whole-trajectory smoother by projected gradient descent (the seeds' method, analytic gradients)."""
 
     Params = GDParams
-    causal = False
     name = "gd"
-
-    def problem(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> SmootherProblem:
-        return SmootherProblem.from_imu(imu, init_quat_wxyz, self.params.weights(), use_valid=self.params.use_gyr_valid)
 
     def _candidate(self, q: np.ndarray, direction: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         a = alpha[:, None]
@@ -90,15 +84,6 @@ class GradientDescentSmoother(Estimator):
         else:
             out = q + a * direction
         return quat.normalize(out)  # exact no-op up to rounding for "geodesic"
-
-    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        p = self.params
-        if len(imu) < 2:
-            raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
-        problem = self.problem(imu, init_quat_wxyz)
-        q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
-        q, diagnostics = self.solve(problem, q)
-        return Trajectory(imu.t, q, diagnostics=diagnostics)
 
     def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
         """Projected gradient descent from q (T, 4) unit quaternions; returns (q, diagnostics)."""

@@ -155,12 +155,13 @@ def theta_posterior_std(lin) -> np.ndarray:
     return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))
 
 
-class GaussNewtonSmoother(Estimator):
-    """Whole-trajectory smoother: manifold Levenberg-Marquardt on block-tridiagonal normal equations."""
+class BatchSmoother(Estimator):
+    """What `gn` and `gd` share: the problem set-up, the start trajectory and `estimate`;
+    each supplies `solve(problem, q) -> (q, diagnostics)`."""
 
     Params = SmootherParams
     causal = False
-    name = "gn"
+    name = ""
 
     def problem(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> SmootherProblem:
         return SmootherProblem.from_imu(imu, init_quat_wxyz, self.params.weights(), use_valid=self.params.use_gyr_valid)
@@ -173,6 +174,15 @@ class GaussNewtonSmoother(Estimator):
         q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
         q, diagnostics = self.solve(problem, q)
         return Trajectory(imu.t, q, diagnostics=diagnostics)
+
+    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
+        raise NotImplementedError
+
+
+class GaussNewtonSmoother(BatchSmoother):
+    """Whole-trajectory smoother: manifold Levenberg-Marquardt on block-tridiagonal normal equations."""
+
+    name = "gn"
 
     def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
         """Levenberg-Marquardt from q (T, 4) unit quaternions (calibration variables from zero).

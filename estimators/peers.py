@@ -448,14 +448,3 @@ class FusionPeer(RecursiveEstimator):
         self._ahrs.set_sample_period(dt_s)
         self._ahrs.update_no_magnetometer(self._deg[k], acc_g)
         return self._ahrs.get_quaternion()
-
-
-PEERS: dict[str, type[Estimator]] = {
-    "vqf": VQFPeer,
-    "vqf-basic": BasicVQFPeer,
-    "vqf-offline": OfflineVQFPeer,
-    "madgwick": MadgwickPeer,
-    "mahony": MahonyPeer,
-    "ahrs-ekf": AhrsEKFPeer,
-    "fusion-ahrs": FusionPeer,
-}
