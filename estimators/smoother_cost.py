@@ -149,7 +149,7 @@ class SmootherProblem:
     valid: np.ndarray  # (T-1,) bool, gyro usable on step t
     acc: np.ndarray  # (T, 3) g
     w_motion: np.ndarray  # (T-1,) scalar information of each step
-    w_acc: float
+    w_acc: np.ndarray  # (T,) accelerometer weight per sample, 0 where the sample is missing (NaN)
     huber_c: float  # threshold on sqrt(r^T W_a r); inf: no robust loss
     init_quat: np.ndarray  # (4,)
     w_prior: float
@@ -170,14 +170,18 @@ class SmootherProblem:
             w_motion = 1.0 / sigma**2
         w_acc = float(weights.acc_weight) if weights.acc_weight is not None else 1.0 / weights.acc_noise_g**2
         huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) and w_acc > 0 else np.inf
+        # A non-finite accelerometer sample carries no information: weight 0 (its value is zeroed
+        # so that 0 * NaN never reaches the cost).
+        acc_ok = np.all(np.isfinite(imu.acc_g), axis=1)
+        acc = np.where(acc_ok[:, None], imu.acc_g, 0.0)
         bias_idx = np.array([AXES.index(a) for a in weights.bias_axes], int)
         scale_idx = np.array([AXES.index(a) for a in weights.scale_axes], int)
         w_theta = np.concatenate(
             [np.full(len(bias_idx), weights.bias_prior_rad_s**-2), np.full(len(scale_idx), weights.scale_prior**-2)]
         )
         return cls(
-            dt=dt, gyr=np.array(imu.gyr_rad_s[:-1]), valid=valid, acc=np.array(imu.acc_g),
-            w_motion=w_motion, w_acc=w_acc, huber_c=huber_c,
+            dt=dt, gyr=np.array(imu.gyr_rad_s[:-1]), valid=valid, acc=acc,
+            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0), huber_c=huber_c,
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
             w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
         )
