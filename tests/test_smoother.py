@@ -58,7 +58,7 @@ def _weighted_residuals(problem: SmootherProblem, q: np.ndarray, theta: np.ndarr
     r = problem.residuals(q, theta)
     return np.concatenate([
         (np.sqrt(problem.w_motion)[:, None] * r["motion"]).ravel(),
-        np.sqrt(problem.w_acc) * r["acc"].ravel(),
+        (np.sqrt(problem.w_acc)[:, None] * r["acc"]).ravel(),
         np.sqrt(problem.w_prior) * r["prior"],
         np.sqrt(problem.w_theta) * r["theta"],
     ])
