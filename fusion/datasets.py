@@ -151,13 +151,14 @@ def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
         return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
     if source.kind == "csv":
         imu, truth = loaders.load_csv(source.imu)
-        return Recording(source.id, imu, truth)
+        return Recording(source.id, loaders.invalidate_gaps(imu), truth)
     raw = load_imu(source.imu)
     calib = calibrate(raw, board)
     truth = loaders.load_vicon(source.vicon) if source.vicon else None
     if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
         raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    return Recording(source.id, calib.apply(raw), truth, raw, calib, camera=source.cam)
+    # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
+    return Recording(source.id, loaders.invalidate_gaps(calib.apply(raw)), truth, raw, calib, camera=source.cam)
 
 
 def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
