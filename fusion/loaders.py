@@ -42,6 +42,7 @@ rotations (orthonormal, determinant +1).
 from __future__ import annotations
 
 import io
+import os
 import pickle
 import warnings
 from pathlib import Path
@@ -101,13 +102,63 @@ def _read_pickle(path: Path) -> Any:
 
 
 def _read_mat(path: Path) -> dict[str, Any]:
+    """The variables of a MATLAB file; numeric arrays as they are, anything else as an empty
+    object array (which `_numeric` rejects).
+
+    SciPy's reader is C code that a corrupt file can crash outright: with SciPy 1.17 a single
+    flipped bit (the "complex" flag of a uint16 array without an imaginary part) is a
+    segmentation fault, which no `except` can catch. So where the OS can fork, the file is read
+    in a forked child (a few ms; SciPy is already imported) that sends the arrays back through a
+    pipe; a crashed child becomes a one-line `ValueError`.
+    """
+    _read_bytes(path)  # existence and emptiness checks with a clear message
+    if not hasattr(os, "fork"):  # no fork (Windows): read in-process, unprotected
+        return _loadmat_arrays(path)
+    read_fd, write_fd = os.pipe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # Python >= 3.12: fork with threads
+        pid = os.fork()
+    if pid == 0:  # the child: read, send, exit without running any parent cleanup
+        code = 0
+        try:
+            os.close(read_fd)
+            try:
+                message = ("ok", _loadmat_arrays(path))
+            except ValueError as exc:
+                message = ("error", str(exc))
+            with os.fdopen(write_fd, "wb") as pipe:
+                pipe.write(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+        except BaseException:  # the child must never return into the parent's code
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as pipe:
+        data = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    if not data or status != 0:
+        how = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit status {os.waitstatus_to_exitcode(status)}"
+        raise ValueError(f"{path}: not a readable MATLAB file (SciPy's reader crashed on it: {how})")
+    kind, value = _RestrictedUnpickler(io.BytesIO(data)).load()
+    if kind == "error":
+        raise ValueError(value)
+    return value
+
+
+def _loadmat_arrays(path: Path) -> dict[str, np.ndarray]:
     import scipy.io
 
-    _read_bytes(path)  # existence and emptiness checks with a clear message
     try:
-        return scipy.io.loadmat(str(path))
+        mat = scipy.io.loadmat(str(path))
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
         raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
+    out = {}
+    for key, value in mat.items():
+        if isinstance(value, np.ndarray) and (np.issubdtype(value.dtype, np.number) or value.dtype == bool):
+            out[str(key)] = value
+        elif not str(key).startswith("__"):
+            out[str(key)] = np.empty(0, dtype=object)  # structs, cells, strings, sparse: not numeric
+    return out
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -325,6 +376,9 @@ def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
         return imu, None
     norm = np.linalg.norm(quat, axis=1)
     ok = np.isfinite(norm)
+    if not np.any(ok):
+        warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
+        return imu, None
     if np.any(np.abs(norm[ok] - 1.0) > 1e-3):
         raise ValueError(f"{path}: truth quaternions (qw,qx,qy,qz) are not unit quaternions")
     quat[ok] /= norm[ok, None]
