@@ -44,6 +44,7 @@ from __future__ import annotations
 import io
 import os
 import pickle
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -107,12 +108,14 @@ def _read_mat(path: Path) -> dict[str, Any]:
 
     SciPy's reader is C code that a corrupt file can crash outright: with SciPy 1.17 a single
     flipped bit (the "complex" flag of a uint16 array without an imaginary part) is a
-    segmentation fault, which no `except` can catch. So where the OS can fork, the file is read
+    segmentation fault, which no `except` can catch. So on Linux the file is read
     in a forked child (a few ms; SciPy is already imported) that sends the arrays back through a
     pipe; a crashed child becomes a one-line `ValueError`.
     """
+    import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
+
     _read_bytes(path)  # existence and emptiness checks with a clear message
-    if not hasattr(os, "fork"):  # no fork (Windows): read in-process, unprotected
+    if not sys.platform.startswith("linux"):  # fork is unsafe on macOS, absent on Windows: unprotected
         return _loadmat_arrays(path)
     read_fd, write_fd = os.pipe()
     with warnings.catch_warnings():
