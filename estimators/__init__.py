@@ -6,10 +6,20 @@ from __future__ import annotations
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
+from .peers import (  # optional libraries, imported when built: pip install -e '.[peers]'
+    AhrsEKFPeer, BasicVQFPeer, FusionPeer, MadgwickPeer, MahonyPeer, OfflineVQFPeer, VQFPeer,
+)
 from .params import EstimatorSpec, make_params, parse_specs
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,
+    "vqf": VQFPeer,
+    "vqf-basic": BasicVQFPeer,
+    "vqf-offline": OfflineVQFPeer,
+    "madgwick": MadgwickPeer,
+    "mahony": MahonyPeer,
+    "ahrs-ekf": AhrsEKFPeer,
+    "fusion-ahrs": FusionPeer,
 }
 
 

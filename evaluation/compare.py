@@ -13,6 +13,7 @@ from __future__ import annotations
 import platform
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Iterable
 
@@ -63,16 +64,37 @@ def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
 
 
 def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
-    """Replace the name `all` with every registered estimator (registry order)."""
+    """Replace the name `all` with every registered estimator (registry order).
+
+    `all` leaves out peers whose optional library is not installed (with a warning);
+    naming such a peer explicitly is an error that says what to install.
+    """
     out: list[EstimatorSpec] = []
     for spec in specs:
-        names = list(estimators.ESTIMATORS) if spec.name == "all" else [spec.name]
-        out.extend(EstimatorSpec(name, spec.overrides) for name in names)
+        if spec.name != "all":
+            out.append(spec)
+            continue
+        missing = []
+        for name in estimators.ESTIMATORS:
+            try:
+                estimators.build(EstimatorSpec(name))
+            except ImportError:
+                missing.append(name)
+                continue
+            out.append(EstimatorSpec(name, spec.overrides))
+        if missing:
+            warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
+                          f"(pip install -e '.[peers]')", stacklevel=2)
     return out
 
 
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) -> Result:
-    """One job: estimate, time, score."""
+def default_protocol(recording: Recording) -> str:
+    """"broad" for recordings that carry a movement mask (BROAD trials), else "full"."""
+    return "broad" if recording.movement is not None else "full"
+
+
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None) -> Result:
+    """One job: estimate, time, score (`protocol` None: the recording's default)."""
     estimator = estimators.build(spec)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
@@ -80,7 +102,9 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
-    result_score = score(recording.truth, trajectory) if recording.truth is not None else None
+    protocol = protocol or default_protocol(recording)
+    result_score = (score(recording.truth, trajectory, protocol, recording.movement)
+                    if recording.truth is not None else None)
     return Result(
         recording.id, spec.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
@@ -90,12 +114,14 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False) -> list[Result]:
+            progress: bool = False, protocol: str | None = None) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
+    protocol: scoring protocol, "full" or "broad" (`evaluation.metrics`), or None for each
+        recording's default (`default_protocol`).
     """
     spec_list = expand_all(_as_specs(specs))
     for spec in spec_list:  # fail on a bad name or parameter before any work
@@ -105,7 +131,7 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
     results = []
     for rec, spec in jobs:
         bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init))
+        results.append(run_one(rec, spec, init, protocol))
         bar.update()
     bar.close()
     return results
@@ -122,7 +148,7 @@ def versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for package in ("fusion", "numpy", "scipy", "filterpy"):
+    for package in ("fusion", "numpy", "scipy", "filterpy", "vqf", "ahrs", "imufusion"):
         try:
             out[package] = md.version(package)
         except md.PackageNotFoundError:

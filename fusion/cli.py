@@ -38,7 +38,7 @@ def load_selected(args: argparse.Namespace) -> list:
         raise FileNotFoundError(f"{root}: data directory does not exist")
     sources = datasets.select(args.dataset, args.data_dir)
     if user_dir and args.dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
-        raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat or .csv); use --dataset sim for the simulated one")
+        raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
     recordings = []
     for source in tqdm(sources, desc="loading", disable=args.no_progress, file=sys.stderr, leave=False):
         recordings.append(datasets.load_source(source))
@@ -49,12 +49,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from evaluation.compare import compare, format_table, results_json
 
     recordings = load_selected(args)
-    results = compare([args.estimators], recordings, init=args.init, progress=not args.no_progress)
+    results = compare([args.estimators], recordings, init=args.init, progress=not args.no_progress,
+                      protocol=args.protocol)
     print(format_table(results))
     if args.json:
         settings = {"command": " ".join(["fusion", *sys.argv[1:]]), "estimators": args.estimators,
                     "dataset": args.dataset, "data_dir": str(datasets.data_dir_from(args.data_dir)),
-                    "init": args.init or "default (truth where available, else accel)"}
+                    "init": args.init or "default (truth where available, else accel)",
+                    "protocol": args.protocol or "default (broad for recordings with a movement mask, else full)"}
         Path(args.json).write_text(json.dumps(results_json(results, settings), indent=2) + "\n")
     return 0
 
@@ -67,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimators", default="all",
                    help="comma-separated registry names with optional parameters, e.g. 'dr,ukf:R=1e-3' (default: all)")
     _add_data_args(p)
+    p.add_argument("--protocol", choices=("full", "broad"), default=None,
+                   help="scoring: full (every sample with truth) or broad (movement phases only, mean heading "
+                        "offset removed); default: broad for recordings with a movement mask (BROAD trials), else full")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON (format: see README)")
     p.set_defaults(func=cmd_compare)
     return parser
@@ -85,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ValueError, OSError) as exc:  # bad input: one line, exit 1
+        print(f"fusion: error: {exc}", file=sys.stderr)
+        return 1
+    except ImportError as exc:  # an optional package (peers, h5py) is missing: the message says which
         print(f"fusion: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -5,10 +5,12 @@ A data directory is laid out like the course releases, possibly nested:
     <data>/ece276a/imu/imuRaw3.p     <data>/ece276a/vicon/viconRot3.p    [<data>/ece276a/cam/cam3.p]
     <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
     <data>/mylab/walk.csv            (generic CSV, see `fusion.loaders.load_csv`)
+    <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.broad`)
 
 Each recording gets an id: its folder relative to the data directory (or, for recordings
 directly in it, the data directory's own name) plus its number, e.g. `ece276a/3`; a CSV
-file's id is its path without the suffix. The built-in simulated recording is always `sim`.
+file's or BROAD trial's id is its path without the suffix. A `.mat` file that is not a
+course file (imuRawN/viconRotN/camN) is taken for a BROAD trial. The built-in simulated recording is always `sim`.
 
 The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`.
 """
@@ -28,11 +30,13 @@ from .types import Recording
 
 SIM_ID = "sim"
 _IMU_FILE = re.compile(r"imuRaw(\d+)\.(p|mat)$")
+_COURSE_FILE = re.compile(r"(imuRaw|viconRot|cam)\d+\.(p|mat)$")
+_BROAD_SUFFIXES = (".hdf5", ".h5", ".mat")
 
 
 @dataclass(frozen=True)
 class Source:
-    """Where one recording's files are. `kind` is "course", "csv" or "sim"."""
+    """Where one recording's files are. `kind` is "course", "csv", "broad" or "sim"."""
 
     id: str
     kind: str
@@ -85,13 +89,17 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
             elif path.suffix.lower() == ".csv":
                 rid = path.relative_to(root).with_suffix("").as_posix()
                 found[rid] = Source(rid, "csv", path)
+            elif path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
+                rid = path.relative_to(root).with_suffix("").as_posix()
+                found[rid] = Source(rid, "broad", path)
     ordered = {k: found[k] for k in sorted(found, key=_natural_key)}
     ordered[SIM_ID] = Source(SIM_ID, "sim")
     return ordered
 
 
 def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[Source]:
-    """Sources for `all`, a comma list of ids, globs (`ece276a/*`) or paths to files.
+    """Sources for `all`, a comma list of ids, globs (`ece276a/*`), paths to files, or
+    paths to folders (every recording found below them).
 
     `all` means every real recording found, or `sim` when there is none. Raises with the
     list of available ids when a name matches nothing.
@@ -110,6 +118,8 @@ def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[So
             matches = [s for rid, s in available.items() if fnmatch.fnmatchcase(rid, token)]
         elif Path(token).is_file():
             matches = [_source_for_file(Path(token))]
+        elif Path(token).is_dir():
+            matches = [s for rid, s in discover(token).items() if rid != SIM_ID]
         else:
             matches = []
         if not matches:
@@ -126,6 +136,8 @@ def _source_for_file(path: Path) -> Source:
     match = _IMU_FILE.match(path.name)
     if path.suffix.lower() == ".csv":
         return Source(path.with_suffix("").as_posix(), "csv", path)
+    if path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
+        return Source(path.with_suffix("").as_posix(), "broad", path)
     if match:
         number = match.group(1)
         return Source(
@@ -133,7 +145,7 @@ def _source_for_file(path: Path) -> Source:
             vicon=_sibling(path.parent, "vicon", "viconRot", number, path.suffix),
             cam=_sibling(path.parent, "cam", "cam", number, path.suffix),
         )
-    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat or .csv)")
+    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat, .csv, or a BROAD .hdf5/.mat trial)")
 
 
 def load_imu(path: Path):
@@ -150,8 +162,13 @@ def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
         calib = calibrate(raw, board)
         return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
     if source.kind == "csv":
-        imu, truth = loaders.load_csv(source.imu)
-        return Recording(source.id, loaders.invalidate_gaps(imu), truth)
+        imu, truth, movement = loaders.load_csv(source.imu, with_movement=True)
+        return Recording(source.id, loaders.invalidate_gaps(imu), truth, movement=movement)
+    if source.kind == "broad":
+        from .broad import load_broad
+
+        imu, truth, movement = load_broad(source.imu)
+        return Recording(source.id, imu, truth, movement=movement)
     raw = load_imu(source.imu)
     calib = calibrate(raw, board)
     truth = loaders.load_vicon(source.vicon) if source.vicon else None

@@ -346,11 +346,14 @@ CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 CSV_TRUTH = ("qw", "qx", "qy", "qz")
 
 
-def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
-    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz]`.
+def load_csv(path: str | Path, with_movement: bool = False):
+    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
 
     t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; the
-    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth).
+    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
+    the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
+    Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
+    without the column).
     """
     path = Path(path)
     text = _read_bytes(path).decode("utf-8-sig", errors="replace").splitlines()  # -sig: drop a BOM
@@ -373,16 +376,18 @@ def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
         raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
     has_truth = all(c in header for c in CSV_TRUTH)
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
-    t, gyr, acc, quat = repair_time(col["t"], path, gyr, acc, quat)
+    movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
+    t, gyr, acc, quat, movement = repair_time(col["t"], path, gyr, acc, quat, movement)
     imu = ImuSamples(t, gyr, acc, source=str(path))
+    extra = (movement if "movement" in col else None,) if with_movement else ()
     if not has_truth:
-        return imu, None
+        return (imu, None, *extra)
     norm = np.linalg.norm(quat, axis=1)
     ok = np.isfinite(norm)
     if not np.any(ok):
         warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
-        return imu, None
+        return (imu, None, *extra)
     if np.any(np.abs(norm[ok] - 1.0) > 1e-3):
         raise ValueError(f"{path}: truth quaternions (qw,qx,qy,qz) are not unit quaternions")
     quat[ok] /= norm[ok, None]
-    return imu, Trajectory(t, quat)
+    return (imu, Trajectory(t, quat), *extra)

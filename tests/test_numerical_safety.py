@@ -1,7 +1,7 @@
 """Numerical safety of every registered estimator (parametrised over `estimators.ESTIMATORS`,
 so estimators added later are covered without touching this file).
 
-On a 60 s simulated recording (calibrated through the same path as the real ones):
+On a 50 s simulated recording (calibrated through the same path as the real ones):
 - the output is finite and unit-norm;
 - a long stretch of invalid gyro samples (NaN, or saturated at the ADC limit, marked
   `gyr_valid=False` as the dropout detector does) and a stretch of raw NaN accelerometer
@@ -33,7 +33,7 @@ SATURATED_RAD_S = 648 * 0.01745  # ~ (1023 - 375) counts at the nominal gyro sca
 
 @functools.cache
 def sim():
-    raw, truth = simulate(SimSettings(duration_s=60.0))
+    raw, truth = simulate(SimSettings(duration_s=50.0))
     return calibrate(raw).apply(raw), truth
 
 
@@ -65,6 +65,13 @@ def window_errors(truth: Trajectory, traj: Trajectory, start_s: float, stop_s: f
     return {k: float(np.degrees(s.errors_rad[k][inside].mean())) for k in ("total", "inclination")}
 
 
+@functools.cache
+def clean_run(name: str) -> Trajectory:
+    imu, truth = sim()
+    return run(name, imu, init_quat(truth, imu))
+
+
+@functools.cache
 def uses_accelerometer(name: str) -> bool:
     """Whether the estimator's output depends on the accelerometer at all (dead reckoning does not)."""
     imu, truth = sim()
@@ -77,7 +84,7 @@ def uses_accelerometer(name: str) -> bool:
 @pytest.mark.parametrize("name", NAMES)
 def test_output_finite_and_unit_norm(name):
     imu, truth = sim()
-    traj = run(name, imu, init_quat(truth, imu))
+    traj = clean_run(name)
     check_output(traj, imu, name)
     if estimators.ESTIMATORS[name].causal:
         np.testing.assert_allclose(traj.quat_wxyz[0], init_quat(truth, imu), atol=1e-12)
@@ -101,12 +108,35 @@ def broken(imu: ImuSamples, kind: str) -> ImuSamples:
     return imu.replace(gyr_rad_s=gyr, acc_g=acc, gyr_valid=valid)
 
 
-@pytest.mark.parametrize("kind", ["gyro-nan", "gyro-saturated", "acc-nan", "all-nan"])
-@pytest.mark.parametrize("name", NAMES)
+# Found by this test on the peers of main (estimators/peers.py), to be fixed there; strict, so a
+# fix turns the entry into a failure that asks for its removal.
+KNOWN_FAILURES = {
+    ("vqf", "acc-nan"): "VQF: raw NaN accelerometer samples corrupt the state (total error ~70 deg after)",
+    ("vqf", "all-nan"): "VQF: raw NaN accelerometer samples corrupt the state",
+    ("vqf-basic", "acc-nan"): "basic VQF: raw NaN accelerometer samples throw the heading off (total ~90 deg after)",
+    ("vqf-basic", "all-nan"): "basic VQF: raw NaN accelerometer samples throw the heading off",
+    ("vqf-offline", "acc-nan"): "offline VQF: raw NaN accelerometer samples corrupt the state",
+    ("vqf-offline", "all-nan"): "offline VQF: raw NaN accelerometer samples corrupt the state",
+    ("ahrs-ekf", "acc-nan"): "ahrs EKF: ValueError 'A-priori quaternion must have a norm equal to 1' after NaN acc",
+    ("ahrs-ekf", "all-nan"): "ahrs EKF: ValueError 'A-priori quaternion must have a norm equal to 1' after NaN acc",
+    ("fusion-ahrs", "acc-nan"): "Fusion (xio): NaN accelerometer samples make every later output NaN",
+    ("fusion-ahrs", "all-nan"): "Fusion (xio): NaN accelerometer samples make every later output NaN",
+}
+
+
+def _cases():
+    for name in NAMES:
+        for kind in ("gyro-nan", "gyro-saturated", "acc-nan", "all-nan"):
+            reason = KNOWN_FAILURES.get((name, kind))
+            marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+            yield pytest.param(name, kind, marks=marks, id=f"{name}-{kind}")
+
+
+@pytest.mark.parametrize("name, kind", _cases())
 def test_recovers_after_a_broken_stretch(name, kind):
     imu, truth = sim()
     q0 = init_quat(truth, imu)
-    clean = run(name, imu, q0)
+    clean = clean_run(name)
     bad_imu = broken(imu, kind)
     traj = run(name, bad_imu, q0)
     check_output(traj, bad_imu, name)
@@ -146,7 +176,7 @@ def test_inputs_are_not_modified_and_q_sign_is_irrelevant(name):
     q0 = init_quat(truth, imu)
     before = [a.copy() for a in (imu.t, imu.gyr_rad_s, imu.acc_g, imu.gyr_valid)]
     q0_copy = q0.copy()
-    a = run(name, imu, q0)
+    a = clean_run(name)
     b = run(name, imu, -q0)
     for x, y in zip(before, (imu.t, imu.gyr_rad_s, imu.acc_g, imu.gyr_valid)):
         assert np.array_equal(x, y)
