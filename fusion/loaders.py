@@ -47,7 +47,7 @@ import pickle
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -103,20 +103,27 @@ def _read_pickle(path: Path) -> Any:
 
 
 def _read_mat(path: Path) -> dict[str, Any]:
-    """The variables of a MATLAB file; numeric arrays as they are, anything else as an empty
-    object array (which `_numeric` rejects).
-
-    SciPy's reader is C code that a corrupt file can crash outright: with SciPy 1.17 a single
-    flipped bit (the "complex" flag of a uint16 array without an imaginary part) is a
-    segmentation fault, which no `except` can catch. So on Linux the file is read
-    in a forked child (a few ms; SciPy is already imported) that sends the arrays back through a
-    pipe; a crashed child becomes a one-line `ValueError`.
-    """
+    """The variables of a MATLAB file (see `read_isolated`)."""
     import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
 
     _read_bytes(path)  # existence and emptiness checks with a clear message
-    if not sys.platform.startswith("linux"):  # fork is unsafe on macOS, absent on Windows: unprotected
-        return _loadmat_arrays(path)
+    return read_isolated(path, _loadmat, "MATLAB")
+
+
+def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: str) -> dict[str, np.ndarray]:
+    """`reader(path)`'s arrays: numeric ones as they are, anything else as an empty object
+    array (which `_numeric` rejects). `reader` raises `ValueError` (or `ImportError`) for files
+    it cannot read; `kind` names the format in messages.
+
+    SciPy's MATLAB reader (and h5py's HDF5 library) are C code that a corrupt file can crash
+    outright: with SciPy 1.17 a single flipped bit (the "complex" flag of a uint16 array
+    without an imaginary part) is a segmentation fault, which no `except` can catch. So on
+    Linux `reader` runs in a forked child (a few ms; the libraries are already imported) that
+    sends the arrays back through a pipe (read with the restricted unpickler); a crashed child
+    becomes a one-line `ValueError`. Elsewhere (no safe fork) it runs in-process, unprotected.
+    """
+    if not sys.platform.startswith("linux"):
+        return _plain_arrays(reader(path))
     read_fd, write_fd = os.pipe()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # Python >= 3.12: fork with threads
@@ -126,9 +133,11 @@ def _read_mat(path: Path) -> dict[str, Any]:
         try:
             os.close(read_fd)
             try:
-                message = ("ok", _loadmat_arrays(path))
+                message = ("ok", _plain_arrays(reader(path)))
             except ValueError as exc:
                 message = ("error", str(exc))
+            except ImportError as exc:
+                message = ("import", str(exc))
             with os.fdopen(write_fd, "wb") as pipe:
                 pipe.write(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
         except BaseException:  # the child must never return into the parent's code
@@ -141,27 +150,32 @@ def _read_mat(path: Path) -> dict[str, Any]:
     _, status = os.waitpid(pid, 0)
     if not data or status != 0:
         how = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit status {os.waitstatus_to_exitcode(status)}"
-        raise ValueError(f"{path}: not a readable MATLAB file (SciPy's reader crashed on it: {how})")
-    kind, value = _RestrictedUnpickler(io.BytesIO(data)).load()
-    if kind == "error":
-        raise ValueError(value)
+        raise ValueError(f"{path}: not a readable {kind} file (the reader crashed on it: {how})")
+    result, value = _RestrictedUnpickler(io.BytesIO(data)).load()
+    if result == "error":
+        raise ValueError(" ".join(value.split()))
+    if result == "import":
+        raise ImportError(value)
     return value
 
 
-def _loadmat_arrays(path: Path) -> dict[str, np.ndarray]:
-    import scipy.io
-
-    try:
-        mat = scipy.io.loadmat(str(path))
-    except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
-        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
+def _plain_arrays(variables: dict[str, Any]) -> dict[str, np.ndarray]:
     out = {}
-    for key, value in mat.items():
+    for key, value in variables.items():
         if isinstance(value, np.ndarray) and (np.issubdtype(value.dtype, np.number) or value.dtype == bool):
             out[str(key)] = value
         elif not str(key).startswith("__"):
             out[str(key)] = np.empty(0, dtype=object)  # structs, cells, strings, sparse: not numeric
     return out
+
+
+def _loadmat(path: Path) -> dict[str, Any]:
+    import scipy.io
+
+    try:
+        return scipy.io.loadmat(str(path))
+    except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
+        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -382,7 +396,8 @@ def load_csv(path: str | Path, with_movement: bool = False):
     extra = (movement if "movement" in col else None,) if with_movement else ()
     if not has_truth:
         return (imu, None, *extra)
-    norm = np.linalg.norm(quat, axis=1)
+    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
+        norm = np.linalg.norm(quat, axis=1)
     ok = np.isfinite(norm)
     if not np.any(ok):
         warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)

@@ -85,6 +85,17 @@ def vicon_dict(t, seed=0):
     return {"rots": np.moveaxis(rot.as_matrix(), 0, 2), "ts": np.asarray(t, float)[None]}
 
 
+def broad_trial(n: int, seed: int = 0) -> dict:
+    """A valid BROAD trial (see `fusion.broad`): slow rotation, movement mask, 286 Hz."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    rot = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.002, (n, 3)), axis=0))
+    return {"imu_gyr": rng.normal(0, 0.1, (n, 3)), "imu_acc": rot.inv().apply([0, 0, 9.81]),
+            "imu_mag": rng.normal(0, 1, (n, 3)), "opt_quat": rot.as_quat(scalar_first=True),
+            "movement": (np.arange(n) > n // 3).astype(np.uint8), "sampling_rate": 286.0}
+
+
 def write(path: Path, obj) -> Path:
     if isinstance(obj, bytes):
         path.write_bytes(obj)
@@ -101,6 +112,10 @@ def write(path: Path, obj) -> Path:
 
 def load_file(path: Path):
     """The loader for a file, by name (what discovery would pick)."""
+    if path.suffix in (".hdf5", ".h5") or (path.suffix == ".mat" and path.name.startswith("trial")):
+        from fusion.broad import load_broad
+
+        return load_broad(path)
     if path.suffix == ".csv":
         return loaders.load_csv(path)
     if path.name.startswith("viconRot"):
@@ -118,7 +133,10 @@ def check_loaded(obj, path: Path) -> None:
     for item in items:
         if item is None:
             continue
-        assert isinstance(item, (RawImu, ImuSamples, Trajectory)), type(item)
+        assert isinstance(item, (RawImu, ImuSamples, Trajectory, np.ndarray)), type(item)
+        if isinstance(item, np.ndarray):
+            assert item.dtype == bool
+            continue
         t = item.t
         assert len(t) >= 2 and np.all(np.isfinite(t)) and np.all(np.diff(t) > 0), path
         assert not t.flags.writeable
@@ -383,6 +401,8 @@ def mutate(data, arr: np.ndarray) -> object:
         "none", "values", "stamps", "dtype", "shape", "slice", "wrap", "gap", "scale", "shuffle", "duplicate"]))
     arr = np.array(arr, copy=True)
     n = arr.shape[-1]
+    if n < 2 and kind in ("gap", "duplicate", "values", "stamps", "shuffle"):
+        kind = "dtype"
     if kind == "values":
         for _ in range(data.draw(st.integers(1, 5))):
             i, j = data.draw(st.integers(0, arr.shape[0] - 1)), data.draw(st.integers(0, n - 1))
@@ -494,7 +514,7 @@ def test_mutated_vicon_files(root, fuzz_stats, data, n, part, mat):
     judge(fuzz_stats, lambda: load_file(path), [path])
 
 
-CSV_TOKENS = ["0", "1", "-1", "0.01", "9.81", "nan", "inf", "-inf", "", " ", "abc", "1e999", "0x3", "1,5", "\"2\"",
+CSV_TOKENS = ["0", "1", "-1", "0.01", "9.81", "nan", "inf", "-inf", "", " ", "abc", "1e999", "1e308", "0x3", "1,5", "\"2\"",
               "1e-320", "\t3", "１", "NaN", "1.0.0"]
 HEADERS = ["t,gx,gy,gz,ax,ay,az", "t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz", "\ufefft,gx,gy,gz,ax,ay,az", "t,gx,gy,gz,ax,ay",
            "T, GX, GY, GZ, AX, AY, AZ", "t;gx;gy;gz;ax;ay;az", "", "t,t,gx,gy,gz,ax,ay,az"]
@@ -556,3 +576,56 @@ def test_valid_files_round_trip(root):
         raw = load_file(write(path, obj))
         np.testing.assert_array_equal(raw.counts, c)
         np.testing.assert_array_equal(raw.t, t)
+
+
+# --- BROAD trials (fusion.broad: .mat through SciPy, .hdf5 through h5py) -----------------
+
+def _broad_corpus():
+    b = broad_trial(300)
+    good = io.BytesIO()
+    scipy.io.savemat(good, b)
+    flags = bytearray(good.getvalue())
+    flags[0x91] |= 0x08  # complex flag of the first array without an imaginary part (SciPy segfault)
+    return [
+        pytest.param(b, "ok", 0, id="broad-valid"),
+        pytest.param(good.getvalue()[:400], "error:not a readable", 1, id="broad-truncated"),
+        pytest.param(bytes(flags), "error:", 1, id="broad-complex-flag-segfault"),
+        pytest.param({**b, "imu_gyr": b["imu_gyr"].astype(complex)}, "error:not an array of real numbers", 1, id="broad-complex"),
+        pytest.param({**b, "imu_acc": np.array(["x"] * 3)}, "error:", 1, id="broad-string-acc"),
+        pytest.param({**b, "sampling_rate": 0.0}, "error:sampling_rate", 1, id="broad-zero-rate"),
+        pytest.param({**b, "sampling_rate": np.array(["fast"])}, "error:sampling_rate", 1, id="broad-string-rate"),
+        pytest.param({**b, "opt_quat": b["opt_quat"] * np.nan}, "error:no finite row", 1, id="broad-no-truth"),
+        pytest.param({k: v for k, v in b.items() if k != "imu_gyr"}, "error:no 'imu_gyr'", 1, id="broad-missing-gyr"),
+        pytest.param({**b, "imu_gyr": b["imu_gyr"][:10]}, "error:", 1, id="broad-short-gyr"),
+    ]
+
+
+@pytest.mark.parametrize("obj, expect, code", _broad_corpus())
+def test_corpus_broad(root, fuzz_stats, obj, expect, code):
+    path = write(fresh_dir(root) / "trial01.mat", obj)
+    judge(fuzz_stats, lambda: load_file(path), [path], expect=expect)
+    run_cli(fuzz_stats, cli_args(path), [path], expect_code=code)
+
+
+@settings(FUZZ, max_examples=250)
+@given(data=st.data(), n=st.integers(2, 120), key=st.sampled_from(["imu_gyr", "imu_acc", "opt_quat", "movement", "sampling_rate", "bytes"]),
+       hdf5=st.booleans())
+def test_mutated_broad_trials(root, fuzz_stats, data, n, key, hdf5):
+    h5py = pytest.importorskip("h5py") if hdf5 else None
+    trial = broad_trial(n)
+    if key != "bytes":
+        value = np.atleast_2d(trial[key]).astype(float)
+        trial[key] = mutate(data, value if value.shape[0] <= value.shape[-1] else value.T)
+    path = fresh_dir(root) / ("trial01.hdf5" if hdf5 else "trial01.mat")
+    try:
+        if hdf5:
+            with h5py.File(path, "w") as f:
+                for k, v in trial.items():
+                    f[k] = v
+        else:
+            write(path, trial)
+    except Exception:  # the writer refuses this object: not a file, not a case
+        return
+    if key == "bytes":
+        write(path, mutate_bytes(data, path.read_bytes()))
+    judge(fuzz_stats, lambda: load_file(path), [path])
