@@ -95,9 +95,9 @@ def test_generated_inputs_untouched(tmp_path):
 def test_real_inputs_untouched(data_dir, tmp_path):
     """Copies of a few real recordings (into tmp_path, never the repository)."""
     data = tmp_path / "data"
-    for rel in ("ece276a/imu/imuRaw1.p", "ece276a/vicon/viconRot1.p", "ece276a/imu/imuRaw6.p",
-                "ece276a/vicon/viconRot6.p", "ese650/imu/imuRaw2.mat", "ese650/vicon/viconRot2.mat",
-                "ece276a-2018/imu/imuRaw3.p", "scenes/room_equirect.jpg"):
+    # a pickle recording with VICON gaps, a .mat one, one without ground truth, the panorama scene
+    for rel in ("ece276a/imu/imuRaw6.p", "ece276a/vicon/viconRot6.p", "ese650/imu/imuRaw2.mat",
+                "ese650/vicon/viconRot2.mat", "ece276a-2018/imu/imuRaw3.p", "scenes/room_equirect.jpg"):
         if (data_dir / rel).is_file():
             (data / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(data_dir / rel, data / rel)
