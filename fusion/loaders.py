@@ -22,22 +22,22 @@ Every problem raises `ValueError` (or `FileNotFoundError`) naming the file, in o
 (exception texts from pickle/SciPy are folded onto that line). `tests/test_fuzz_loaders.py`
 feeds thousands of broken files through every loader and the CLI to keep it so.
 
-Time stamps (`check_time`, applied by every loader):
+Time stamps (`repair_time` then `check_sampling`, applied by every loader):
 - not strictly increasing (NaN/Inf, duplicated, backwards): the offending samples are
   dropped, with a warning saying how many, as long as at least half the samples survive;
   otherwise the file is rejected.
 - implausible sampling: a median time step outside [10 us, 1 s] (100 kHz .. 1 Hz) is
   rejected; stamps in milliseconds or sample numbers instead of seconds end up here.
 - gaps: a step longer than `GAP_S` (0.5 s, some 50 missing samples at 100 Hz) and than ten
-  median steps is *kept*,
-  with a warning giving their count and the longest. `fusion.datasets` then marks the gyro
+  median steps is *kept*, with a warning giving their count and the longest. `fusion.datasets` then marks the gyro
   sample before each gap invalid (`ImuSamples.gyr_valid`), so estimators hold the orientation
   across the gap instead of integrating a stale rate over it (see `invalidate_gaps`). If the
   gaps cover more than half of the recording's span, the file is rejected (broken stamps).
 
 Values: NaN or Inf IMU values are rejected (VICON NaN matrices are tracking gaps and kept);
 complex, string, object or structured arrays are rejected; VICON matrices must be proper
-rotations (orthonormal, determinant +1).
+rotations (orthonormal, determinant +1). MATLAB files are read in a forked child process
+(`read_isolated`): a corrupt file can crash SciPy's C reader, and a crash must stay an error.
 """
 from __future__ import annotations
 
