@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from .loaders import read_isolated
 from .types import ImuSamples, Trajectory
 
 G = 9.80665  # m/s^2 per g
@@ -68,7 +69,10 @@ def read_trial(path: str | Path) -> dict[str, np.ndarray]:
         raise FileNotFoundError(f"{path}: no such file")
     if path.suffix.lower() not in SUFFIXES:
         raise ValueError(f"{path}: not a BROAD trial file (expected {', '.join(SUFFIXES)})")
-    return _read_mat(path) if path.suffix.lower() == ".mat" else _read_hdf5(path)
+    import scipy.io  # noqa: F401  (imported before `read_isolated` forks)
+
+    # In a forked child: a corrupt file can crash SciPy's or HDF5's C code (see `read_isolated`).
+    return read_isolated(path, _read_mat if path.suffix.lower() == ".mat" else _read_hdf5, "BROAD trial")
 
 
 def is_trial(path: str | Path) -> bool:
@@ -80,10 +84,17 @@ def is_trial(path: str | Path) -> bool:
     return all(key in data for key in REQUIRED)
 
 
+def _real(value: Any, key: str, path: Path) -> np.ndarray:
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise ValueError(f"{path}: {key!r} is not an array of real numbers (dtype {arr.dtype})")
+    return arr.astype(float)
+
+
 def _columns(data: dict[str, Any], key: str, cols: int, n: int | None, path: Path) -> np.ndarray:
     if key not in data:
         raise ValueError(f"{path}: no {key!r} array (found {', '.join(sorted(data)) or 'nothing'})")
-    arr = np.asarray(data[key], dtype=float)
+    arr = _real(data[key], key, path)
     if arr.ndim == 2 and arr.shape[1] != cols and arr.shape[0] == cols:
         arr = arr.T  # stored column-major (MATLAB): cols x N
     if arr.ndim != 2 or arr.shape[1] != cols or (n is not None and arr.shape[0] != n):
@@ -109,7 +120,7 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     quat = _columns(data, "opt_quat", 4, n, path)
     if "sampling_rate" not in data:
         raise ValueError(f"{path}: no 'sampling_rate'")
-    rate = np.asarray(data["sampling_rate"], dtype=float).ravel()
+    rate = _real(data["sampling_rate"], "sampling_rate", path).ravel()
     if rate.size != 1 or not np.isfinite(rate[0]) or rate[0] <= 0:
         raise ValueError(f"{path}: 'sampling_rate' must be one positive number, got {rate}")
     if n < 2:
@@ -123,7 +134,8 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
         movement = movement.astype(bool)
     else:
         movement = np.ones(n, bool)
-    norm = np.linalg.norm(quat, axis=1)
+    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
+        norm = np.linalg.norm(quat, axis=1)
     ok = np.isfinite(norm)
     if not np.any(ok):
         raise ValueError(f"{path}: 'opt_quat' has no finite row")

@@ -163,7 +163,7 @@ def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
         return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
     if source.kind == "csv":
         imu, truth, movement = loaders.load_csv(source.imu, with_movement=True)
-        return Recording(source.id, imu, truth, movement=movement)
+        return Recording(source.id, loaders.invalidate_gaps(imu), truth, movement=movement)
     if source.kind == "broad":
         from .broad import load_broad
 
@@ -174,7 +174,8 @@ def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
     truth = loaders.load_vicon(source.vicon) if source.vicon else None
     if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
         raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    return Recording(source.id, calib.apply(raw), truth, raw, calib, camera=source.cam)
+    # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
+    return Recording(source.id, loaders.invalidate_gaps(calib.apply(raw)), truth, raw, calib, camera=source.cam)
 
 
 def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
