@@ -79,6 +79,15 @@ def _require(module: str, package: str, estimator: str) -> ModuleType:
         ) from exc
 
 
+def _acc_m_s2(acc_g: np.ndarray) -> np.ndarray:
+    """Accelerometer in m/s^2, C-contiguous float64, with non-finite samples set to zero:
+    VQF, Madgwick, Mahony and Fusion all skip the accelerometer correction on an all-zero
+    sample (their convention for "no measurement"), so a NaN never enters their state."""
+    acc = np.asarray(acc_g, dtype=np.float64) * STANDARD_GRAVITY_M_S2
+    finite = np.all(np.isfinite(acc), axis=-1)
+    return np.ascontiguousarray(np.where(finite[..., None], acc, 0.0))
+
+
 def _positive(owner: str, **values: float) -> None:
     for name, value in values.items():
         if not value > 0:
@@ -206,7 +215,7 @@ class _SeededVQF(Estimator):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         _check_length(imu, self._name)
         gyr, ts = _rate_for_constant_ts(imu)
-        acc = np.ascontiguousarray(imu.acc_g * STANDARD_GRAVITY_M_S2, dtype=np.float64)
+        acc = _acc_m_s2(imu.acc_g)
         filt = getattr(self._vqf, self._class_name)(ts, **self.params.library_kwargs())
         state = filt.state
         state["gyrQuat"] = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
@@ -253,7 +262,7 @@ class OfflineVQFPeer(Estimator):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         _check_length(imu, "vqf-offline")
         gyr, ts = _rate_for_constant_ts(imu)
-        acc = np.ascontiguousarray(imu.acc_g * STANDARD_GRAVITY_M_S2, dtype=np.float64)
+        acc = _acc_m_s2(imu.acc_g)
         result = self._vqf.offlineVQF(gyr, acc, None, ts, self.params.library_kwargs())
         return Trajectory(imu.t, align_heading(result["quat6D"], init_quat_wxyz))
 
@@ -291,7 +300,7 @@ class MadgwickPeer(RecursiveEstimator):
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
-        self._q = self._filter.updateIMU(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)  # Madgwick 2010, eqs. 12-13, 33-34
+        self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Madgwick 2010, eqs. 12-13, 33-34
         return self._q
 
 
@@ -326,7 +335,7 @@ class MahonyPeer(RecursiveEstimator):
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
-        self._q = self._filter.updateIMU(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)  # Mahony 2008, eq. 48
+        self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Mahony 2008, eq. 48
         return self._q
 
     def diagnostics(self) -> dict[str, Any]:
@@ -376,7 +385,11 @@ class AhrsEKFPeer(RecursiveEstimator):
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else np.zeros(3)
-        self._q = self._filter.update(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)
+        if np.all(np.isfinite(acc_g)):
+            self._q = self._filter.update(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)
+        else:  # no accelerometer sample: the EKF's own process model only (its update would return q unrotated)
+            q = self._filter.f(self._q, rate, dt_s)
+            self._q = q / np.linalg.norm(q)
         return self._q
 
     def diagnostics(self) -> dict[str, Any]:
@@ -446,5 +459,5 @@ class FusionPeer(RecursiveEstimator):
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         self._ahrs.set_sample_period(dt_s)
-        self._ahrs.update_no_magnetometer(self._deg[k], acc_g)
+        self._ahrs.update_no_magnetometer(self._deg[k], _acc_m_s2(acc_g) / STANDARD_GRAVITY_M_S2)
         return self._ahrs.get_quaternion()

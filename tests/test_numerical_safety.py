@@ -109,36 +109,10 @@ def broken(imu: ImuSamples, kind: str) -> ImuSamples:
     return imu.replace(gyr_rad_s=gyr, acc_g=acc, gyr_valid=valid)
 
 
-# Found by this test on the peers of main (estimators/peers.py), to be fixed there; strict, so a
-# fix turns the entry into a failure that asks for its removal.
-KNOWN_FAILURES = {
-    ("gd", "acc-nan"): "gd: a NaN accelerometer sample makes the loss NaN; it stops after 1 iteration, 'converged'",
-    ("gd", "all-nan"): "gd: a NaN accelerometer sample makes the loss NaN; it stops after 1 iteration, 'converged'",
-    ("gn", "acc-nan"): "gn: a NaN accelerometer sample makes every output row NaN",
-    ("gn", "all-nan"): "gn: a NaN accelerometer sample makes every output row NaN",
-    ("vqf", "acc-nan"): "VQF: raw NaN accelerometer samples corrupt the state (total error ~70 deg after)",
-    ("vqf", "all-nan"): "VQF: raw NaN accelerometer samples corrupt the state",
-    ("vqf-basic", "acc-nan"): "basic VQF: raw NaN accelerometer samples throw the heading off (total ~90 deg after)",
-    ("vqf-basic", "all-nan"): "basic VQF: raw NaN accelerometer samples throw the heading off",
-    ("vqf-offline", "acc-nan"): "offline VQF: raw NaN accelerometer samples corrupt the state",
-    ("vqf-offline", "all-nan"): "offline VQF: raw NaN accelerometer samples corrupt the state",
-    ("ahrs-ekf", "acc-nan"): "ahrs EKF: ValueError 'A-priori quaternion must have a norm equal to 1' after NaN acc",
-    ("ahrs-ekf", "all-nan"): "ahrs EKF: ValueError 'A-priori quaternion must have a norm equal to 1' after NaN acc",
-    ("fusion-ahrs", "acc-nan"): "Fusion (xio): NaN accelerometer samples make every later output NaN",
-    ("fusion-ahrs", "all-nan"): "Fusion (xio): NaN accelerometer samples make every later output NaN",
-}
-
-
-FLAKY = {"vqf-basic"}  # fails on some simulated recordings (the 50 s one), not on others (this 32 s one)
-
-
 def _cases():
     for name in NAMES:
         for kind in ("gyro-nan", "gyro-saturated", "acc-nan", "all-nan"):
-            reason = KNOWN_FAILURES.get((name, kind))
-            strict = name not in FLAKY
-            marks = [pytest.mark.xfail(strict=strict, reason=reason)] if reason else []
-            yield pytest.param(name, kind, marks=marks, id=f"{name}-{kind}")
+            yield pytest.param(name, kind, id=f"{name}-{kind}")
 
 
 @pytest.mark.parametrize("name, kind", _cases())
