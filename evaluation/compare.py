@@ -90,31 +90,20 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None) 
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False) -> list[Result]:
+            progress: bool = False, jobs: int | None = 1) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
+    recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
+    jobs: worker processes (None or 0: all cores); the results do not depend on it
+        (see `evaluation.runner`).
     """
-    spec_list = expand_all(_as_specs(specs))
-    for spec in spec_list:  # fail on a bad name or parameter before any work
-        estimators.build(spec)
-    jobs = [(rec, spec) for rec in recordings for spec in spec_list]
-    bar = _progress(len(jobs), progress)
-    results = []
-    for rec, spec in jobs:
-        bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init))
-        bar.update()
-    bar.close()
+    from .runner import run
+
+    results, _ = run(expand_all(_as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress)
     return results
-
-
-def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, disable=not enabled, file=sys.stderr, unit="run", leave=False)
 
 
 def versions() -> dict[str, str]:
