@@ -101,7 +101,18 @@ def truth_gaps(s: RecordingSeries) -> list[tuple[float, float]]:
         step = np.diff(tv)
         for k in np.flatnonzero(step > 5 * np.median(step)):
             spans.append((float(tv[k]), float(tv[k + 1])))
-    return sorted((a, b) for a, b in spans if b > a)
+    return merge_spans(spans)
+
+
+def merge_spans(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Sorted spans with overlapping or touching ones merged (each gap shaded once)."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(x for x in spans if x[1] > x[0]):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
 
 
 def bad_gyro_spans(s: RecordingSeries) -> list[tuple[float, float]]:
@@ -221,8 +232,7 @@ def rmse_matrix(rows: list[dict], kind: str) -> tuple[list[str], list[str], np.n
 
 
 def _heatmap(ax, m: np.ndarray, rows: list[str], cols: list[str], title: str, cbar_label: str, fig: Figure) -> None:
-    cmap = matplotlib.colormaps["viridis"].copy()
-    cmap.set_bad("0.85")
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.85")
     finite = m[np.isfinite(m)]
     vmax = float(finite.max()) if finite.size else 1.0
     image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=vmax or 1.0, aspect="auto")
