@@ -11,7 +11,6 @@ given, estimators as given within each recording.
 from __future__ import annotations
 
 import platform
-import sys
 import time
 from dataclasses import dataclass
 from typing import Any, Iterable

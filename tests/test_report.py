@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation import plots, report, runner, series
+from evaluation import plots, runner, series
+from evaluation.compare import _as_specs
 from fusion.cli import main
 
 from report_fixtures import recording, register, write_csv_dataset
@@ -293,3 +294,18 @@ def test_report_html_in_headless_chromium(run_dir, tmp_path):
     assert shot.is_file(), proc.stderr[-2000:]
     spread, colours = _png_stats(shot)
     assert spread > 0.05 and colours > 50
+
+
+def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
+    """Recording 6 loses VICON for about 130 samples: the figure shades those spans."""
+    from fusion import datasets
+
+    rec = datasets.load("ece276a/6", data_dir / "ece276a")
+    results, infos = runner.run(_as_specs(["dr"]), [rec], with_info=True)
+    s = series.from_results(infos[0], results, {"dr": True})
+    nan_rows = int((~np.all(np.isfinite(rec.truth.quat_wxyz), axis=1)).sum())
+    inside = [(a, b) for a, b in plots.truth_gaps(s) if a > s.imu_t[0] and b < s.imu_t[-1]]
+    assert 100 < nan_rows < 200 and len(inside) >= 1
+    assert sum(b - a for a, b in inside) == pytest.approx(nan_rows / 100.0, rel=0.2)
+    fig = plots.euler_figure(s)
+    assert len(fig.axes[0].patches) == len(plots.truth_gaps(s))
