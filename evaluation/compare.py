@@ -11,7 +11,6 @@ given, estimators as given within each recording.
 from __future__ import annotations
 
 import platform
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -114,33 +113,23 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, 
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False, protocol: str | None = None) -> list[Result]:
+            progress: bool = False, protocol: str | None = None, jobs: int | None = 1) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
+    recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
     protocol: scoring protocol, "full" or "broad" (`evaluation.metrics`), or None for each
         recording's default (`default_protocol`).
+    jobs: worker processes (None or 0: all cores); the results do not depend on it
+        (see `evaluation.runner`).
     """
-    spec_list = expand_all(_as_specs(specs))
-    for spec in spec_list:  # fail on a bad name or parameter before any work
-        estimators.build(spec)
-    jobs = [(rec, spec) for rec in recordings for spec in spec_list]
-    bar = _progress(len(jobs), progress)
-    results = []
-    for rec, spec in jobs:
-        bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init, protocol))
-        bar.update()
-    bar.close()
+    from .runner import run
+
+    results, _ = run(expand_all(_as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
+                     protocol=protocol)
     return results
-
-
-def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, disable=not enabled, file=sys.stderr, unit="run", leave=False)
 
 
 def versions() -> dict[str, str]:
