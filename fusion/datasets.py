@@ -141,29 +141,59 @@ def load_imu(path: Path):
     return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
 
 
-def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
-    """Read and calibrate one recording."""
+DROPOUTS_DEFAULT = True  # detected gyro freezes and ADC saturation are sensor faults: never integrate them
+
+
+def calibrated_samples(raw, calib, dropouts: bool = DROPOUTS_DEFAULT):
+    """`calib.apply(raw)`, with `gyr_valid` from `fusion.checks.dropout_mask` when `dropouts`."""
+    imu = calib.apply(raw)
+    if dropouts:
+        from .checks import dropout_mask
+
+        imu = imu.replace(gyr_valid=dropout_mask(raw, calib.board))
+    return imu
+
+
+def load_source(source: Source, board: BoardModel = BoardModel(), dropouts: bool = DROPOUTS_DEFAULT,
+                truth_offset_s: float = 0.0) -> Recording:
+    """Read and calibrate one recording.
+
+    dropouts: the one switch of dropout handling: mark detected gyro freezes and saturated
+        samples invalid (`ImuSamples.gyr_valid`, see `fusion.checks`); off for ablations.
+    truth_offset_s: a measured clock offset (truth stamp minus IMU stamp, s, see
+        `fusion.checks.clock_offset`); the truth's stamps are moved by `-truth_offset_s`.
+    """
     if source.kind == "sim":
         from .sim import simulate
 
         raw, truth = simulate(board=board)
         calib = calibrate(raw, board)
-        return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
+        return Recording(SIM_ID, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib)
     if source.kind == "csv":
         imu, truth = loaders.load_csv(source.imu)
-        return Recording(source.id, imu, truth)
+        return Recording(source.id, imu, _shift(truth, truth_offset_s))
     raw = load_imu(source.imu)
     calib = calibrate(raw, board)
     truth = loaders.load_vicon(source.vicon) if source.vicon else None
     if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
         raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    return Recording(source.id, calib.apply(raw), truth, raw, calib, camera=source.cam)
+    return Recording(source.id, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib,
+                     camera=source.cam)
 
 
-def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
+def _shift(truth, offset_s: float):
+    if truth is None or offset_s == 0.0:
+        return truth
+    from .types import Trajectory
+
+    return Trajectory(truth.t - offset_s, truth.quat_wxyz, truth.diagnostics)
+
+
+def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel(),
+         dropouts: bool = DROPOUTS_DEFAULT) -> Recording:
     """One recording by id (e.g. `ece276a/3`, `sim`) or path."""
     (source,) = select(dataset_id, data_dir)[:1]
-    return load_source(source, board)
+    return load_source(source, board, dropouts)
 
 
 INIT_MODES = ("truth", "accel", "identity")
