@@ -24,7 +24,7 @@ import numpy as np
 
 import estimators
 from estimators.params import EstimatorSpec
-from fusion.datasets import Source, load_source
+from fusion.datasets import LoadOptions, Source
 from fusion.types import Recording, Trajectory
 
 from .compare import Result, run_one
@@ -48,11 +48,13 @@ class RecordingInfo:
 # Per process: the recordings of the current run and the ones loaded so far.
 _ITEMS: list[Source | Recording] = []
 _CACHE: dict[int, Recording] = {}
+_LOAD = LoadOptions()
 
 
-def _init_worker(items: Sequence[Source | Recording], registry: dict[str, type] | None) -> None:
-    global _ITEMS
+def _init_worker(items: Sequence[Source | Recording], registry: dict[str, type] | None, load: LoadOptions = LoadOptions()) -> None:
+    global _ITEMS, _LOAD
     _ITEMS = list(items)
+    _LOAD = load
     _CACHE.clear()
     if registry is not None:  # under 'spawn' the child starts from the default registry
         estimators.ESTIMATORS.clear()
@@ -63,7 +65,7 @@ def _recording(index: int) -> Recording:
     rec = _CACHE.get(index)
     if rec is None:
         item = _ITEMS[index]
-        rec = item if isinstance(item, Recording) else load_source(item)
+        rec = item if isinstance(item, Recording) else _LOAD.load(item)
         _CACHE[index] = rec
     return rec
 
@@ -91,8 +93,8 @@ def pool_context() -> multiprocessing.context.BaseContext:
 
 
 def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], init: str | None = None,
-        jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None
-        ) -> tuple[list[Result], list[RecordingInfo]]:
+        jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None,
+        load: LoadOptions = LoadOptions()) -> tuple[list[Result], list[RecordingInfo]]:
     """Every spec on every recording; results in recording-major order.
 
     specs: expanded estimator specs (no `all`); each is built once here first, so a bad
@@ -101,6 +103,7 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     jobs: worker processes; None or 0 means all cores; 1 runs in this process.
     with_info: also return one `RecordingInfo` per recording (for plots).
     protocol: scoring protocol (`evaluation.compare.run_one`), None for each recording's default.
+    load: how `Source`s are loaded (calibration file, dropout switch).
     """
     specs = list(specs)
     items = list(items)
@@ -115,13 +118,13 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     outputs: list[Any] = [None] * len(tasks)
     try:
         if jobs == 1:
-            _init_worker(items, None)
+            _init_worker(items, None, load)
             for n, task in enumerate(tasks):
                 bar.set_postfix_str(_label(items, task))
                 outputs[n] = _job(*task)
                 bar.update()
         else:
-            outputs = _run_pool(tasks, items, jobs, bar)
+            outputs = _run_pool(tasks, items, jobs, bar, load)
     finally:
         bar.close()
         _CACHE.clear()
@@ -130,12 +133,12 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     return results, infos
 
 
-def _run_pool(tasks: list[tuple], items: list, jobs: int, bar: Any) -> list[Any]:
+def _run_pool(tasks: list[tuple], items: list, jobs: int, bar: Any, load: LoadOptions) -> list[Any]:
     ctx = pool_context()
     registry = None if ctx.get_start_method() == "fork" else dict(estimators.ESTIMATORS)
     outputs: list[Any] = [None] * len(tasks)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_init_worker,
-                             initargs=(items, registry)) as pool:
+                             initargs=(items, registry, load)) as pool:
         futures = {pool.submit(_job, *task): n for n, task in enumerate(tasks)}
         pending = set(futures)
         try:

@@ -27,6 +27,12 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init", choices=datasets.INIT_MODES, default=None,
                         help="initial orientation: truth (default with ground truth), accel (default without), identity")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
+                        help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
+                             "integrates them (default: on; off for ablations)")
+    parser.add_argument("--calibration", metavar="FILE", default=None,
+                        help="apply a calibration file written by 'fusion calibrate' (gyro scale factors, "
+                             "and per-recording clock offsets if it holds them)")
 
 
 def select_sources(args: argparse.Namespace) -> list:
@@ -45,10 +51,70 @@ def load_selected(args: argparse.Namespace) -> list:
     """The recordings `--dataset` names, loaded and calibrated (a progress bar per recording)."""
     from tqdm import tqdm
 
+    options = load_options(args)
     recordings = []
     for source in tqdm(select_sources(args), desc="loading", disable=args.no_progress, file=sys.stderr, leave=False):
-        recordings.append(datasets.load_source(source))
+        recordings.append(options.load(source))
     return recordings
+
+
+def load_options(args: argparse.Namespace) -> datasets.LoadOptions:
+    """`--calibration` and `--dropouts` as the loading options every command uses."""
+    dropouts = getattr(args, "dropouts", "on") == "on"
+    if not getattr(args, "calibration", None):
+        return datasets.LoadOptions(dropouts=dropouts)
+    from . import gyro_fit
+
+    calib_file = gyro_fit.read(args.calibration)
+    return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())))
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from .checks import check_recording, format_check
+
+    recordings = load_selected(args)
+    checks = [check_recording(rec) for rec in recordings]
+    print("\n\n".join(format_check(c) for c in checks))
+    if args.json:
+        doc = {"command": " ".join(["fusion", *sys.argv[1:]]), "recordings": [c.to_json() for c in checks]}
+        Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
+    if args.out:
+        from evaluation.inspect_plots import plot_check
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for rec, check in zip(recordings, checks):
+            path = out / f"inspect_{rec.id.replace('/', '_')}.png"
+            plot_check(rec, check, path)
+            print(f"wrote {path}")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from . import gyro_fit
+
+    recordings = load_selected(args)
+    if args.leave_one_out:
+        from evaluation.compare import format_table
+        from evaluation.loo import format_folds, leave_one_out
+
+        folds = leave_one_out([args.estimators], recordings, init=args.init, progress=not args.no_progress)
+        print(format_folds(folds))
+        print()
+        print(format_table([r for f in folds for r in f.results]))
+    result = gyro_fit.fit_recordings(recordings)
+    print(f"fit on {len(result.fitted_on)} recordings ({result.samples} samples): gyro_scale_factor "
+          + ", ".join(f"{x:.4f}" for x in result.gyro_scale_factor)
+          + " (sensitivity vs nominal " + ", ".join(f"{100 * (x - 1):+.1f} %" for x in result.sensitivity_ratio)
+          + f"); misalignment {', '.join(f'{x:+.2f}' for x in result.misalignment_deg)} deg; "
+          f"residual {result.residual_rms_deg_s:.2f} deg/s")
+    if args.clock_offset:
+        for rid, off in result.clock_offset_s.items():
+            print(f"  clock offset {rid}: VICON lags by {off * 1e3:+.1f} ms")
+    if args.out:
+        gyro_fit.write(args.out, result, with_clock_offset=args.clock_offset, command=" ".join(["fusion", *sys.argv[1:]]))
+        print(f"wrote {args.out}")
+    return 0
 
 
 def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool = True) -> int:
@@ -58,7 +124,7 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
 
     sources = select_sources(args)
     out = getattr(args, "out", None)
-    results, infos = run(specs, sources, args.init, jobs=args.jobs, progress=not args.no_progress,
+    results, infos = run(specs, sources, args.init, jobs=args.jobs, progress=not args.no_progress, load=load_options(args),
                          with_info=bool(out) and per_recording, protocol=args.protocol)
     print(format_table(results))
     if not (args.json or out):
@@ -165,6 +231,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N", help="worker processes; 0 = all cores (default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("inspect", help="sensor checks per recording: rests, bias drift, gyro freezes, range, "
+                                       "time stamps, VICON gaps and clock offset")
+    _add_data_args(p)
+    p.add_argument("--json", metavar="PATH", help="write the checks as JSON")
+    p.add_argument("--out", metavar="DIR", help="write a figure per recording into DIR")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("calibrate", help="fit gyro scale factors (and clock offsets) against VICON")
+    _add_data_args(p)
+    p.add_argument("--out", metavar="FILE", help="write the calibration file (JSON, see README)")
+    p.add_argument("--clock-offset", action="store_true",
+                   help="also store each recording's measured IMU-VICON clock offset (applied to that recording's truth)")
+    p.add_argument("--leave-one-out", action="store_true",
+                   help="score each recording with the scales fitted on the others, and print the fitted scales per fold")
+    p.add_argument("--estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
+    p.set_defaults(func=cmd_calibrate)
     return parser
 
 

@@ -153,35 +153,82 @@ def load_imu(path: Path):
     return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
 
 
-def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
-    """Read and calibrate one recording."""
+DROPOUTS_DEFAULT = True  # detected gyro freezes and ADC saturation are sensor faults: never integrate them
+
+
+def calibrated_samples(raw, calib, dropouts: bool = DROPOUTS_DEFAULT):
+    """`calib.apply(raw)`, with `gyr_valid` from `fusion.checks.dropout_mask` when `dropouts`."""
+    imu = calib.apply(raw)
+    if dropouts:
+        from .checks import dropout_mask
+
+        imu = imu.replace(gyr_valid=dropout_mask(raw, calib.board))
+    return imu
+
+
+def load_source(source: Source, board: BoardModel = BoardModel(), dropouts: bool = DROPOUTS_DEFAULT,
+                truth_offset_s: float = 0.0) -> Recording:
+    """Read and calibrate one recording.
+
+    dropouts: the one switch of dropout handling: mark detected gyro freezes and saturated
+        samples invalid (`ImuSamples.gyr_valid`, see `fusion.checks`); off for ablations.
+    truth_offset_s: a measured clock offset (truth stamp minus IMU stamp, s, see
+        `fusion.checks.clock_offset`); the truth's stamps are moved by `-truth_offset_s`.
+    """
     if source.kind == "sim":
         from .sim import simulate
 
         raw, truth = simulate(board=board)
         calib = calibrate(raw, board)
-        return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
+        return Recording(SIM_ID, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib)
     if source.kind == "csv":
         imu, truth, movement = loaders.load_csv(source.imu, with_movement=True)
-        return Recording(source.id, loaders.invalidate_gaps(imu), truth, movement=movement)
+        return Recording(source.id, loaders.invalidate_gaps(imu), _shift(truth, truth_offset_s), movement=movement)
     if source.kind == "broad":
         from .broad import load_broad
 
         imu, truth, movement = load_broad(source.imu)
-        return Recording(source.id, imu, truth, movement=movement)
+        return Recording(source.id, imu, _shift(truth, truth_offset_s), movement=movement)
     raw = load_imu(source.imu)
     calib = calibrate(raw, board)
     truth = loaders.load_vicon(source.vicon) if source.vicon else None
     if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
         raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
-    return Recording(source.id, loaders.invalidate_gaps(calib.apply(raw)), truth, raw, calib, camera=source.cam)
+    # Gyro samples before a time gap are marked invalid too (see `fusion.loaders`, time stamps).
+    imu = loaders.invalidate_gaps(calibrated_samples(raw, calib, dropouts))
+    return Recording(source.id, imu, _shift(truth, truth_offset_s), raw, calib, camera=source.cam)
 
 
-def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
+def _shift(truth, offset_s: float):
+    if truth is None or offset_s == 0.0:
+        return truth
+    from .types import Trajectory
+
+    return Trajectory(truth.t - offset_s, truth.quat_wxyz, truth.diagnostics)
+
+
+def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel(),
+         dropouts: bool = DROPOUTS_DEFAULT) -> Recording:
     """One recording by id (e.g. `ece276a/3`, `sim`) or path."""
     (source,) = select(dataset_id, data_dir)[:1]
-    return load_source(source, board)
+    return load_source(source, board, dropouts)
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """How recordings are loaded, in one picklable value (worker processes load their own).
+
+    board: the sensor model (a calibration file's gyro scale factors go here).
+    dropouts: mark detected gyro freezes and saturation invalid (see `load_source`).
+    truth_offsets_s: per recording id, a measured truth clock offset, s.
+    """
+
+    board: BoardModel = BoardModel()
+    dropouts: bool = DROPOUTS_DEFAULT
+    truth_offsets_s: tuple[tuple[str, float], ...] = ()
+
+    def load(self, source: Source) -> Recording:
+        return load_source(source, self.board, self.dropouts, dict(self.truth_offsets_s).get(source.id, 0.0))
 
 
 INIT_MODES = ("truth", "accel", "identity")

@@ -54,6 +54,7 @@ import numpy as np
 from .types import ImuSamples, RawImu, Trajectory
 
 G = 9.80665  # m/s^2 per g (CSV files are in m/s^2)
+ADC_LIMIT_COUNTS = 65535  # raw IMU values are ADC counts (10-bit here; any 16-bit ADC fits)
 GAP_S = 0.5  # a time step longer than this is a gap (warned about; see the module docstring)
 MIN_STEP_S, MAX_STEP_S = 1e-5, 1.0  # plausible median time step (100 kHz .. 1 Hz)
 
@@ -286,6 +287,8 @@ def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
         raise ValueError(f"{path}: {counts.shape[0]} IMU samples; need at least 2")
     if not np.all(np.isfinite(counts)):
         raise ValueError(f"{path}: IMU values contain NaN or Inf")
+    if np.abs(counts).max() > ADC_LIMIT_COUNTS:
+        raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
     t, counts = repair_time(t, path, counts)
     return RawImu(t, counts, source=str(path))
 
