@@ -23,6 +23,7 @@ frames. OpenCV is imported here and in `evaluation.camsim` only.
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -327,7 +328,7 @@ def stitch(camera: CameraSource, trajectory: Trajectory, *, model: CameraModel |
     if progress:
         from tqdm import tqdm
 
-        frames = tqdm(frames, total=len(indices), desc=desc, unit="frame", leave=False)
+        frames = tqdm(frames, total=len(indices), desc=desc, unit="frame", leave=False, file=sys.stderr)
     for i, (_, _, frame) in enumerate(frames):
         stitcher.add(frame, rots[i])
     return stitcher.result(skipped, camera.channel_order)
@@ -402,30 +403,57 @@ def panorama_scores(recording: Any, estimate: Trajectory, *, data_dir: Any = Non
 
     Frames: the recording's camera if it has one, else frames rendered at `rate_hz` from a
     scene with the ground-truth orientations (`evaluation.camsim`). Stitches the frames with
-    the ground truth (reference, cached per recording) and with `estimate`, and returns
-    `psnr_db`, `ssim`, `covered_fraction` (estimate vs truth panorama, over pixels both
-    cover), plus `scene_psnr_db`, `scene_ssim` (estimate vs the scene, rendered frames
-    only), `frames_used`, `frames_skipped`. NaN scores where there is no ground truth.
+    the ground truth (reference, cached for the last recording) and with `estimate`, and
+    returns `psnr_db`, `ssim`, `covered_fraction` (estimate vs truth panorama, over pixels
+    both cover, solid-angle weighted), `scene_psnr_db`, `scene_ssim` (estimate vs the scene,
+    rendered frames only), `frames_used`, `frames_skipped`. NaN where a reference is missing.
     """
-    ref = reference_panorama(recording, data_dir=data_dir, scene=scene, model=model, grid=grid, blend=blend, rate_hz=rate_hz)
-    nan = float("nan")
+    _, scores = estimate_panorama(recording, estimate, data_dir=data_dir, scene=scene, model=model, grid=grid,
+                                  blend=blend, rate_hz=rate_hz)
+    return scores
+
+
+def estimate_panorama(recording: Any, estimate: Trajectory, *, data_dir: Any = None, scene: Any = None,
+                      model: CameraModel | None = None, grid: PanoramaGrid | None = None, blend: Blend = "feather",
+                      rate_hz: float = 10.0, progress: bool = False) -> tuple[Panorama, dict[str, float]]:
+    """The panorama stitched with `estimate`, and its scores (see `panorama_scores`).
+
+    Raises ValueError if the recording has neither a camera nor ground truth to render from.
+    """
+    ref = reference_panorama(recording, data_dir=data_dir, scene=scene, model=model, grid=grid, blend=blend,
+                             rate_hz=rate_hz, progress=progress)
     if ref.camera is None:
-        return {"psnr_db": nan, "ssim": nan, "covered_fraction": nan, "scene_psnr_db": nan, "scene_ssim": nan,
-                "frames_used": 0, "frames_skipped": 0}
+        raise ValueError(f"{recording.id}: no camera recording and no ground truth to render frames from")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # frames outside the estimate's span: counted below
-        est = stitch(ref.camera, estimate, model=model, grid=ref.grid, blend=blend)
+        est = stitch(ref.camera, estimate, model=model, grid=ref.grid, blend=blend, progress=progress, desc="estimate")
+    nan = float("nan")
     out: dict[str, float] = {"frames_used": est.frames_used, "frames_skipped": est.frames_skipped}
-    if ref.truth is not None:
-        out.update(score_panorama(est, ref.truth))
-    else:
-        out.update({"psnr_db": nan, "ssim": nan, "covered_fraction": nan})
+    out.update(score_panorama(est, ref.truth) if ref.truth is not None
+               else {"psnr_db": nan, "ssim": nan, "covered_fraction": nan})
     if ref.scene is not None:
         s = score_panorama(est, ref.scene)
         out["scene_psnr_db"], out["scene_ssim"] = s["psnr_db"], s["ssim"]
     else:
         out["scene_psnr_db"] = out["scene_ssim"] = nan
-    return out
+    return est, out
+
+
+def comparison_image(estimate: Panorama, reference: Panorama) -> np.ndarray:
+    """BGR image for `--reference`: the estimate's panorama on top, the ground truth's below,
+    then their absolute difference (x 2) over the pixels both cover, each labelled."""
+    both = estimate.covered & reference.covered
+    diff = cv2.absdiff(estimate.bgr(), reference.bgr())
+    diff = cv2.convertScaleAbs(diff, alpha=2.0)
+    diff[~both] = 0
+    panels = []
+    for image, label in ((estimate.bgr(), "estimate"), (reference.bgr(), "ground truth"), (diff, "|difference| x 2")):
+        image = np.ascontiguousarray(image)
+        scale = image.shape[0] / 480.0
+        cv2.putText(image, label, (int(10 * scale), int(30 * scale)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255),
+                    max(1, int(2 * scale)), cv2.LINE_AA)
+        panels.append(image)
+    return np.vstack(panels)
 
 
 @dataclass
@@ -438,19 +466,21 @@ class Reference:
     grid: PanoramaGrid
 
 
-_REFERENCES: dict[tuple, Reference] = {}
+_REFERENCES: dict[tuple, tuple[Any, Any, Reference]] = {}  # key -> (recording, scene, reference): kept alive so ids stay unique
 
 
 def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = None, model: CameraModel | None = None,
-                       grid: PanoramaGrid | None = None, blend: Blend = "feather", rate_hz: float = 10.0) -> Reference:
-    """The frames and ground-truth panorama of a recording (cached for the last recording)."""
+                       grid: PanoramaGrid | None = None, blend: Blend = "feather", rate_hz: float = 10.0,
+                       progress: bool = False) -> Reference:
+    """The frames of a recording (its camera, or rendered from a scene with the ground truth)
+    and the ground-truth panorama. Cached for the last recording (bounded memory)."""
     from evaluation import camsim
 
     grid = grid or PanoramaGrid()
     key = (id(recording), id(scene) if scene is not None else None, str(data_dir), model, grid, blend, rate_hz)
     if key in _REFERENCES:
-        return _REFERENCES[key]
-    _REFERENCES.clear()  # one recording at a time: bounded memory
+        return _REFERENCES[key][2]
+    _REFERENCES.clear()
     camera = recording.camera
     if isinstance(camera, (str, Path)):  # the loaders give the camera file's path: read it now
         camera = load_camera(camera)
@@ -458,13 +488,13 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
     truth = recording.truth
     if camera is None and truth is not None:
         scene_image = camsim.scene_for(recording.id, data_dir) if scene is None else camsim.as_scene(scene)
-        camera = camsim.simulate_camera(truth, scene_image, rate_hz=rate_hz, model=model)
+        camera = camsim.simulate_camera(truth, scene_image, rate_hz=rate_hz, model=model, source=f"{recording.id} (rendered)")
     ref_pano = None
     if camera is not None and truth is not None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ref_pano = stitch(camera, truth, model=model, grid=grid, blend=blend)
+            ref_pano = stitch(camera, truth, model=model, grid=grid, blend=blend, progress=progress, desc="ground truth")
     scene_grid = camsim.resample_scene(scene_image, grid) if scene_image is not None else None
     ref = Reference(camera, ref_pano, scene_grid, grid)
-    _REFERENCES[key] = ref
+    _REFERENCES[key] = (recording, scene, ref)
     return ref

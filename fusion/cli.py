@@ -15,6 +15,8 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from . import datasets
 
 
@@ -67,6 +69,46 @@ def load_options(args: argparse.Namespace) -> datasets.LoadOptions:
 
     calib_file = gyro_fit.read(args.calibration)
     return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())))
+
+
+def cmd_panorama(args: argparse.Namespace) -> int:
+    import cv2
+
+    from estimators.params import parse_specs
+    from evaluation.compare import run_one
+    from evaluation.panorama import PanoramaGrid, comparison_image, estimate_panorama, reference_panorama
+
+    recordings = load_selected(args)
+    if len(recordings) != 1:
+        raise ValueError(f"--dataset {args.dataset!r} names {len(recordings)} recordings; panorama takes one")
+    (recording,) = recordings
+    specs = parse_specs(args.estimator)
+    if len(specs) != 1:
+        raise ValueError(f"--estimator {args.estimator!r}: give exactly one estimator")
+    if args.reference and recording.truth is None:
+        raise ValueError(f"{recording.id}: --reference needs ground truth, and this recording has none")
+    width, _, height = args.size.partition("x")
+    try:
+        grid = PanoramaGrid(int(width), int(height))
+    except ValueError as exc:
+        raise ValueError(f"--size {args.size!r}: expected WIDTHxHEIGHT in px, e.g. 1920x960 ({exc})") from exc
+    trajectory = run_one(recording, specs[0], args.init).trajectory
+    data_dir = datasets.data_dir_from(args.data_dir)
+    options = dict(data_dir=data_dir, scene=args.scene, grid=grid, blend=args.blend, rate_hz=args.rate)
+    pano, scores = estimate_panorama(recording, trajectory, progress=not args.no_progress, **options)
+    image = pano.bgr()
+    if args.reference:
+        image = comparison_image(pano, reference_panorama(recording, **options).truth)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), image):
+        raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
+    print(f"{recording.id} {specs[0].label}: {pano.frames_used} frames ({pano.frames_skipped} skipped) -> {out}")
+    print(f"PSNR {scores['psnr_db']:.2f} dB, SSIM {scores['ssim']:.4f} against the ground-truth panorama; "
+          f"covered {scores['covered_fraction']:.3f} of the sphere")
+    if np.isfinite(scores["scene_psnr_db"]):
+        print(f"PSNR {scores['scene_psnr_db']:.2f} dB, SSIM {scores['scene_ssim']:.4f} against the scene")
+    return 0
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -231,6 +273,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N", help="worker processes; 0 = all cores (default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("panorama", help="stitch camera frames (or frames rendered from a scene) into a panorama")
+    p.add_argument("--estimator", default="dr", help="one estimator spec, e.g. 'ukf:R=1e-3' (default: dr)")
+    _add_data_args(p)
+    p.add_argument("--out", required=True, help="output image (.png, .jpg)")
+    p.add_argument("--reference", action="store_true",
+                   help="write the estimate, the ground-truth panorama and their difference, stacked")
+    p.add_argument("--blend", choices=("last", "average", "feather"), default="feather", help="blending (default: feather)")
+    p.add_argument("--size", default="1920x960", help="panorama WIDTHxHEIGHT in px (default: 1920x960)")
+    p.add_argument("--rate", type=float, default=10.0, help="frame rate of rendered frames, Hz (default: 10)")
+    p.add_argument("--scene", default=None, help="equirectangular scene image to render frames from "
+                                                 "(default: <data-dir>/scenes/room_equirect.jpg; procedural for sim)")
+    p.set_defaults(func=cmd_panorama)
 
     p = sub.add_parser("inspect", help="sensor checks per recording: rests, bias drift, gyro freezes, range, "
                                        "time stamps, VICON gaps and clock offset")

@@ -284,3 +284,21 @@ def test_find_camera_file(tmp_path):
     _pickle(tmp_path / "ece276a" / "cam" / "cam3.p", {})
     assert find_camera_file(tmp_path, "ece276a/3") == tmp_path / "ece276a" / "cam" / "cam3.p"
     assert find_camera_file(tmp_path, "ece276a/4") is None and find_camera_file(tmp_path, "sim") is None
+
+
+def test_panorama_cli_writes_the_image_and_scores(tmp_path, capsys, monkeypatch):
+    from fusion.cli import main
+
+    monkeypatch.delenv("FUSION_DATA", raising=False)
+    out = tmp_path / "pano.png"
+    code = main(["panorama", "--dataset", "sim", "--estimator", "dr", "--out", str(out), "--no-progress",
+                 "--size", "480x240", "--reference"])
+    text = capsys.readouterr().out
+    assert code == 0 and out.is_file()
+    import cv2
+
+    image = cv2.imread(str(out))
+    assert image.shape == (3 * 240, 480, 3) and image.std() > 10  # three stacked, non-blank panels
+    assert "PSNR" in text and "sim dr:" in text
+    code = main(["panorama", "--dataset", "sim", "--estimator", "nope", "--out", str(out), "--no-progress"])
+    assert code == 1 and "unknown estimator 'nope'" in capsys.readouterr().err
