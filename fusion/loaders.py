@@ -41,6 +41,7 @@ rotations (orthonormal, determinant +1). MATLAB files are read in a forked child
 """
 from __future__ import annotations
 
+import faulthandler
 import io
 import os
 import pickle
@@ -132,6 +133,7 @@ def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: st
     if pid == 0:  # the child: read, send, exit without running any parent cleanup
         code = 0
         try:
+            faulthandler.disable()  # an expected crash here is reported by the parent, in one line
             os.close(read_fd)
             try:
                 message = ("ok", _plain_arrays(reader(path)))
