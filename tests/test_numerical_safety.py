@@ -115,7 +115,7 @@ def _cases():
             yield pytest.param(name, kind, id=f"{name}-{kind}")
 
 
-@pytest.mark.parametrize("name, kind", _cases())
+@pytest.mark.parametrize("name, kind", list(_cases()))
 def test_recovers_after_a_broken_stretch(name, kind):
     imu, truth = sim()
     q0 = init_quat(truth, imu)
