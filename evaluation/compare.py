@@ -38,14 +38,16 @@ class Result:
     max_deg: dict[str, float] | None
     trajectory: Trajectory | None = None
     score: Score | None = None
+    panorama: dict[str, float] | None = None  # with --panorama: `evaluation.panorama.panorama_scores`
 
     @property
     def us_per_sample(self) -> float:
         return 1e6 * self.seconds / max(self.samples, 1)
 
     def to_json(self) -> dict[str, Any]:
-        """The row of `results.json` (the keys are a documented format: see README)."""
-        return {
+        """The row of `results.json` (the keys are a documented format: see README; `panorama`
+        only with `--panorama`)."""
+        row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
             "samples": self.samples,
@@ -53,6 +55,9 @@ class Result:
             "rmse_deg": self.rmse_deg,
             "max_deg": self.max_deg,
         }
+        if self.panorama is not None:
+            row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
+        return row
 
 
 def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
@@ -168,6 +173,12 @@ def format_table(results: list[Result]) -> str:
         mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
         us = np.mean([r.us_per_sample for r in mine])
         means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"])
+    if any(r.panorama for r in results):
+        header += ["pano PSNR dB", "SSIM"]
+        for row, r in zip(rows, results):
+            p = r.panorama or {}
+            row += [f"{p.get('psnr_db', float('nan')):.2f}", f"{p.get('ssim', float('nan')):.3f}"]
+        means = [row + ["", ""] for row in means]
     widths = [max(len(str(row[i])) for row in [header, *rows, *means]) for i in range(len(header))]
 
     def line(row: list[str]) -> str:

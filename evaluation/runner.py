@@ -17,7 +17,7 @@ import multiprocessing
 import os
 import sys
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -70,10 +70,14 @@ def _recording(index: int) -> Recording:
     return rec
 
 
-def _job(index: int, spec: EstimatorSpec, init: str | None, protocol: str | None, with_info: bool
-         ) -> tuple[Result, RecordingInfo | None]:
+def _job(index: int, spec: EstimatorSpec, init: str | None, protocol: str | None, with_info: bool,
+         panorama_data_dir: str | None = None) -> tuple[Result, RecordingInfo | None]:
     rec = _recording(index)
     result = run_one(rec, spec, init, protocol)
+    if panorama_data_dir is not None:
+        from .panorama import panorama_scores
+
+        result = replace(result, panorama=panorama_scores(rec, result.trajectory, data_dir=panorama_data_dir))
     info = RecordingInfo(rec.id, rec.imu.t, rec.imu.gyr_valid, rec.truth) if with_info else None
     return result, info
 
@@ -94,7 +98,8 @@ def pool_context() -> multiprocessing.context.BaseContext:
 
 def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], init: str | None = None,
         jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None,
-        load: LoadOptions = LoadOptions()) -> tuple[list[Result], list[RecordingInfo]]:
+        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None
+        ) -> tuple[list[Result], list[RecordingInfo]]:
     """Every spec on every recording; results in recording-major order.
 
     specs: expanded estimator specs (no `all`); each is built once here first, so a bad
@@ -104,12 +109,15 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     with_info: also return one `RecordingInfo` per recording (for plots).
     protocol: scoring protocol (`evaluation.compare.run_one`), None for each recording's default.
     load: how `Source`s are loaded (calibration file, dropout switch).
+    panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
+        up there; see `evaluation.panorama.panorama_scores`).
     """
     specs = list(specs)
     items = list(items)
     for spec in specs:
         estimators.build(spec)
-    tasks = [(i, s, init, protocol, with_info and j == 0) for i in range(len(items)) for j, s in enumerate(specs)]
+    tasks = [(i, s, init, protocol, with_info and j == 0, panorama_data_dir)
+             for i in range(len(items)) for j, s in enumerate(specs)]
     jobs = default_jobs() if not jobs else int(jobs)
     if jobs < 1:
         raise ValueError(f"--jobs must be at least 1, got {jobs}")

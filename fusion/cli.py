@@ -167,6 +167,7 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
     sources = select_sources(args)
     out = getattr(args, "out", None)
     results, infos = run(specs, sources, args.init, jobs=args.jobs, progress=not args.no_progress, load=load_options(args),
+                         panorama_data_dir=str(datasets.data_dir_from(args.data_dir)) if getattr(args, "panorama", False) else None,
                          with_info=bool(out) and per_recording, protocol=args.protocol)
     print(format_table(results))
     if not (args.json or out):
@@ -255,6 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated registry names with optional parameters, e.g. 'dr,ukf:R=1e-3' (default: all)")
     _add_data_args(p)
     _add_run_args(p)
+    p.add_argument("--panorama", action="store_true",
+                   help="also stitch a panorama per estimate (camera frames, or frames rendered from a scene with the "
+                        "ground truth) and score it against the ground truth's panorama (PSNR, SSIM)")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings")
