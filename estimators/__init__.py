@@ -6,10 +6,29 @@ from __future__ import annotations
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
+from .ekf import EKF
+from .gd import GradientDescentSmoother
+from .gn import GaussNewtonSmoother
+from .peers import (  # optional libraries, imported when built: pip install -e '.[peers]'
+    AhrsEKFPeer, BasicVQFPeer, FusionPeer, MadgwickPeer, MahonyPeer, OfflineVQFPeer, VQFPeer,
+)
 from .params import EstimatorSpec, make_params, parse_specs
+from .ukf import UKF, UKFBias
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,
+    "ukf": UKF,
+    "ukf-bias": UKFBias,
+    "ekf": EKF,
+    "gd": GradientDescentSmoother,
+    "gn": GaussNewtonSmoother,
+    "vqf": VQFPeer,
+    "vqf-basic": BasicVQFPeer,
+    "vqf-offline": OfflineVQFPeer,
+    "madgwick": MadgwickPeer,
+    "mahony": MahonyPeer,
+    "ahrs-ekf": AhrsEKFPeer,
+    "fusion-ahrs": FusionPeer,
 }
 
 

@@ -11,8 +11,8 @@ given, estimators as given within each recording.
 from __future__ import annotations
 
 import platform
-import sys
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Iterable
 
@@ -38,23 +38,26 @@ class Result:
     max_deg: dict[str, float] | None
     trajectory: Trajectory | None = None
     score: Score | None = None
-    panorama: dict[str, float] | None = None  # `evaluation.panorama.panorama_scores`, with --panorama
+    panorama: dict[str, float] | None = None  # with --panorama: `evaluation.panorama.panorama_scores`
 
     @property
     def us_per_sample(self) -> float:
         return 1e6 * self.seconds / max(self.samples, 1)
 
     def to_json(self) -> dict[str, Any]:
-        """The row of `results.json` (the keys are a documented format: see README)."""
-        return {
+        """The row of `results.json` (the keys are a documented format: see README; `panorama`
+        only with `--panorama`)."""
+        row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
             "samples": self.samples,
             "seconds": self.seconds,
             "rmse_deg": self.rmse_deg,
             "max_deg": self.max_deg,
-        } | ({"panorama": {k: (float(v) if np.isfinite(v) else None) for k, v in self.panorama.items()}}
-             if self.panorama is not None else {})  # JSON has no inf/NaN: identical panoramas give null
+        }
+        if self.panorama is not None:
+            row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
+        return row
 
 
 def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
@@ -65,18 +68,37 @@ def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
 
 
 def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
-    """Replace the name `all` with every registered estimator (registry order)."""
+    """Replace the name `all` with every registered estimator (registry order).
+
+    `all` leaves out peers whose optional library is not installed (with a warning);
+    naming such a peer explicitly is an error that says what to install.
+    """
     out: list[EstimatorSpec] = []
     for spec in specs:
-        names = list(estimators.ESTIMATORS) if spec.name == "all" else [spec.name]
-        out.extend(EstimatorSpec(name, spec.overrides) for name in names)
+        if spec.name != "all":
+            out.append(spec)
+            continue
+        missing = []
+        for name in estimators.ESTIMATORS:
+            try:
+                estimators.build(EstimatorSpec(name))
+            except ImportError:
+                missing.append(name)
+                continue
+            out.append(EstimatorSpec(name, spec.overrides))
+        if missing:
+            warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
+                          f"(pip install -e '.[peers]')", stacklevel=2)
     return out
 
 
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, panorama: bool = False,
-            data_dir: Any = None) -> Result:
-    """One job: estimate, time, score (and, with `panorama`, score its panorama against the
-    ground truth's: `evaluation.panorama.panorama_scores`; `data_dir` is where the scene is)."""
+def default_protocol(recording: Recording) -> str:
+    """"broad" for recordings that carry a movement mask (BROAD trials), else "full"."""
+    return "broad" if recording.movement is not None else "full"
+
+
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None) -> Result:
+    """One job: estimate, time, score (`protocol` None: the recording's default)."""
     estimator = estimators.build(spec)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
@@ -84,47 +106,35 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, 
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
-    result_score = score(recording.truth, trajectory) if recording.truth is not None else None
-    pano = None
-    if panorama and (recording.truth is not None or recording.camera is not None):
-        from .panorama import panorama_scores
-
-        pano = panorama_scores(recording, trajectory, data_dir=data_dir)
+    protocol = protocol or default_protocol(recording)
+    result_score = (score(recording.truth, trajectory, protocol, recording.movement)
+                    if recording.truth is not None else None)
     return Result(
         recording.id, spec.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
         result_score.max_deg if result_score else None,
-        trajectory, result_score, pano,
+        trajectory, result_score,
     )
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False, panorama: bool = False, data_dir: Any = None) -> list[Result]:
+            progress: bool = False, protocol: str | None = None, jobs: int | None = 1) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
+    recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
-    panorama: also score each estimate's panorama (`Result.panorama`); `data_dir` locates the scene.
+    protocol: scoring protocol, "full" or "broad" (`evaluation.metrics`), or None for each
+        recording's default (`default_protocol`).
+    jobs: worker processes (None or 0: all cores); the results do not depend on it
+        (see `evaluation.runner`).
     """
-    spec_list = expand_all(_as_specs(specs))
-    for spec in spec_list:  # fail on a bad name or parameter before any work
-        estimators.build(spec)
-    jobs = [(rec, spec) for rec in recordings for spec in spec_list]
-    bar = _progress(len(jobs), progress)
-    results = []
-    for rec, spec in jobs:
-        bar.set_description(f"{rec.id} {spec.label}")
-        results.append(run_one(rec, spec, init, panorama, data_dir))
-        bar.update()
-    bar.close()
+    from .runner import run
+
+    results, _ = run(expand_all(_as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
+                     protocol=protocol)
     return results
-
-
-def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, disable=not enabled, file=sys.stderr, unit="run", leave=False)
 
 
 def versions() -> dict[str, str]:
@@ -132,7 +142,7 @@ def versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for package in ("fusion", "numpy", "scipy", "filterpy"):
+    for package in ("fusion", "numpy", "scipy", "filterpy", "vqf", "ahrs", "imufusion"):
         try:
             out[package] = md.version(package)
         except md.PackageNotFoundError:
@@ -149,16 +159,10 @@ def format_table(results: list[Result]) -> str:
     """A readable table: one row per recording x estimator, RMSE in degrees, and a mean row
     per estimator over the recordings that have ground truth."""
     header = ["dataset", "estimator", "total", "inclination", "heading", "us/sample"]
-    pano = any(r.panorama for r in results)
-    if pano:
-        header += ["pano dB", "SSIM", "covered"]
     rows = []
     for r in results:
         rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["-"] * 3
         rows.append([r.dataset, r.estimator, *rmse, f"{r.us_per_sample:.1f}"])
-        if pano:
-            p = r.panorama or {}
-            rows[-1] += [f"{p['psnr_db']:.1f}", f"{p['ssim']:.3f}", f"{p['covered_fraction']:.2f}"] if p else ["-"] * 3
     labels = list(dict.fromkeys(r.estimator for r in results))
     means = []
     for label in labels:
@@ -168,15 +172,19 @@ def format_table(results: list[Result]) -> str:
             continue
         mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
         us = np.mean([r.us_per_sample for r in mine])
-        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"] + ([""] * 3 if pano else []))
+        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"])
+    if any(r.panorama for r in results):
+        header += ["pano PSNR dB", "SSIM"]
+        for row, r in zip(rows, results):
+            p = r.panorama or {}
+            row += [f"{p.get('psnr_db', float('nan')):.2f}", f"{p.get('ssim', float('nan')):.3f}"]
+        means = [row + ["", ""] for row in means]
     widths = [max(len(str(row[i])) for row in [header, *rows, *means]) for i in range(len(header))]
 
     def line(row: list[str]) -> str:
         return "  ".join(str(c).ljust(w) if i < 2 else str(c).rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
 
-    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)"
-           + ("\npanorama: PSNR (dB) and SSIM against the ground-truth panorama over the pixels both cover; covered share of the sphere"
-              if pano else ""),
+    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)",
            line(header), line(["-" * w for w in widths])]
     out += [line(r) for r in rows]
     if means:

@@ -13,6 +13,13 @@ Protocol:
    All three are invariant under q -> -q. No alignment is applied: every estimator starts
    from the same initial orientation (see `fusion.datasets.initial_orientation`).
 3. Summaries: RMSE and maximum of each over the scored samples.
+
+`protocol="broad"` scores as the BROAD benchmark does for 6-D estimates (Laidig et al.
+2021): only the samples inside `movement` (BROAD's movement phases) are scored, and the
+heading offset is removed first: the estimate is turned about world z by the circular mean,
+over the scored samples, of the heading (twist) of the world-frame error `R_gt R_est^-1`.
+Inclination is unchanged by that; heading is what remains after it, total the geodesic
+angle after it. Without a `movement` mask every sample with truth is scored.
 """
 from __future__ import annotations
 
@@ -58,16 +65,42 @@ class Score:
         return len(self.t)
 
 
-def score(truth: Trajectory, estimate: Trajectory) -> Score:
-    """Score `estimate` against `truth` (see the module docstring for the protocol)."""
+PROTOCOLS = ("full", "broad")
+
+
+def mean_heading_offset(r_true: Rotation, r_est: Rotation) -> float:
+    """Circular mean (rad) of the twist about world z of `R_gt R_est^-1` (BROAD's heading offset)."""
+    err = (r_true * r_est.inv()).as_quat(scalar_first=True)
+    psi = 2.0 * np.arctan2(err[:, 3], err[:, 0])  # signed twist of each error, wrap-safe via sin/cos
+    return float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
+
+
+def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None) -> Score:
+    """Score `estimate` against `truth` (see the module docstring for the protocols).
+
+    protocol: "full" (every sample with truth, no alignment) or "broad".
+    movement: (N,) bool over the estimate's samples, the samples "broad" scores (None: all).
+    """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown scoring protocol {protocol!r}; use one of {', '.join(PROTOCOLS)}")
     r_true, mask = truth.interpolate(estimate.t)
     finite = np.all(np.isfinite(estimate.quat_wxyz), axis=1)
+    if protocol == "broad" and movement is not None:
+        movement = np.asarray(movement, dtype=bool)
+        if movement.shape != mask.shape:
+            raise ValueError(f"movement mask has shape {movement.shape}, the estimate {mask.shape[0]} samples")
+        if r_true is not None:
+            inside = movement[mask]
+            r_true = r_true[inside] if inside.any() else None
+        mask = mask & movement
     if r_true is None or not np.any(mask & finite):
         raise ValueError("the estimate and the ground truth share no valid time stamp")
     keep = finite[mask]  # a diverged estimate (NaN rows) would otherwise poison the RMSE
     if not keep.all():
         raise ValueError(f"the estimate has {int((~keep).sum())} non-finite orientations inside the scored span")
     r_est = Rotation.from_quat(estimate.quat_wxyz[mask], scalar_first=True)
+    if protocol == "broad":  # remove the mean heading offset (6-D: heading is unobservable)
+        r_est = Rotation.from_rotvec([0.0, 0.0, mean_heading_offset(r_true, r_est)]) * r_est
     errors = error_angles(r_true, r_est)
     rmse = {k: float(np.degrees(np.sqrt(np.mean(v**2)))) for k, v in errors.items()}
     worst = {k: float(np.degrees(np.max(v))) for k, v in errors.items()}

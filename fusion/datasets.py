@@ -5,10 +5,12 @@ A data directory is laid out like the course releases, possibly nested:
     <data>/ece276a/imu/imuRaw3.p     <data>/ece276a/vicon/viconRot3.p    [<data>/ece276a/cam/cam3.p]
     <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
     <data>/mylab/walk.csv            (generic CSV, see `fusion.loaders.load_csv`)
+    <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.broad`)
 
 Each recording gets an id: its folder relative to the data directory (or, for recordings
 directly in it, the data directory's own name) plus its number, e.g. `ece276a/3`; a CSV
-file's id is its path without the suffix. The built-in simulated recording is always `sim`.
+file's or BROAD trial's id is its path without the suffix. A `.mat` file that is not a
+course file (imuRawN/viconRotN/camN) is taken for a BROAD trial. The built-in simulated recording is always `sim`.
 
 The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`.
 """
@@ -28,11 +30,13 @@ from .types import Recording
 
 SIM_ID = "sim"
 _IMU_FILE = re.compile(r"imuRaw(\d+)\.(p|mat)$")
+_COURSE_FILE = re.compile(r"(imuRaw|viconRot|cam)\d+\.(p|mat)$")
+_BROAD_SUFFIXES = (".hdf5", ".h5", ".mat")
 
 
 @dataclass(frozen=True)
 class Source:
-    """Where one recording's files are. `kind` is "course", "csv" or "sim"."""
+    """Where one recording's files are. `kind` is "course", "csv", "broad" or "sim"."""
 
     id: str
     kind: str
@@ -85,13 +89,17 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
             elif path.suffix.lower() == ".csv":
                 rid = path.relative_to(root).with_suffix("").as_posix()
                 found[rid] = Source(rid, "csv", path)
+            elif path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
+                rid = path.relative_to(root).with_suffix("").as_posix()
+                found[rid] = Source(rid, "broad", path)
     ordered = {k: found[k] for k in sorted(found, key=_natural_key)}
     ordered[SIM_ID] = Source(SIM_ID, "sim")
     return ordered
 
 
 def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[Source]:
-    """Sources for `all`, a comma list of ids, globs (`ece276a/*`) or paths to files.
+    """Sources for `all`, a comma list of ids, globs (`ece276a/*`), paths to files, or
+    paths to folders (every recording found below them).
 
     `all` means every real recording found, or `sim` when there is none. Raises with the
     list of available ids when a name matches nothing.
@@ -110,6 +118,8 @@ def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[So
             matches = [s for rid, s in available.items() if fnmatch.fnmatchcase(rid, token)]
         elif Path(token).is_file():
             matches = [_source_for_file(Path(token))]
+        elif Path(token).is_dir():
+            matches = [s for rid, s in discover(token).items() if rid != SIM_ID]
         else:
             matches = []
         if not matches:
@@ -126,6 +136,8 @@ def _source_for_file(path: Path) -> Source:
     match = _IMU_FILE.match(path.name)
     if path.suffix.lower() == ".csv":
         return Source(path.with_suffix("").as_posix(), "csv", path)
+    if path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
+        return Source(path.with_suffix("").as_posix(), "broad", path)
     if match:
         number = match.group(1)
         return Source(
@@ -133,7 +145,7 @@ def _source_for_file(path: Path) -> Source:
             vicon=_sibling(path.parent, "vicon", "viconRot", number, path.suffix),
             cam=_sibling(path.parent, "cam", "cam", number, path.suffix),
         )
-    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat or .csv)")
+    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat, .csv, or a BROAD .hdf5/.mat trial)")
 
 
 def load_imu(path: Path):
@@ -141,29 +153,82 @@ def load_imu(path: Path):
     return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
 
 
-def load_source(source: Source, board: BoardModel = BoardModel()) -> Recording:
-    """Read and calibrate one recording."""
+DROPOUTS_DEFAULT = True  # detected gyro freezes and ADC saturation are sensor faults: never integrate them
+
+
+def calibrated_samples(raw, calib, dropouts: bool = DROPOUTS_DEFAULT):
+    """`calib.apply(raw)`, with `gyr_valid` from `fusion.checks.dropout_mask` when `dropouts`."""
+    imu = calib.apply(raw)
+    if dropouts:
+        from .checks import dropout_mask
+
+        imu = imu.replace(gyr_valid=dropout_mask(raw, calib.board))
+    return imu
+
+
+def load_source(source: Source, board: BoardModel = BoardModel(), dropouts: bool = DROPOUTS_DEFAULT,
+                truth_offset_s: float = 0.0) -> Recording:
+    """Read and calibrate one recording.
+
+    dropouts: the one switch of dropout handling: mark detected gyro freezes and saturated
+        samples invalid (`ImuSamples.gyr_valid`, see `fusion.checks`); off for ablations.
+    truth_offset_s: a measured clock offset (truth stamp minus IMU stamp, s, see
+        `fusion.checks.clock_offset`); the truth's stamps are moved by `-truth_offset_s`.
+    """
     if source.kind == "sim":
         from .sim import simulate
 
         raw, truth = simulate(board=board)
         calib = calibrate(raw, board)
-        return Recording(SIM_ID, calib.apply(raw), truth, raw, calib)
+        return Recording(SIM_ID, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib)
     if source.kind == "csv":
-        imu, truth = loaders.load_csv(source.imu)
-        return Recording(source.id, imu, truth)
+        imu, truth, movement = loaders.load_csv(source.imu, with_movement=True)
+        return Recording(source.id, loaders.invalidate_gaps(imu), _shift(truth, truth_offset_s), movement=movement)
+    if source.kind == "broad":
+        from .broad import load_broad
+
+        imu, truth, movement = load_broad(source.imu)
+        return Recording(source.id, imu, _shift(truth, truth_offset_s), movement=movement)
     raw = load_imu(source.imu)
     calib = calibrate(raw, board)
     truth = loaders.load_vicon(source.vicon) if source.vicon else None
     if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
         raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    return Recording(source.id, calib.apply(raw), truth, raw, calib, camera=source.cam)
+    # Gyro samples before a time gap are marked invalid too (see `fusion.loaders`, time stamps).
+    imu = loaders.invalidate_gaps(calibrated_samples(raw, calib, dropouts))
+    return Recording(source.id, imu, _shift(truth, truth_offset_s), raw, calib, camera=source.cam)
 
 
-def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel()) -> Recording:
+def _shift(truth, offset_s: float):
+    if truth is None or offset_s == 0.0:
+        return truth
+    from .types import Trajectory
+
+    return Trajectory(truth.t - offset_s, truth.quat_wxyz, truth.diagnostics)
+
+
+def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: BoardModel = BoardModel(),
+         dropouts: bool = DROPOUTS_DEFAULT) -> Recording:
     """One recording by id (e.g. `ece276a/3`, `sim`) or path."""
     (source,) = select(dataset_id, data_dir)[:1]
-    return load_source(source, board)
+    return load_source(source, board, dropouts)
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """How recordings are loaded, in one picklable value (worker processes load their own).
+
+    board: the sensor model (a calibration file's gyro scale factors go here).
+    dropouts: mark detected gyro freezes and saturation invalid (see `load_source`).
+    truth_offsets_s: per recording id, a measured truth clock offset, s.
+    """
+
+    board: BoardModel = BoardModel()
+    dropouts: bool = DROPOUTS_DEFAULT
+    truth_offsets_s: tuple[tuple[str, float], ...] = ()
+
+    def load(self, source: Source) -> Recording:
+        return load_source(source, self.board, self.dropouts, dict(self.truth_offsets_s).get(source.id, 0.0))
 
 
 INIT_MODES = ("truth", "accel", "identity")

@@ -18,23 +18,46 @@ Pickles can run code when loaded: only open pickle files you trust. As a guard, 
 read with a restricted unpickler that only builds numpy arrays and plain containers and
 refuses any other class.
 
-Every problem raises `ValueError` (or `FileNotFoundError`) naming the file, in one line.
-Time stamps that are not strictly increasing are repaired, with a warning saying how many
-samples were dropped, as long as the repair keeps most of the recording; otherwise rejected.
+Every problem raises `ValueError` (or `FileNotFoundError`) naming the file, in one line
+(exception texts from pickle/SciPy are folded onto that line). `tests/test_fuzz_loaders.py`
+feeds thousands of broken files through every loader and the CLI to keep it so.
+
+Time stamps (`repair_time` then `check_sampling`, applied by every loader):
+- not strictly increasing (NaN/Inf, duplicated, backwards): the offending samples are
+  dropped, with a warning saying how many, as long as at least half the samples survive;
+  otherwise the file is rejected.
+- implausible sampling: a median time step outside [10 us, 1 s] (100 kHz .. 1 Hz) is
+  rejected; stamps in milliseconds or sample numbers instead of seconds end up here.
+- gaps: a step longer than `GAP_S` (0.5 s, some 50 missing samples at 100 Hz) and than ten
+  median steps is *kept*, with a warning giving their count and the longest. `fusion.datasets` then marks the gyro
+  sample before each gap invalid (`ImuSamples.gyr_valid`), so estimators hold the orientation
+  across the gap instead of integrating a stale rate over it (see `invalidate_gaps`). If the
+  gaps cover more than half of the recording's span, the file is rejected (broken stamps).
+
+Values: NaN or Inf IMU values are rejected (VICON NaN matrices are tracking gaps and kept);
+complex, string, object or structured arrays are rejected; VICON matrices must be proper
+rotations (orthonormal, determinant +1). MATLAB files are read in a forked child process
+(`read_isolated`): a corrupt file can crash SciPy's C reader, and a crash must stay an error.
 """
 from __future__ import annotations
 
+import faulthandler
 import io
+import os
 import pickle
+import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from .types import ImuSamples, RawImu, Trajectory
 
 G = 9.80665  # m/s^2 per g (CSV files are in m/s^2)
+ADC_LIMIT_COUNTS = 65535  # raw IMU values are ADC counts (10-bit here; any 16-bit ADC fits)
+GAP_S = 0.5  # a time step longer than this is a gap (warned about; see the module docstring)
+MIN_STEP_S, MAX_STEP_S = 1e-5, 1.0  # plausible median time step (100 kHz .. 1 Hz)
 
 # Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
 # .mat and 2018 files.
@@ -66,22 +89,96 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"refusing to load {module}.{name} (only numpy arrays and plain containers)")
 
 
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """`Type: message` of an exception on one line, shortened (SciPy messages can hold matrices)."""
+    text = " ".join(str(exc).split())
+    text = text if len(text) <= limit else text[: limit - 3] + "..."
+    return f"{type(exc).__name__}: {text}"
+
+
 def _read_pickle(path: Path) -> Any:
     data = _read_bytes(path)
     try:
         return _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
-        raise ValueError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from None
+        raise ValueError(f"{path}: not a readable pickle ({_one_line(exc)})") from None
 
 
 def _read_mat(path: Path) -> dict[str, Any]:
-    import scipy.io
+    """The variables of a MATLAB file (see `read_isolated`)."""
+    import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
 
     _read_bytes(path)  # existence and emptiness checks with a clear message
+    return read_isolated(path, _loadmat, "MATLAB")
+
+
+def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: str) -> dict[str, np.ndarray]:
+    """`reader(path)`'s arrays: numeric ones as they are, anything else as an empty object
+    array (which `_numeric` rejects). `reader` raises `ValueError` (or `ImportError`) for files
+    it cannot read; `kind` names the format in messages.
+
+    SciPy's MATLAB reader (and h5py's HDF5 library) are C code that a corrupt file can crash
+    outright: with SciPy 1.17 a single flipped bit (the "complex" flag of a uint16 array
+    without an imaginary part) is a segmentation fault, which no `except` can catch. So on
+    Linux `reader` runs in a forked child (a few ms; the libraries are already imported) that
+    sends the arrays back through a pipe (read with the restricted unpickler); a crashed child
+    becomes a one-line `ValueError`. Elsewhere (no safe fork) it runs in-process, unprotected.
+    """
+    if not sys.platform.startswith("linux"):
+        return _plain_arrays(reader(path))
+    read_fd, write_fd = os.pipe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # Python >= 3.12: fork with threads
+        pid = os.fork()
+    if pid == 0:  # the child: read, send, exit without running any parent cleanup
+        code = 0
+        try:
+            faulthandler.disable()  # an expected crash here is reported by the parent, in one line
+            os.close(read_fd)
+            try:
+                message = ("ok", _plain_arrays(reader(path)))
+            except ValueError as exc:
+                message = ("error", str(exc))
+            except ImportError as exc:
+                message = ("import", str(exc))
+            with os.fdopen(write_fd, "wb") as pipe:
+                pipe.write(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+        except BaseException:  # the child must never return into the parent's code
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as pipe:
+        data = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    if not data or status != 0:
+        how = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit status {os.waitstatus_to_exitcode(status)}"
+        raise ValueError(f"{path}: not a readable {kind} file (the reader crashed on it: {how})")
+    result, value = _RestrictedUnpickler(io.BytesIO(data)).load()
+    if result == "error":
+        raise ValueError(" ".join(value.split()))
+    if result == "import":
+        raise ImportError(value)
+    return value
+
+
+def _plain_arrays(variables: dict[str, Any]) -> dict[str, np.ndarray]:
+    out = {}
+    for key, value in variables.items():
+        if isinstance(value, np.ndarray) and (np.issubdtype(value.dtype, np.number) or value.dtype == bool):
+            out[str(key)] = value
+        elif not str(key).startswith("__"):
+            out[str(key)] = np.empty(0, dtype=object)  # structs, cells, strings, sparse: not numeric
+    return out
+
+
+def _loadmat(path: Path) -> dict[str, Any]:
+    import scipy.io
+
     try:
         return scipy.io.loadmat(str(path))
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
-        raise ValueError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: {exc})") from None
+        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -95,15 +192,21 @@ def _read_bytes(path: Path) -> bytes:
 
 def _field(obj: Any, key: str, path: Path) -> np.ndarray:
     if not isinstance(obj, dict) or key not in obj:
-        have = sorted(k for k in obj if not str(k).startswith("__")) if isinstance(obj, dict) else type(obj).__name__
+        have = (sorted((k for k in obj if not str(k).startswith("__")), key=str) if isinstance(obj, dict)
+                else type(obj).__name__)  # key=str: keys of mixed types do not compare
         raise ValueError(f"{path}: expected a field {key!r}, found {have}")
     return _numeric(obj[key], path, key)
 
 
 def _numeric(value: Any, path: Path, what: str) -> np.ndarray:
-    arr = np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError) as exc:  # ragged nested lists
+        raise ValueError(f"{path}: {what} is not a numeric array ({_one_line(exc)})") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
         raise ValueError(f"{path}: {what} is not numeric (dtype {arr.dtype})")
+    if np.issubdtype(arr.dtype, np.complexfloating):
+        raise ValueError(f"{path}: {what} is complex (dtype {arr.dtype}); expected real numbers")
     return arr.astype(float)
 
 
@@ -121,8 +224,8 @@ def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray) -> tuple[n
     Raises if fewer than half the samples (or fewer than 2) survive.
     """
     t = np.asarray(t, dtype=float)
-    if len(t) == 0:
-        raise ValueError(f"{path}: no samples")
+    if len(t) < 2:
+        raise ValueError(f"{path}: {len(t)} samples; need at least 2")
     finite = np.isfinite(t)
     running_max = np.maximum.accumulate(np.where(finite, t, -np.inf))
     keep = finite.copy()
@@ -132,14 +235,62 @@ def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray) -> tuple[n
         raise ValueError(f"{path}: time stamps are not increasing ({dropped} of {len(t)} samples out of order or not finite)")
     if dropped:
         warnings.warn(f"{path}: dropped {dropped} samples with non-finite, duplicate or backwards time stamps", stacklevel=2)
-    return (t[keep], *(a[keep] for a in arrays))
+    t = t[keep]
+    check_sampling(t, path)
+    return (t, *(a[keep] for a in arrays))
+
+
+def check_sampling(t: np.ndarray, path: Path | str) -> None:
+    """Reject implausible time steps, warn about gaps (see the module docstring).
+
+    t: (N,) strictly increasing time stamps, s, N >= 2.
+    """
+    with np.errstate(over="ignore"):  # 1e308 - (-1e308) is inf, and rejected below
+        dt = np.diff(t)
+        span = t[-1] - t[0]
+    step = float(np.median(dt))
+    if not (MIN_STEP_S <= step <= MAX_STEP_S):
+        raise ValueError(f"{path}: median time step {step:.3g} s is outside [{MIN_STEP_S:g}, {MAX_STEP_S:g}] s; "
+                         "time stamps must be in seconds")
+    gaps = _gaps(dt)
+    if np.any(gaps):
+        covered = float(dt[gaps].sum())
+        if not np.isfinite(span) or covered > 0.5 * span:
+            raise ValueError(f"{path}: time stamps jump by up to {dt.max():.3g} s; gaps cover more than half "
+                             f"of the {span:.3g} s span (broken time stamps?)")
+        k = int(np.argmax(dt))
+        warnings.warn(f"{path}: {int(gaps.sum())} gaps in the time stamps longer than {max(GAP_S, 10 * step):.3g} s "
+                      f"(longest {dt[k]:.3g} s, {t[k] - t[0]:.1f} s after the start)", stacklevel=3)
+
+
+def _gaps(dt: np.ndarray) -> np.ndarray:
+    """(N-1,) bool: steps longer than `GAP_S` and than ten median steps."""
+    return dt > max(GAP_S, 10.0 * float(np.median(dt))) if len(dt) else np.zeros(0, bool)
+
+
+def invalidate_gaps(imu: ImuSamples) -> ImuSamples:
+    """`imu` with `gyr_valid` False for every sample followed by a gap (see `check_sampling`).
+
+    Step k integrates gyro sample k over `dt[k]`; across a gap that would extrapolate one
+    stale rate over seconds. Marked invalid, estimators hold the orientation instead.
+    Returns `imu` itself when there is no gap (nothing is copied or modified).
+    """
+    gap = np.zeros(len(imu), bool)
+    gap[:-1] = _gaps(imu.dt)
+    if not np.any(gap & imu.gyr_valid):
+        return imu
+    return imu.replace(gyr_valid=imu.gyr_valid & ~gap)
 
 
 def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
-    if counts.ndim != 2 or counts.shape[0] < 2:
-        raise ValueError(f"{path}: IMU values must be a 6 x T array, got shape {counts.shape}")
+    if counts.ndim != 2 or counts.shape[1] != 6:
+        raise ValueError(f"{path}: IMU values must be a 6 x T array, got shape {counts.shape[::-1]}")
+    if counts.shape[0] < 2:
+        raise ValueError(f"{path}: {counts.shape[0]} IMU samples; need at least 2")
     if not np.all(np.isfinite(counts)):
         raise ValueError(f"{path}: IMU values contain NaN or Inf")
+    if np.abs(counts).max() > ADC_LIMIT_COUNTS:
+        raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
     t, counts = repair_time(t, path, counts)
     return RawImu(t, counts, source=str(path))
 
@@ -204,6 +355,8 @@ def matrices_to_quat(matrices: np.ndarray, path: Path | str) -> np.ndarray:
     err = np.abs(np.einsum("kij,kil->kjl", m, m) - np.eye(3)).max()
     if err > 1e-2:
         raise ValueError(f"{path}: 'rots' are not rotation matrices (|R^T R - I| up to {err:.3g})")
+    if np.any(np.linalg.det(m) < 0):
+        raise ValueError(f"{path}: 'rots' hold reflections (determinant -1), not rotation matrices")
     quat[good] = Rotation.from_matrix(m).as_quat(scalar_first=True)
     return quat
 
@@ -212,18 +365,23 @@ CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 CSV_TRUTH = ("qw", "qx", "qy", "qz")
 
 
-def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
-    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz]`.
+def load_csv(path: str | Path, with_movement: bool = False):
+    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
 
     t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; the
-    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth).
+    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
+    the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
+    Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
+    without the column).
     """
     path = Path(path)
-    text = _read_bytes(path).decode("utf-8", errors="replace").splitlines()
-    header = [h.strip().lower() for h in text[0].split(",")]
+    text = _read_bytes(path).decode("utf-8-sig", errors="replace").splitlines()  # -sig: drop a BOM
+    header = [h.strip().strip("\"'").strip().lower() for h in text[0].split(",")]
     missing = [c for c in CSV_COLUMNS if c not in header]
     if missing:
         raise ValueError(f"{path}: missing CSV columns {', '.join(missing)} (need {','.join(CSV_COLUMNS)}[,{','.join(CSV_TRUTH)}])")
+    if not any(line.strip() for line in text[1:]):
+        raise ValueError(f"{path}: no data rows after the header")
     try:
         table = np.loadtxt(text[1:], delimiter=",", ndmin=2)
     except ValueError as exc:
@@ -237,13 +395,19 @@ def load_csv(path: str | Path) -> tuple[ImuSamples, Trajectory | None]:
         raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
     has_truth = all(c in header for c in CSV_TRUTH)
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
-    t, gyr, acc, quat = repair_time(col["t"], path, gyr, acc, quat)
+    movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
+    t, gyr, acc, quat, movement = repair_time(col["t"], path, gyr, acc, quat, movement)
     imu = ImuSamples(t, gyr, acc, source=str(path))
+    extra = (movement if "movement" in col else None,) if with_movement else ()
     if not has_truth:
-        return imu, None
-    norm = np.linalg.norm(quat, axis=1)
+        return (imu, None, *extra)
+    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
+        norm = np.linalg.norm(quat, axis=1)
     ok = np.isfinite(norm)
+    if not np.any(ok):
+        warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
+        return (imu, None, *extra)
     if np.any(np.abs(norm[ok] - 1.0) > 1e-3):
         raise ValueError(f"{path}: truth quaternions (qw,qx,qy,qz) are not unit quaternions")
     quat[ok] /= norm[ok, None]
-    return imu, Trajectory(t, quat)
+    return (imu, Trajectory(t, quat), *extra)

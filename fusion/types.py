@@ -178,6 +178,9 @@ class Recording:
         recordings that come in physical units.
     calibration: the calibration applied (a `fusion.calibration.Calibration`), or None.
     camera: a camera source (see `fusion.camera`), or None.
+    movement: (N,) bool over the IMU samples, the movement phases a benchmark scores
+        (BROAD's `movement`, a CSV `movement` column), or None. A recording that has one is
+        scored with the BROAD protocol by default (`evaluation.metrics.score`).
     """
 
     id: str
@@ -186,3 +189,10 @@ class Recording:
     raw: RawImu | None = None
     calibration: Any = None
     camera: Any = None
+    movement: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.movement is not None:
+            object.__setattr__(self, "movement", _frozen(self.movement, bool))
+            if self.movement.shape != (len(self.imu),):
+                raise ValueError(f"{self.id}: movement must be (N,) with N = {len(self.imu)}, got {self.movement.shape}")

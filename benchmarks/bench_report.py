@@ -1,0 +1,118 @@
+"""Wall time of `fusion compare --estimators all --dataset all --out DIR` and where it goes.
+
+    python benchmarks/bench_report.py [--data-dir ../shared/data/ece276a] [--jobs 2] [--estimators all]
+
+Prints (1) the end-to-end wall time of the CLI in a fresh process (imports included), and
+(2) a breakdown from library calls in this process: loading, estimating and scoring (per
+estimator, summed over recordings, measured inside the jobs), the pool's wall time,
+writing the series, drawing the figures, and writing the pages. Figures only; timings
+taken while other work runs on the machine are noisy.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data-dir", default=os.environ.get("FUSION_DATA", str(ROOT.parent / "shared" / "data")))
+    parser.add_argument("--dataset", default="all")
+    parser.add_argument("--estimators", default="all")
+    parser.add_argument("--jobs", type=int, default=2)
+    args = parser.parse_args()
+    data_dir = Path(args.data_dir)
+    if (data_dir / "ece276a").is_dir():
+        data_dir = data_dir / "ece276a"
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "fusion", "compare", "--estimators", args.estimators, "--dataset", args.dataset,
+               "--data-dir", str(data_dir), "--out", str(Path(tmp) / "cli"), "--jobs", str(args.jobs), "--no-progress"]
+        start = time.perf_counter()
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        wall = time.perf_counter() - start
+        if proc.returncode != 0:
+            sys.exit(proc.stderr)
+        print(f"$ fusion compare --estimators {args.estimators} --dataset {args.dataset} --data-dir {data_dir} "
+              f"--out DIR --jobs {args.jobs}")
+        print(f"end-to-end wall time: {wall:.2f} s (cores available: {os.cpu_count()})\n")
+        breakdown(args, data_dir, Path(tmp) / "lib")
+
+
+def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
+    t0 = time.perf_counter()
+    from evaluation import report, runner, series as series_io
+    from evaluation.compare import _as_specs, expand_all, results_json
+    from fusion import datasets
+    t_import = time.perf_counter() - t0
+
+    sources = datasets.select(args.dataset, data_dir)
+    t = time.perf_counter()
+    for source in sources:
+        datasets.load_source(source)
+    t_load = time.perf_counter() - t
+
+    specs = expand_all(_as_specs([args.estimators]))
+    t = time.perf_counter()
+    results, infos = runner.run(specs, sources, jobs=args.jobs, with_info=True)
+    t_pool = time.perf_counter() - t
+    estimate = defaultdict(float)
+    for r in results:
+        estimate[r.estimator] += r.seconds
+
+    # scoring, serially in this process (it also runs inside each job)
+    from evaluation.metrics import score
+    recordings = {s.id: datasets.load_source(s) for s in sources}
+    t = time.perf_counter()
+    for r in results:
+        if recordings[r.dataset].truth is not None:
+            score(recordings[r.dataset].truth, r.trajectory)
+    t_score = time.perf_counter() - t
+
+    doc = results_json(results, {"command": "benchmark", "estimator_details": runner.describe_specs(specs)})
+    out.mkdir(parents=True)
+    import json
+    (out / "results.json").write_text(json.dumps(doc))
+    t = time.perf_counter()
+    (out / "series").mkdir()
+    causal = {k: v["causal"] for k, v in doc["settings"]["estimator_details"].items()}
+    per = len(results) // len(infos)
+    for n, info in enumerate(infos):
+        series_io.save(out / "series" / f"{n:03d}.npz", series_io.from_results(info, results[n * per:(n + 1) * per], causal))
+    t_series = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report._render_summary(doc, str(out))  # one process: the per-figure cost
+    t_summary = time.perf_counter() - t
+    t = time.perf_counter()
+    report._render_recording(str(out / "series" / "000.npz"), str(out))
+    t_one = time.perf_counter() - t
+    t = time.perf_counter()
+    report.render(out, jobs=args.jobs)
+    t_render = time.perf_counter() - t
+
+    n = len(sources)
+    print(f"breakdown ({n} recordings x {len(specs)} estimators = {len(results)} jobs, --jobs {args.jobs}):")
+    print(f"  import evaluation/fusion          {t_import:7.2f} s")
+    print(f"  load + calibrate all recordings   {t_load:7.2f} s  (serial; in the run each worker loads what it needs)")
+    print(f"  job pool wall time                {t_pool:7.2f} s  (load + estimate + score, {args.jobs} workers)")
+    for label, seconds in estimate.items():
+        print(f"    estimate {label:24s} {seconds:7.2f} s  (sum over recordings, inside jobs)")
+    print(f"  score all results (serial)        {t_score:7.2f} s")
+    print(f"  write series .npz                 {t_series:7.2f} s")
+    print(f"  summary figures (serial)          {t_summary:7.2f} s")
+    print(f"  one recording's figures (serial)  {t_one:7.2f} s")
+    print(f"  render all figures + pages        {t_render:7.2f} s  ({args.jobs} workers)")
+
+
+if __name__ == "__main__":
+    main()

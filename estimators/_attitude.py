@@ -1,0 +1,171 @@
+"""Small helpers shared by the recursive attitude filters (`ukf`, `ukf-bias`, `ekf`).
+
+Everything here works on one filter step's tiny arrays, so it is written for low per-call
+overhead (scalar `math` where a single quaternion is involved, one matmul instead of a
+stacked Hamilton product for a batch times one quaternion). The batch functions of
+`fusion.quaternion` remain the reference; `tests/test_ukf.py` cross-checks these against them.
+
+Conventions: quaternions scalar-first `[w, x, y, z]`, `R_world_body`; error rotation vectors
+are body-frame (right) perturbations, `q_true = q * exp(e / 2)`, as in
+`fusion.quaternion.relative_rotvec`.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg.lapack import dpotrf
+
+_SQRT_FLOOR = 0.0
+
+
+def exp_quat(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
+    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats. Exact at v = 0."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle < 1e-12:
+        # sin(a/2)/a = 1/2 - a^2/48 + ...; a < 1e-12 makes the correction far below eps.
+        return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
+    s = math.sin(0.5 * angle) / angle
+    return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+
+
+def mul_floats(a: tuple, b: tuple) -> tuple[float, float, float, float]:
+    """Hamilton product of two quaternions given as 4 floats each (no array overhead)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def unit_array(q: tuple) -> np.ndarray:
+    """(4,) array of a quaternion given as floats, renormalised."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return np.array((w / n, x / n, y / n, z / n))
+
+
+def inv_sym3(s: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric 3x3 matrix by its adjugate (numpy.linalg.inv costs more here).
+
+    The caller guarantees positive definiteness (a covariance plus R > 0).
+    """
+    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    return np.array(((A, B, C), (B, D, E), (C, E, F))) / det
+
+
+def right_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `p * q = M @ p` for q = [w, x, y, z] (right multiplication)."""
+    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+
+
+def left_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `q * p = M @ p` for q = [w, x, y, z] (left multiplication)."""
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+
+
+def exp_batch(v: np.ndarray) -> np.ndarray:
+    """`exp([0, v / 2])` of (m, 3) rotation vectors -> (m, 4) quaternions. Exact at 0."""
+    angle = np.sqrt(np.einsum("ij,ij->i", v, v))
+    half = 0.5 * angle
+    out = np.empty((len(v), 4))
+    out[:, 0] = np.cos(half)
+    # sin(a/2)/a, which is 1/2 at a = 0: divide only where a > 0 (no division by zero).
+    ratio = np.divide(np.sin(half), angle, out=np.full(len(v), 0.5), where=angle > 0.0)
+    out[:, 1:] = v * ratio[:, None]
+    return out
+
+
+def log_batch(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (m, 3) of (m, 4) unit quaternions, `2 log q`, shortest path.
+
+    q and -q give the same vector (the sign of w is folded in), so the angle lies in
+    [0, pi]: every error is wrapped to the representative nearest the identity (seed step 5).
+    """
+    vec = q[:, 1:]
+    s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
+    w = q[:, 0]
+    # angle / s = 2 atan2(s, |w|) / s; for s -> 0 atan2(s, |w|) = s / |w| in floating point,
+    # so the floor on s only matters at s == 0, where vec is 0 anyway (no division by zero).
+    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
+    return vec * np.copysign(scale, w)[:, None]
+
+
+# g_j(q) = q^T G_j q for the three components of R(q)^T e_z (one matmul + one einsum).
+_GRAVITY_FORMS = np.zeros((4, 3, 4))
+_GRAVITY_FORMS[[3, 1, 2, 0], 0, [1, 3, 0, 2]] = [1.0, 1.0, -1.0, -1.0]  # 2 (xz - wy)
+_GRAVITY_FORMS[[3, 2, 1, 0], 1, [2, 3, 0, 1]] = 1.0  # 2 (yz + wx)
+_GRAVITY_FORMS[[0, 1, 2, 3], 2, [0, 1, 2, 3]] = [1.0, -1.0, -1.0, 1.0]  # w^2 - x^2 - y^2 + z^2
+_GRAVITY_FORMS = _GRAVITY_FORMS.reshape(4, 12)
+
+
+def gravity_batch(q: np.ndarray) -> np.ndarray:
+    """World up in the body frame, `R(q)^T e_z`, for (m, 4+) quaternions -> (m, 3), g.
+
+    Only columns 0-3 (wxyz) are read, so a state array `[q, b]` can be passed directly.
+    """
+    q = q[:, :4]
+    return np.einsum("mjk,mk->mj", (q @ _GRAVITY_FORMS).reshape(len(q), 3, 4), q)
+
+
+def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """A square root `L` with `L @ L.T = a` for a symmetric positive semi-definite matrix.
+
+    Cholesky first (fast). If it fails (a singular matrix, e.g. P = Q = 0 in the
+    dead-reckoning test, or round-off pushed an eigenvalue below zero), the documented
+    recovery: symmetrise, clip negative eigenvalues to zero and return `V sqrt(lambda)`,
+    a square root of the nearest PSD matrix. Returns `(L, recovered)`.
+    """
+    c, info = dpotrf(a, lower=1, clean=1)  # LAPACK Cholesky, without numpy.linalg's overhead
+    if info == 0:
+        return c, False
+    lam, vec = np.linalg.eigh(0.5 * (a + a.T))
+    return vec * np.sqrt(np.maximum(lam, _SQRT_FLOOR)), True
+
+
+def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, bool]:
+    """Symmetrise `p`; if an eigenvalue is below `floor` (or not finite), clip it there.
+
+    Returns `(p, repaired)`. Called after every update so that the covariance handed to
+    the next step is symmetric positive definite (the SPD test checks it).
+    """
+    p = 0.5 * (p + p.T)
+    if not math.isfinite(p.sum()):  # one reduction instead of an elementwise test
+        return np.eye(len(p)) * 1e-2, True
+    # Cheap test first: a Cholesky succeeds exactly for SPD matrices.
+    if dpotrf(p, lower=1)[1] == 0:
+        return p, False
+    lam, vec = np.linalg.eigh(p)
+    return (vec * np.maximum(lam, floor)) @ vec.T, True
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, the 3x3 cross-product matrix: `skew(a) @ b = a x b`."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
+    """How much to scale R for this accelerometer sample (accelerometer gating).
+
+    `| |a| - 1 g |` measures how far the sample is from the gravity-only model.
+    gate "off": 1 (always use). "skip": inf (skip the update) when the deviation exceeds
+    `gate_g`, else 1. "inflate": `1 + (dev / gate_g)^2`, a smooth down-weighting that
+    leaves near-static samples untouched. Non-finite samples always give inf (skip).
+    """
+    ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    if not math.isfinite(norm):
+        return math.inf
+    if gate == "off":
+        return 1.0
+    dev = abs(norm - 1.0)
+    if gate == "skip":
+        return math.inf if dev > gate_g else 1.0
+    r = dev / gate_g
+    return 1.0 + r * r

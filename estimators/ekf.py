@@ -1,0 +1,200 @@
+"""`ekf`: a multiplicative (error-state) EKF with the UKF's process and measurement models.
+
+Nominal state `q = R_world_body` (wxyz) and gyro bias `b` (rad/s, body); error state
+`dx = [e, db]` with the body-frame rotation error `q_true = q exp(e / 2)` (the same
+convention as `ukf`), covariance P (6x6; 3x3 with `estimate_bias=False`).
+
+Predict (gyro as control input, as in `ukf` step 1):
+    theta = (w - b) dt,  q <- q exp(theta / 2)
+    F = [[R(theta)^T, -J_r(theta) dt], [0, I]]          (Sola 2017, error-state kinematics; analytic)
+    P <- F P F^T + diag(Q dt I, Qb dt I)
+Update (accelerometer = gravity in the body frame, as in `ukf` steps 6-7):
+    h(q) = R(q)^T e_z,  H = [[h]x, 0]                    (exp(e)^T h ~ h + h x e)
+    S = H P H^T + R,  K = P H^T S^-1,  dx = K (a - h)
+    heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
+                  predicted vertical; the Joseph form below is exact for any gain)
+    q <- q exp(dx_e / 2),  b <- b + dx_b                 (error injection, reset not modelled)
+    P <- (I - K H) P (I - K H)^T + K R K^T               (Joseph form)
+
+FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it.
+FilterPy's EKF sizes x and P together (dim_x), adds the correction (`x + K y`) and
+predicts with a linear `F x`; for an error-state filter with a quaternion nominal state
+every one of those lines would be overridden and only attribute names would remain, at
+FilterPy's per-call cost (column-vector bookkeeping, `deepcopy(z)`). The update uses the same
+Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
+
+Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate,
+attitude noise inflated by `invalid_gyr_std_rad_s^2 dt^2`), non-finite accelerometer samples
+skip the update, gating (`gate`, `gate_g`) inflates R or skips the update when `| |a| - 1 g |`
+is large, and the covariance is symmetrised (eigenvalues clipped if needed) every step.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fusion.types import ImuSamples
+
+from ._attitude import acc_variance_scale, exp_quat, inv_sym3, mul_floats, repair_covariance, unit_array
+from .base import RecursiveEstimator
+from .ukf import Gate, _check_nonneg
+
+
+@dataclass(frozen=True)
+class EKFParams:
+    """Parameters of `ekf` (units in the names; aliases in brackets).
+
+    process_noise_rad2_s (Q): attitude process noise, rad^2/s (step: Q dt I).
+    acc_noise_g2 (R): accelerometer variance per axis, g^2.
+    init_var_rad2 (P0): initial attitude variance per axis, rad^2.
+    bias_walk_rad2_s3 (Qb), init_bias_var_rad2_s2 (Pb0): gyro-bias random walk and initial
+        variance; estimate_bias (bias) False drops the bias from the state.
+    use_acc (acc), gate, gate_g, invalid_gyr_std_rad_s (Qbad): as for `ukf`.
+    heading_free (hf): see the module docstring and `ukf`.
+    Defaults: the same values as `ukf-bias` (one parameter set for all recordings; the
+    sweep is in `UKFBiasParams`): 2.10 deg inclination, 17.2 deg total on ece276a 1-9.
+    """
+
+    process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
+    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
+    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
+    estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
+    heading_free: bool = field(default=True, metadata={"alias": "hf"})
+    use_acc: bool = field(default=True, metadata={"alias": "acc"})
+    gate: Gate = "inflate"
+    gate_g: float = 0.2
+    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+
+    def __post_init__(self) -> None:
+        _check_nonneg(
+            "ekf",
+            process_noise_rad2_s=self.process_noise_rad2_s,
+            acc_noise_g2=self.acc_noise_g2,
+            init_var_rad2=self.init_var_rad2,
+            bias_walk_rad2_s3=self.bias_walk_rad2_s3,
+            init_bias_var_rad2_s2=self.init_bias_var_rad2_s2,
+            invalid_gyr_std_rad_s=self.invalid_gyr_std_rad_s,
+        )
+        if self.use_acc and self.acc_noise_g2 <= 0.0:
+            raise ValueError(f"ekf: acc_noise_g2 (R) must be > 0 when the accelerometer is used, got {self.acc_noise_g2}")
+        if self.gate not in ("off", "skip", "inflate"):
+            raise ValueError(f"ekf: gate must be off, skip or inflate, got {self.gate!r}")
+        if not (math.isfinite(self.gate_g) and self.gate_g > 0.0):
+            raise ValueError(f"ekf: gate_g must be > 0 g, got {self.gate_g!r}")
+
+
+def _rotation_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """R(q) for a unit quaternion (body -> world)."""
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _right_jacobian(tx: float, ty: float, tz: float) -> np.ndarray:
+    """SO(3) right Jacobian J_r(theta) (Sola 2017, the SO(3) right Jacobian); I - [theta]x / 2 near 0."""
+    a2 = tx * tx + ty * ty + tz * tz
+    S = np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])
+    if a2 < 1e-12:
+        return np.eye(3) - 0.5 * S
+    a = math.sqrt(a2)
+    return np.eye(3) - (1.0 - math.cos(a)) / a2 * S + (a - math.sin(a)) / (a2 * a) * (S @ S)
+
+
+class EKF(RecursiveEstimator):
+    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
+
+    Params = EKFParams
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        p = self.params
+        q0 = np.asarray(init_quat_wxyz, dtype=float)
+        if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
+            raise ValueError(f"ekf: init_quat_wxyz must be a finite non-zero (4,) quaternion, got {q0!r}")
+        n = 6 if p.estimate_bias else 3
+        self.n = n
+        self.q = q0 / np.linalg.norm(q0)
+        self.b = np.zeros(3)
+        self.P = np.zeros((n, n))
+        self.P[:3, :3] = np.eye(3) * p.init_var_rad2
+        self._Qrate = np.zeros((n, n))
+        self._Qrate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
+        if p.estimate_bias:
+            self.P[3:, 3:] = np.eye(3) * p.init_bias_var_rad2_s2
+            self._Qrate[3:, 3:] = np.eye(3) * p.bias_walk_rad2_s3
+        self._Qbad = np.zeros((n, n))
+        self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
+        self._R = np.eye(3) * p.acc_noise_g2
+        self._F = np.eye(n)
+        self._H = np.zeros((3, n))
+        self._I = np.eye(n)
+        N = len(imu)
+        self._cov = np.full((N, n, n), np.nan)
+        self._cov[0] = self.P
+        self._bias = np.zeros((N, 3))
+        self.n_skipped = self.n_cov_repaired = 0
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        p = self.params
+        Q = self._Qrate * dt_s
+        F = self._F
+        q, b = self.q.tolist(), self.b
+        if gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2]):
+            tx, ty, tz = (gyr_rad_s - b) * dt_s if p.estimate_bias else gyr_rad_s * dt_s
+        else:  # no rate integration; inflate the attitude noise instead
+            tx = ty = tz = 0.0
+            Q = Q + self._Qbad * (dt_s * dt_s)
+        d = exp_quat(tx, ty, tz)
+        q = mul_floats(q, d)  # q exp(theta / 2), as 4 floats
+        F[:3, :3] = _rotation_matrix(*d).T  # Sola 2017: error transition R(theta)^T
+        if self.n == 6:
+            F[:3, 3:] = -dt_s * _right_jacobian(tx, ty, tz)
+        P = F @ self.P @ F.T + Q
+        scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
+        if scale < math.inf:
+            w, x, y, z = q
+            h = np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z])
+            H = self._H
+            H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
+            H[1, 0], H[1, 2] = h[2], -h[0]
+            H[2, 0], H[2, 1] = -h[1], h[0]
+            R = self._R * scale
+            PHt = P @ H.T
+            S = H @ PHt + R
+            K = PHt @ inv_sym3(S)
+            if p.heading_free:
+                # Remove the attitude correction about the predicted vertical h (|h| = 1):
+                # K <- (I - h h^T) K on the attitude rows; the Joseph form stays exact.
+                K[:3] -= np.outer(h, h @ K[:3])
+                if self.n == 6:
+                    K[3:] -= np.outer(h, h @ K[3:])
+            dx = K @ (acc_g - h)
+            q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
+            if self.n == 6:
+                self.b = b + dx[3:]
+            IKH = self._I - K @ H
+            P = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
+        else:
+            self.n_skipped += 1
+        self.q = unit_array(q)
+        self.P, repaired = repair_covariance(P)
+        self.n_cov_repaired += repaired
+        self._cov[k + 1] = self.P
+        self._bias[k + 1] = self.b
+        return self.q
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {
+            "cov": self._cov,
+            "gyr_bias_rad_s": self._bias,
+            "updates_skipped": self.n_skipped,
+            "cov_repairs": self.n_cov_repaired,
+        }

@@ -1,0 +1,463 @@
+"""The community's orientation filters behind our `Estimator` interface.
+
+Adapters for VQF (`vqf`: `VQF`, `BasicVQF`, `offlineVQF`; Laidig & Seel 2023), the `ahrs`
+package's Madgwick, Mahony and EKF, and x-io's Fusion (`imufusion`). They are an optional
+extra: `pip install -e '.[peers]'`. Each library is imported when its estimator is built,
+so the toolkit runs without them and asking for a missing one says what to install.
+
+Every adapter gets what our own estimators get: the calibrated samples (gyro rad/s, body
+frame; accelerometer in g, converted to whatever unit the library wants), the real
+per-sample time steps where the library accepts them, and the initial orientation
+`R_world_body` at `t[0]`. The libraries' own published defaults are the defaults here;
+each parameter dataclass names the library's keyword as the field's alias, so
+`vqf:tauAcc=1` and `vqf:tau_acc_s=1` are the same. The traps, checked by
+`tests/test_peers.py` (a wrong frame or quaternion order fails those tests):
+
+- Quaternions: every library here returns scalar-first `[w, x, y, z]` orientations of the
+  sensor in a z-up world (`R_world_body`), once given the inputs below; no reordering.
+- `vqf`: gyro rad/s, accelerometer m/s^2, C-contiguous float64 arrays; one constant sample
+  time (see `_rate_for_constant_ts` for how the real time steps are honoured). `VQF` and
+  `BasicVQF` are seeded through their state (`gyrQuat` = initial orientation, `accQuat` =
+  identity; the 6-D output is `accQuat * gyrQuat`). `offlineVQF` takes no initial
+  orientation: its output is turned about the vertical once so that its heading at `t[0]`
+  matches the initial orientation (inclination is its own).
+- `ahrs` Madgwick/Mahony: body rates, z-up gravity reference, any accelerometer unit (they
+  normalise). They skip the whole update, accelerometer correction included, when the
+  gyro sample is exactly zero.
+- `ahrs` EKF: its default frame `"NED"` is the right one for us. With `frame="NED"` it
+  predicts the accelerometer as `R^T [0, 0, 1]`, which is what a specific-force
+  accelerometer reads in a z-up world; `frame="ENU"` predicts `R^T [0, 0, -1]` and would
+  turn every estimate upside down. Its default initial covariance is the identity on the
+  four quaternion components (`P0 = 1`), i.e. "orientation unknown", even when seeded: the
+  first accelerometer samples then pull the inclination hard. Kept as published (`P0`
+  changes it).
+- `imufusion` 1.3.3: gyro in deg/s, accelerometer in g; the sample period is set before
+  every update (`set_sample_period`); the `AhrsSettings(convention=...)` keyword is ignored
+  (the attribute has to be set afterwards); its default NWU convention is z-up, which is
+  ours. Its start-up phase ignores the gyro for 3 s (while a gain ramp aligns the
+  inclination): as we seed it with the initial orientation, the adapter skips it unless
+  `startup=true`.
+
+Invalid gyro samples (`imu.gyr_valid` False) are handled as well as each library allows:
+zero rate for VQF, offlineVQF, the EKF and Fusion (propagation without the rate, the
+accelerometer still corrects; the EKF still adds its usual, not an inflated, process
+noise; VQF integrates minus its bias estimate there); for Madgwick and Mahony, which skip
+the accelerometer correction on an exactly zero rate, a rate of 1e-150 rad/s stands for
+zero so that the correction still runs.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any, ClassVar
+
+import numpy as np
+
+from fusion import quaternion as quat
+from fusion.types import ImuSamples, Trajectory
+
+from .base import Estimator, RecursiveEstimator
+
+STANDARD_GRAVITY_M_S2 = 9.80665
+INSTALL_HINT = "pip install -e '.[peers]'"
+# Stands for a zero rate where a library skips its update on an exactly zero gyro sample.
+_TINY_RATE_RAD_S = np.full(3, 1e-150)
+
+
+class PeerUnavailable(ImportError):
+    """A peer estimator's library is not installed."""
+
+
+def _require(module: str, package: str, estimator: str) -> ModuleType:
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise PeerUnavailable(
+            f"estimator {estimator!r} needs the optional package {package!r}, which is not installed: "
+            f"{INSTALL_HINT} (or pip install {package})"
+        ) from exc
+
+
+def _acc_m_s2(acc_g: np.ndarray) -> np.ndarray:
+    """Accelerometer in m/s^2, C-contiguous float64, with non-finite samples set to zero:
+    VQF, Madgwick, Mahony and Fusion all skip the accelerometer correction on an all-zero
+    sample (their convention for "no measurement"), so a NaN never enters their state."""
+    acc = np.asarray(acc_g, dtype=np.float64) * STANDARD_GRAVITY_M_S2
+    finite = np.all(np.isfinite(acc), axis=-1)
+    return np.ascontiguousarray(np.where(finite[..., None], acc, 0.0))
+
+
+def _positive(owner: str, **values: float) -> None:
+    for name, value in values.items():
+        if not value > 0:
+            raise ValueError(f"{owner}: {name} must be positive, got {value}")
+
+
+def _non_negative(owner: str, **values: float) -> None:
+    for name, value in values.items():
+        if not value >= 0:
+            raise ValueError(f"{owner}: {name} must be >= 0, got {value}")
+
+
+def align_heading(quat_wxyz: np.ndarray, ref_wxyz: np.ndarray, k: int = 0) -> np.ndarray:
+    """Turn a trajectory about the world vertical so its heading at row `k` is `ref_wxyz`'s.
+
+    quat_wxyz: (N, 4) `R_world_body`; ref_wxyz: (4,). Returns a new (N, 4) array
+    `Rz(psi) * q`, where `Rz(psi)` is the twist about world z of `ref * q[k]^-1` (the
+    swing-twist decomposition). Inclination is unchanged.
+    """
+    delta = quat.multiply(np.asarray(ref_wxyz, dtype=float), quat.conjugate(quat_wxyz[k]))
+    twist = np.array([delta[0], 0.0, 0.0, delta[3]])
+    norm = np.linalg.norm(twist)
+    if norm < 1e-9:  # the two differ by a half turn about a horizontal axis: no heading defined
+        return np.array(quat_wxyz, dtype=float)
+    return quat.multiply(twist / norm, quat_wxyz)
+
+
+def _masked_rate(imu: ImuSamples, fill: np.ndarray | float = 0.0) -> np.ndarray:
+    """(N, 3) gyro rad/s with invalid samples replaced by `fill`."""
+    gyr = np.array(imu.gyr_rad_s, dtype=float)
+    gyr[~imu.gyr_valid] = fill
+    return gyr
+
+
+def _rate_for_constant_ts(imu: ImuSamples) -> tuple[np.ndarray, float]:
+    """Gyro input for a library that integrates with one constant sample time.
+
+    Returns `(gyr, ts)`: `ts` is the mean step `(t[-1] - t[0]) / (N - 1)`, and row `j >= 1`
+    of `gyr` (N, 3) is gyro sample `j - 1` scaled by `dt[j - 1] / ts`, so that the library's
+    step `j` (gyro `j`, then accelerometer `j`) rotates by exactly `w[j-1] dt[j-1]` and
+    then corrects with accelerometer sample `j`: the pairing of `RecursiveEstimator.step`.
+    Row 0 is zero. Invalid gyro samples give zero rows.
+    """
+    n = len(imu)
+    dt = imu.dt
+    ts = float((imu.t[-1] - imu.t[0]) / (n - 1))
+    gyr = np.zeros((n, 3))
+    gyr[1:] = _masked_rate(imu)[:-1] * (dt / ts)[:, None]
+    return np.ascontiguousarray(gyr, dtype=np.float64), ts
+
+
+def _check_length(imu: ImuSamples, name: str) -> None:
+    if len(imu) < 2:
+        raise ValueError(f"{name}: needs at least 2 samples, {imu.source or 'input'} has {len(imu)}")
+
+
+# --------------------------------------------------------------------------------------
+# VQF (Laidig & Seel, "VQF: Highly accurate IMU orientation estimation with bias
+# estimation and magnetic disturbance rejection", Information Fusion 2023)
+
+
+@dataclass(frozen=True)
+class VQFParams:
+    """`vqf.VQF` parameters (its defaults; units in the names, VQF's keyword as alias)."""
+
+    tau_acc_s: float = field(default=3.0, metadata={"alias": "tauAcc"})
+    motion_bias_est: bool = field(default=True, metadata={"alias": "motionBiasEstEnabled"})
+    rest_bias_est: bool = field(default=True, metadata={"alias": "restBiasEstEnabled"})
+    bias_sigma_init_deg_s: float = field(default=0.5, metadata={"alias": "biasSigmaInit"})
+    bias_forgetting_time_s: float = field(default=100.0, metadata={"alias": "biasForgettingTime"})
+    bias_clip_deg_s: float = field(default=2.0, metadata={"alias": "biasClip"})
+    bias_sigma_motion_deg_s: float = field(default=0.1, metadata={"alias": "biasSigmaMotion"})
+    bias_vertical_forgetting_factor: float = field(default=0.0001, metadata={"alias": "biasVerticalForgettingFactor"})
+    bias_sigma_rest_deg_s: float = field(default=0.03, metadata={"alias": "biasSigmaRest"})
+    rest_min_t_s: float = field(default=1.5, metadata={"alias": "restMinT"})
+    rest_filter_tau_s: float = field(default=0.5, metadata={"alias": "restFilterTau"})
+    rest_th_gyr_deg_s: float = field(default=2.0, metadata={"alias": "restThGyr"})
+    rest_th_acc_m_s2: float = field(default=0.5, metadata={"alias": "restThAcc"})
+
+    def __post_init__(self) -> None:
+        _positive("vqf", tau_acc_s=self.tau_acc_s, bias_forgetting_time_s=self.bias_forgetting_time_s,
+                  rest_min_t_s=self.rest_min_t_s, rest_filter_tau_s=self.rest_filter_tau_s)
+        _non_negative("vqf", bias_sigma_init_deg_s=self.bias_sigma_init_deg_s, bias_clip_deg_s=self.bias_clip_deg_s,
+                      bias_sigma_motion_deg_s=self.bias_sigma_motion_deg_s,
+                      bias_vertical_forgetting_factor=self.bias_vertical_forgetting_factor,
+                      bias_sigma_rest_deg_s=self.bias_sigma_rest_deg_s, rest_th_gyr_deg_s=self.rest_th_gyr_deg_s,
+                      rest_th_acc_m_s2=self.rest_th_acc_m_s2)
+
+    def library_kwargs(self) -> dict[str, Any]:
+        """The parameters under VQF's own keyword names."""
+        return {f.metadata["alias"]: getattr(self, f.name) for f in self.__dataclass_fields__.values()}
+
+
+@dataclass(frozen=True)
+class BasicVQFParams:
+    """`vqf.BasicVQF` parameters (its default)."""
+
+    tau_acc_s: float = field(default=3.0, metadata={"alias": "tauAcc"})
+
+    def __post_init__(self) -> None:
+        _positive("vqf-basic", tau_acc_s=self.tau_acc_s)
+
+    def library_kwargs(self) -> dict[str, Any]:
+        return {"tauAcc": self.tau_acc_s}
+
+
+class _SeededVQF(Estimator):
+    """`VQF`/`BasicVQF`, 6-D, seeded with the initial orientation through the filter state.
+
+    The state's `gyrQuat` (strapdown integration) is set to the initial orientation and
+    `accQuat` (inclination correction) to identity, so `quat6D = accQuat * gyrQuat` starts
+    at the initial orientation. VQF then corrects towards its low-passed accelerometer,
+    which it initialises with the mean of the first samples, so the inclination settles
+    on the accelerometer's within a few samples (VQF's design); the heading is the seed's.
+    Constant sample time: see `_rate_for_constant_ts`. Invalid gyro samples: zero rate.
+    """
+
+    _class_name: ClassVar[str] = "VQF"
+    _name: ClassVar[str] = "vqf"
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._vqf = _require("vqf", "vqf", self._name)
+
+    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
+        _check_length(imu, self._name)
+        gyr, ts = _rate_for_constant_ts(imu)
+        acc = _acc_m_s2(imu.acc_g)
+        filt = getattr(self._vqf, self._class_name)(ts, **self.params.library_kwargs())
+        state = filt.state
+        state["gyrQuat"] = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
+        state["accQuat"] = np.array([1.0, 0.0, 0.0, 0.0])
+        filt.state = state
+        out = np.empty((len(imu), 4))
+        out[0] = state["gyrQuat"]
+        out[1:] = filt.updateBatch(gyr[1:], np.ascontiguousarray(acc[1:]))["quat6D"]
+        return Trajectory(imu.t, out)
+
+
+class VQFPeer(_SeededVQF):
+    """VQF (6-D, with rest and motion gyro-bias estimation), from the `vqf` package."""
+
+    Params = VQFParams
+    _class_name = "VQF"
+    _name = "vqf"
+
+
+class BasicVQFPeer(_SeededVQF):
+    """BasicVQF (6-D, no bias estimation), from the `vqf` package."""
+
+    Params = BasicVQFParams
+    _class_name = "BasicVQF"
+    _name = "vqf-basic"
+
+
+class OfflineVQFPeer(Estimator):
+    """`vqf.offlineVQF`: VQF run forwards and backwards over the whole recording (6-D).
+
+    offlineVQF takes no initial orientation: its output is turned once about the world
+    vertical so that its heading at `t[0]` equals the initial orientation's (inclination
+    is its own throughout). Sees the future: `causal = False`. Constant sample time: see
+    `_rate_for_constant_ts`. Invalid gyro samples: zero rate.
+    """
+
+    Params = VQFParams
+    causal = False
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._vqf = _require("vqf", "vqf", "vqf-offline")
+
+    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
+        _check_length(imu, "vqf-offline")
+        gyr, ts = _rate_for_constant_ts(imu)
+        acc = _acc_m_s2(imu.acc_g)
+        result = self._vqf.offlineVQF(gyr, acc, None, ts, self.params.library_kwargs())
+        return Trajectory(imu.t, align_heading(result["quat6D"], init_quat_wxyz))
+
+
+# --------------------------------------------------------------------------------------
+# ahrs (Garcia, https://ahrs.readthedocs.io): Madgwick, Mahony, EKF
+
+
+@dataclass(frozen=True)
+class MadgwickParams:
+    """`ahrs.filters.Madgwick` parameters (its IMU default gain)."""
+
+    gain: float = field(default=0.033, metadata={"alias": "beta"})
+
+    def __post_init__(self) -> None:
+        _non_negative("madgwick", gain=self.gain)
+
+
+class MadgwickPeer(RecursiveEstimator):
+    """Madgwick's gradient-descent filter (Madgwick 2010), `ahrs.filters.Madgwick.updateIMU`.
+
+    Seeded with the initial orientation; real per-sample dt. Invalid gyro samples: a
+    1e-150 rad/s rate (the library skips the correction on an exactly zero rate).
+    """
+
+    Params = MadgwickParams
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._ahrs = _require("ahrs.filters", "ahrs", "madgwick")
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        self._filter = self._ahrs.Madgwick(gain=self.params.gain)
+        self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
+        self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Madgwick 2010, eqs. 12-13, 33-34
+        return self._q
+
+
+@dataclass(frozen=True)
+class MahonyParams:
+    """`ahrs.filters.Mahony` parameters (its defaults), gains in rad/s per unit of error."""
+
+    k_p: float = field(default=1.0, metadata={"alias": "kp"})
+    k_i: float = field(default=0.3, metadata={"alias": "ki"})
+
+    def __post_init__(self) -> None:
+        _non_negative("mahony", k_p=self.k_p, k_i=self.k_i)
+
+
+class MahonyPeer(RecursiveEstimator):
+    """Mahony's explicit complementary filter (Mahony 2008), `ahrs.filters.Mahony.updateIMU`.
+
+    Seeded with the initial orientation, zero initial bias; real per-sample dt. Invalid
+    gyro samples: a 1e-150 rad/s rate (the library skips the correction and the bias
+    update on an exactly zero rate).
+    """
+
+    Params = MahonyParams
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._ahrs = _require("ahrs.filters", "ahrs", "mahony")
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        self._filter = self._ahrs.Mahony(k_P=self.params.k_p, k_I=self.params.k_i, b0=np.zeros(3))
+        self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
+        self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Mahony 2008, eq. 48
+        return self._q
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {"gyro_bias_rad_s": np.array(self._filter.b)}
+
+
+@dataclass(frozen=True)
+class AhrsEKFParams:
+    """`ahrs.filters.EKF` parameters (its defaults).
+
+    gyr_var_rad2_s2: gyro noise variance, (rad/s)^2 (`var_gyr`, default 0.3^2).
+    acc_var: accelerometer noise variance on the normalised reading (`var_acc`, 0.5^2).
+    init_cov: initial state covariance, `init_cov * I_4` on the quaternion components
+        (`P0`; the library's default identity means "orientation unknown").
+    """
+
+    gyr_var_rad2_s2: float = field(default=0.3**2, metadata={"alias": "var_gyr"})
+    acc_var: float = field(default=0.5**2, metadata={"alias": "var_acc"})
+    init_cov: float = field(default=1.0, metadata={"alias": "P0"})
+
+    def __post_init__(self) -> None:
+        _non_negative("ahrs-ekf", gyr_var_rad2_s2=self.gyr_var_rad2_s2, init_cov=self.init_cov)
+        _positive("ahrs-ekf", acc_var=self.acc_var)
+
+
+class AhrsEKFPeer(RecursiveEstimator):
+    """The `ahrs` package's quaternion EKF (gyro as control input, accelerometer update).
+
+    Frame "NED" (the library default), which is correct for our z-up world: see the
+    module docstring. Seeded with the initial orientation; initial covariance
+    `init_cov * I`; real per-sample dt. Invalid gyro samples: zero rate (prediction
+    without the rate, the library's usual process noise).
+    """
+
+    Params = AhrsEKFParams
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._ahrs = _require("ahrs.filters", "ahrs", "ahrs-ekf")
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        p = self.params
+        # magnetic_ref given so the library does not evaluate its geomagnetic model (unused in 6-D).
+        self._filter = self._ahrs.EKF(frame="NED", magnetic_ref=0.0, var_gyr=p.gyr_var_rad2_s2, var_acc=p.acc_var,
+                                      P=p.init_cov * np.identity(4))
+        self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        rate = gyr_rad_s if gyr_valid else np.zeros(3)
+        if np.all(np.isfinite(acc_g)):
+            self._q = self._filter.update(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)
+        else:  # no accelerometer sample: the EKF's own process model only (its update would return q unrotated)
+            q = self._filter.f(self._q, rate, dt_s)
+            self._q = q / np.linalg.norm(q)
+        return self._q
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {"final_cov": np.array(self._filter.P)}
+
+
+# --------------------------------------------------------------------------------------
+# Fusion (x-io Technologies, `imufusion`)
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """`imufusion.Ahrs` settings (the defaults of `imufusion.AhrsSettings()` in 1.3.3).
+
+    gain: complementary-filter gain. gyroscope_range_deg_s: over-range detection (0 off).
+    acceleration_rejection_deg: accelerometer rejection threshold (0 off).
+    rejection_timeout: samples before a rejected sensor is trusted again (0 off).
+    startup: run Fusion's start-up phase (3 s with the gyro ignored and a gain ramp),
+        meant for an unknown initial orientation; off because the adapter seeds it.
+    """
+
+    gain: float = 0.5
+    gyroscope_range_deg_s: float = field(default=0.0, metadata={"alias": "gyroscope_range"})
+    acceleration_rejection_deg: float = field(default=0.0, metadata={"alias": "acceleration_rejection"})
+    rejection_timeout: int = 0
+    startup: bool = False
+
+    def __post_init__(self) -> None:
+        _non_negative("fusion-ahrs", gain=self.gain, gyroscope_range_deg_s=self.gyroscope_range_deg_s,
+                      acceleration_rejection_deg=self.acceleration_rejection_deg,
+                      rejection_timeout=self.rejection_timeout)
+
+
+class FusionPeer(RecursiveEstimator):
+    """x-io Fusion's AHRS (`imufusion.Ahrs.update_no_magnetometer`), NWU (z up).
+
+    Inputs in deg/s and g; the sample period is set before every update (real dt).
+    Seeded with `set_quaternion`; its start-up phase is skipped unless `startup=true`
+    (during it, the gyro is ignored: from a seed, that only loses the first 3 s of
+    rotation). Fusion computes in single precision. Invalid gyro samples: zero rate.
+    """
+
+    Params = FusionParams
+
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        self._fusion = _require("imufusion", "imufusion", "fusion-ahrs")
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        f, p = self._fusion, self.params
+        ahrs = f.Ahrs()
+        settings = f.AhrsSettings()
+        # Attributes, not keywords: AhrsSettings(convention=...) is ignored in imufusion 1.3.3.
+        settings.convention = f.CONVENTION_NWU
+        settings.gain = p.gain
+        settings.gyroscope_range = p.gyroscope_range_deg_s
+        settings.acceleration_rejection = p.acceleration_rejection_deg
+        settings.rejection_timeout = p.rejection_timeout
+        if len(imu) > 1:
+            settings.sample_rate = float((len(imu) - 1) / (imu.t[-1] - imu.t[0]))
+        ahrs.set_settings(settings)
+        ahrs.set_quaternion(np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz))
+        if not p.startup:
+            ahrs.skip_startup()
+        self._ahrs = ahrs
+        self._deg = np.degrees(_masked_rate(imu))  # Fusion wants deg/s
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        self._ahrs.set_sample_period(dt_s)
+        self._ahrs.update_no_magnetometer(self._deg[k], _acc_m_s2(acc_g) / STANDARD_GRAVITY_M_S2)
+        return self._ahrs.get_quaternion()

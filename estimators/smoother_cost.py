@@ -1,0 +1,361 @@
+"""The batch smoother's cost, residuals and analytic Jacobians (shared by `gd` and `gn`).
+
+The cost over the whole recording (issue 4; the seeds' "batch" formulation, weighted):
+
+    c(q, theta) = 1/2 sum_t  r_m,t^T W_m,t r_m,t                       (motion, t = 0 .. T-2)
+                + 1/2 sum_t  rho(r_a,t^T W_a r_a,t)                     (accelerometer, t = 0 .. T-1)
+                + 1/2 r_0^T W_0 r_0                                     (anchor of q_0)
+                + 1/2 theta^T W_theta theta                             (prior of the gyro calibration)
+
+    r_m,t = 2 log(q_{t+1}^-1 * q_t * exp([0, w_t dt_t / 2]))            (seed: motion residual)
+    r_a,t = a_t - h(q_t),   h(q) = R(q)^T e_z                           (seed: observation residual)
+    r_0   = 2 log(q_init^-1 * q_0)
+    w_t   = (1 + k) * g_t - b   (element-wise; k scale errors, b bias, both optional, in theta)
+
+`W_m,t = I / (sigma_g dt_t)^2` is the information of the integrated gyro noise over one
+step (sigma_g: per-sample rate noise, rad/s), `W_a = I / sigma_a^2` that of the
+accelerometer; `rho` is the Huber loss on the squared Mahalanobis norm (Ceres convention:
+`rho(s) = s` for `s <= c^2`, `2 c sqrt(s) - c^2` beyond), so accelerations well beyond gravity
+pull linearly, not quadratically. Where the gyro sample is invalid (`gyr_valid` False) the step
+predicts no rotation and its weight is the weak continuity weight `I / (sigma_drop dt_t)^2`:
+accelerometer + continuity carry the inclination through a dropout.
+
+The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the whole
+trajectory about world z, so without it the normal equations are singular in heading.
+
+Perturbations are on the right, `q_t <- q_t * exp([0, delta_t / 2])` (delta_t in R^3, body
+frame). The Jacobians below are exact (SO(3) left/right Jacobians, Sola et al. 2018,
+"A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` checks them against finite
+differences. Everything is vectorised over samples.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion import quaternion as quat
+from fusion.types import ImuSamples
+
+AXES = "xyz"
+
+
+# ----------------------------------------------------------------------------- SO(3) helpers
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices `[v]x`."""
+    x, y, z = np.moveaxis(v, -1, 0)
+    o = np.zeros_like(x)
+    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
+
+
+def _series(theta: np.ndarray, exact, coeffs: tuple[float, ...], small: float = 1e-3) -> np.ndarray:
+    """exact(theta) where theta > small, else the Taylor series sum c_i theta^(2i)."""
+    t2 = theta * theta
+    approx = np.zeros_like(theta)
+    for c in reversed(coeffs):
+        approx = approx * t2 + c
+    safe = np.where(theta > small, theta, 1.0)
+    return np.where(theta > small, exact(safe), approx)
+
+
+def right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """Jr(phi), (..., 3) -> (..., 3, 3): Exp(phi + d) ~ Exp(phi) Exp(Jr(phi) d). Sola eq. 143."""
+    th = np.linalg.norm(phi, axis=-1)
+    a = _series(th, lambda t: (1.0 - np.cos(t)) / t**2, (1 / 2, -1 / 24, 1 / 720))
+    b = _series(th, lambda t: (t - np.sin(t)) / t**3, (1 / 6, -1 / 120, 1 / 5040))
+    S = skew(phi)
+    return np.eye(3) - a[..., None, None] * S + b[..., None, None] * (S @ S)
+
+
+def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Jr^-1(phi): Log(Exp(phi) Exp(d)) ~ phi + Jr^-1(phi) d. Sola eq. 144. Jl^-1(phi) = Jr^-1(-phi)."""
+    th = np.linalg.norm(phi, axis=-1)
+    c = _series(th, lambda t: 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)), (1 / 12, 1 / 720, 1 / 30240))
+    S = skew(phi)
+    return np.eye(3) + 0.5 * S + c[..., None, None] * (S @ S)
+
+
+def rotation_matrix(q: np.ndarray) -> np.ndarray:
+    """R(q), (..., 4) unit wxyz -> (..., 3, 3) (maps body to world)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def retract(q: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """q * exp([0, delta / 2]), renormalised. q: (T, 4), delta: (T, 3) rad."""
+    return quat.normalize(quat.multiply(q, quat.from_rotvec(delta)))
+
+
+# ----------------------------------------------------------------------------- the problem
+@dataclass(frozen=True)
+class Weights:
+    """Noise model and robust loss of the cost.
+
+    gyro_noise_rad_s: per-sample gyro rate noise (motion information 1/(sigma dt)^2).
+    acc_noise_g: accelerometer noise, g (information 1/sigma^2).
+    huber_g: Huber threshold on the accelerometer residual norm, g (inf: plain least squares).
+    prior_std_rad: std of the anchor of q_0 at the initial orientation.
+    dropout_rate_std_rad_s: continuity std where the gyro is invalid.
+    motion_weight / acc_weight: fixed scalar information instead of the noise model
+        (the seeds' weighting: motion 10, accelerometer 1); None uses the noise model.
+    bias_axes / scale_axes: which gyro biases / scale errors are variables ("", "xy", "xyz").
+    bias_prior_rad_s / scale_prior: priors (std) of those variables around zero.
+    """
+
+    gyro_noise_rad_s: float = 0.01
+    acc_noise_g: float = 0.05
+    huber_g: float = 0.1
+    prior_std_rad: float = 0.01
+    dropout_rate_std_rad_s: float = 3.0
+    motion_weight: float | None = None
+    acc_weight: float | None = None
+    bias_axes: str = ""
+    scale_axes: str = ""
+    bias_prior_rad_s: float = 0.05
+    scale_prior: float = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class Linearization:
+    """Cost, gradient and Gauss-Newton normal equations at one point.
+
+    grad_q: (T, 3) d cost / d delta_t. grad_theta: (P,).
+    diag: (T, 3, 3) blocks H[t, t]; off: (T-1, 3, 3) blocks H[t, t+1];
+    cross: (T, 3, P) blocks H[t, theta]; theta_block: (P, P).
+    """
+
+    cost: float
+    grad_q: np.ndarray
+    grad_theta: np.ndarray
+    diag: np.ndarray
+    off: np.ndarray
+    cross: np.ndarray
+    theta_block: np.ndarray
+
+
+@dataclass(eq=False)
+class SmootherProblem:
+    """The cost of one recording. Build with `SmootherProblem.from_imu`."""
+
+    dt: np.ndarray  # (T-1,) s
+    gyr: np.ndarray  # (T-1, 3) rad/s, gyro sample t used over step t
+    valid: np.ndarray  # (T-1,) bool, gyro usable on step t
+    acc: np.ndarray  # (T, 3) g
+    w_motion: np.ndarray  # (T-1,) scalar information of each step
+    w_acc: np.ndarray  # (T,) accelerometer weight per sample, 0 where the sample is missing (NaN)
+    huber_c: float  # threshold on sqrt(r^T W_a r); inf: no robust loss
+    init_quat: np.ndarray  # (4,)
+    w_prior: float
+    bias_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    scale_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    w_theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True) -> "SmootherProblem":
+        """imu: calibrated samples; init_quat_wxyz: (4,) anchor of q_0."""
+        dt = imu.dt
+        valid = imu.gyr_valid[:-1].copy() if use_valid else np.ones(len(dt), bool)
+        if weights.motion_weight is not None:
+            w_motion = np.full(len(dt), float(weights.motion_weight))
+            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_s / weights.dropout_rate_std_rad_s) ** 2
+        else:
+            sigma = np.where(valid, weights.gyro_noise_rad_s, weights.dropout_rate_std_rad_s) * dt
+            w_motion = 1.0 / sigma**2
+        w_acc = float(weights.acc_weight) if weights.acc_weight is not None else 1.0 / weights.acc_noise_g**2
+        huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) and w_acc > 0 else np.inf
+        # A non-finite accelerometer sample carries no information: weight 0 (its value is zeroed
+        # so that 0 * NaN never reaches the cost).
+        acc_ok = np.all(np.isfinite(imu.acc_g), axis=1)
+        acc = np.where(acc_ok[:, None], imu.acc_g, 0.0)
+        bias_idx = np.array([AXES.index(a) for a in weights.bias_axes], int)
+        scale_idx = np.array([AXES.index(a) for a in weights.scale_axes], int)
+        w_theta = np.concatenate(
+            [np.full(len(bias_idx), weights.bias_prior_rad_s**-2), np.full(len(scale_idx), weights.scale_prior**-2)]
+        )
+        return cls(
+            dt=dt, gyr=np.array(imu.gyr_rad_s[:-1]), valid=valid, acc=acc,
+            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0), huber_c=huber_c,
+            init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
+            w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
+        )
+
+    # -------------------------------------------------------------- pieces
+    @property
+    def n_theta(self) -> int:
+        return len(self.bias_idx) + len(self.scale_idx)
+
+    def split_theta(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """theta -> (bias (3,) rad/s, scale error (3,))."""
+        b = np.zeros(3)
+        k = np.zeros(3)
+        nb = len(self.bias_idx)
+        b[self.bias_idx] = theta[:nb]
+        k[self.scale_idx] = theta[nb:]
+        return b, k
+
+    def step_rotvec(self, theta: np.ndarray) -> np.ndarray:
+        """(T-1, 3) phi_t = w_t dt_t, zero on invalid steps."""
+        b, k = self.split_theta(theta)
+        phi = ((1.0 + k) * self.gyr - b) * self.dt[:, None]
+        phi[~self.valid] = 0.0
+        return phi
+
+    def step_quat(self, theta: np.ndarray) -> np.ndarray:
+        """(T-1, 4) exp([0, phi_t / 2]); cached for the last theta (gd evaluates it many times)."""
+        key = np.asarray(theta, float).tobytes()
+        if getattr(self, "_u_key", None) != key:
+            self._u = quat.from_rotvec(self.step_rotvec(theta))
+            self._u_key = key
+        return self._u
+
+    def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3). Seed: motion residual."""
+        return quat.to_rotvec(quat.multiply(quat.multiply(quat.conjugate(q_b), q_a), u))
+
+    def residuals(self, q: np.ndarray, theta: np.ndarray) -> dict[str, np.ndarray]:
+        """All residuals at (q (T, 4), theta (P,))."""
+        u = self.step_quat(theta)
+        return {
+            "motion": self.motion_residual(q[:-1], q[1:], u),
+            "acc": self.acc - quat.gravity_in_body(q),
+            "prior": quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0])),
+            "theta": np.asarray(theta, float),
+        }
+
+    def huber(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """rho(s) and rho'(s) for squared Mahalanobis norms s."""
+        c = self.huber_c
+        if not np.isfinite(c):
+            return s, np.ones_like(s)
+        root = np.sqrt(s)
+        inside = root <= c
+        return np.where(inside, s, 2.0 * c * root - c * c), np.where(inside, 1.0, c / np.maximum(root, 1e-300))
+
+    def cost(self, q: np.ndarray, theta: np.ndarray | None = None) -> float:
+        """Total cost at q (T, 4), theta (P,)."""
+        theta = np.zeros(self.n_theta) if theta is None else theta
+        r = self.residuals(q, theta)
+        rho, _ = self.huber(self.w_acc * np.sum(r["acc"] ** 2, axis=1))
+        return 0.5 * float(
+            np.sum(self.w_motion * np.sum(r["motion"] ** 2, axis=1))
+            + np.sum(rho)
+            + self.w_prior * r["prior"] @ r["prior"]
+            + np.sum(self.w_theta * r["theta"] ** 2)
+        )
+
+    def local_costs(self, q_new: np.ndarray, q_old: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(T,) the cost terms touching q_t when q_t = q_new[t] and its neighbours keep q_old.
+
+        Motion t-1 (from q_old[t-1] to q_new[t]), motion t (q_new[t] to q_old[t+1]),
+        accelerometer t and, for t = 0, the anchor. Used by the per-quaternion step search of `gd`.
+        """
+        u = self.step_quat(theta)
+        out = np.zeros(len(q_new))
+        r_fwd = self.motion_residual(q_new[:-1], q_old[1:], u)
+        r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
+        out[:-1] += 0.5 * self.w_motion * np.sum(r_fwd**2, axis=1)
+        out[1:] += 0.5 * self.w_motion * np.sum(r_bwd**2, axis=1)
+        rho, _ = self.huber(self.w_acc * np.sum((self.acc - quat.gravity_in_body(q_new)) ** 2, axis=1))
+        out += 0.5 * rho
+        r0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q_new[0]))
+        out[0] += 0.5 * self.w_prior * r0 @ r0
+        return out
+
+    # -------------------------------------------------------------- linearisation
+    def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True) -> Linearization:
+        """Cost, exact gradient and the Gauss-Newton blocks at (q, theta).
+
+        The Huber term uses the IRLS weight rho'(s) in both gradient (exact) and Hessian
+        (Gauss-Newton approximation, Triggs' second-order correction omitted).
+        """
+        theta = np.zeros(self.n_theta) if theta is None else np.asarray(theta, float)
+        T, P = len(q), self.n_theta
+        phi = self.step_rotvec(theta)
+        u = quat.from_rotvec(phi)
+        r_m = self.motion_residual(q[:-1], q[1:], u)
+        h = quat.gravity_in_body(q)
+        r_a = self.acc - h
+        r_0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0]))
+        rho, drho = self.huber(self.w_acc * np.sum(r_a**2, axis=1))
+        cost = 0.5 * float(
+            np.sum(self.w_motion * np.sum(r_m**2, axis=1)) + np.sum(rho) + self.w_prior * r_0 @ r_0
+            + np.sum(self.w_theta * theta**2)
+        )
+
+        # Motion Jacobians (right perturbations):
+        #   d r_m,t / d delta_t     = Jr^-1(r) R(u_t)^T   (u^-1 Exp(d) u = Exp(R(u)^T d))
+        #   d r_m,t / d delta_{t+1} = -Jl^-1(r) = -Jr^-1(-r)
+        Jr_inv = right_jacobian_inv(r_m)
+        J0 = Jr_inv @ np.swapaxes(rotation_matrix(u), -1, -2)
+        J1 = -right_jacobian_inv(-r_m)
+        Wr = self.w_motion[:, None] * r_m
+        grad = np.zeros((T, 3))
+        grad[:-1] += np.einsum("tji,tj->ti", J0, Wr)
+        grad[1:] += np.einsum("tji,tj->ti", J1, Wr)
+        # Accelerometer: h(q Exp(d)) ~ h + [h]x d, so d r_a / d delta = -[h]x.
+        Ja = -skew(h)
+        wa = self.w_acc * drho
+        grad += np.einsum("tji,tj->ti", Ja, wa[:, None] * r_a)
+        # Anchor: d r_0 / d delta_0 = Jr^-1(r_0).
+        J_0 = right_jacobian_inv(r_0)
+        grad[0] += self.w_prior * J_0.T @ r_0
+
+        # Calibration variables: d r_m,t / d phi_t = Jr^-1(r) Jr(phi); d phi / d b = -dt, d phi / d k_i = dt g_i.
+        grad_theta = self.w_theta * theta
+        Jth = None
+        if P:
+            Jphi = Jr_inv @ right_jacobian(phi)
+            dphi = np.zeros((len(phi), 3, P))
+            nb = len(self.bias_idx)
+            for j, ax in enumerate(self.bias_idx):
+                dphi[:, ax, j] = -self.dt
+            for j, ax in enumerate(self.scale_idx):
+                dphi[:, ax, nb + j] = self.dt * self.gyr[:, ax]
+            dphi[~self.valid] = 0.0
+            Jth = Jphi @ dphi  # (T-1, 3, P)
+            grad_theta = grad_theta + np.einsum("tjp,tj->p", Jth, Wr)
+
+        if not hessian:
+            return Linearization(cost, grad, grad_theta, np.empty((0, 3, 3)), np.empty((0, 3, 3)), np.empty((0, 3, P)), np.empty((P, P)))
+
+        wm = self.w_motion[:, None, None]
+        diag = np.zeros((T, 3, 3))
+        diag[:-1] += wm * np.swapaxes(J0, -1, -2) @ J0
+        diag[1:] += wm * np.swapaxes(J1, -1, -2) @ J1
+        diag += wa[:, None, None] * np.swapaxes(Ja, -1, -2) @ Ja
+        diag[0] += self.w_prior * J_0.T @ J_0
+        off = wm * np.swapaxes(J0, -1, -2) @ J1
+        cross = np.zeros((T, 3, P))
+        theta_block = np.diag(self.w_theta).astype(float)
+        if P:
+            cross[:-1] += wm * np.swapaxes(J0, -1, -2) @ Jth
+            cross[1:] += wm * np.swapaxes(J1, -1, -2) @ Jth
+            theta_block = theta_block + np.einsum("tjp,tjr->pr", wm * Jth, Jth)
+        return Linearization(cost, grad, grad_theta, diag, off, cross, theta_block)
+
+
+def banded_lower(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Block-tridiagonal symmetric matrix -> LAPACK lower band storage (6, 3T) for solveh_banded.
+
+    diag: (T, 3, 3) blocks H[t, t]; off: (T-1, 3, 3) blocks H[t, t+1] (so H[t+1, t] = off^T).
+    Entry H[r, c] (r >= c) goes to ab[r - c, c].
+    """
+    T = len(diag)
+    ab = np.zeros((6, 3 * T))
+    cols = 3 * np.arange(T)
+    for i in range(3):
+        for j in range(i + 1):
+            ab[i - j, cols + j] = diag[:, i, j]
+    cols = cols[:-1]
+    for i in range(3):
+        for j in range(3):
+            # H[3(t+1) + i, 3t + j] = H[t+1, t][i, j] = off[t][j, i]
+            ab[3 + i - j, cols + j] = off[:, j, i]
+    return ab

@@ -1,0 +1,612 @@
+"""The seed's quaternion UKF (Kraft 2003 style) on FilterPy's scaffolding, and `ukf-bias`.
+
+State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, rad/s, for
+`ukf-bias`); covariance `P` on the body-frame rotation-vector error `e`, `q_true = q exp(e/2)`
+(3x3, or 6x6 with the bias error). Per IMU sample, following the seed report's steps:
+
+1. control input: the gyro, `q_delta = exp(w dt / 2)` (with `w - b_i` per sigma point for
+   `ukf-bias`);
+2. sigma points: the columns of `+-sqrt(c (P + Q))` (Kraft: c = n, 2n points, equal weights;
+   process noise enters *before* the transform, as in Kraft 2003);
+3. each turned into a quaternion by the exponential map, `X_i = q exp(W_i / 2)`;
+4. propagated, `Y_i = X_i q_delta`;
+5. the iterative quaternion mean: error rotation vectors `e_i = log(q_t^-1 Y_i)`, wrapped
+   to the shortest rotation (angle in [0, pi], so q and -q agree), averaged with the mean
+   weights and re-applied, `q_t <- q_t exp(e/2)`, until `|e| < mean_tol_rad` or
+   `mean_max_iter` iterations (Kraft's gradient-descent mean); `P_pred = sum Wc e_i e_i^T`;
+6. predicted measurement per sigma point: gravity in the body frame `Z_i = R(Y_i)^T e_z`
+   (the accelerometer part of Kraft's measurement model);
+7. its mean `z = sum Wm Z_i`;
+8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R`, `P_xz = sum Wc e_i (Z_i - z)^T`;
+9. gain `K = P_xz P_zz^-1`, update through the exponential map `q <- q exp(K (a - z) / 2)`,
+   `P <- P_pred - K P_zz K^T`.
+Kraft's equation numbers are not cited: the code follows the seed report's step numbers.
+
+What FilterPy (2.0.0) provides and what is replaced
+----------------------------------------------------
+`QuaternionUKF` subclasses `filterpy.kalman.UnscentedKalmanFilter` and keeps its
+bookkeeping (`x`, `P`, `R`, `K`, `y`, `S`, `sigmas_f`, `sigmas_h`, `x_prior`/`x_post`...) and
+its hooks: `QuaternionSigmaPoints` has FilterPy's sigma-point interface (`n`, `num_sigmas()`,
+`sigma_points(x, P)`, `Wm`, `Wc`), `x_mean_fn` is the iterative quaternion mean,
+`residual_x` the quaternion log difference, `state_add` composition with the exponential
+map, `fx`/`hx` the process and measurement models. Traps worked around:
+
+* `UnscentedKalmanFilter.predict()` re-draws sigma points from the predicted (x, P)
+  after the transform, so `update` would not use the propagated points as Kraft does, and
+  it adds Q *after* the transform. `QuaternionUKF.predict` replaces it (draws from P + Q,
+  keeps the propagated points and their error vectors for the update).
+* FilterPy's `unscented_transform` and `cross_variance` size the covariance from the state
+  vector (4 or 7 entries) and fail for a 3x3 / 6x6 error covariance:
+  `unscented_transform_state` (passed as `UT=`) and an overridden `cross_variance` size it
+  from the residuals. FilterPy's own `unscented_transform` is still used for the
+  (Euclidean) measurement side.
+* `batch_filter` cannot pass the gyro to `fx`: `RecursiveEstimator` loops the steps and
+  passes the gyro sample as a keyword argument.
+* FilterPy's sigma-point classes check `size(x) == n`; ours take the (n+1)-entry state
+  with an n x n covariance.
+
+Two implementations of the same step (`impl` parameter): `"lean"` (default) runs predict and
+update as a handful of vectorised numpy calls over all sigma points at once (about 5x faster:
+70 vs 355 us per sample on ece276a/1);
+`"filterpy"` calls the per-sigma-point hooks and FilterPy's own `update()` (the reference;
+`tests/test_ukf.py` checks the two agree to 1e-12). Profile: see `benchmarks/bench_filters.py`.
+
+Sigma-point schemes (`sigma`): `"kraft"` (2n points at +-sqrt(n (P+Q)), weights 1/(2n); a
+zero-weight centre point is carried along only to start the iterative mean, which changes
+no result), `"julier"` (centre point, kappa), `"merwe"` (scaled, alpha/beta/kappa). Schemes
+whose centre weight would be negative are refused with a ValueError: a negative weight
+makes the quaternion mean an extrapolation that the iterative mean cannot guarantee.
+
+Robustness (all filters): gyro samples with `gyr_valid` False or non-finite values are
+not integrated (zero rate) and add `invalid_gyr_std_rad_s`^2 dt^2 to the attitude process
+noise; non-finite accelerometer samples skip the update; the matrix square root falls back
+from Cholesky to a clipped eigen-decomposition and the covariance is symmetrised (and
+eigenvalue-clipped if needed) after every update; counts of these recoveries are in the
+trajectory diagnostics. Quaternions are renormalised every step.
+
+Defaults. The seed report used P0 = Q = R = 1e-4 I (Q per sample at 100 Hz, i.e.
+`process_noise_rad2_s = 1e-2`; R in g^2). Those apply nearly the whole accelerometer
+innovation every sample (Q/R = 1 per sample), so hand-motion accelerations become attitude
+noise and, through the correlations of the unobservable heading with the tilt, a heading
+random walk: 2.98 deg inclination but 56 deg total RMSE (mean over ece276a 1-9, --init truth).
+A sweep (`UKFParams` docstring) shows inclination depends mainly on Q/R; `ukf` defaults to
+Q = 1e-3 rad^2/s, R = 1e-2 g^2 (Q/R = 0.1 /s): 2.11 deg inclination, 17.4 deg total.
+
+Beyond the seed (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
+the tilt, yet the optimal gain also turns the estimate about the vertical through the
+tilt-heading correlations of P; with unmodelled hand accelerations that is what drives the
+heading random walk. `heading_free` removes the gain's component about the predicted
+vertical (attitude and bias rows) and updates P with the general-gain formula
+`P - K Pxz^T - Pxz K^T + K Pzz K^T`, so the covariance stays consistent with the gain used.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from filterpy.kalman import UnscentedKalmanFilter
+
+from fusion.types import ImuSamples
+
+from ._attitude import (
+    acc_variance_scale,
+    exp_batch,
+    exp_quat,
+    gravity_batch,
+    inv_sym3,
+    left_matrix,
+    mul_floats,
+    log_batch,
+    repair_covariance,
+    right_matrix,
+    sqrt_psd,
+    unit_array,
+)
+from .base import RecursiveEstimator
+
+Sigma = Literal["kraft", "julier", "merwe"]
+Gate = Literal["off", "skip", "inflate"]
+Impl = Literal["lean", "filterpy"]
+
+
+# --------------------------------------------------------------------------- parameters
+def _check_nonneg(owner: str, **values: float) -> None:
+    for name, value in values.items():
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
+            raise ValueError(f"{owner}: {name} must be a finite number >= 0, got {value!r}")
+
+
+def _check_common(p: Any, owner: str) -> None:
+    _check_nonneg(
+        owner,
+        process_noise_rad2_s=p.process_noise_rad2_s,
+        acc_noise_g2=p.acc_noise_g2,
+        init_var_rad2=p.init_var_rad2,
+        invalid_gyr_std_rad_s=p.invalid_gyr_std_rad_s,
+    )
+    if p.use_acc and p.acc_noise_g2 <= 0.0:
+        raise ValueError(f"{owner}: acc_noise_g2 (R) must be > 0 when the accelerometer is used, got {p.acc_noise_g2}")
+    if p.gate not in ("off", "skip", "inflate"):
+        raise ValueError(f"{owner}: gate must be off, skip or inflate, got {p.gate!r}")
+    if not (math.isfinite(p.gate_g) and p.gate_g > 0.0):
+        raise ValueError(f"{owner}: gate_g must be > 0 g, got {p.gate_g!r}")
+    if not (math.isfinite(p.mean_tol_rad) and p.mean_tol_rad > 0.0):
+        raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {p.mean_tol_rad!r}")
+    if int(p.mean_max_iter) != p.mean_max_iter or p.mean_max_iter < 1:
+        raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {p.mean_max_iter!r}")
+    if p.impl not in ("lean", "filterpy"):
+        raise ValueError(f"{owner}: impl must be lean or filterpy, got {p.impl!r}")
+    if p.impl == "filterpy" and p.heading_free:
+        raise ValueError(
+            f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
+            "use heading_free=false (hf=false) with it"
+        )
+    # Builds the sigma-point weights once, so an impossible scheme fails here, not mid-run.
+    QuaternionSigmaPoints(6 if hasattr(p, "bias_walk_rad2_s3") else 3, p.sigma, p.kappa, p.alpha, p.beta)
+
+
+@dataclass(frozen=True)
+class UKFParams:
+    """Parameters of `ukf`, the seed's quaternion UKF.
+
+    process_noise_rad2_s (Q): attitude process noise, variance per second of the rotation
+        error, rad^2/s; the step uses `Q dt I`. Seed: 1e-4 per 100 Hz sample = 1e-2 rad^2/s.
+    acc_noise_g2 (R): accelerometer measurement variance per axis, g^2. Seed: 1e-4.
+    init_var_rad2 (P0): initial attitude variance per axis, rad^2. Seed: 1e-4.
+    sigma: sigma-point scheme, kraft (seed) | julier | merwe; kappa, alpha, beta their
+        parameters (kappa for julier and merwe, alpha and beta for merwe).
+    use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
+    gate, gate_g: accelerometer gating (see `_attitude.acc_variance_scale`); off for the seed.
+    invalid_gyr_std_rad_s (Qbad): assumed rate uncertainty on invalid gyro samples, rad/s.
+    mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
+    impl: lean (vectorised) | filterpy (per-point hooks + FilterPy's update), same numbers.
+
+    heading_free (hf): not in the seed (default off); see the module docstring.
+
+    Defaults: Q = 1e-3 rad^2/s, R = 1e-2 g^2. Sweep over ece276a 1-9 with the spine's
+    calibration, --init truth, mean RMSE inclination / total (deg):
+        Q = 1e-4: R = 1e-3 2.11/17.4, R = 1e-2 3.14/17.1
+        Q = 1e-3: R = 1e-4 2.70/38.2 (*), 1e-3 2.26/22.7, 3e-3 2.09/18.4, 1e-2 2.11/17.4 (default),
+                  3e-2 2.42/16.7, 1e-1 3.14/17.1
+        Q = 1e-2: R = 1e-4 2.98/56.2 (the seed), 1e-2 2.27/22.7, 3e-2 2.10/18.5, 1e-1 2.10/17.6
+    (* measured with a provisional calibration before the spine landed.) Equal Q/R give equal scores;
+    Q/R = 0.1-0.3 /s is the plateau of inclination, 0.1 /s keeps the total under 18 deg.
+    """
+
+    process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
+    acc_noise_g2: float = field(default=1e-2, metadata={"alias": "R"})
+    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    sigma: Sigma = "kraft"
+    kappa: float = 1.0
+    alpha: float = 1.0
+    beta: float = 2.0
+    use_acc: bool = field(default=True, metadata={"alias": "acc"})
+    gate: Gate = "off"
+    gate_g: float = 0.1
+    heading_free: bool = field(default=False, metadata={"alias": "hf"})
+    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
+    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
+    impl: Impl = "lean"
+
+    def __post_init__(self) -> None:
+        _check_common(self, "ukf")
+
+    @classmethod
+    def seed(cls, **changes: Any) -> "UKFParams":
+        """The seed report's values: P0 = Q = R = 1e-4 (Q per 100 Hz sample)."""
+        values = dict(process_noise_rad2_s=1e-2, acc_noise_g2=1e-4, init_var_rad2=1e-4)
+        values.update(changes)
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class UKFBiasParams:
+    """Parameters of `ukf-bias`: the UKF with the gyro bias in the state, and gating.
+
+    As `UKFParams`, plus
+    bias_walk_rad2_s3 (Qb): gyro-bias random walk, variance rate (rad/s)^2 per s.
+    init_bias_var_rad2_s2 (Pb0): initial bias variance per axis, (rad/s)^2. The initial bias
+        estimate is zero (calibration removed the bias of the initial rest).
+    gate (default inflate), gate_g: accelerometer gating, R * (1 + (| |a| - 1 | / gate_g)^2).
+    heading_free (hf, default on): the accelerometer correction does not turn the estimate
+        about the predicted vertical (attitude and bias rows of the gain).
+
+    Defaults (shared with `ekf`, one set for all recordings): Q = 1e-3 rad^2/s, R = 3e-3 g^2,
+    Qb = 1e-8, Pb0 = 1e-5 (the rest-period calibration already removed the bias: a loose
+    prior lets linear accelerations teach a wrong vertical bias, 107 deg heading RMSE on
+    `sim` with Pb0 = 1e-4, Qb = 1e-6), gate_g = 0.2 g. Mean over ece276a 1-9: 2.10 deg
+    inclination, 17.2 deg total; without heading_free 2.19 / 17.4 (gate_g 0.05), without
+    gating 2.09 / 17.1 on the real recordings but 3.43 vs 3.34 deg inclination on `sim`,
+    whose hand accelerations are sustained (median | |a| - 1 | = 0.065 g vs 0.01-0.03).
+    """
+
+    process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
+    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
+    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
+    sigma: Sigma = "kraft"
+    kappa: float = 1.0
+    alpha: float = 1.0
+    beta: float = 2.0
+    use_acc: bool = field(default=True, metadata={"alias": "acc"})
+    gate: Gate = "inflate"
+    gate_g: float = 0.2
+    heading_free: bool = field(default=True, metadata={"alias": "hf"})
+    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
+    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
+    impl: Impl = "lean"
+
+    def __post_init__(self) -> None:
+        _check_nonneg("ukf-bias", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
+        _check_common(self, "ukf-bias")
+
+
+# --------------------------------------------------------------------------- sigma points
+class QuaternionSigmaPoints:
+    """Sigma points on the n-dimensional error state, with FilterPy's interface.
+
+    n: error dimension (3: attitude; 6: attitude and gyro bias).
+    scheme: "kraft" | "julier" | "merwe". Points are `W_0 = 0` and `+-` the columns of
+    `sqrt(c P)` (c = n, n + kappa, n + lambda); `Wm`, `Wc` (2n + 1,) weights, centre first.
+    `sigma_points(x, P)` maps them onto the state: x (n + 1,) = [q_wxyz, b...], P (n, n).
+    """
+
+    def __init__(self, n: int, scheme: str = "kraft", kappa: float = 1.0, alpha: float = 1.0, beta: float = 2.0) -> None:
+        if n not in (3, 6):
+            raise ValueError(f"sigma points: error dimension must be 3 or 6, got {n}")
+        self.n, self.scheme = n, scheme
+        self.kappa, self.alpha, self.beta = float(kappa), float(alpha), float(beta)
+        m = 2 * n + 1
+        if scheme == "kraft":  # seed step 2: +-sqrt(n P), 2n points, equal weights
+            c = float(n)
+            wm0 = wc0 = 0.0  # the centre only starts the iterative mean
+        elif scheme == "julier":  # Julier & Uhlmann 1997
+            c = n + self.kappa
+            if not (self.kappa >= 0.0 and math.isfinite(self.kappa)):
+                raise ValueError(
+                    f"sigma points julier: kappa = {kappa} gives the centre point the negative weight "
+                    f"{self.kappa / c if c else float('-inf'):.3g}; the quaternion mean needs kappa >= 0"
+                )
+            wm0 = wc0 = self.kappa / c
+        elif scheme == "merwe":  # van der Merwe 2004, scaled points
+            if not (self.alpha > 0.0 and math.isfinite(self.alpha) and math.isfinite(self.kappa) and math.isfinite(self.beta)):
+                raise ValueError(f"sigma points merwe: alpha must be > 0 and all parameters finite, got alpha={alpha}, kappa={kappa}, beta={beta}")
+            lam = self.alpha**2 * (n + self.kappa) - n
+            c = n + lam
+            if c <= 0.0 or lam < 0.0:
+                raise ValueError(
+                    f"sigma points merwe: alpha={alpha}, kappa={kappa} give lambda = {lam:.4g} and a centre "
+                    f"mean weight {lam / c if c > 0 else float('-inf'):.4g} < 0; the iterative quaternion mean "
+                    f"needs non-negative weights: choose kappa >= n / alpha^2 - n = {n / self.alpha**2 - n:.4g}"
+                )
+            wm0 = lam / c
+            wc0 = wm0 + 1.0 - self.alpha**2 + self.beta
+            if wc0 < 0.0:
+                raise ValueError(f"sigma points merwe: covariance centre weight {wc0:.4g} < 0 (alpha={alpha}, beta={beta}); choose beta >= alpha^2 - 1 - lambda/(n+lambda)")
+        else:
+            raise ValueError(f"sigma points: scheme must be kraft, julier or merwe, got {scheme!r}")
+        self.c = c
+        self.sqrt_c = math.sqrt(c)
+        self.Wm = np.full(m, 0.5 / c)
+        self.Wc = np.full(m, 0.5 / c)
+        self.Wm[0], self.Wc[0] = wm0, wc0
+        self.last_sqrt_recovered = False
+
+    def num_sigmas(self) -> int:
+        return 2 * self.n + 1
+
+    def offsets(self, P: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """(2n + 1, n) error-state offsets: 0, then +- the columns of sqrt(c P) (seed step 2)."""
+        n = self.n
+        L, self.last_sqrt_recovered = sqrt_psd(P)
+        L = L * self.sqrt_c
+        if out is None:
+            out = np.zeros((2 * n + 1, n))
+        out[1 : n + 1] = L.T
+        out[n + 1 :] = -L.T
+        return out
+
+    def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """(2n + 1, n + 1) state sigma points `[q exp(W_i / 2), b + W_i^b]` (seed steps 2-3)."""
+        x = np.asarray(x, dtype=float)
+        P = np.asarray(P, dtype=float)
+        if x.shape != (self.n + 1,) or P.shape != (self.n, self.n):
+            raise ValueError(f"sigma points: expected x ({self.n + 1},) and P ({self.n}, {self.n}), got {x.shape} and {P.shape}")
+        off = self.offsets(P)
+        out = np.empty((len(off), self.n + 1))
+        out[:, :4] = exp_batch(off[:, :3]) @ left_matrix(*x[:4]).T  # seed step 3: q * exp(W_i)
+        out[:, 4:] = x[4:] + off[:, 3:]
+        return out
+
+
+# --------------------------------------------------------------------------- UT hooks
+def quaternion_mean(
+    quats: np.ndarray, weights: np.ndarray, start: np.ndarray, tol: float = 1e-9, max_iter: int = 20
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Iterative weighted mean of unit quaternions (seed step 5; Kraft 2003).
+
+    quats: (m, 4) wxyz; weights: (m,) summing to 1, >= 0; start: (4,) first guess.
+    Repeats `e_i = log(q_t^-1 q_i)` (wrapped: q_i and -q_i give the same e_i),
+    `e = sum w_i e_i`, `q_t <- q_t exp(e / 2)` until `|e| < tol` or `max_iter` passes.
+    Returns `(mean (4,), residuals (m, 3) rad about the mean, iterations used)`; when the
+    cap is hit the last iterate is returned (the caller counts it).
+    """
+    qw, qx, qy, qz = start.tolist()
+    for it in range(1, max_iter + 1):
+        err = log_batch(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
+        e = weights @ err
+        dw, dx, dy, dz = exp_quat(e[0], e[1], e[2])
+        qw, qx, qy, qz = (
+            qw * dw - qx * dx - qy * dy - qz * dz,
+            qw * dx + qx * dw + qy * dz - qz * dy,
+            qw * dy - qx * dz + qy * dw + qz * dx,
+            qw * dz + qx * dy - qy * dx + qz * dw,
+        )
+        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        if math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) < tol:
+            break
+    # Residuals about the final mean, to first order (the last step was below tol).
+    return np.array([qw, qx, qy, qz]), err - e, it
+
+
+def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """FilterPy `residual_x`: error-state difference a - b, `[log(b_q^-1 a_q), a_b - b_b]`."""
+    dq = left_matrix(b[0], -b[1], -b[2], -b[3]) @ a[:4]
+    rot = log_batch(dq[None, :])[0]
+    return np.concatenate([rot, a[4:] - b[4:]])
+
+
+def state_add(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """FilterPy `state_add`: `[q exp(dx_rot / 2), b + dx_b]` (seed step 9), renormalised."""
+    q = left_matrix(*x[:4]) @ np.array(exp_quat(dx[0], dx[1], dx[2]))
+    return np.concatenate([q / np.linalg.norm(q), x[4:] + dx[3:]])
+
+
+def unscented_transform_state(sigmas, Wm, Wc, noise_cov=None, mean_fn=None, residual_fn=None):
+    """FilterPy-signature UT for the quaternion state (passed as `UT=`; seed step 5).
+
+    sigmas: (m, n + 1) state points; the covariance is sized from the residuals (n, n),
+    which FilterPy's `unscented_transform` cannot do for a 4-vector with a 3x3 P.
+    """
+    x = mean_fn(sigmas, Wm)
+    res = np.array([residual_fn(s, x) for s in sigmas])
+    P = res.T @ (Wc[:, None] * res)
+    if noise_cov is not None:
+        P = P + noise_cov
+    return x, P
+
+
+# --------------------------------------------------------------------------- the filter
+class QuaternionUKF(UnscentedKalmanFilter):
+    """FilterPy's `UnscentedKalmanFilter` with a quaternion (+ bias) state.
+
+    x: (4,) or (7,) `[q_wxyz, b_rad_s]`; P: (n, n) error covariance, n = 3 or 6.
+    `predict(dt, gyr_rad_s, Q)` / `update(z, R)` are the lean vectorised seed steps;
+    `predict_reference` / `update_reference` run the same steps through the per-point hooks
+    and FilterPy's own `update`.
+    """
+
+    def __init__(self, points: QuaternionSigmaPoints, mean_tol_rad: float = 1e-9, mean_max_iter: int = 20) -> None:
+        n = points.n
+        self.n_err = n
+        self.has_bias = n == 6
+        self.mean_tol, self.mean_max_iter = mean_tol_rad, int(mean_max_iter)
+        super().__init__(
+            dim_x=n + 1,
+            dim_z=3,
+            dt=None,
+            hx=self.hx_gravity,
+            fx=self.fx_rotate,
+            points=points,
+            x_mean_fn=self.state_mean,
+            residual_x=state_residual,
+            state_add=state_add,
+        )
+        # FilterPy sizes P, Q, K from dim_x; the error state is one smaller.
+        self.P = np.eye(n)
+        self.Q = np.zeros((n, n))
+        self.K = np.zeros((n, 3))
+        self.x = np.zeros(n + 1)
+        self.x[0] = 1.0
+        self._offsets = np.zeros((2 * n + 1, n))
+        self._residuals = np.zeros((2 * n + 1, n))
+        self._Wc_col = self.Wc[:, None].copy()
+        self.mean_iterations = 0
+        self.sqrt_recovered = False
+        self.heading_free = False
+
+    # -- models (per point, used by the reference path) --
+    def fx_rotate(self, x: np.ndarray, dt: float, gyr_rad_s: np.ndarray) -> np.ndarray:
+        """Process model for one state point: `q exp((w - b) dt / 2)` (seed steps 1, 4)."""
+        w = gyr_rad_s - x[4:] if self.has_bias else gyr_rad_s
+        q = right_matrix(*exp_quat(*(w * dt))) @ x[:4]
+        return np.concatenate([q, x[4:]])
+
+    @staticmethod
+    def hx_gravity(x: np.ndarray) -> np.ndarray:
+        """Measurement model: gravity in the body frame, g (seed step 6)."""
+        return gravity_batch(x[None, :4])[0]
+
+    def state_mean(self, sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
+        """FilterPy `x_mean_fn`: iterative quaternion mean, weighted bias mean (step 5)."""
+        q, _, self.mean_iterations = quaternion_mean(sigmas[:, :4], Wm, sigmas[0, :4], self.mean_tol, self.mean_max_iter)
+        return np.concatenate([q, Wm @ sigmas[:, 4:]])
+
+    def cross_variance(self, x, z, sigmas_f, sigmas_h):
+        """P_xz sized (n, dim_z) from the residuals (FilterPy sizes it from x). Seed step 8."""
+        Pxz = np.zeros((self.n_err, sigmas_h.shape[1]))
+        for i in range(sigmas_f.shape[0]):
+            Pxz += self.Wc[i] * np.outer(self.residual_x(sigmas_f[i], x), self.residual_z(sigmas_h[i], z))
+        return Pxz
+
+    # -- lean path --
+    def predict(self, dt: float, gyr_rad_s: np.ndarray, Q: np.ndarray) -> None:  # type: ignore[override]
+        """Seed steps 1-5 for all sigma points at once. gyr_rad_s: (3,) rad/s, body; Q: (n, n)."""
+        pts: QuaternionSigmaPoints = self.points_fn
+        x = self.x
+        off = pts.offsets(self.P + Q, self._offsets)  # step 2
+        self.sqrt_recovered = pts.last_sqrt_recovered
+        X = exp_batch(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
+        sig = self.sigmas_f
+        if self.has_bias:
+            b = x[4:] + off[:, 3:]
+            rv = (gyr_rad_s - b) * dt  # step 1, per point
+            d = exp_batch(rv)
+            # step 4: Y_i = X_i * q_delta_i (Hamilton product, row-wise)
+            w1, x1, y1, z1 = X[:, 0], X[:, 1], X[:, 2], X[:, 3]
+            w2, x2, y2, z2 = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+            sig[:, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+            sig[:, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+            sig[:, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+            sig[:, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+            sig[:, 4:] = b
+        else:
+            w = gyr_rad_s * dt
+            sig[:, :4] = X @ right_matrix(*exp_quat(w[0], w[1], w[2])).T  # steps 1, 4
+        Y = sig[:, :4]
+        q, err, self.mean_iterations = quaternion_mean(Y, self.Wm, Y[0], self.mean_tol, self.mean_max_iter)  # step 5
+        res = self._residuals
+        res[:, :3] = err
+        if self.has_bias:
+            bm = self.Wm @ sig[:, 4:]
+            res[:, 3:] = sig[:, 4:] - bm
+            self.x = np.concatenate([q, bm])
+        else:
+            self.x = q
+        self.P = res.T @ (self._Wc_col * res)  # step 5: P_pred (Q entered in step 2)
+        self.x_prior = self.x
+        self.P_prior = self.P
+
+    def update(self, z: np.ndarray, R: np.ndarray) -> None:  # type: ignore[override]
+        """Seed steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
+        Z = gravity_batch(self.sigmas_f)  # step 6 (reads columns 0-3)
+        zp = self.Wm @ Z  # step 7
+        dZ = Z - zp
+        WdZ = self._Wc_col * dZ
+        S = dZ.T @ WdZ + R  # step 8: P_zz
+        Pxz = self._residuals.T @ WdZ  # step 8: P_xz
+        K = Pxz @ inv_sym3(S)  # step 9
+        if self.heading_free:
+            # Not in the seed: drop the correction about the predicted vertical (see UKFBiasParams).
+            h = zp / math.sqrt(zp @ zp)
+            K[:3] -= np.outer(h, h @ K[:3])
+            if self.has_bias:
+                K[3:] -= np.outer(h, h @ K[3:])
+            # Covariance for a general gain: P - K Pxz^T - Pxz K^T + K S K^T.
+            KPxz = K @ Pxz.T
+            self.P = self.P - KPxz - KPxz.T + K @ S @ K.T
+        else:
+            self.P = self.P - Pxz @ K.T  # step 9: P - K P_zz K^T, with K P_zz = P_xz
+        y = z - zp
+        dx = (K @ y).tolist()
+        x = self.x
+        q = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
+        if self.has_bias:
+            self.x = np.concatenate([q, x[4:] + dx[3:]])
+        else:
+            self.x = q
+        self.K, self.S, self.y = K, S, y
+
+    # -- reference path: FilterPy hooks, one point at a time --
+    def predict_reference(self, dt: float, gyr_rad_s: np.ndarray, Q: np.ndarray) -> None:
+        """Steps 1-5 through the hooks: sigma_points(x, P + Q), fx per point, own UT."""
+        sigmas = self.points_fn.sigma_points(self.x, self.P + Q)  # steps 2-3 (Q before the UT)
+        for i, s in enumerate(sigmas):
+            self.sigmas_f[i] = self.fx(s, dt, gyr_rad_s=gyr_rad_s)  # steps 1, 4
+        self.x, self.P = unscented_transform_state(self.sigmas_f, self.Wm, self.Wc, None, self.x_mean, self.residual_x)  # step 5
+        # No re-draw of sigma points here (FilterPy's predict would): Kraft's update uses Y_i.
+        self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
+
+    def update_reference(self, z: np.ndarray, R: np.ndarray) -> None:
+        """Steps 6-9 by FilterPy's own `UnscentedKalmanFilter.update` (Euclidean UT for z)."""
+        UnscentedKalmanFilter.update(self, z, R=R)
+
+
+# --------------------------------------------------------------------------- estimators
+class UKF(RecursiveEstimator):
+    """`ukf`: the seed's quaternion UKF (see the module docstring for the steps)."""
+
+    Params = UKFParams
+    with_bias = False
+
+    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        p = self.params
+        q0 = np.asarray(init_quat_wxyz, dtype=float)
+        if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
+            raise ValueError(f"{type(self).__name__}: init_quat_wxyz must be a finite non-zero (4,) quaternion, got {q0!r}")
+        n = 6 if self.with_bias else 3
+        points = QuaternionSigmaPoints(n, p.sigma, p.kappa, p.alpha, p.beta)
+        kf = QuaternionUKF(points, p.mean_tol_rad, p.mean_max_iter)
+        kf.heading_free = p.heading_free
+        kf.x = np.concatenate([q0 / np.linalg.norm(q0), np.zeros(n - 3)])
+        P0 = np.zeros((n, n))
+        P0[:3, :3] = np.eye(3) * p.init_var_rad2
+        if self.with_bias:
+            P0[3:, 3:] = np.eye(3) * p.init_bias_var_rad2_s2
+        kf.P = P0
+        self.kf = kf
+        self._Qrate = np.zeros((n, n))
+        self._Qrate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
+        if self.with_bias:
+            self._Qrate[3:, 3:] = np.eye(3) * p.bias_walk_rad2_s3
+        self._Qbad = np.zeros((n, n))
+        self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
+        self._R = np.eye(3) * p.acc_noise_g2
+        self._zero = np.zeros(3)
+        self._predict = kf.predict if p.impl == "lean" else kf.predict_reference
+        self._update = kf.update if p.impl == "lean" else kf.update_reference
+        N = len(imu)
+        self._cov = np.full((N, n, n), np.nan)
+        self._cov[0] = P0
+        self._iters = np.zeros(N, np.int16)
+        self._bias = np.zeros((N, 3))
+        self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
+
+    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        p, kf = self.params, self.kf
+        Q = self._Qrate * dt_s
+        if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
+            gyr_rad_s = self._zero  # no rate integration; inflate the attitude noise instead
+            Q = Q + self._Qbad * (dt_s * dt_s)
+        self._predict(dt_s, gyr_rad_s, Q)
+        self.n_sqrt_recovered += kf.sqrt_recovered
+        self.n_mean_capped += kf.mean_iterations >= p.mean_max_iter
+        self._iters[k + 1] = kf.mean_iterations
+        scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
+        if scale < math.inf:
+            self._update(acc_g, self._R * scale)
+        else:
+            self.n_skipped += 1
+        kf.P, repaired = repair_covariance(kf.P)
+        self.n_cov_repaired += repaired
+        self._cov[k + 1] = kf.P
+        x = kf.x
+        if self.with_bias:
+            self._bias[k + 1] = x[4:]
+        return x[:4]
+
+    def diagnostics(self) -> dict[str, Any]:
+        out = {
+            "cov": self._cov,
+            "mean_iterations": self._iters,
+            "updates_skipped": self.n_skipped,
+            "sqrt_recoveries": self.n_sqrt_recovered,
+            "cov_repairs": self.n_cov_repaired,
+            "mean_iteration_cap_hits": self.n_mean_capped,
+        }
+        if self.with_bias:
+            out["gyr_bias_rad_s"] = self._bias
+        return out
+
+
+class UKFBias(UKF):
+    """`ukf-bias`: the seed UKF with the gyro bias in the state (6-dof error) and gating."""
+
+    Params = UKFBiasParams
+    with_bias = True

@@ -1,0 +1,406 @@
+"""Figures for reports: every number the toolkit computes, also as a picture.
+
+Each function returns a `matplotlib.figure.Figure` (built without pyplot, on the Agg
+backend), so tests can count its lines and bars and the report can save it. Conventions:
+
+- Euler angles appear only here, as intrinsic ZYX (yaw about z, then pitch about the new y,
+  then roll about the newest x) of `R_world_body`; the sequence is in the axis labels. A
+  jump of more than 180 deg between neighbouring samples (a wrap at +-180) breaks the line
+  instead of drawing a vertical stroke across the plot.
+- Time axes are seconds since the recording's first IMU sample, shared by every panel.
+- Shaded: spans without VICON (tracking gaps, before and after its span) in grey, and spans
+  where `imu.gyr_valid` is False in red.
+- An estimator keeps one colour in every figure of a report (its position in the run).
+"""
+from __future__ import annotations
+
+import math
+import re
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from estimators.params import parse_specs  # noqa: E402
+
+from .metrics import KINDS  # noqa: E402
+from .series import RecordingSeries  # noqa: E402
+
+EULER_SEQ = "ZYX"
+EULER_NAMES = ("roll", "pitch", "yaw")
+TRUTH_COLOR = "black"
+GAP_COLOR, GAP_ALPHA = "0.6", 0.3
+BAD_GYRO_COLOR, BAD_GYRO_ALPHA = "tab:red", 0.2
+DPI = 100
+
+
+def color(index: int) -> str:
+    """The colour of the estimator at `index` in the run's estimator list."""
+    return f"C{index % 10}"
+
+
+def euler_deg(quat_wxyz: np.ndarray) -> np.ndarray:
+    """(N, 3) roll, pitch, yaw in deg (intrinsic ZYX) of (N, 4) quat_wxyz; NaN rows stay NaN."""
+    quat = np.asarray(quat_wxyz, dtype=float)
+    out = np.full((len(quat), 3), np.nan)
+    good = np.all(np.isfinite(quat), axis=1)
+    if good.any():
+        ypr = Rotation.from_quat(quat[good], scalar_first=True).as_euler(EULER_SEQ, degrees=True)
+        out[good] = ypr[:, ::-1]
+    return out
+
+
+def break_wraps(x: np.ndarray, y: np.ndarray, jump_deg: float = 180.0) -> tuple[np.ndarray, np.ndarray]:
+    """Insert a NaN point between neighbours whose angle differs by more than `jump_deg`,
+    so that a wrap from +180 to -180 leaves a break instead of a vertical line."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    cut = np.flatnonzero(np.abs(np.diff(y)) > jump_deg) + 1
+    if len(cut) == 0:
+        return x, y
+    return np.insert(x, cut, np.nan), np.insert(y, cut, np.nan)
+
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index pairs of the runs of True in a (N,) bool mask."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
+    return [(int(a), int(b) - 1) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _time_spans(t: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
+    """Time spans of the runs of True in `mask` over samples `t`, each widened to the
+    neighbouring samples (a single bad sample still gets a visible span)."""
+    out = []
+    for a, b in runs(mask):
+        out.append((float(t[max(a - 1, 0)]), float(t[min(b + 1, len(t) - 1)])))
+    return out
+
+
+def truth_gaps(s: RecordingSeries) -> list[tuple[float, float]]:
+    """Spans (s, absolute) inside the IMU's time span with no usable VICON orientation:
+    before its first and after its last valid sample, NaN rows, and time-stamp gaps longer
+    than five median steps."""
+    t0, t1 = float(s.imu_t[0]), float(s.imu_t[-1])
+    if not s.has_truth:
+        return [(t0, t1)]
+    valid = np.all(np.isfinite(s.truth_quat), axis=1)
+    if not valid.any():
+        return [(t0, t1)]
+    tv = s.truth_t[valid]
+    spans = []
+    if tv[0] > t0:
+        spans.append((t0, float(tv[0])))
+    if tv[-1] < t1:
+        spans.append((float(tv[-1]), t1))
+    spans += _time_spans(s.truth_t, ~valid)
+    if len(tv) > 2:
+        step = np.diff(tv)
+        for k in np.flatnonzero(step > 5 * np.median(step)):
+            spans.append((float(tv[k]), float(tv[k + 1])))
+    return merge_spans(spans)
+
+
+def merge_spans(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Sorted spans with overlapping or touching ones merged (each gap shaded once)."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(x for x in spans if x[1] > x[0]):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
+
+
+def bad_gyro_spans(s: RecordingSeries) -> list[tuple[float, float]]:
+    """Spans (s, absolute) where `gyr_valid` is False."""
+    return _time_spans(s.imu_t, ~s.gyr_valid)
+
+
+def _shade(ax, s: RecordingSeries, t0: float) -> None:
+    for a, b in truth_gaps(s):
+        ax.axvspan(a - t0, b - t0, color=GAP_COLOR, alpha=GAP_ALPHA, lw=0, zorder=0)
+    for a, b in bad_gyro_spans(s):
+        ax.axvspan(a - t0, b - t0, color=BAD_GYRO_COLOR, alpha=BAD_GYRO_ALPHA, lw=0, zorder=0)
+
+
+def _shade_handles(s: RecordingSeries) -> list:
+    handles = []
+    if truth_gaps(s):
+        handles.append(Patch(color=GAP_COLOR, alpha=GAP_ALPHA + 0.2, label="no VICON"))
+    if bad_gyro_spans(s):
+        handles.append(Patch(color=BAD_GYRO_COLOR, alpha=BAD_GYRO_ALPHA + 0.2, label="gyro invalid"))
+    return handles
+
+
+def _display_label(label: str, causal: bool) -> str:
+    return label if causal else f"{label} (smoother)"
+
+
+def _new_figure(width: float, height: float) -> Figure:
+    return Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+
+
+def euler_figure(s: RecordingSeries) -> Figure:
+    """Roll, pitch and yaw of VICON and of every estimator, on one shared time axis."""
+    fig = _new_figure(11, 7.5)
+    axes = fig.subplots(3, 1, sharex=True)
+    t0 = float(s.imu_t[0])
+    curves = []
+    if s.has_truth:
+        curves.append(("VICON", s.truth_t - t0, euler_deg(s.truth_quat), TRUTH_COLOR, 2.2))
+    for e, label in enumerate(s.labels):
+        curves.append((_display_label(label, s.causal[e]), s.imu_t - t0, euler_deg(s.quat[e]), color(e), 1.0))
+    limits = {"roll": 180, "pitch": 90, "yaw": 180}
+    for k, (ax, name) in enumerate(zip(axes, EULER_NAMES)):
+        _shade(ax, s, t0)
+        for label, x, angles, col, width in curves:
+            ax.plot(*break_wraps(x, angles[:, k]), color=col, lw=width, label=label)
+        lim = limits[name]
+        ax.set_ylim(-lim * 1.05, lim * 1.05)
+        ax.set_yticks(np.arange(-lim, lim + 1, 90 if lim == 180 else 45))
+        ax.set_ylabel(f"{name} [deg]\n(Euler {EULER_SEQ} intrinsic)")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time since first IMU sample [s]")
+    axes[-1].set_xlim(0, float(s.imu_t[-1] - t0))
+    handles, labels = axes[0].get_legend_handles_labels()
+    handles += _shade_handles(s)
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
+    fig.suptitle(f"{s.id}: orientation R_world_body as Euler angles (yaw-pitch-roll, {EULER_SEQ})", fontsize=11)
+    return fig
+
+
+def error_figure(s: RecordingSeries) -> Figure | None:
+    """Total, inclination and heading error of every estimator over time (None without truth)."""
+    if not s.has_truth or not np.isfinite(s.err_deg).any():
+        return None
+    fig = _new_figure(11, 7.5)
+    axes = fig.subplots(3, 1, sharex=True)
+    t0 = float(s.imu_t[0])
+    x = s.imu_t - t0
+    for k, (ax, kind) in enumerate(zip(axes, KINDS)):
+        _shade(ax, s, t0)
+        for e, label in enumerate(s.labels):
+            ax.plot(x, s.err_deg[e, k], color=color(e), lw=1.0, label=_display_label(label, s.causal[e]))
+        ax.set_ylabel(f"{kind} error [deg]")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time since first IMU sample [s]")
+    axes[-1].set_xlim(0, float(x[-1]))
+    handles, labels = axes[0].get_legend_handles_labels()
+    handles += _shade_handles(s)
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
+    fig.suptitle(f"{s.id}: error against VICON (total = geodesic angle, inclination = gravity direction, "
+                 "heading = twist about world z)", fontsize=10)
+    return fig
+
+
+def loss_figure(s: RecordingSeries) -> Figure | None:
+    """Cost per iteration of the estimators that report one (smoothers); None if none does."""
+    if not s.losses:
+        return None
+    fig = _new_figure(8, 4.5)
+    ax = fig.subplots()
+    positive = all(np.all(v[np.isfinite(v)] > 0) for v in s.losses.values())
+    for e, loss in sorted(s.losses.items()):
+        ax.plot(np.arange(len(loss)), loss, color=color(e), marker="." if len(loss) < 60 else None,
+                label=_display_label(s.labels[e], s.causal[e]))
+    if positive:
+        ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("cost")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=9)
+    ax.set_title(f"{s.id}: smoother cost per iteration")
+    return fig
+
+
+# --- summaries over a run (from the rows of results.json) ---
+
+def rmse_matrix(rows: list[dict], kind: str) -> tuple[list[str], list[str], np.ndarray]:
+    """(estimators, datasets, (E, D) RMSE in deg, NaN where missing) in the run's order."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    datasets = list(dict.fromkeys(r["dataset"] for r in rows))
+    m = np.full((len(labels), len(datasets)), np.nan)
+    for r in rows:
+        if r["rmse_deg"]:
+            m[labels.index(r["estimator"]), datasets.index(r["dataset"])] = r["rmse_deg"][kind]
+    return labels, datasets, m
+
+
+def _heatmap(ax, m: np.ndarray, rows: list[str], cols: list[str], title: str, cbar_label: str, fig: Figure) -> None:
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.85")
+    finite = m[np.isfinite(m)]
+    vmax = float(finite.max()) if finite.size else 1.0
+    image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=vmax or 1.0, aspect="auto")
+    ax.set_xticks(range(len(cols)), cols, rotation=45 if max(map(len, cols), default=0) > 4 else 0, ha="right",
+                  fontsize=8)
+    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    if m.size <= 400:
+        for (i, j), v in np.ndenumerate(m):
+            text = "-" if not np.isfinite(v) else f"{v:.1f}"
+            dark = np.isfinite(v) and v > 0.6 * vmax
+            ax.text(j, i, text, ha="center", va="center", fontsize=7, color="black" if dark else "white"
+                    if np.isfinite(v) else "black")
+    ax.set_title(title, fontsize=10)
+    fig.colorbar(image, ax=ax, label=cbar_label, shrink=0.9)
+
+
+def summary_rmse_figure(rows: list[dict]) -> Figure:
+    """Heat maps of the RMSE (total, inclination, heading) per estimator x recording."""
+    labels, datasets, _ = rmse_matrix(rows, "total")
+    width = min(6 + 0.55 * len(datasets), 14)
+    height = 1.6 + 0.38 * len(labels)
+    fig = _new_figure(width, 3 * height + 0.6)
+    axes = fig.subplots(3, 1)
+    for ax, kind in zip(axes, KINDS):
+        _, _, m = rmse_matrix(rows, kind)
+        _heatmap(ax, m, labels, datasets, f"{kind} RMSE [deg]", "deg", fig)
+    fig.suptitle("RMSE per estimator and recording (grey: no ground truth)", fontsize=11)
+    return fig
+
+
+def speed_points(rows: list[dict]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(estimators, mean us/sample over all recordings, mean total RMSE deg over recordings with truth)."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    us, err = [], []
+    for label in labels:
+        mine = [r for r in rows if r["estimator"] == label]
+        us.append(np.mean([1e6 * r["seconds"] / max(r["samples"], 1) for r in mine]))
+        scored = [r["rmse_deg"]["total"] for r in mine if r["rmse_deg"]]
+        err.append(np.mean(scored) if scored else np.nan)
+    return labels, np.array(us), np.array(err)
+
+
+def speed_figure(rows: list[dict], causal: dict[str, bool]) -> Figure:
+    """Accuracy against speed: mean total RMSE against microseconds per sample."""
+    labels, us, err = speed_points(rows)
+    fig = _new_figure(7.5, 5)
+    ax = fig.subplots()
+    for e, label in enumerate(labels):
+        smoother = not causal.get(label, True)
+        ax.scatter([us[e]], [err[e]], s=60, color=color(e), marker="s" if smoother else "o", zorder=3,
+                   label=_display_label(label, not smoother))
+        ax.annotate(label, (us[e], err[e]), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    positive = us[np.isfinite(us) & (us > 0)]
+    if positive.size and positive.max() / positive.min() > 20:
+        ax.set_xscale("log")
+    else:
+        ax.set_xlim(left=0, right=1.15 * float(np.nanmax(us)) if np.isfinite(us).any() else None)
+    ax.set_xlabel("time per IMU sample [us] (mean over recordings; wall time, noisy)")
+    ax.set_ylabel("total RMSE [deg] (mean over recordings with truth)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title("accuracy vs speed (lower left is better; squares: smoothers)", fontsize=10)
+    return fig
+
+
+# --- ablations (parameters read back from the estimator labels) ---
+
+def label_params(labels: list[str]) -> tuple[str | None, dict[str, list[str]]]:
+    """If every label names the same estimator: (name, {parameter: value per label}) for the
+    parameters whose value differs between labels ("default" where a label omits it)."""
+    specs = [parse_specs(label)[0] for label in labels]
+    names = {s.name for s in specs}
+    if len(names) != 1:
+        return None, {}
+    keys = list(dict.fromkeys(k for s in specs for k, _ in s.overrides))
+    table = {k: [dict(s.overrides).get(k, "default") for s in specs] for k in keys}
+    return names.pop(), {k: v for k, v in table.items() if len(set(v)) > 1}
+
+
+def _as_numbers(values: list[str]) -> np.ndarray | None:
+    try:
+        return np.array([float(v) for v in values])
+    except ValueError:
+        return None
+
+
+def _mean_rmse(rows: list[dict], label: str, kind: str) -> float:
+    scored = [r["rmse_deg"][kind] for r in rows if r["estimator"] == label and r["rmse_deg"]]
+    return float(np.mean(scored)) if scored else math.nan
+
+
+def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:
+    """Mean RMSE against each varied parameter: one panel per parameter, one line per
+    combination of the other parameters. None when the labels vary no parameter."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    name, table = label_params(labels)
+    if not table:
+        return None
+    keys = list(table)
+    fig = _new_figure(5.2 * len(keys), 4.4)
+    axes = np.atleast_1d(fig.subplots(1, len(keys)))
+    means = np.array([_mean_rmse(rows, label, kind) for label in labels])
+    for ax, key in zip(axes, keys):
+        values = table[key]
+        order = list(dict.fromkeys(values))
+        numbers = _as_numbers(order)
+        others = [tuple((k, table[k][i]) for k in keys if k != key) for i in range(len(labels))]
+        groups = list(dict.fromkeys(others))
+        for g, group in enumerate(groups):
+            idx = [i for i in range(len(labels)) if others[i] == group]
+            idx.sort(key=lambda i: order.index(values[i]))
+            xs = [numbers[order.index(values[i])] if numbers is not None else order.index(values[i]) for i in idx]
+            text = ", ".join(f"{k}={v}" for k, v in group) or name
+            ax.plot(xs, means[idx], marker="o", color=color(g), label=text)
+        if numbers is not None:
+            if np.all(numbers > 0) and numbers.max() / numbers.min() >= 10:
+                ax.set_xscale("log")
+            ax.set_xticks(numbers, order)
+        else:
+            ax.set_xticks(range(len(order)), order)
+        ax.set_xlabel(f"{name} {key}")
+        ax.set_ylabel(f"mean {kind} RMSE [deg]")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+        if len(groups) > 1:
+            ax.legend(fontsize=8)
+    fig.suptitle(f"{name}: mean {kind} RMSE over recordings with truth, against each parameter", fontsize=11)
+    return fig
+
+
+def grid_figure(rows: list[dict], kind: str = "total") -> Figure | None:
+    """Heat map of the mean RMSE over a two-parameter grid; None unless exactly two vary."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    name, table = label_params(labels)
+    if len(table) != 2:
+        return None
+    (k1, v1), (k2, v2) = table.items()
+    a, b = list(dict.fromkeys(v1)), list(dict.fromkeys(v2))
+    m = np.full((len(a), len(b)), np.nan)
+    for i, label in enumerate(labels):
+        m[a.index(v1[i]), b.index(v2[i])] = _mean_rmse(rows, label, kind)
+    fig = _new_figure(2.5 + 1.1 * len(b), 1.8 + 0.6 * len(a))
+    ax = fig.subplots()
+    _heatmap(ax, m, a, b, f"{name}: mean {kind} RMSE [deg]", "deg", fig)
+    ax.set_ylabel(k1)
+    ax.set_xlabel(k2)
+    return fig
+
+
+def bars_figure(rows: list[dict]) -> Figure:
+    """Grouped bars: mean RMSE (total, inclination, heading) per estimator setting."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    fig = _new_figure(max(6, 1.2 + 0.9 * len(labels)), 4.8)
+    ax = fig.subplots()
+    width = 0.8 / len(KINDS)
+    x = np.arange(len(labels))
+    for k, kind in enumerate(KINDS):
+        values = [_mean_rmse(rows, label, kind) for label in labels]
+        ax.bar(x + (k - 1) * width, np.nan_to_num(values), width, label=kind, color=f"C{k}")
+    ax.set_xticks(x, labels, rotation=30 if len(labels) > 3 else 0, ha="right" if len(labels) > 3 else "center",
+                  fontsize=8)
+    ax.set_ylabel("mean RMSE [deg] over recordings with truth")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=9)
+    ax.set_title("mean RMSE per setting", fontsize=10)
+    return fig
+
+
+def slug(text: str) -> str:
+    """A file-name-safe form of a dataset id or label."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "x"

@@ -1,0 +1,90 @@
+"""The per-recording time series a report's figures are drawn from, and their `.npz` files.
+
+An output folder of `fusion compare --out DIR` holds one `series/NNN.npz` per recording, so
+that `fusion report DIR` can draw the figures again without running any estimator. Arrays:
+
+    id            ()       str, the dataset id
+    imu_t         (N,)     float64 s, the IMU time stamps every estimate lives on
+    gyr_valid     (N,)     bool, False where the gyro was marked unusable
+    truth_t       (K,)     float64 s, VICON time stamps (K = 0 without ground truth)
+    truth_quat    (K, 4)   float64 quat_wxyz R_world_body, NaN rows in tracking gaps
+    labels        (E,)     str, estimator specs as in results.json
+    causal        (E,)     bool, False for smoothers
+    quat          (E, N, 4) float32 quat_wxyz R_world_body of each estimator
+    err_deg       (E, 3, N) float32 total/inclination/heading error, deg; NaN where not
+                            scored (outside the truth span, in gaps; all NaN without truth)
+    loss_<e>      (K_e,)   float64 cost per iteration of estimator e, where it reports one
+
+float32 is plenty for plotting (1e-7 relative) and halves the files; the scores in
+results.json come from the float64 computation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .metrics import KINDS
+
+
+@dataclass(frozen=True, eq=False)
+class RecordingSeries:
+    """One recording's plot data (see the module docstring for shapes and units)."""
+
+    id: str
+    imu_t: np.ndarray
+    gyr_valid: np.ndarray
+    truth_t: np.ndarray
+    truth_quat: np.ndarray
+    labels: list[str]
+    causal: list[bool]
+    quat: np.ndarray
+    err_deg: np.ndarray
+    losses: dict[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def has_truth(self) -> bool:
+        return len(self.truth_t) > 0
+
+
+def from_results(info, results: list, causal: dict[str, bool]) -> RecordingSeries:
+    """Collect one recording's series from its `RecordingInfo` and `Result`s (with trajectories)."""
+    n = len(info.imu_t)
+    quat = np.empty((len(results), n, 4), np.float32)
+    err = np.full((len(results), len(KINDS), n), np.nan, np.float32)
+    losses: dict[int, np.ndarray] = {}
+    for e, r in enumerate(results):
+        if r.trajectory is None:
+            raise ValueError(f"{info.id}: result {r.estimator!r} has no trajectory to plot")
+        quat[e] = r.trajectory.quat_wxyz
+        if r.score is not None:
+            for k, kind in enumerate(KINDS):
+                err[e, k, r.score.mask] = np.degrees(r.score.errors_rad[kind])
+        loss = r.trajectory.diagnostics.get("loss") if r.trajectory.diagnostics else None
+        if loss is not None:
+            losses[e] = np.asarray(loss, dtype=float).ravel()
+    truth = info.truth
+    return RecordingSeries(
+        info.id, np.asarray(info.imu_t), np.asarray(info.gyr_valid, bool),
+        np.asarray(truth.t) if truth is not None else np.empty(0),
+        np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)),
+        [r.estimator for r in results], [causal.get(r.estimator, True) for r in results],
+        quat, err, losses,
+    )
+
+
+def save(path: Path, s: RecordingSeries) -> None:
+    arrays = dict(id=np.array(s.id), imu_t=s.imu_t, gyr_valid=s.gyr_valid, truth_t=s.truth_t,
+                  truth_quat=s.truth_quat, labels=np.array(s.labels, dtype=str), causal=np.array(s.causal, bool),
+                  quat=s.quat, err_deg=s.err_deg)
+    arrays.update({f"loss_{e}": v for e, v in s.losses.items()})
+    np.savez(path, **arrays)
+
+
+def load(path: Path) -> RecordingSeries:
+    with np.load(path, allow_pickle=False) as z:
+        losses = {int(k[5:]): z[k] for k in z.files if k.startswith("loss_")}
+        labels = [str(x) for x in z["labels"]]
+        return RecordingSeries(str(z["id"]), z["imu_t"], z["gyr_valid"], z["truth_t"], z["truth_quat"],
+                               labels, [bool(x) for x in z["causal"]], z["quat"], z["err_deg"], losses)

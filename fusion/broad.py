@@ -1,0 +1,149 @@
+"""Reader for the BROAD benchmark's per-trial files.
+
+BROAD (Berlin Robust Orientation estimation Assessment Dataset; Laidig, Caruso, Cereatti
+& Seel, Data 2021) ships one file per trial, `.hdf5` or `.mat`, holding:
+
+    imu_gyr        (N, 3) rad/s, IMU frame
+    imu_acc        (N, 3) m/s^2, IMU frame (specific force: +9.81 on the up axis at rest)
+    imu_mag        (N, 3) magnetometer (not used: 6-D estimation)
+    opt_quat       (N, 4) w, x, y, z ground truth `R_world_imu`, world z up; NaN rows where
+                   the optical tracking was lost
+    movement       (N,) bool/0-1: the movement phases, the only samples BROAD scores
+    sampling_rate  scalar, Hz (IMU and ground truth share one clock)
+
+`load_broad` turns one trial into `ImuSamples` (accelerometer in g), a truth `Trajectory`
+on the same time stamps `t = k / sampling_rate`, and the movement mask. `.hdf5` needs
+h5py (`pip install -e '.[broad]'`, also in `.[peers]`); `.mat` (MATLAB v5) needs only
+SciPy, a MATLAB v7.3 `.mat` (an HDF5 file) needs h5py too. Arrays stored transposed
+(MATLAB's column-major `3 x N`) are turned batch-first here.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .loaders import read_isolated
+from .types import ImuSamples, Trajectory
+
+G = 9.80665  # m/s^2 per g
+SUFFIXES = (".hdf5", ".h5", ".mat")
+REQUIRED = ("imu_gyr", "imu_acc", "opt_quat", "sampling_rate")
+
+
+def _h5py(path: Path):
+    try:
+        import h5py
+    except ImportError:
+        raise ImportError(
+            f"{path}: reading BROAD .hdf5 (or MATLAB v7.3) files needs h5py: pip install -e '.[broad]' (or pip install h5py)"
+        ) from None
+    return h5py
+
+
+def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
+    h5py = _h5py(path)
+    try:
+        with h5py.File(path, "r") as f:
+            return {key: np.array(f[key]) for key in f.keys() if isinstance(f[key], h5py.Dataset)}
+    except OSError as exc:
+        raise ValueError(f"{path}: not a readable HDF5 file ({exc})") from None
+
+
+def _read_mat(path: Path) -> dict[str, np.ndarray]:
+    import scipy.io
+
+    try:
+        return {k: v for k, v in scipy.io.loadmat(str(path)).items() if not k.startswith("__")}
+    except NotImplementedError:  # MATLAB v7.3: an HDF5 file
+        return _read_hdf5(path)
+    except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
+        raise ValueError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: {exc})") from None
+
+
+def read_trial(path: str | Path) -> dict[str, np.ndarray]:
+    """The raw arrays of one trial file, by name (no checks beyond readability)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"{path}: not a BROAD trial file (expected {', '.join(SUFFIXES)})")
+    import scipy.io  # noqa: F401  (imported before `read_isolated` forks)
+
+    # In a forked child: a corrupt file can crash SciPy's or HDF5's C code (see `read_isolated`).
+    return read_isolated(path, _read_mat if path.suffix.lower() == ".mat" else _read_hdf5, "BROAD trial")
+
+
+def is_trial(path: str | Path) -> bool:
+    """Whether `path` reads as a BROAD trial (has the required arrays)."""
+    try:
+        data = read_trial(path)
+    except (ValueError, OSError, ImportError):
+        return False
+    return all(key in data for key in REQUIRED)
+
+
+def _real(value: Any, key: str, path: Path) -> np.ndarray:
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise ValueError(f"{path}: {key!r} is not an array of real numbers (dtype {arr.dtype})")
+    return arr.astype(float)
+
+
+def _columns(data: dict[str, Any], key: str, cols: int, n: int | None, path: Path) -> np.ndarray:
+    if key not in data:
+        raise ValueError(f"{path}: no {key!r} array (found {', '.join(sorted(data)) or 'nothing'})")
+    arr = _real(data[key], key, path)
+    if arr.ndim == 2 and arr.shape[1] != cols and arr.shape[0] == cols:
+        arr = arr.T  # stored column-major (MATLAB): cols x N
+    if arr.ndim != 2 or arr.shape[1] != cols or (n is not None and arr.shape[0] != n):
+        want = f"({n if n is not None else 'N'}, {cols})"
+        raise ValueError(f"{path}: {key!r} must be {want}, got shape {arr.shape}")
+    return arr
+
+
+def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
+    """One BROAD trial: `(imu, truth, movement)`.
+
+    imu: `ImuSamples` on `t = k / sampling_rate` s (k = 0..N-1), gyro rad/s, accelerometer
+        in g (`imu_acc / 9.80665`), body = IMU frame.
+    truth: `Trajectory` of `opt_quat` (wxyz, `R_world_imu`, z up) on the same stamps, NaN
+        rows kept (tracking lost), other rows normalised.
+    movement: (N,) bool, the samples BROAD scores (all True if the file has no mask).
+    """
+    path = Path(path)
+    data = read_trial(path)
+    gyr = _columns(data, "imu_gyr", 3, None, path)
+    n = len(gyr)
+    acc = _columns(data, "imu_acc", 3, n, path)
+    quat = _columns(data, "opt_quat", 4, n, path)
+    if "sampling_rate" not in data:
+        raise ValueError(f"{path}: no 'sampling_rate'")
+    rate = _real(data["sampling_rate"], "sampling_rate", path).ravel()
+    if rate.size != 1 or not np.isfinite(rate[0]) or rate[0] <= 0:
+        raise ValueError(f"{path}: 'sampling_rate' must be one positive number, got {rate}")
+    if n < 2:
+        raise ValueError(f"{path}: needs at least 2 samples, has {n}")
+    if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
+        raise ValueError(f"{path}: 'imu_gyr' or 'imu_acc' contain NaN or Inf")
+    if "movement" in data:
+        movement = np.asarray(data["movement"]).ravel()
+        if movement.shape != (n,):
+            raise ValueError(f"{path}: 'movement' must have {n} entries, got {movement.size}")
+        movement = movement.astype(bool)
+    else:
+        movement = np.ones(n, bool)
+    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
+        norm = np.linalg.norm(quat, axis=1)
+    ok = np.isfinite(norm)
+    if not np.any(ok):
+        raise ValueError(f"{path}: 'opt_quat' has no finite row")
+    if np.any(np.abs(norm[ok] - 1.0) > 1e-2):
+        raise ValueError(f"{path}: 'opt_quat' rows are not unit quaternions (w, x, y, z)")
+    quat = quat.copy()
+    quat[ok] /= norm[ok, None]
+    quat[~ok] = np.nan
+    t = np.arange(n) / rate[0]
+    imu = ImuSamples(t, gyr, acc / G, source=str(path))
+    return imu, Trajectory(t, quat), movement

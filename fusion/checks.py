@@ -1,0 +1,503 @@
+"""What a recording really holds: sensor checks behind `fusion inspect` and the dropout mask.
+
+Per recording (`check_recording`):
+- rest periods (every stationary run, `fusion.calibration.stationary_mask`), the calibrated
+  |a| at each rest (a check of the accelerometer scale) and the gyro bias there; the bias
+  drift between the first and the last rest;
+- gyro freezes (`detect_freezes`): all three gyro channels flat within a couple of counts
+  while the accelerometer shows motion (the real recordings 1, 2, 4, 5, 8, 9 have one each);
+- samples at the ADC rails (`saturated`: the reading is clipped, so wrong) and samples beyond
+  the gyros' nominal +-300 deg/s (reported only: on this board they are not clipped, the
+  ADC reaches about +-490 deg/s and the values stay smooth);
+- time-stamp jitter and gaps of the IMU;
+- VICON gaps (NaN rows) and the IMU-VICON clock offset (`clock_offset`), from the
+  cross-correlation of the angular speed measured by the gyro and derived from VICON.
+
+Times in reports are seconds after the first IMU sample (as in `../shared/data/README.md`).
+Detection runs on the raw counts (`RawImu`), so it does not depend on the scale factors.
+`dropout_mask` turns freezes and saturated samples into `ImuSamples.gyr_valid`; it is
+applied by `fusion.datasets.load_source(..., dropouts=True)`, the one switch.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from . import quaternion as quat
+from .calibration import BoardModel, Calibration, RestDetector, stationary_mask
+from .types import ImuSamples, RawImu, Recording, Trajectory
+
+NOMINAL_GYRO_RANGE_DEG_S = 300.0  # LPR530AL / LY530ALH on the 4x outputs
+
+
+@dataclass(frozen=True)
+class FreezeDetector:
+    """A window is a freeze candidate when every gyro channel's peak-to-peak stays within
+    `gyro_p2p_counts` while some accelerometer channel moves by more than `acc_p2p_g`.
+
+    A freeze is a maximal run of gyro-flat windows that contains at least one such window
+    and lasts at least `min_duration_s` (the run may extend into a rest: recording 8 freezes
+    during a motion and stays frozen while the platform comes to rest).
+    """
+
+    window_s: float = 0.2
+    gyro_p2p_counts: float = 2.0
+    acc_p2p_g: float = 0.08  # about 8 counts; rest noise stays within about 4
+    min_duration_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        for name in ("window_s", "gyro_p2p_counts", "acc_p2p_g", "min_duration_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"FreezeDetector.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A run of samples `[first, stop)`; times in s after the first IMU sample."""
+
+    start_s: float
+    stop_s: float
+    samples: int
+    first: int
+    stop: int
+
+    @property
+    def duration_s(self) -> float:
+        return self.stop_s - self.start_s
+
+
+@dataclass(frozen=True)
+class RestPeriod:
+    interval: Interval
+    acc_norm_g: float  # |mean calibrated acceleration| over the rest
+    gyro_bias_deg_s: tuple[float, float, float]  # mean calibrated gyro (after the start bias is removed)
+    gyro_mean_counts: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Freeze:
+    interval: Interval
+    level_counts: tuple[float, float, float]  # mean gyro counts during the freeze
+    offset_from_bias_counts: tuple[float, float, float]  # level minus the start-rest bias
+    acc_p2p_g: float  # largest accelerometer peak-to-peak inside (how much it moved)
+
+
+@dataclass(frozen=True)
+class RangeCheck:
+    saturated: list[Interval]  # some gyro channel within `rail_counts` of 0 or full scale
+    saturated_samples: int
+    beyond_nominal_samples: tuple[int, int, int]  # per axis |rate| > nominal range
+    beyond_nominal: list[Interval]
+    max_abs_deg_s: tuple[float, float, float]
+    count_min: tuple[float, float, float]
+    count_max: tuple[float, float, float]
+    acc_saturated_samples: int
+
+
+@dataclass(frozen=True)
+class TimingCheck:
+    rate_hz: float  # (N - 1) / span
+    dt_median_s: float
+    dt_std_s: float
+    dt_min_s: float
+    dt_max_s: float
+    gaps: list[Interval]  # steps longer than `gap_factor` x median
+
+
+@dataclass(frozen=True)
+class ClockOffset:
+    """Truth time stamp minus IMU time stamp of the same instant (s): positive = VICON lags.
+
+    Align the truth with `truth.t - offset_s`.
+    """
+
+    offset_s: float
+    peak_correlation: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class ViconCheck:
+    samples: int
+    rate_hz: float
+    gaps: list[Interval]  # NaN rows, times relative to the first IMU sample
+    missing_samples: int
+    start_s: float  # first VICON stamp relative to the first IMU sample
+    stop_s: float
+    stamp_jitter_std_s: float  # stamps minus the regular time base (`regular_stamps`)
+    stamp_jitter_max_s: float
+    near_duplicate_stamps: int  # steps shorter than a quarter of the median step
+    clock: ClockOffset | None  # measured on the regular time base
+
+
+@dataclass(frozen=True)
+class RecordingCheck:
+    id: str
+    samples: int
+    duration_s: float
+    rests: list[RestPeriod]
+    gyro_bias_drift_deg_s: tuple[float, float, float] | None  # last rest minus first rest
+    freezes: list[Freeze]
+    range: RangeCheck | None
+    timing: TimingCheck
+    vicon: ViconCheck | None
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return to_jsonable(self)
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Dataclasses, numpy scalars/arrays, tuples -> plain JSON types (NaN -> None)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        if isinstance(obj, Interval):
+            out["duration_s"] = obj.duration_s
+        return out
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
+
+
+# ---------------------------------------------------------------------------- runs
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs of True in a 1-D bool array, as `(first, stop)` index pairs."""
+    m = np.asarray(mask, bool)
+    if m.size == 0:
+        return []
+    edges = np.diff(np.concatenate([[0], m.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def _interval(t: np.ndarray, t0: float, first: int, stop: int) -> Interval:
+    return Interval(float(t[first] - t0), float(t[stop - 1] - t0), stop - first, first, stop)
+
+
+def _window(t: np.ndarray, seconds: float) -> int:
+    return max(2, int(round(seconds / np.median(np.diff(t))))) if len(t) > 1 else 1
+
+
+def _windows_to_samples(flag: np.ndarray, n: int, w: int) -> np.ndarray:
+    """(N - w + 1,) window flags -> (N,) samples covered by at least one flagged window."""
+    cover = np.zeros(n + 1, int)
+    idx = np.flatnonzero(flag)
+    np.add.at(cover, idx, 1)
+    np.add.at(cover, idx + w, -1)
+    return np.cumsum(cover)[:n] > 0
+
+
+# ------------------------------------------------------------------- detectors
+
+def detect_freezes(raw: RawImu, board: BoardModel = BoardModel(), detector: FreezeDetector = FreezeDetector(),
+                   bias_counts: np.ndarray | None = None) -> list[Freeze]:
+    """Gyro freezes: all three gyro channels flat while the accelerometer moves (see `FreezeDetector`)."""
+    t, counts = raw.t, raw.counts
+    n = len(t)
+    w = _window(t, detector.window_s)
+    if n < w:
+        return []
+    view = sliding_window_view(counts, w, axis=0)  # (N - w + 1, 6, w)
+    p2p = view.max(axis=-1) - view.min(axis=-1)
+    gyro_flat = p2p[:, 3:].max(axis=1) <= detector.gyro_p2p_counts
+    acc_p2p_g = (p2p[:, :3] * np.abs(board.scale[:3])).max(axis=1)
+    moving = acc_p2p_g > detector.acc_p2p_g
+    flat_samples = _windows_to_samples(gyro_flat, n, w)
+    moving_flat = _windows_to_samples(gyro_flat & moving, n, w)
+    out = []
+    for first, stop in runs(flat_samples):
+        if not moving_flat[first:stop].any() or t[stop - 1] - t[first] < detector.min_duration_s:
+            continue
+        level = counts[first:stop, 3:].mean(axis=0)
+        offset = level - bias_counts[3:] if bias_counts is not None else np.full(3, np.nan)
+        win = slice(first, max(first + 1, stop - w + 1))
+        out.append(Freeze(_interval(t, t[0], first, stop), tuple(level), tuple(offset), float(acc_p2p_g[win].max())))
+    return out
+
+
+def saturated_mask(raw: RawImu, board: BoardModel = BoardModel(), rail_counts: float = 2.0) -> np.ndarray:
+    """(N,) bool: some gyro channel within `rail_counts` of 0 or of the ADC full scale (clipped)."""
+    g = raw.counts[:, 3:]
+    return np.any((g <= rail_counts) | (g >= board.adc_full_scale_counts - rail_counts), axis=1)
+
+
+def dropout_mask(raw: RawImu, board: BoardModel = BoardModel(), detector: FreezeDetector = FreezeDetector()) -> np.ndarray:
+    """(N,) bool `gyr_valid`: False inside detected freezes and at saturated samples."""
+    valid = ~saturated_mask(raw, board)
+    for freeze in detect_freezes(raw, board, detector):
+        valid[freeze.interval.first:freeze.interval.stop] = False
+    return valid
+
+
+def check_range(raw: RawImu, imu: ImuSamples, board: BoardModel = BoardModel(), rail_counts: float = 2.0,
+                nominal_deg_s: float = NOMINAL_GYRO_RANGE_DEG_S) -> RangeCheck:
+    t0 = raw.t[0]
+    sat = saturated_mask(raw, board, rail_counts)
+    acc = raw.counts[:, :3]
+    acc_sat = np.any((acc <= rail_counts) | (acc >= board.adc_full_scale_counts - rail_counts), axis=1)
+    rate = np.abs(np.rad2deg(imu.gyr_rad_s))
+    beyond = rate > nominal_deg_s
+    return RangeCheck(
+        saturated=[_interval(raw.t, t0, a, b) for a, b in runs(sat)],
+        saturated_samples=int(sat.sum()),
+        beyond_nominal_samples=tuple(int(v) for v in beyond.sum(axis=0)),
+        beyond_nominal=[_interval(raw.t, t0, a, b) for a, b in runs(beyond.any(axis=1))],
+        max_abs_deg_s=tuple(float(v) for v in rate.max(axis=0)),
+        count_min=tuple(float(v) for v in raw.counts[:, 3:].min(axis=0)),
+        count_max=tuple(float(v) for v in raw.counts[:, 3:].max(axis=0)),
+        acc_saturated_samples=int(acc_sat.sum()),
+    )
+
+
+def check_timing(t: np.ndarray, gap_factor: float = 2.0) -> TimingCheck:
+    """Sampling rate, jitter (std of the steps) and gaps (steps > `gap_factor` x median)."""
+    dt = np.diff(t)
+    if len(dt) == 0:
+        return TimingCheck(float("nan"), float("nan"), float("nan"), float("nan"), float("nan"), [])
+    med = float(np.median(dt))
+    gaps = [Interval(float(t[k] - t[0]), float(t[k + 1] - t[0]), 0, int(k), int(k + 1))
+            for k in np.flatnonzero(dt > gap_factor * med)]
+    return TimingCheck(float((len(t) - 1) / (t[-1] - t[0])), med, float(dt.std()), float(dt.min()), float(dt.max()), gaps)
+
+
+def rest_periods(raw: RawImu, imu: ImuSamples, board: BoardModel = BoardModel(),
+                 detector: RestDetector = RestDetector()) -> list[RestPeriod]:
+    """Every stationary run of at least `detector.min_duration_s` (`check_recording` drops
+    those inside a freeze: a frozen gyro looks still)."""
+    still = stationary_mask(raw, board, detector)
+    out = []
+    for first, stop in runs(still):
+        if raw.t[stop - 1] - raw.t[first] < detector.min_duration_s:
+            continue
+        acc = imu.acc_g[first:stop].mean(axis=0)
+        gyr = np.rad2deg(imu.gyr_rad_s[first:stop].mean(axis=0))
+        out.append(RestPeriod(_interval(raw.t, raw.t[0], first, stop), float(np.linalg.norm(acc)),
+                              tuple(float(v) for v in gyr), tuple(float(v) for v in raw.counts[first:stop, 3:].mean(axis=0))))
+    return out
+
+
+# ----------------------------------------------------------------- VICON side
+
+def regular_stamps(t: np.ndarray, max_residual_steps: float = 4.0) -> np.ndarray:
+    """The least-squares line through the stamps against the row index: the time base of a
+    regularly sampled stream whose stamps are arrival times.
+
+    The real VICON stamps are late by up to about 23 ms on many rows (recordings 1-6: a late row
+    is followed by one stamped some 14 us after it), while the rotations themselves are
+    sampled regularly; differentiating over the raw stamps gives rates of 10^4 deg/s.
+    Returns `t` unchanged when the residual exceeds `max_residual_steps` periods (rows missing
+    rather than NaN: not a regular stream).
+    """
+    t = np.asarray(t, float)
+    if len(t) < 3:
+        return t
+    k = np.arange(len(t), dtype=float)
+    slope, icpt = np.polyfit(k, t, 1)
+    fit = icpt + slope * k
+    return fit if np.abs(t - fit).max() <= max_residual_steps * slope else t
+
+
+def vicon_body_rate(truth: Trajectory, max_step_factor: float = 3.0, regular: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Body-frame angular rate from consecutive VICON rotations.
+
+    Returns `(t_mid, omega)`: (K - 1,) midpoints of the steps (s, truth clock) and (K - 1, 3)
+    rad/s, body frame, `rotvec(q_k^-1 q_{k+1}) / dt_k`; rows NaN where a neighbour is a gap
+    or the step is longer than `max_step_factor` x the median step. With `regular`, the steps
+    are taken on `regular_stamps(truth.t)` (see there why).
+    """
+    q = truth.quat_wxyz
+    t = regular_stamps(truth.t) if regular else truth.t
+    truth = Trajectory(t, q)
+    dt = np.diff(t)
+    omega = quat.relative_rotvec(q[:-1], q[1:]) / dt[:, None]
+    bad = ~(truth.valid[:-1] & truth.valid[1:]) | (dt > max_step_factor * np.median(dt))
+    omega[bad] = np.nan
+    return 0.5 * (truth.t[:-1] + truth.t[1:]), omega
+
+
+def _interp_valid(t_query: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (K,) or (K, d) `values` (NaN = missing) at `t_query`; NaN where
+    a neighbour is missing or outside the span."""
+    values = np.asarray(values, float)
+    flat = values.reshape(len(t), -1)
+    ok = np.all(np.isfinite(flat), axis=1)
+    right = np.clip(np.searchsorted(t, t_query, side="right"), 1, len(t) - 1)
+    left = right - 1
+    span = t[right] - t[left]
+    frac = (t_query - t[left]) / span
+    out = flat[left] + (flat[right] - flat[left]) * frac[:, None]
+    bad = ~(ok[left] & ok[right]) | (t_query < t[0]) | (t_query > t[-1])
+    out[bad] = np.nan
+    return out.reshape((len(t_query),) + values.shape[1:])
+
+
+def clock_offset(imu: ImuSamples, truth: Trajectory, max_lag_s: float = 0.2, grid_hz: float = 200.0,
+                 smooth_s: float = 0.03) -> ClockOffset | None:
+    """IMU-VICON clock offset from the cross-correlation of angular speeds.
+
+    Both speeds (|gyro| at the IMU stamps, invalid gyro samples excluded; |VICON rate| at the
+    step midpoints, gaps excluded) are resampled on a common `grid_hz` grid over the overlap and
+    smoothed alike (a moving average of `smooth_s`); the Pearson correlation is computed for
+    every lag within +-`max_lag_s` over the samples valid in both, and the peak is refined by a
+    parabola through the best lag and its neighbours (sub-sample resolution).
+    Returns None without enough overlap.
+    """
+    t_mid, omega_v = vicon_body_rate(truth)
+    speed_v = np.linalg.norm(omega_v, axis=1)
+    speed_i = np.linalg.norm(imu.gyr_rad_s, axis=1).astype(float)
+    speed_i[~imu.gyr_valid] = np.nan
+    h = 1.0 / grid_hz
+    lo, hi = max(imu.t[0], t_mid[0]), min(imu.t[-1], t_mid[-1])
+    if hi - lo < 4 * max_lag_s + 1.0:
+        return None
+    grid = np.arange(lo, hi, h)
+    a = _interp_valid(grid, imu.t, speed_i)
+    b = _interp_valid(grid, t_mid, speed_v)
+    k = max(1, int(round(smooth_s / h)))
+    a, b = _moving_average(a, k), _moving_average(b, k)
+    max_lag = int(np.ceil(max_lag_s / h))
+    lags = np.arange(-max_lag, max_lag + 1)
+    corr = np.full(len(lags), np.nan)
+    n = len(grid)
+    counts = np.zeros(len(lags), int)
+    for j, lag in enumerate(lags):  # a[i] (IMU at t) against b[i + lag] (VICON stamped t + lag h)
+        x = a[max(0, -lag): n - max(0, lag)]
+        y = b[max(0, lag): n - max(0, -lag)]
+        ok = np.isfinite(x) & np.isfinite(y)
+        if ok.sum() < 100:
+            continue
+        xs, ys = x[ok] - x[ok].mean(), y[ok] - y[ok].mean()
+        denom = np.sqrt((xs @ xs) * (ys @ ys))
+        corr[j] = (xs @ ys) / denom if denom > 0 else np.nan
+        counts[j] = ok.sum()
+    if not np.any(np.isfinite(corr)):
+        return None
+    j = int(np.nanargmax(corr))
+    delta = 0.0
+    if 0 < j < len(lags) - 1 and np.all(np.isfinite(corr[j - 1:j + 2])):
+        c0, c1, c2 = corr[j - 1], corr[j], corr[j + 1]
+        curv = c0 - 2 * c1 + c2
+        delta = 0.5 * (c0 - c2) / curv if curv < 0 else 0.0  # vertex of the parabola through 3 points
+    return ClockOffset(float((lags[j] + delta) * h), float(corr[j]), int(counts[j]))
+
+
+def _moving_average(x: np.ndarray, k: int) -> np.ndarray:
+    """Centred moving average over k samples; NaN where any sample in the window is NaN."""
+    if k <= 1:
+        return x
+    finite = np.isfinite(x)
+    filled = np.where(finite, x, 0.0)
+    c = np.concatenate([[0.0], np.cumsum(filled)])
+    cn = np.concatenate([[0], np.cumsum(~finite)])
+    out = np.full(len(x), np.nan)
+    half = k // 2
+    first = np.clip(np.arange(len(x)) - half, 0, len(x))
+    stop = np.clip(first + k, 0, len(x))
+    full = (stop - first == k) & (cn[stop] - cn[first] == 0)
+    out[full] = (c[stop] - c[first])[full] / k
+    return out
+
+
+def check_vicon(imu: ImuSamples, truth: Trajectory, t0: float) -> ViconCheck:
+    bad = ~truth.valid
+    dt = np.diff(truth.t)
+    rate = float((len(truth.t) - 1) / (truth.t[-1] - truth.t[0])) if len(truth.t) > 1 else float("nan")
+    return ViconCheck(
+        samples=len(truth.t), rate_hz=rate,
+        gaps=[_interval(truth.t, t0, a, b) for a, b in runs(bad)],
+        missing_samples=int(bad.sum()),
+        start_s=float(truth.t[0] - t0), stop_s=float(truth.t[-1] - t0),
+        stamp_jitter_std_s=float(np.std(truth.t - regular_stamps(truth.t, np.inf))),
+        stamp_jitter_max_s=float(np.abs(truth.t - regular_stamps(truth.t, np.inf)).max()),
+        near_duplicate_stamps=int(np.sum(dt < 0.25 * np.median(dt))) if len(dt) else 0,
+        clock=clock_offset(imu, truth) if len(dt) else None,
+    )
+
+
+# ------------------------------------------------------------------ the report
+
+def check_recording(recording: Recording, freeze_detector: FreezeDetector = FreezeDetector()) -> RecordingCheck:
+    """Every check on one recording (raw-count checks only when it has raw counts)."""
+    imu, raw = recording.imu, recording.raw
+    calib: Calibration | None = recording.calibration
+    board = calib.board if calib is not None else BoardModel()
+    t0 = imu.t[0]
+    notes: list[str] = []
+    rests: list[RestPeriod] = []
+    freezes: list[Freeze] = []
+    rng = None
+    drift = None
+    if raw is not None:
+        detector = calib.detector if calib is not None else RestDetector()
+        freezes = detect_freezes(raw, board, freeze_detector, calib.bias_counts if calib is not None else None)
+        rests = [r for r in rest_periods(raw, imu, board, detector)
+                 if not any(r.interval.first < f.interval.stop and f.interval.first < r.interval.stop for f in freezes)]
+        if len(rests) >= 2:
+            drift = tuple(float(b - a) for a, b in zip(rests[0].gyro_bias_deg_s, rests[-1].gyro_bias_deg_s))
+        rng = check_range(raw, imu, board)
+    else:
+        notes.append("no raw counts: rest, freeze and range checks skipped")
+    if recording.truth is None:
+        notes.append("no ground truth: VICON checks skipped")
+    vicon = check_vicon(imu, recording.truth, t0) if recording.truth is not None else None
+    return RecordingCheck(recording.id, len(imu), float(imu.t[-1] - t0), rests, drift, freezes, rng,
+                          check_timing(imu.t), vicon, notes)
+
+
+def _fmt_intervals(intervals: list[Interval], limit: int = 4) -> str:
+    if not intervals:
+        return "-"
+    text = ", ".join(f"{iv.start_s:.2f}-{iv.stop_s:.2f}" for iv in intervals[:limit])
+    return text + (f" (+{len(intervals) - limit})" if len(intervals) > limit else "")
+
+
+def format_check(c: RecordingCheck) -> str:
+    """A short human-readable table of one recording's checks."""
+    lines = [f"{c.id}: {c.samples} samples, {c.duration_s:.1f} s"]
+
+    def row(name: str, text: str) -> None:
+        lines.append(f"  {name:<22} {text}")
+
+    tm = c.timing
+    row("IMU rate / jitter", f"{tm.rate_hz:.2f} Hz, dt median {tm.dt_median_s * 1e3:.2f} ms, std {tm.dt_std_s * 1e3:.2f} ms, "
+        f"range {tm.dt_min_s * 1e3:.2f}-{tm.dt_max_s * 1e3:.2f} ms; gaps {_fmt_intervals(tm.gaps)}")
+    if c.rests:
+        row("rests (s)", ", ".join(f"{r.interval.start_s:.2f}-{r.interval.stop_s:.2f} |a|={r.acc_norm_g:.3f}g" for r in c.rests[:4])
+            + (f" (+{len(c.rests) - 4})" if len(c.rests) > 4 else ""))
+        first, last = c.rests[0], c.rests[-1]
+        row("gyro bias first rest", "[" + ", ".join(f"{v:+.2f}" for v in first.gyro_bias_deg_s) + "] deg/s")
+        if c.gyro_bias_drift_deg_s is not None:
+            row("gyro bias drift", "[" + ", ".join(f"{v:+.2f}" for v in c.gyro_bias_drift_deg_s)
+                + f"] deg/s (last rest at {last.interval.start_s:.1f} s minus first)")
+    elif c.range is not None:
+        row("rests", "none found")
+    if c.range is not None:
+        row("gyro freezes (s)", ", ".join(
+            f"{f.interval.start_s:.2f}-{f.interval.stop_s:.2f} ({f.interval.duration_s:.2f} s at "
+            f"[{', '.join(f'{v:.0f}' for v in f.level_counts)}] counts)" for f in c.freezes) or "none")
+        r = c.range
+        row("gyro range", f"|rate| max [{', '.join(f'{v:.0f}' for v in r.max_abs_deg_s)}] deg/s; "
+            f"beyond +-{NOMINAL_GYRO_RANGE_DEG_S:.0f}: {sum(r.beyond_nominal_samples)} axis-samples; "
+            f"saturated (ADC rail): {r.saturated_samples} samples {_fmt_intervals(r.saturated)}")
+    v = c.vicon
+    if v is not None:
+        clock = f"VICON lags by {v.clock.offset_s * 1e3:+.1f} ms (corr {v.clock.peak_correlation:.3f})" if v.clock else "offset: n/a"
+        row("VICON", f"{v.samples} samples {v.rate_hz:.2f} Hz, span {v.start_s:+.2f}..{v.stop_s:.2f} s; {clock}")
+        row("VICON stamps", f"jitter vs a regular {1e3 / v.rate_hz:.2f} ms base: std {v.stamp_jitter_std_s * 1e3:.2f} ms, "
+            f"max {v.stamp_jitter_max_s * 1e3:.1f} ms; {v.near_duplicate_stamps} near-duplicate stamps")
+        row("VICON gaps (s)", f"{v.missing_samples} NaN rows: {_fmt_intervals(v.gaps)}")
+    for note in c.notes:
+        row("note", note)
+    return "\n".join(lines)

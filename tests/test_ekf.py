@@ -1,0 +1,88 @@
+"""Tests of the multiplicative error-state EKF (`ekf`, issue 3)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators import ESTIMATORS, build
+from estimators.dr import DeadReckoning
+from estimators.ekf import EKF, EKFParams, _right_jacobian
+from fusion import quaternion as quat
+
+from test_ukf import inclination_deg, synthetic
+
+
+def test_registry():
+    assert ESTIMATORS["ekf"] is EKF
+
+
+@pytest.mark.parametrize("bias", [True, False])
+def test_without_accelerometer_and_noise_equals_dead_reckoning(bias):
+    imu, _ = synthetic(400)
+    valid = np.ones(len(imu), bool)
+    valid[100:130] = False
+    imu = imu.replace(gyr_valid=valid)
+    q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
+    params = EKFParams(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, estimate_bias=bias)
+    est = EKF(params).estimate(imu, q0)
+    ref = DeadReckoning().estimate(imu, q0)
+    assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9
+
+
+def test_right_jacobian_matches_finite_differences():
+    # exp(theta + d) ~ exp(theta) exp(J_r(theta) d)  (Sola 2017, eq. 143)
+    theta = np.array([0.3, -0.5, 0.2])
+    J = _right_jacobian(*theta)
+    eps = 1e-6
+    num = np.empty((3, 3))
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = eps
+        num[:, i] = quat.relative_rotvec(quat.from_rotvec(theta), quat.from_rotvec(theta + d)) / eps
+    assert np.allclose(J, num, atol=1e-6)
+
+
+def test_measurement_jacobian_matches_finite_differences():
+    # h(q exp(e/2)) ~ h(q) + [h]x e, the H the update uses
+    q = quat.normalize(np.array([0.8, 0.3, -0.4, 0.2]))
+    h = quat.gravity_in_body(q)
+    H = np.array([[0.0, -h[2], h[1]], [h[2], 0.0, -h[0]], [-h[1], h[0], 0.0]])
+    eps = 1e-7
+    num = np.stack([(quat.gravity_in_body(quat.multiply(q, quat.from_rotvec(eps * np.eye(3)[i]))) - h) / eps for i in range(3)], axis=1)
+    assert np.allclose(H, num, atol=1e-6)
+
+
+@pytest.mark.parametrize("spec", ["ekf", "ekf:bias=false", "ekf:gate=skip", "ekf:gate=off"])
+def test_tracks_synthetic_motion(spec):
+    imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
+    est = build(spec).estimate(imu, truth[0])
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.5
+    assert np.allclose(np.linalg.norm(est.quat_wxyz, axis=1), 1.0, atol=1e-12)
+    cov = est.diagnostics["cov"]
+    assert np.allclose(cov, np.swapaxes(cov, 1, 2))
+    assert np.all(np.linalg.eigvalsh(cov) > 0.0)
+
+
+def test_ekf_and_ukf_bias_agree_closely():
+    imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=8)
+    a = build("ekf").estimate(imu, truth[0])
+    b = build("ukf-bias").estimate(imu, truth[0])
+    angle = np.degrees(np.linalg.norm(quat.relative_rotvec(a.quat_wxyz, b.quat_wxyz), axis=1))
+    assert angle.max() < 0.5
+
+
+def test_recovers_after_nan_and_saturated_stretch():
+    imu, truth = synthetic(1500, noise=0.005, seed=7)
+    gyr, acc = imu.gyr_rad_s.copy(), imu.acc_g.copy()
+    gyr[500:600] = np.nan
+    acc[520:560] = np.inf
+    acc[560:600] = 8.0
+    est = build("ekf").estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
+    assert np.all(np.isfinite(est.quat_wxyz))
+    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 2.0
+
+
+@pytest.mark.parametrize("spec", ["ekf:Q=-1", "ekf:R=0", "ekf:Qb=-1e-6", "ekf:Pb0=inf", "ekf:gate=maybe", "ekf:gate_g=-1", "ekf:sigma=kraft"])
+def test_bad_parameters_raise(spec):
+    with pytest.raises(ValueError):
+        build(spec)

@@ -1,0 +1,108 @@
+"""Inputs are never modified: every input file hashes the same (content, size, mtime) and the
+data folder holds the same files after a full `fusion compare` (every registered estimator,
+every recording), and after `fusion panorama` when the CLI has that command."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import io
+import pickle
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from fusion.cli import build_parser, main
+
+
+def snapshot(root: Path) -> dict[str, tuple[str, int, int]]:
+    """sha256, size and mtime of every file below `root`."""
+    out = {}
+    for path in sorted(root.rglob("*")):
+        if path.is_file():
+            st = path.stat()
+            out[path.relative_to(root).as_posix()] = (hashlib.sha256(path.read_bytes()).hexdigest(), st.st_size, st.st_mtime_ns)
+    return out
+
+
+def run(argv: list[str]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def subcommand_options(name: str) -> set[str] | None:
+    """The option strings of a `fusion` subcommand, or None if the CLI has no such command."""
+    parser = build_parser()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            return {opt for a in action.choices[name]._actions for opt in a.option_strings}
+    return None
+
+
+def generated_data(root: Path) -> Path:
+    """A data folder with one recording of each format (IMU + VICON), written here."""
+    rng = np.random.default_rng(1)
+    n = 600
+    t = 1.3e9 + np.arange(n) * 0.01
+    counts = np.tile([511.0, 501.0, 605.0, 373.0, 375.0, 369.0], (n, 1)) + rng.integers(-1, 2, (n, 6))
+    counts[150:] += np.round(rng.normal(0, 5, (n - 150, 6)))
+    from scipy.spatial.transform import Rotation
+
+    rots = np.moveaxis(Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.003, (n, 3)), axis=0)).as_matrix(), 0, 2)
+    for folder in ("a/imu", "a/vicon", "b/imu", "b/vicon"):
+        (root / folder).mkdir(parents=True)
+    arr = np.vstack([t, counts.T])
+    arr[1:3] *= -1
+    (root / "a/imu/imuRaw1.p").write_bytes(pickle.dumps(arr))
+    (root / "a/vicon/viconRot1.p").write_bytes(pickle.dumps({"rots": rots, "ts": t[None]}))
+    scipy.io.savemat(root / "b/imu/imuRaw1.mat", {"vals": counts[:, [0, 1, 2, 5, 3, 4]].T.astype(np.uint16), "ts": t[None]})
+    scipy.io.savemat(root / "b/vicon/viconRot1.mat", {"rots": rots, "ts": t[None]})
+    rows = np.column_stack([t - t[0], np.zeros((n, 3)), np.tile([0, 0, 9.80665], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1))])
+    np.savetxt(root / "walk.csv", rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz", comments="")
+    return root
+
+
+def check_untouched(data: Path, out_dir: Path) -> None:
+    before = snapshot(data)
+    code, out, err = run(["compare", "--estimators", "all", "--dataset", "all", "--data-dir", str(data),
+                          "--no-progress", "--json", str(out_dir / "results.json")])
+    assert code == 0, err
+    assert "RMSE" in out
+    assert snapshot(data) == before, "fusion compare changed or created files in the data folder"
+    options = subcommand_options("panorama")
+    if options is not None:
+        argv = ["panorama"]
+        for opt, value in (("--dataset", "all"), ("--data-dir", str(data)), ("--out", str(out_dir / "pano")),
+                           ("--output", str(out_dir / "pano")), ("--out-dir", str(out_dir / "pano"))):
+            if opt in options:
+                argv += [opt, value]
+        argv += [opt for opt in ("--no-progress",) if opt in options]
+        try:
+            run(argv)  # whatever it makes of these recordings, it must not touch them
+        except SystemExit as exc:  # argparse refused the guessed arguments: adapt this test
+            pytest.fail(f"fusion {' '.join(argv)}: the arguments this test guesses do not fit panorama (exit {exc.code})")
+        assert snapshot(data) == before, "fusion panorama changed or created files in the data folder"
+
+
+def test_generated_inputs_untouched(tmp_path):
+    data = generated_data(tmp_path / "data")
+    (tmp_path / "out").mkdir()
+    check_untouched(data, tmp_path / "out")
+
+
+def test_real_inputs_untouched(data_dir, tmp_path):
+    """Copies of a few real recordings (into tmp_path, never the repository)."""
+    data = tmp_path / "data"
+    # a pickle recording with VICON gaps, a .mat one, one without ground truth, the panorama scene
+    for rel in ("ece276a/imu/imuRaw6.p", "ece276a/vicon/viconRot6.p", "ese650/imu/imuRaw2.mat",
+                "ese650/vicon/viconRot2.mat", "ece276a-2018/imu/imuRaw3.p", "scenes/room_equirect.jpg"):
+        if (data_dir / rel).is_file():
+            (data / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(data_dir / rel, data / rel)
+    (tmp_path / "out").mkdir()
+    check_untouched(data, tmp_path / "out")

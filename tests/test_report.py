@@ -1,0 +1,311 @@
+"""Reports: figures carry the data (counted through matplotlib and pixels), parallel runs
+equal serial ones, the output folder re-renders without recomputing, and report.html
+shows every image and the numbers of results.json in a real browser."""
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation import plots, runner, series
+from evaluation.compare import _as_specs
+from fusion.cli import main
+
+from report_fixtures import recording, register, write_csv_dataset
+
+SPECS = ["dr", "toy:g=1.05", "toysmooth"]
+
+
+@pytest.fixture(scope="module")
+def toy():
+    with pytest.MonkeyPatch.context() as mp:
+        register(mp)
+        yield
+
+
+@pytest.fixture(scope="module")
+def run_dir(toy, tmp_path_factory):
+    """One `compare --out` run on two CSV recordings (in a pool of 2), shared by the tests
+    that only read its folder."""
+    root = tmp_path_factory.mktemp("report")
+    data = write_csv_dataset(root / "data")
+    out = root / "run"
+    code = main(["compare", "--estimators", ",".join(SPECS), "--data-dir", str(data), "--out", str(out),
+                 "--jobs", "2", "--no-progress"])
+    assert code == 0
+    return out
+
+
+def _series(specs=SPECS, **kwargs) -> series.RecordingSeries:
+    from evaluation.compare import _as_specs
+
+    rec = recording(**kwargs)
+    spec_list = _as_specs(specs)
+    results, infos = runner.run(spec_list, [rec], with_info=True)
+    causal = {label: d["causal"] for label, d in runner.describe_specs(spec_list).items()}
+    return series.from_results(infos[0], results, causal)
+
+
+def _lines(ax):
+    return [line for line in ax.get_lines() if np.isfinite(np.asarray(line.get_ydata(), float)).any()]
+
+
+def _png_stats(path: Path) -> tuple[float, int]:
+    from matplotlib.image import imread
+
+    pixels = imread(path)[..., :3]
+    rgb = (pixels.reshape(-1, 3) * 255).astype(np.uint32)
+    colours = np.unique(rgb[:, 0] << 16 | rgb[:, 1] << 8 | rgb[:, 2])
+    return float(pixels.std()), len(colours)
+
+
+def test_euler_figure_lines_shading_and_no_wrap_strokes(toy):
+    s = _series(bad_gyro=(400, 420))
+    fig = plots.euler_figure(s)
+    axes = fig.axes
+    assert len(axes) == 3
+    for ax, name in zip(axes, plots.EULER_NAMES):
+        assert len(_lines(ax)) == 1 + len(SPECS)  # VICON + every estimator
+        assert name in ax.get_ylabel() and "ZYX" in ax.get_ylabel()
+        # shaded: the truth gap (rows 200..229) and the invalid gyro span (400..419)
+        spans = [p for p in ax.patches]
+        assert len(spans) == len(plots.truth_gaps(s)) + len(plots.bad_gyro_spans(s)) == 2
+        for line in _lines(ax):  # wrap-around leaves a break, never a stroke across the plot
+            y = np.asarray(line.get_ydata(), float)
+            steps = np.abs(np.diff(y))
+            assert np.all(steps[np.isfinite(steps)] <= 180)
+    # the motion does wrap: the yaw of the truth crosses +-180 somewhere (else the test is empty)
+    yaw = plots.euler_deg(s.truth_quat)[:, 2]
+    assert np.nanmax(np.abs(np.diff(yaw))) > 180
+    truth_line = _lines(axes[2])[0]
+    assert np.isnan(np.asarray(truth_line.get_ydata(), float)).sum() > 30  # the gap and the wrap breaks
+
+
+def test_bad_gyro_and_gap_spans_in_seconds():
+    s = _series(specs=["dr"], gap=(200, 230), bad_gyro=(400, 420))
+    (gap,) = plots.truth_gaps(s)
+    (bad,) = plots.bad_gyro_spans(s)
+    assert gap == (s.truth_t[199], s.truth_t[230])
+    assert bad == (s.imu_t[399], s.imu_t[420])
+    assert plots.runs(np.array([1, 1, 0, 0, 1, 0, 1], bool)) == [(0, 1), (4, 4), (6, 6)]
+
+
+def test_error_and_loss_figures(toy):
+    s = _series()
+    err = plots.error_figure(s)
+    assert [len(_lines(ax)) for ax in err.axes if ax.get_lines()] == [len(SPECS)] * 3
+    # the plotted errors are the scored ones (deg), NaN in the truth gap
+    y = np.asarray(err.axes[0].get_lines()[1].get_ydata(), float)
+    assert np.isnan(y[205]) and 0 < np.nanmax(y) < 20
+    loss = plots.loss_figure(s)
+    (line,) = loss.axes[0].get_lines()
+    assert len(line.get_ydata()) == 12 and loss.axes[0].get_yscale() == "log"
+    assert plots.loss_figure(_series(specs=["dr"])) is None
+
+
+def test_summary_figures_count_cells_and_points():
+    rows = [{"dataset": d, "estimator": e, "samples": 100, "seconds": 1e-3 * (i + 1),
+             "rmse_deg": None if d == "c" else {k: 1.0 + i + j for k in ("total", "inclination", "heading")},
+             "max_deg": None}
+            for i, e in enumerate(["x", "y:a=1"]) for j, d in enumerate(["a", "b", "c"])]
+    fig = plots.summary_rmse_figure(rows)
+    images = [ax.images[0] for ax in fig.axes if ax.images]
+    assert len(images) == 3
+    data = images[0].get_array()
+    assert data.shape == (2, 3) and data.mask[:, 2].all() and data[1, 1] == 3.0
+    speed = plots.speed_figure(rows, {"x": True, "y:a=1": False})
+    offsets = [c.get_offsets() for c in speed.axes[0].collections]
+    assert len(offsets) == 2
+    np.testing.assert_allclose(offsets[1][0], [20.0, 2.5])  # 2e-3 s / 100 samples; mean of 2 and 3
+
+
+def test_compare_out_writes_everything_and_figures_are_not_blank(run_dir):
+    out = run_dir
+    doc = json.loads((out / "results.json").read_text())
+    assert [(r["dataset"], r["estimator"]) for r in doc["results"]] == [
+        (d, e) for d in ("lab/rec1", "lab/rec2") for e in ("dr", "toy:g=1.05", "toysmooth")]
+    assert doc["settings"]["estimator_details"]["toysmooth"]["causal"] is False
+    assert doc["settings"]["estimator_details"]["toy:g=1.05"]["params"] == {"gain": 1.05, "mode": "plain"}
+    assert doc["settings"]["command"].startswith("fusion compare --estimators dr,toy:g=1.05,toysmooth")
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert figures == sorted(["summary-rmse.png", "summary-speed.png"] + [
+        f"rec-00{n}-lab_rec{n + 1}-{kind}.png" for n in range(2) for kind in ("euler", "error", "loss")])
+    for name in figures:
+        spread, colours = _png_stats(out / "figures" / name)
+        assert spread > 0.05 and colours > 20, name
+    assert sorted(p.name for p in (out / "series").glob("*.npz")) == ["000.npz", "001.npz"]
+    table = (out / "table.txt").read_text()
+    assert "lab/rec2  toy:g=1.05" in table and f"{doc['results'][4]['rmse_deg']['total']:.2f}" in table
+    md = (out / "report.md").read_text()
+    assert all(f"figures/{name}" in md for name in figures)
+    page = (out / "report.html").read_text()
+    assert page.count('src="data:image/png;base64,') == len(figures)
+    assert "http://" not in page and "https://" not in page  # nothing to fetch: readable offline
+
+
+def test_report_rerenders_from_the_folder_alone(run_dir, tmp_path, monkeypatch):
+    out = tmp_path / "copy"
+    shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("figures", "report.html", "check.html"))
+    monkeypatch.setattr(runner, "run", None)  # no estimator run is needed ...
+    import estimators
+    monkeypatch.setattr(estimators, "ESTIMATORS", {})  # ... nor any estimator installed
+    assert main(["report", str(out), "--jobs", "1", "--no-progress"]) == 0
+    assert (out / "report.md").read_text() == (run_dir / "report.md").read_text()
+    assert (out / "table.txt").read_text() == (run_dir / "table.txt").read_text()
+    assert len((out / "report.html").read_text()) == pytest.approx(len((run_dir / "report.html").read_text()), rel=0.02)
+    assert len(list((out / "figures").glob("*.png"))) == 8
+
+
+def test_report_on_a_folder_without_results_is_one_line(tmp_path, capsys):
+    assert main(["report", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no results.json" in err and err.count("\n") == 1
+
+
+def _strip_timing(doc):
+    rows = [{k: v for k, v in r.items() if k != "seconds"} for r in doc["results"]]
+    settings = {k: v for k, v in doc["settings"].items() if k not in ("command",)}
+    return rows, settings
+
+
+def test_parallel_equals_serial(toy, tmp_path, capsys):
+    data = write_csv_dataset(tmp_path / "data", count=3)
+    docs = []
+    for jobs in ("1", "2"):
+        path = tmp_path / f"r{jobs}.json"
+        assert main(["compare", "--estimators", ",".join(SPECS) + ",toy:g=0.9,mode=rough", "--data-dir", str(data),
+                     "--json", str(path), "--jobs", jobs, "--no-progress"]) == 0
+        docs.append(json.loads(path.read_text()))
+    assert len(docs[0]["results"]) == 12
+    assert _strip_timing(docs[0]) == _strip_timing(docs[1])
+
+
+def test_library_compare_jobs_keeps_order(toy):
+    from evaluation.compare import compare
+
+    recs = [recording(seed=k, rid=f"toy/{k}") for k in range(3)]
+    serial = compare(["toy:g=1.1", "dr", "toysmooth"], recs, jobs=1)
+    parallel = compare(["toy:g=1.1", "dr", "toysmooth"], recs, jobs=2)
+    assert [(r.dataset, r.estimator) for r in parallel] == [(f"toy/{k}", e) for k in range(3) for e in ("toy:g=1.1", "dr", "toysmooth")]
+    assert [r.rmse_deg for r in serial] == [r.rmse_deg for r in parallel]
+    for a, b in zip(serial, parallel):
+        np.testing.assert_array_equal(a.trajectory.quat_wxyz, b.trajectory.quat_wxyz)
+        np.testing.assert_array_equal(a.score.errors_rad["total"], b.score.errors_rad["total"])
+    np.testing.assert_array_equal(serial[2].trajectory.diagnostics["loss"], parallel[2].trajectory.diagnostics["loss"])
+
+
+def test_worker_error_is_one_line(tmp_path, capsys):
+    (tmp_path / "lab" / "imu").mkdir(parents=True)
+    (tmp_path / "lab" / "imu" / "imuRaw1.p").write_bytes(b"\x80\x04garbage")
+    (tmp_path / "lab" / "imu" / "imuRaw2.p").write_bytes(b"\x80\x04garbage")
+    code = main(["compare", "--data-dir", str(tmp_path), "--estimators", "dr", "--jobs", "2", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and "not a readable pickle" in err and err.count("\n") == 1
+
+
+def test_fusion_package_never_imports_matplotlib(tmp_path):
+    code = ("import sys, fusion, fusion.cli, fusion.datasets, fusion.loaders, fusion.calibration, fusion.sim;"
+            "from fusion.cli import main;"
+            "main(['compare', '--estimators', 'dr', '--dataset', 'sim', '--no-progress', '--jobs', '1']);"
+            "assert 'matplotlib' not in sys.modules, 'matplotlib imported'")
+    env = {k: v for k, v in os.environ.items() if k != "FUSION_DATA"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1],
+                          env=env)
+    assert proc.returncode == 0, proc.stderr
+
+
+# --- the page in a real browser ---
+
+CHECK_SCRIPT = """<script>
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.map.call(document.images, function (i) {
+    return {file: i.getAttribute('data-file'), w: i.naturalWidth, h: i.naturalHeight, complete: i.complete};
+  });
+  var tables = {};
+  document.querySelectorAll('table').forEach(function (t) {
+    tables[t.id] = Array.prototype.map.call(t.rows, function (r) {
+      return Array.prototype.map.call(r.cells, function (c) { return c.innerText.trim(); });
+    });
+  });
+  var pre = document.createElement('pre');
+  pre.id = 'check-result';
+  pre.textContent = JSON.stringify({imgs: imgs, tables: tables});
+  document.body.appendChild(pre);
+});
+</script>"""
+
+
+def _chromium() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe:
+        return exe
+    if os.environ.get("CI") == "true":
+        pytest.fail("chromium is not installed (CI must install it: apt-get install -y chromium)")
+    pytest.skip("chromium is not installed")
+
+
+def _chromium_run(exe: str, profile: Path, *args: str) -> subprocess.CompletedProcess:
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             "--disable-dev-shm-usage", f"--user-data-dir={profile}"]
+    return subprocess.run([exe, *flags, *args], capture_output=True, text=True, timeout=90)
+
+
+def test_report_html_in_headless_chromium(run_dir, tmp_path):
+    exe = _chromium()
+    out = run_dir
+    doc = json.loads((out / "results.json").read_text())
+    page = (out / "report.html").read_text()
+    checked = tmp_path / "check.html"
+    checked.write_text(page.replace("</body>", CHECK_SCRIPT + "</body>"))
+    proc = _chromium_run(exe, tmp_path / "profile", "--virtual-time-budget=10000", "--dump-dom", checked.as_uri())
+    match = re.search(r'<pre id="check-result">(.*?)</pre>', proc.stdout, re.S)
+    assert match, f"no check result in the DOM (exit {proc.returncode}): {proc.stderr[-2000:]}"
+    found = json.loads(html.unescape(match.group(1)))
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert sorted(i["file"] for i in found["imgs"]) == figures
+    for image in found["imgs"]:
+        assert image["complete"] and image["w"] > 100 and image["h"] > 100, image
+    # the results table shows every number of results.json (2 decimals), row by row
+    table = found["tables"]["results"]
+    assert len(table) == 1 + len(doc["results"])
+    for cells, r in zip(table[1:], doc["results"]):
+        assert cells[:3] == [r["dataset"], r["estimator"], str(r["samples"])]
+        assert cells[3:6] == [f"{r['rmse_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
+        assert cells[6:9] == [f"{r['max_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
+        assert cells[9] == f"{1e6 * r['seconds'] / r['samples']:.1f}"
+    means = {row[0]: row for row in found["tables"]["means"][1:]}
+    for label in SPECS:
+        mine = [r["rmse_deg"]["total"] for r in doc["results"] if r["estimator"] == label]
+        assert means[label][2] == f"{np.mean(mine):.2f}"
+    assert dict(found["tables"]["versions"][1:])["numpy"] == doc["versions"]["numpy"]
+    # and a screenshot of the page as a reader sees it
+    shot = tmp_path / "report.png"
+    proc = _chromium_run(exe, tmp_path / "profile2", "--window-size=1280,2400", "--hide-scrollbars",
+                         f"--screenshot={shot}", (out / "report.html").as_uri())
+    assert shot.is_file(), proc.stderr[-2000:]
+    spread, colours = _png_stats(shot)
+    assert spread > 0.05 and colours > 50
+
+
+def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
+    """Recording 6 loses VICON for about 130 samples: the figure shades those spans."""
+    from fusion import datasets
+
+    rec = datasets.load("ece276a/6", data_dir / "ece276a")
+    results, infos = runner.run(_as_specs(["dr"]), [rec], with_info=True)
+    s = series.from_results(infos[0], results, {"dr": True})
+    nan_rows = int((~np.all(np.isfinite(rec.truth.quat_wxyz), axis=1)).sum())
+    inside = [(a, b) for a, b in plots.truth_gaps(s) if a > s.imu_t[0] and b < s.imu_t[-1]]
+    assert 100 < nan_rows < 200 and len(inside) >= 1
+    assert sum(b - a for a, b in inside) == pytest.approx(nan_rows / 100.0, rel=0.2)
+    fig = plots.euler_figure(s)
+    assert len(fig.axes[0].patches) == len(plots.truth_gaps(s))

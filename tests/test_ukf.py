@@ -1,0 +1,316 @@
+"""Tests of the seed quaternion UKF (`ukf`) and `ukf-bias` (issue 3)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators import ESTIMATORS, build
+from estimators._attitude import exp_batch, gravity_batch, left_matrix, log_batch, right_matrix, sqrt_psd
+from estimators.dr import DeadReckoning
+from estimators.ukf import (
+    UKF,
+    QuaternionSigmaPoints,
+    UKFBias,
+    UKFBiasParams,
+    UKFParams,
+    quaternion_mean,
+)
+from fusion import quaternion as quat
+from fusion.types import ImuSamples
+
+
+def synthetic(n: int = 600, seed: int = 0, noise: float = 0.0, bias=(0.0, 0.0, 0.0)):
+    """A smooth rotation with exact accelerometer: (ImuSamples, true (n, 4) quaternions).
+
+    Jittered time steps (about 100 Hz); the gyro reads the true rate (+ bias + noise), the
+    accelerometer gravity in the body frame (+ noise).
+    """
+    rng = np.random.default_rng(seed)
+    dt = 0.01 + rng.uniform(-1e-3, 1e-3, n - 1)
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    gyr = np.stack([1.5 * np.sin(1.3 * t), 1.0 * np.cos(0.7 * t + 0.3), 0.8 * np.sin(0.9 * t + 1.0)], axis=1)
+    q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
+    truth = quat.cumulative_product(np.concatenate([q0[None], quat.from_rotvec(gyr[:-1] * dt[:, None])]))
+    acc = quat.gravity_in_body(truth) + noise * rng.normal(size=(n, 3))
+    imu = ImuSamples(t, gyr + np.asarray(bias) + noise * rng.normal(size=(n, 3)), acc, source="synthetic")
+    return imu, truth
+
+
+def inclination_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
+    a, b = quat.gravity_in_body(q_true), quat.gravity_in_body(q_est)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+# ---------------------------------------------------------------- helpers cross-checked
+def test_lean_helpers_match_fusion_quaternion():
+    rng = np.random.default_rng(1)
+    p, q = quat.normalize(rng.normal(size=(2, 4)))
+    assert np.allclose(right_matrix(*q) @ p, quat.multiply(p, q), atol=1e-15)
+    assert np.allclose(left_matrix(*p) @ q, quat.multiply(p, q), atol=1e-15)
+    v = rng.normal(size=(7, 3))
+    v[0] = 0.0
+    assert np.allclose(exp_batch(v), quat.from_rotvec(v), atol=1e-15)
+    qs = quat.from_rotvec(v)
+    assert np.allclose(log_batch(qs), quat.to_rotvec(qs), atol=1e-12)
+    assert np.allclose(log_batch(-qs), quat.to_rotvec(qs), atol=1e-12)  # q and -q
+    assert np.allclose(gravity_batch(qs), quat.gravity_in_body(qs), atol=1e-15)
+
+
+def test_sqrt_psd_recovers_singular_matrix():
+    a = np.diag([1e-3, 0.0, 2e-3])
+    L, recovered = sqrt_psd(a)
+    assert recovered
+    assert np.allclose(L @ L.T, a, atol=1e-15)
+
+
+# ---------------------------------------------------------------- iterative mean (step 5)
+@pytest.mark.parametrize("spread", [1e-3, 0.3, 1.2])
+def test_mean_of_symmetric_points_is_the_centre(spread):
+    rng = np.random.default_rng(2)
+    q = quat.normalize(rng.normal(size=4))
+    offsets = rng.normal(size=(4, 3)) * spread
+    pts = quat.multiply(q, quat.from_rotvec(np.concatenate([offsets, -offsets])))
+    w = np.full(8, 1 / 8)
+    start = quat.multiply(q, quat.from_rotvec(np.array([0.2, -0.1, 0.05])))  # a poor first guess
+    mean, res, iters = quaternion_mean(pts, w, start, tol=1e-12, max_iter=50)
+    assert np.allclose(quat.canonical(mean), quat.canonical(q), atol=1e-10)
+    assert iters < 50
+    assert np.allclose(w @ res, 0.0, atol=1e-10)
+    assert np.allclose(res, np.concatenate([offsets, -offsets]), atol=1e-9)
+
+
+def test_mean_handles_q_and_minus_q_in_the_same_set():
+    rng = np.random.default_rng(3)
+    q = quat.normalize(rng.normal(size=4))
+    offsets = rng.normal(size=(3, 3)) * 0.1
+    pts = quat.multiply(q, quat.from_rotvec(np.concatenate([offsets, -offsets])))
+    pts[::2] *= -1.0  # flip the sign of half the points: the same rotations
+    mean, _, _ = quaternion_mean(pts, np.full(6, 1 / 6), pts[1], tol=1e-12, max_iter=50)
+    assert np.allclose(quat.canonical(mean), quat.canonical(q), atol=1e-10)
+
+
+def test_mean_stops_at_its_cap_and_converges_fast_for_filter_spreads():
+    rng = np.random.default_rng(4)
+    q = quat.normalize(rng.normal(size=4))
+    pts = quat.multiply(q, quat.from_rotvec(rng.normal(size=(6, 3)) * 0.05))
+    w = np.full(6, 1 / 6)
+    _, _, iters = quaternion_mean(pts, w, q, tol=1e-9, max_iter=20)
+    assert iters <= 4
+    _, _, capped = quaternion_mean(pts, w, q, tol=0.0 + 1e-300, max_iter=3)
+    assert capped == 3
+
+
+# ---------------------------------------------------------------- sigma-point schemes
+@pytest.mark.parametrize("scheme,kw", [("kraft", {}), ("julier", {"kappa": 2.0}), ("merwe", {"alpha": 1.0, "kappa": 1.0})])
+def test_sigma_points_reproduce_mean_and_covariance(scheme, kw):
+    pts = QuaternionSigmaPoints(3, scheme, **kw)
+    assert np.isclose(pts.Wm.sum(), 1.0)
+    P = np.array([[2e-3, 1e-4, 0.0], [1e-4, 1e-3, -2e-4], [0.0, -2e-4, 3e-3]])
+    off = pts.offsets(P)
+    assert np.allclose(pts.Wm @ off, 0.0, atol=1e-15)
+    cov = off.T @ (pts.Wc[:, None] * off)
+    extra = pts.Wc.sum() - 1.0  # Merwe's beta term sits on the (zero) centre offset
+    assert np.allclose(cov, P, atol=1e-15), extra
+    x = np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3])
+    sig = pts.sigma_points(x, P)
+    assert sig.shape == (7, 4)
+    assert np.allclose(quat.relative_rotvec(x, sig), off, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "scheme,kw,match",
+    [
+        ("merwe", {"alpha": 1e-3, "kappa": 0.0}, "negative|< 0"),
+        ("merwe", {"alpha": 0.5, "kappa": 0.0}, "kappa >="),
+        ("julier", {"kappa": -1.0}, "kappa >= 0"),
+        ("unscented", {}, "kraft, julier or merwe"),
+    ],
+)
+def test_impossible_sigma_settings_raise(scheme, kw, match):
+    with pytest.raises(ValueError, match=match):
+        QuaternionSigmaPoints(3, scheme, **kw)
+    with pytest.raises(ValueError):
+        UKFParams(sigma=scheme, **kw)
+
+
+def test_sigma_points_reject_wrong_shapes():
+    pts = QuaternionSigmaPoints(3)
+    with pytest.raises(ValueError, match="expected x"):
+        pts.sigma_points(np.array([1.0, 0, 0, 0, 0]), np.eye(3))
+    with pytest.raises(ValueError, match="expected x"):
+        pts.sigma_points(np.array([1.0, 0, 0, 0]), np.eye(4))
+
+
+# ---------------------------------------------------------------- parameters
+@pytest.mark.parametrize(
+    "spec",
+    ["ukf:Q=-1", "ukf:R=-1e-3", "ukf:R=0", "ukf:P0=nan", "ukf:tol=0", "ukf:iters=0", "ukf-bias:Qb=-1",
+     "ukf:sigma=merwe,alpha=0.01", "ukf:bogus=1", "ukf:gate_g=0"],
+)
+def test_bad_parameters_raise(spec):
+    with pytest.raises(ValueError):
+        build(spec)
+
+
+def test_registry_and_aliases():
+    assert ESTIMATORS["ukf"] is UKF and ESTIMATORS["ukf-bias"] is UKFBias
+    est = build("ukf:R=1e-3,Q=1e-2,sigma=julier,kappa=2")
+    assert est.params == UKFParams(acc_noise_g2=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
+    assert UKFParams.seed().acc_noise_g2 == 1e-4
+
+
+def test_filterpy_impl_refuses_heading_free():
+    with pytest.raises(ValueError, match="heading_free"):
+        UKFBiasParams(impl="filterpy")
+
+
+@pytest.mark.parametrize("spec", ["ukf:hf=true", "ukf-bias", "ekf"])
+def test_heading_free_update_does_not_turn_about_the_vertical(spec):
+    # One step with zero rate and a tilted accelerometer reading: the correction must be a
+    # rotation about a horizontal (world) axis, i.e. leave the heading unchanged.
+    t = np.array([0.0, 0.01])
+    q0 = quat.normalize(np.array([0.9, 0.2, -0.3, 0.25]))
+    g = quat.gravity_in_body(q0)
+    acc = np.stack([g, quat.normalize(g + np.array([0.05, -0.08, 0.02]))])
+    imu = ImuSamples(t, np.zeros((2, 3)), acc)
+    est = build(spec + ("," if ":" in spec else ":") + "P0=1e-2").estimate(imu, q0)
+    world_step = quat.to_rotvec(quat.multiply(est.quat_wxyz[1], quat.conjugate(q0)))
+    assert np.linalg.norm(world_step) > 1e-3  # the update did something
+    assert abs(world_step[2]) < 1e-6 * np.linalg.norm(world_step) + 1e-12
+
+
+def test_bad_initial_quaternion_raises():
+    imu, truth = synthetic(20)
+    with pytest.raises(ValueError, match="init_quat_wxyz"):
+        UKF().estimate(imu, np.array([np.nan, 0.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="init_quat_wxyz"):
+        UKF().estimate(imu, np.zeros(4))
+
+
+# ---------------------------------------------------------------- exact cases
+@pytest.mark.parametrize("cls,kw", [
+    (UKF, {}), (UKF, {"sigma": "julier"}), (UKF, {"sigma": "merwe", "kappa": 1.0}), (UKF, {"impl": "filterpy"}),
+    (UKFBias, {"bias_walk_rad2_s3": 0.0, "init_bias_var_rad2_s2": 0.0}),
+])
+def test_without_accelerometer_and_noise_equals_dead_reckoning(cls, kw):
+    imu, _ = synthetic(400)
+    valid = np.ones(len(imu), bool)
+    valid[100:130] = False  # invalid gyro samples are not integrated, as in dr
+    imu = imu.replace(gyr_valid=valid)
+    q0 = np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3])
+    params = cls.Params(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, invalid_gyr_std_rad_s=0.0, **kw)
+    est = cls(params).estimate(imu, q0)
+    ref = DeadReckoning().estimate(imu, q0)
+    assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9
+
+
+@pytest.mark.parametrize("cls", [UKF, UKFBias])
+def test_lean_step_equals_filterpy_reference(cls):
+    imu, truth = synthetic(300, noise=0.02, bias=(0.02, -0.01, 0.03))
+    # The lean step takes the residuals about the final mean to first order in the last
+    # mean update (< mean_tol_rad); with a tight tolerance both paths agree to rounding.
+    # FilterPy's update has no gain projection, so heading_free is off for both.
+    a = cls(cls.Params(mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
+    b = cls(cls.Params(impl="filterpy", mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
+    assert np.allclose(a.quat_wxyz, b.quat_wxyz, rtol=0, atol=1e-12)
+    assert np.allclose(a.diagnostics["cov"], b.diagnostics["cov"], rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("spec", ["ukf", "ukf:sigma=julier", "ukf:sigma=merwe,kappa=1", "ukf-bias", "ukf:Q=1e-2,R=1e-4"])
+def test_tracks_synthetic_motion(spec):
+    imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
+    est = build(spec).estimate(imu, truth[0])
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.5
+    assert np.all(np.isfinite(est.quat_wxyz))
+    assert np.allclose(np.linalg.norm(est.quat_wxyz, axis=1), 1.0, atol=1e-12)
+
+
+def test_ukf_bias_learns_a_gyro_bias():
+    bias = np.array([0.03, -0.02, 0.01])
+    imu, truth = synthetic(3000, noise=0.005, bias=bias, seed=6)
+    est = UKFBias(UKFBiasParams(bias_walk_rad2_s3=1e-5)).estimate(imu, truth[0])
+    b = est.diagnostics["gyr_bias_rad_s"][-500:].mean(axis=0)
+    # Gravity makes the two horizontal-in-world components observable; check the norm part.
+    assert np.linalg.norm(b - bias) < 0.5 * np.linalg.norm(bias)
+
+
+@pytest.mark.parametrize("spec", ["ukf", "ukf-bias"])
+def test_recovers_after_nan_and_saturated_stretch(spec):
+    imu, truth = synthetic(1500, noise=0.005, seed=7)
+    gyr, acc = imu.gyr_rad_s.copy(), imu.acc_g.copy()
+    gyr[500:600] = np.nan
+    acc[520:560] = np.nan
+    acc[560:600] = 8.0  # saturated accelerometer
+    est = build(spec).estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
+    assert np.all(np.isfinite(est.quat_wxyz))
+    assert np.all(np.isfinite(est.diagnostics["cov"][1:]))
+    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 2.0
+
+
+# ---------------------------------------------------------------- real and simulated recordings
+FILTERS = ("ukf", "ukf-bias", "ekf")
+
+
+@pytest.fixture(scope="module")
+def real_runs(data_dir):
+    """Every filter (defaults) and dr on ece276a 1-9 from the truth: {(spec, n): (Trajectory, Score)}."""
+    from evaluation.metrics import score
+    from fusion import datasets
+
+    out = {}
+    for n in range(1, 10):
+        # the issue's targets are stated without dropout handling (the gyro freezes integrated)
+        rec = datasets.load(f"ece276a/{n}", data_dir, dropouts=False)
+        q0 = datasets.initial_orientation(rec, "truth")
+        for spec in ("dr",) + FILTERS:
+            est = build(spec).estimate(rec.imu, q0)
+            out[spec, n] = (est, score(rec.truth, est))
+    return out
+
+
+@pytest.mark.parametrize("spec", FILTERS)
+def test_covariance_stays_spd_on_every_real_recording(real_runs, spec):
+    for n in range(1, 10):
+        est, _ = real_runs[spec, n]
+        cov = est.diagnostics["cov"]
+        assert np.all(np.isfinite(cov)), n
+        assert np.array_equal(cov, np.swapaxes(cov, 1, 2)), n  # exactly symmetric
+        assert np.linalg.eigvalsh(cov).min() > 0.0, n
+        assert est.diagnostics["cov_repairs"] == 0, n  # SPD without the recovery
+        assert est.diagnostics.get("sqrt_recoveries", 0) == 0, n
+
+
+# Regression on the real recordings (issue 3 targets; measured 2.11 / 17.4 for ukf,
+# 2.10 / 17.2 for ukf-bias and ekf, with the spine's calibration at merge time).
+@pytest.mark.parametrize("spec,inclination,total", [("ukf", 3.0, 18.0), ("ukf-bias", 2.2, 18.0), ("ekf", 2.2, 18.0)])
+def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
+    inc = [real_runs[spec, n][1].rmse_deg["inclination"] for n in range(1, 10)]
+    tot = [real_runs[spec, n][1].rmse_deg["total"] for n in range(1, 10)]
+    assert np.mean(inc) <= inclination
+    assert np.mean(tot) <= total
+
+
+def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
+    for n in range(1, 10):
+        assert real_runs["ukf", n][1].rmse_deg["inclination"] < real_runs["dr", n][1].rmse_deg["inclination"], n
+
+
+# Bounds on the built-in simulated recording (exact truth, 180 s, sustained ~0.07 g hand
+# accelerations). Measured: dr 14.0 / 19.3, ukf 2.26 / 54.5 (the seed's heading random walk
+# under linear acceleration), ukf:hf=true 2.38 / 12.6, ukf-bias and ekf 3.35 / 7.6 deg
+# (inclination / total RMSE).
+@pytest.mark.parametrize(
+    "spec,inclination,total",
+    [("ukf", 3.0, 65.0), ("ukf:hf=true", 3.0, 16.0), ("ukf-bias", 4.0, 10.0), ("ekf", 4.0, 10.0)],
+)
+def test_bounds_on_the_simulated_recording(spec, inclination, total):
+    from evaluation.metrics import score
+    from fusion import datasets
+
+    rec = datasets.load("sim")
+    est = build(spec).estimate(rec.imu, datasets.initial_orientation(rec, "truth"))
+    s = score(rec.truth, est)
+    assert s.rmse_deg["inclination"] <= inclination
+    assert s.rmse_deg["total"] <= total
+    cov = est.diagnostics["cov"]
+    assert np.linalg.eigvalsh(cov[1:]).min() > 0.0
