@@ -178,7 +178,9 @@ def load_source(source: Source, board: BoardModel = BoardModel(), dropouts: bool
     if source.kind == "sim":
         from .sim import simulate
 
-        raw, truth = simulate(board=board)
+        # The simulated hardware is the nominal board (with the sim's own sensitivity errors);
+        # `board` is the user's model of it, used only to calibrate, as for a real file.
+        raw, truth = simulate()
         calib = calibrate(raw, board)
         return Recording(SIM_ID, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib)
     if source.kind == "csv":
