@@ -38,9 +38,16 @@ BAD_GYRO_COLOR, BAD_GYRO_ALPHA = "tab:red", 0.2
 DPI = 100
 
 
-def color(index: int) -> str:
-    """The colour of the estimator at `index` in the run's estimator list."""
-    return f"C{index % 10}"
+def color(index: int):
+    """The colour of the estimator at `index` in the run's estimator list: tab10 for the
+    first ten, then Dark2 (drawn dashed, see `linestyle`), so thirteen estimators stay apart."""
+    if index < 10:
+        return f"C{index}"
+    return matplotlib.colormaps["Dark2"].colors[(index - 10) % 8]
+
+
+def linestyle(index: int) -> str:
+    return "-" if index < 10 else "--"
 
 
 def euler_deg(quat_wxyz: np.ndarray) -> np.ndarray:
@@ -151,14 +158,15 @@ def euler_figure(s: RecordingSeries) -> Figure:
     t0 = float(s.imu_t[0])
     curves = []
     if s.has_truth:
-        curves.append(("VICON", s.truth_t - t0, euler_deg(s.truth_quat), TRUTH_COLOR, 2.2))
+        curves.append(("VICON", s.truth_t - t0, euler_deg(s.truth_quat), None, 2.2))
     for e, label in enumerate(s.labels):
-        curves.append((_display_label(label, s.causal[e]), s.imu_t - t0, euler_deg(s.quat[e]), color(e), 1.0))
+        curves.append((_display_label(label, s.causal[e]), s.imu_t - t0, euler_deg(s.quat[e]), e, 1.0))
     limits = {"roll": 180, "pitch": 90, "yaw": 180}
     for k, (ax, name) in enumerate(zip(axes, EULER_NAMES)):
         _shade(ax, s, t0)
-        for label, x, angles, col, width in curves:
-            ax.plot(*break_wraps(x, angles[:, k]), color=col, lw=width, label=label)
+        for label, x, angles, e, width in curves:
+            style = dict(color=TRUTH_COLOR, ls="-") if e is None else dict(color=color(e), ls=linestyle(e))
+            ax.plot(*break_wraps(x, angles[:, k]), lw=width, label=label, **style)
         lim = limits[name]
         ax.set_ylim(-lim * 1.05, lim * 1.05)
         ax.set_yticks(np.arange(-lim, lim + 1, 90 if lim == 180 else 45))
@@ -184,7 +192,8 @@ def error_figure(s: RecordingSeries) -> Figure | None:
     for k, (ax, kind) in enumerate(zip(axes, KINDS)):
         _shade(ax, s, t0)
         for e, label in enumerate(s.labels):
-            ax.plot(x, s.err_deg[e, k], color=color(e), lw=1.0, label=_display_label(label, s.causal[e]))
+            ax.plot(x, s.err_deg[e, k], color=color(e), ls=linestyle(e), lw=1.0,
+                    label=_display_label(label, s.causal[e]))
         ax.set_ylabel(f"{kind} error [deg]")
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
@@ -206,7 +215,7 @@ def loss_figure(s: RecordingSeries) -> Figure | None:
     ax = fig.subplots()
     positive = all(np.all(v[np.isfinite(v)] > 0) for v in s.losses.values())
     for e, loss in sorted(s.losses.items()):
-        ax.plot(np.arange(len(loss)), loss, color=color(e), marker="." if len(loss) < 60 else None,
+        ax.plot(np.arange(len(loss)), loss, color=color(e), ls=linestyle(e), marker="." if len(loss) < 60 else None,
                 label=_display_label(s.labels[e], s.causal[e]))
     if positive:
         ax.set_yscale("log")
@@ -294,6 +303,7 @@ def speed_figure(rows: list[dict], causal: dict[str, bool]) -> Figure:
     ax.set_ylabel("total RMSE [deg] (mean over recordings with truth)")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=2 if len(labels) > 6 else 1, loc="lower right")
     ax.set_title("accuracy vs speed (lower left is better; squares: smoothers)", fontsize=10)
     return fig
 
