@@ -96,8 +96,9 @@ def stationary_mask(raw: RawImu, board: BoardModel, detector: RestDetector) -> n
     # chunks of windows (same numbers, bit for bit; memory bounded).
     view = sliding_window_view(raw.counts, window, axis=0)
     std = np.empty((len(view), 6))
-    for lo in range(0, len(view), _STD_CHUNK):
-        std[lo:lo + _STD_CHUNK] = view[lo:lo + _STD_CHUNK].std(axis=-1)
+    with np.errstate(over="ignore", invalid="ignore"):  # an absurd count (1e308) gives inf/NaN: not still
+        for lo in range(0, len(view), _STD_CHUNK):
+            std[lo:lo + _STD_CHUNK] = view[lo:lo + _STD_CHUNK].std(axis=-1)
     std *= np.abs(board.scale)
     still_window = (std[:, :3].max(axis=1) < detector.acc_std_g) & (std[:, 3:].max(axis=1) < detector.gyro_std_rad_s)
     # A sample is still only if every window containing it is still (conservative at the
