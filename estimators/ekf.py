@@ -40,7 +40,7 @@ from fusion.types import ImuSamples
 
 from ._attitude import acc_variance_scale, exp_quat, inv_sym3, mul_floats, repair_covariance, unit_array
 from .base import RecursiveEstimator
-from .ukf import Gate, _check_nonneg
+from .ukf import Gate, _check_nonneg, check_filter_params
 
 
 @dataclass(frozen=True)
@@ -71,21 +71,8 @@ class EKFParams:
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
 
     def __post_init__(self) -> None:
-        _check_nonneg(
-            "ekf",
-            process_noise_rad2_s=self.process_noise_rad2_s,
-            acc_noise_g2=self.acc_noise_g2,
-            init_var_rad2=self.init_var_rad2,
-            bias_walk_rad2_s3=self.bias_walk_rad2_s3,
-            init_bias_var_rad2_s2=self.init_bias_var_rad2_s2,
-            invalid_gyr_std_rad_s=self.invalid_gyr_std_rad_s,
-        )
-        if self.use_acc and self.acc_noise_g2 <= 0.0:
-            raise ValueError(f"ekf: acc_noise_g2 (R) must be > 0 when the accelerometer is used, got {self.acc_noise_g2}")
-        if self.gate not in ("off", "skip", "inflate"):
-            raise ValueError(f"ekf: gate must be off, skip or inflate, got {self.gate!r}")
-        if not (math.isfinite(self.gate_g) and self.gate_g > 0.0):
-            raise ValueError(f"ekf: gate_g must be > 0 g, got {self.gate_g!r}")
+        _check_nonneg("ekf", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
+        check_filter_params(self, "ekf")
 
 
 def _rotation_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:

@@ -118,7 +118,8 @@ def _check_nonneg(owner: str, **values: float) -> None:
             raise ValueError(f"{owner}: {name} must be a finite number >= 0, got {value!r}")
 
 
-def _check_common(p: Any, owner: str) -> None:
+def check_filter_params(p: Any, owner: str) -> None:
+    """The checks every filter's parameters share (ukf, ukf-bias, ekf)."""
     _check_nonneg(
         owner,
         process_noise_rad2_s=p.process_noise_rad2_s,
@@ -132,6 +133,10 @@ def _check_common(p: Any, owner: str) -> None:
         raise ValueError(f"{owner}: gate must be off, skip or inflate, got {p.gate!r}")
     if not (math.isfinite(p.gate_g) and p.gate_g > 0.0):
         raise ValueError(f"{owner}: gate_g must be > 0 g, got {p.gate_g!r}")
+
+
+def _check_common(p: Any, owner: str) -> None:
+    check_filter_params(p, owner)
     if not (math.isfinite(p.mean_tol_rad) and p.mean_tol_rad > 0.0):
         raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {p.mean_tol_rad!r}")
     if int(p.mean_max_iter) != p.mean_max_iter or p.mean_max_iter < 1:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from estimators.base import Estimator
@@ -97,3 +98,11 @@ def register(monkeypatch) -> None:
 
     monkeypatch.setitem(estimators.ESTIMATORS, "toy", Toy)
     monkeypatch.setitem(estimators.ESTIMATORS, "toysmooth", ToySmoother)
+
+
+@pytest.fixture(scope="module")
+def toy():
+    """The test-only estimators registered for the tests of one module."""
+    with pytest.MonkeyPatch.context() as mp:
+        register(mp)
+        yield

@@ -11,14 +11,7 @@ from estimators.params import EstimatorSpec
 from evaluation import ablate, plots
 from fusion.cli import main
 
-from report_fixtures import register, write_csv_dataset
-
-
-@pytest.fixture(scope="module")
-def toy():
-    with pytest.MonkeyPatch.context() as mp:
-        register(mp)
-        yield
+from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
 
 
 @pytest.fixture(scope="module")

@@ -19,16 +19,9 @@ from evaluation import plots, runner, series
 from evaluation.compare import _as_specs
 from fusion.cli import main
 
-from report_fixtures import recording, register, write_csv_dataset
+from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
 
 SPECS = ["dr", "toy:g=1.05", "toysmooth"]
-
-
-@pytest.fixture(scope="module")
-def toy():
-    with pytest.MonkeyPatch.context() as mp:
-        register(mp)
-        yield
 
 
 @pytest.fixture(scope="module")
