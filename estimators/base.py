@@ -55,9 +55,10 @@ class Estimator(ABC):
 class RecursiveEstimator(Estimator):
     """A filter: `reset` once, then one `step` per sample interval.
 
-    `estimate` calls `step(k)` for k = 0 .. N-2; step k propagates with the gyro sample k
-    over `dt[k] = t[k+1] - t[k]` and corrects with the accelerometer sample k + 1, and
-    returns the orientation at `t[k+1]`. Subclasses keep the step lean: state in
+    `estimate` calls `step(k)` for k = 0 .. N-2; step k propagates with the gyro reading for
+    the interval [t[k], t[k+1]] (`ImuSamples.interval_rates`: gyro sample k + 1 or k, as the
+    recording's `gyr_timing` says) over `dt[k] = t[k+1] - t[k]`, corrects with the
+    accelerometer sample k + 1, and returns the orientation at `t[k+1]`. Subclasses keep the step lean: state in
     preallocated arrays, no per-step object construction.
     """
 
@@ -69,8 +70,8 @@ class RecursiveEstimator(Estimator):
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         """Advance from t[k] to t[k+1]; return the (4,) quaternion at t[k+1].
 
-        gyr_rad_s: (3,) gyro sample k, rad/s. dt_s: t[k+1] - t[k].
-        acc_g: (3,) accelerometer sample k + 1, g. gyr_valid: whether gyro sample k is usable.
+        gyr_rad_s: (3,) gyro reading for [t[k], t[k+1]], rad/s. dt_s: t[k+1] - t[k].
+        acc_g: (3,) accelerometer sample k + 1, g. gyr_valid: whether that gyro reading is usable.
         """
 
     def diagnostics(self) -> dict[str, Any]:
@@ -82,7 +83,7 @@ class RecursiveEstimator(Estimator):
         out = np.empty((n, 4))
         out[0] = init_quat_wxyz
         self.reset(imu, np.asarray(init_quat_wxyz, dtype=float))
-        gyr, acc, valid, dt = imu.gyr_rad_s, imu.acc_g, imu.gyr_valid, imu.dt
+        (gyr, valid), acc, dt = imu.interval_rates(), imu.acc_g, imu.dt
         step = self.step
         for k in range(n - 1):
             out[k + 1] = step(k, gyr[k], dt[k], acc[k + 1], valid[k])

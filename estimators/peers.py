@@ -115,27 +115,23 @@ def align_heading(quat_wxyz: np.ndarray, ref_wxyz: np.ndarray, k: int = 0) -> np
     return quat.multiply(twist / norm, quat_wxyz)
 
 
-def _masked_rate(imu: ImuSamples, fill: np.ndarray | float = 0.0) -> np.ndarray:
-    """(N, 3) gyro rad/s with invalid samples replaced by `fill`."""
-    gyr = np.array(imu.gyr_rad_s, dtype=float)
-    gyr[~imu.gyr_valid] = fill
-    return gyr
-
-
 def _rate_for_constant_ts(imu: ImuSamples) -> tuple[np.ndarray, float]:
     """Gyro input for a library that integrates with one constant sample time.
 
     Returns `(gyr, ts)`: `ts` is the mean step `(t[-1] - t[0]) / (N - 1)`, and row `j >= 1`
-    of `gyr` (N, 3) is gyro sample `j - 1` scaled by `dt[j - 1] / ts`, so that the library's
-    step `j` (gyro `j`, then accelerometer `j`) rotates by exactly `w[j-1] dt[j-1]` and
-    then corrects with accelerometer sample `j`: the pairing of `RecursiveEstimator.step`.
-    Row 0 is zero. Invalid gyro samples give zero rows.
+    of `gyr` (N, 3) is the gyro reading for [t[j-1], t[j]] (`ImuSamples.interval_rates`, which
+    honours the recording's `gyr_timing`) scaled by `dt[j - 1] / ts`, so that the library's
+    step `j` (gyro `j`, then accelerometer `j`) rotates by exactly that reading times
+    `dt[j-1]` and then corrects with accelerometer sample `j`, as `RecursiveEstimator.step`
+    does. Row 0 is zero. Invalid gyro samples give zero rows.
     """
     n = len(imu)
     dt = imu.dt
     ts = float((imu.t[-1] - imu.t[0]) / (n - 1))
+    rate, valid = imu.interval_rates()
+    rate[~valid] = 0.0
     gyr = np.zeros((n, 3))
-    gyr[1:] = _masked_rate(imu)[:-1] * (dt / ts)[:, None]
+    gyr[1:] = rate * (dt / ts)[:, None]
     return np.ascontiguousarray(gyr, dtype=np.float64), ts
 
 
@@ -455,9 +451,9 @@ class FusionPeer(RecursiveEstimator):
         if not p.startup:
             ahrs.skip_startup()
         self._ahrs = ahrs
-        self._deg = np.degrees(_masked_rate(imu))  # Fusion wants deg/s
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         self._ahrs.set_sample_period(dt_s)
-        self._ahrs.update_no_magnetometer(self._deg[k], _acc_m_s2(acc_g) / STANDARD_GRAVITY_M_S2)
+        rate_deg_s = np.degrees(gyr_rad_s) if gyr_valid else np.zeros(3)  # Fusion wants deg/s
+        self._ahrs.update_no_magnetometer(rate_deg_s, _acc_m_s2(acc_g) / STANDARD_GRAVITY_M_S2)
         return self._ahrs.get_quaternion()

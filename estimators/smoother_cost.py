@@ -161,7 +161,9 @@ class SmootherProblem:
     def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True) -> "SmootherProblem":
         """imu: calibrated samples; init_quat_wxyz: (4,) anchor of q_0."""
         dt = imu.dt
-        valid = imu.gyr_valid[:-1].copy() if use_valid else np.ones(len(dt), bool)
+        rate, valid = imu.interval_rates()
+        if not use_valid:
+            valid = np.ones(len(dt), bool)
         if weights.motion_weight is not None:
             w_motion = np.full(len(dt), float(weights.motion_weight))
             w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_s / weights.dropout_rate_std_rad_s) ** 2
@@ -180,7 +182,7 @@ class SmootherProblem:
             [np.full(len(bias_idx), weights.bias_prior_rad_s**-2), np.full(len(scale_idx), weights.scale_prior**-2)]
         )
         return cls(
-            dt=dt, gyr=np.array(imu.gyr_rad_s[:-1]), valid=valid, acc=acc,
+            dt=dt, gyr=rate, valid=valid, acc=acc,
             w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0), huber_c=huber_c,
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
             w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,

@@ -46,7 +46,12 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
     h5py = _h5py(path)
     try:
         with h5py.File(path, "r") as f:
-            return {key: np.array(f[key]) for key in f.keys() if isinstance(f[key], h5py.Dataset)}
+            data = {key: np.array(f[key]) for key in f.keys() if isinstance(f[key], h5py.Dataset)}
+            # BROAD's published .hdf5 files keep `sampling_rate` as a file attribute, not a dataset.
+            for key, value in f.attrs.items():
+                if key not in data and not isinstance(value, (str, bytes)):
+                    data[key] = np.asarray(value)
+            return data
     except OSError as exc:
         raise ValueError(f"{path}: not a readable HDF5 file ({exc})") from None
 
@@ -145,5 +150,5 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     quat[ok] /= norm[ok, None]
     quat[~ok] = np.nan
     t = np.arange(n) / rate[0]
-    imu = ImuSamples(t, gyr, acc / G, source=str(path))
+    imu = ImuSamples(t, gyr, acc / G, source=str(path), gyr_timing="end")  # BROAD: gyro k covers (t[k-1], t[k]]
     return imu, Trajectory(t, quat), movement

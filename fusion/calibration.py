@@ -79,7 +79,7 @@ class Calibration:
 
     def apply(self, raw: RawImu) -> ImuSamples:
         values = (raw.counts - self.bias_counts) * self.board.scale
-        return ImuSamples(raw.t, values[:, 3:], values[:, :3], source=raw.source)
+        return ImuSamples(raw.t, values[:, 3:], values[:, :3], source=raw.source, gyr_timing=raw.gyr_timing)
 
 
 _STD_CHUNK = 4096  # windows per chunk in `stationary_mask`

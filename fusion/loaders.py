@@ -292,7 +292,7 @@ def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
     if np.abs(counts).max() > ADC_LIMIT_COUNTS:
         raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
     t, counts = repair_time(t, path, counts)
-    return RawImu(t, counts, source=str(path))
+    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the course boards' pairing
 
 
 def load_imu_pickle(path: str | Path) -> RawImu:
@@ -397,7 +397,7 @@ def load_csv(path: str | Path, with_movement: bool = False):
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
     movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
     t, gyr, acc, quat, movement = repair_time(col["t"], path, gyr, acc, quat, movement)
-    imu = ImuSamples(t, gyr, acc, source=str(path))
+    imu = ImuSamples(t, gyr, acc, source=str(path), gyr_timing="end")  # the common convention
     extra = (movement if "movement" in col else None,) if with_movement else ()
     if not has_truth:
         return (imu, None, *extra)

@@ -141,4 +141,4 @@ def simulate(settings: SimSettings = SimSettings(), board: BoardModel = BoardMod
     m = int(round(s.duration_s * s.truth_rate_hz))
     t_truth = np.arange(m) / s.truth_rate_hz
     truth = Trajectory.from_rotation(T0_S + t_truth + s.truth_clock_offset_s, motion.rotation(t_truth))
-    return RawImu(T0_S + t_true, counts, source="sim"), truth
+    return RawImu(T0_S + t_true, counts, source="sim", gyr_timing="start"), truth

@@ -11,10 +11,19 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
+
+
+GyrTiming = Literal["end", "start"]
+GYR_TIMINGS: tuple[str, ...] = ("end", "start")
+
+
+def _check_timing(timing: str, what: str) -> None:
+    if timing not in GYR_TIMINGS:
+        raise ValueError(f"{what}: gyr_timing must be one of {', '.join(GYR_TIMINGS)}, got {timing!r}")
 
 
 def _frozen(a: Any, dtype: type = float) -> np.ndarray:
@@ -41,16 +50,19 @@ class RawImu:
         sign flip (the x/y accelerometer inversion is part of the board model, applied in
         calibration). Loaders convert every file layout to this one.
     source: where it came from (a path, or "sim").
+    gyr_timing: which interval a gyro sample covers, passed on to `ImuSamples` (see there).
     """
 
     t: np.ndarray
     counts: np.ndarray
     source: str = ""
+    gyr_timing: GyrTiming = "end"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t", _frozen(self.t))
         object.__setattr__(self, "counts", _frozen(self.counts))
         _check_time(self.t, self.source)
+        _check_timing(self.gyr_timing, self.source)
         if self.counts.shape != (len(self.t), 6):
             raise ValueError(
                 f"{self.source}: counts must be (N, 6) with N = {len(self.t)}, got {self.counts.shape}"
@@ -68,6 +80,12 @@ class ImuSamples:
         saturation detected by `fusion.checks`). Estimators must not integrate those samples.
         All True unless a detector marked them.
     source: where the samples came from, for messages.
+    gyr_timing: which interval gyro sample k stands for, a property of the recording set by
+        its loader from evidence. "end" (the common convention, that of VQF, Madgwick,
+        Mahony, Fusion, BROAD and the generic CSV): the rate over (t[k-1], t[k]], so the
+        update at t[k] uses gyro k, then accelerometer k. "start": the rate over
+        [t[k], t[k+1]), the course boards' pairing (gyro k, then accelerometer k + 1).
+        Estimators read the rates through `interval_rates`, never by indexing `gyr_rad_s`.
     """
 
     t: np.ndarray
@@ -75,6 +93,7 @@ class ImuSamples:
     acc_g: np.ndarray
     gyr_valid: np.ndarray | None = None
     source: str = ""
+    gyr_timing: GyrTiming = "end"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t", _frozen(self.t))
@@ -83,6 +102,7 @@ class ImuSamples:
         valid = np.ones(len(self.t), bool) if self.gyr_valid is None else self.gyr_valid
         object.__setattr__(self, "gyr_valid", _frozen(valid, bool))
         _check_time(self.t, self.source)
+        _check_timing(self.gyr_timing, self.source)
         n = len(self.t)
         for name in ("gyr_rad_s", "acc_g"):
             if getattr(self, name).shape != (n, 3):
@@ -98,9 +118,21 @@ class ImuSamples:
         """(N - 1,) time steps, s."""
         return np.diff(self.t)
 
+    def interval_rates(self) -> tuple[np.ndarray, np.ndarray]:
+        """The gyro reading for each interval between samples, as `gyr_timing` says.
+
+        Returns `(rate, valid)`: rate (N - 1, 3) rad/s, body frame, row k the angular rate
+        over [t[k], t[k+1]] (gyro sample k + 1 for "end", sample k for "start"); valid
+        (N - 1,) bool, that sample's `gyr_valid`. A new array: callers may modify it.
+        """
+        first = 1 if self.gyr_timing == "end" else 0
+        stop = first + len(self.t) - 1
+        return np.array(self.gyr_rad_s[first:stop]), np.array(self.gyr_valid[first:stop])
+
     def replace(self, **changes: Any) -> "ImuSamples":
         """A copy with some fields changed (the original is untouched)."""
-        fields = dict(t=self.t, gyr_rad_s=self.gyr_rad_s, acc_g=self.acc_g, gyr_valid=self.gyr_valid, source=self.source)
+        fields = dict(t=self.t, gyr_rad_s=self.gyr_rad_s, acc_g=self.acc_g, gyr_valid=self.gyr_valid,
+                      source=self.source, gyr_timing=self.gyr_timing)
         fields.update(changes)
         return ImuSamples(**fields)
 

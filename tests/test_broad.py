@@ -30,7 +30,8 @@ def trial_arrays(seed: int = 0) -> dict[str, np.ndarray]:
     w = np.zeros((N, 3))
     w[300:900] = np.radians([40.0, -25.0, 60.0]) * np.sin(np.linspace(0, 3 * np.pi, 600))[:, None]
     q0 = Rotation.from_euler("xyz", rng.uniform(-20, 20, 3), degrees=True).as_quat(scalar_first=True)
-    steps = np.vstack([q0, quat.from_rotvec(w[:-1] / RATE_HZ)])
+    # BROAD's timing: gyro sample k is the rate over (t[k-1], t[k]]
+    steps = np.vstack([q0, quat.from_rotvec(w[1:] / RATE_HZ)])
     q = quat.cumulative_product(steps)
     acc = quat.gravity_in_body(q) * 9.80665
     opt = q.copy()
