@@ -39,6 +39,7 @@ class Result:
     trajectory: Trajectory | None = None
     score: Score | None = None
     panorama: dict[str, float] | None = None  # with --panorama: `evaluation.panorama.panorama_scores`
+    alignment: dict[str, Any] | None = None  # with --align: `evaluation.align.Alignment.to_json`
 
     @property
     def us_per_sample(self) -> float:
@@ -46,7 +47,7 @@ class Result:
 
     def to_json(self) -> dict[str, Any]:
         """The row of `results.json` (the keys are a documented format: see README; `panorama`
-        only with `--panorama`)."""
+        only with `--panorama`; `alignment` null unless the row was scored with `--align`)."""
         row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
@@ -54,6 +55,7 @@ class Result:
             "seconds": self.seconds,
             "rmse_deg": self.rmse_deg,
             "max_deg": self.max_deg,
+            "alignment": self.alignment,
         }
         if self.panorama is not None:
             row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
@@ -97,28 +99,39 @@ def default_protocol(recording: Recording) -> str:
     return "broad" if recording.movement is not None else "full"
 
 
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None) -> Result:
-    """One job: estimate, time, score (`protocol` None: the recording's default)."""
+def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None,
+            align: bool = False) -> Result:
+    """One job: estimate, time, score (`protocol` None: the recording's default).
+
+    align: score after mapping the truth into our frames (`evaluation.align`). The truth's
+        frames are then not ours, so `init` None starts from the accelerometer, not the truth.
+    """
     estimator = estimators.build(spec)
-    q0 = initial_orientation(recording, init)
+    q0 = initial_orientation(recording, init or ("accel" if align else None))
     start = time.perf_counter()
     trajectory = estimator.estimate(recording.imu, q0)
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
     protocol = protocol or default_protocol(recording)
-    result_score = (score(recording.truth, trajectory, protocol, recording.movement)
-                    if recording.truth is not None else None)
+    result_score = None
+    if recording.truth is not None:
+        try:
+            result_score = score(recording.truth, trajectory, protocol, recording.movement, align=align)
+        except ValueError as exc:
+            raise ValueError(f"{recording.id}, {spec.label}: {exc}") from None
+    alignment = result_score.alignment.to_json() if result_score and result_score.alignment else None
     return Result(
         recording.id, spec.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
         result_score.max_deg if result_score else None,
-        trajectory, result_score,
+        trajectory, result_score, alignment=alignment,
     )
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
-            progress: bool = False, protocol: str | None = None, jobs: int | None = 1) -> list[Result]:
+            progress: bool = False, protocol: str | None = None, jobs: int | None = 1,
+            align: bool = False) -> list[Result]:
     """Every estimator on every recording, in a stable order (recording-major).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
@@ -129,11 +142,13 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
         recording's default (`default_protocol`).
     jobs: worker processes (None or 0: all cores); the results do not depend on it
         (see `evaluation.runner`).
+    align: score against the truth mapped into our frames by fitted constant world and body
+        rotations (`evaluation.align`); each result's `alignment` holds them.
     """
     from .runner import run
 
     results, _ = run(expand_all(_as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
-                     protocol=protocol)
+                     protocol=protocol, align=align)
     return results
 
 
@@ -155,9 +170,19 @@ def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, A
     return {"results": [r.to_json() for r in results], "settings": settings, "versions": versions()}
 
 
-def format_table(results: list[Result]) -> str:
+ALIGN_NOTE = ("after --align: truth mapped into our frames as A R_truth B, A = R_ourworld_truthworld and "
+              "B = R_truthbody_imubody fitted per recording and estimator")
+
+
+def format_table(results: list[Result], align: bool | None = None) -> str:
     """A readable table: one row per recording x estimator, RMSE in degrees, and a mean row
-    per estimator over the recordings that have ground truth."""
+    per estimator over the recordings that have ground truth; with alignment, the fitted
+    rotations after it.
+
+    align: whether the run used `--align` (None: whether any result carries an alignment).
+    """
+    if align is None:
+        align = any(r.alignment for r in results)
     header = ["dataset", "estimator", "total", "inclination", "heading", "us/sample"]
     rows = []
     for r in results:
@@ -184,10 +209,31 @@ def format_table(results: list[Result]) -> str:
     def line(row: list[str]) -> str:
         return "  ".join(str(c).ljust(w) if i < 2 else str(c).rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
 
-    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z)",
+    out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z); "
+           + (ALIGN_NOTE if align else "no alignment"),
            line(header), line(["-" * w for w in widths])]
     out += [line(r) for r in rows]
     if means:
         out.append(line(["-" * w for w in widths]))
         out += [line(r) for r in means]
+    if any(r.alignment for r in results):
+        out += ["", format_alignments(results)]
     return "\n".join(out)
+
+
+def format_alignments(results: list[Result]) -> str:
+    """The fitted rotations of an `--align` run: rotation vectors (axis * angle) and angles, deg."""
+    header = ["dataset", "estimator", "world A (x, y, z)", "|A|", "body B (x, y, z)", "|B|"]
+    rows = []
+    for r in results:
+        if not r.alignment:
+            continue
+        a, b = r.alignment["world_deg"], r.alignment["body_deg"]
+        rows.append([r.dataset, r.estimator, " ".join(f"{x:+7.2f}" for x in a), f"{np.linalg.norm(a):.2f}",
+                     " ".join(f"{x:+7.2f}" for x in b), f"{np.linalg.norm(b):.2f}"])
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    lines = ["Alignment, deg (rotation vectors: A = R_ourworld_truthworld, B = R_truthbody_imubody; "
+             "truth in our frames = A R_truth B)"]
+    lines += ["  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+              for row in [header, ["-" * w for w in widths], *rows]]
+    return "\n".join(lines)

@@ -71,9 +71,9 @@ def _recording(index: int) -> Recording:
 
 
 def _job(index: int, spec: EstimatorSpec, init: str | None, protocol: str | None, with_info: bool,
-         panorama_data_dir: str | None = None) -> tuple[Result, RecordingInfo | None]:
+         panorama_data_dir: str | None = None, align: bool = False) -> tuple[Result, RecordingInfo | None]:
     rec = _recording(index)
-    result = run_one(rec, spec, init, protocol)
+    result = run_one(rec, spec, init, protocol, align)
     if panorama_data_dir is not None:
         from .panorama import panorama_scores
 
@@ -98,7 +98,7 @@ def pool_context() -> multiprocessing.context.BaseContext:
 
 def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], init: str | None = None,
         jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None,
-        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None
+        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None, align: bool = False
         ) -> tuple[list[Result], list[RecordingInfo]]:
     """Every spec on every recording; results in recording-major order.
 
@@ -111,12 +111,14 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     load: how `Source`s are loaded (calibration file, dropout switch).
     panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
         up there; see `evaluation.panorama.panorama_scores`).
+    align: score against the truth mapped into our frames by fitted constant rotations
+        (`evaluation.compare.run_one`, `evaluation.align`).
     """
     specs = list(specs)
     items = list(items)
     for spec in specs:
         estimators.build(spec)
-    tasks = [(i, s, init, protocol, with_info and j == 0, panorama_data_dir)
+    tasks = [(i, s, init, protocol, with_info and j == 0, panorama_data_dir, align)
              for i in range(len(items)) for j, s in enumerate(specs)]
     jobs = default_jobs() if not jobs else int(jobs)
     if jobs < 1:
