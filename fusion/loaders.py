@@ -16,6 +16,19 @@ Formats (see `../shared/data/README.md`):
   "end": the gyro values on row k are the rate over (t[k-1], t[k]], as VQF, Madgwick, Mahony,
   Fusion and BROAD take them.
 
+Gyro timing of the course files (`ImuSamples.gyr_timing`): "start", gyro sample k is the rate
+over [t[k], t[k+1]) (gyro k, then accelerometer k + 1). Evidence on ece276a 1-9
+(`python benchmarks/timing_evidence.py`), ambiguous at the level of the scores:
+- Gyro against accelerometer on the IMU's own clock (gravity in the body frame turns as
+  `-w x a`): gyro sample k matches the accelerometer's turn rate at t[k] + 9.2 ms (pooled;
+  +2 to +14 ms, all nine positive). A mean over [t[k], t[k+1]] predicts +5 ms, over
+  (t[k-1], t[k]] -5 ms (the method gives +5.6 / -4.4 ms on `fusion.sim`): "start" fits.
+- Against VICON the pairing is not identifiable by itself: a one-sample gyro shift equals a
+  VICON clock shift. With each pairing's own measured clock offset (VICON lags by -5..+21 ms
+  with "start", +5..+31 ms with "end"), mean RMSEs differ by at most 0.16 deg: dr 11.68 vs
+  11.67 total, gn inclination 1.47 vs 1.49, ekf 1.91 vs 1.86, vqf 4.41 vs 4.34 ("start" vs
+  "end"). The filters lean slightly to "end", by less than their recording-to-recording spread.
+
 Pickles can run code when loaded: only open pickle files you trust. As a guard, pickles are
 read with a restricted unpickler that only builds numpy arrays and plain containers and
 refuses any other class.
@@ -298,7 +311,7 @@ def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
     if np.abs(counts).max() > ADC_LIMIT_COUNTS:
         raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
     t, counts = repair_time(t, path, counts)
-    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the course boards' pairing
+    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the evidence: see the module docstring
 
 
 def load_imu_pickle(path: str | Path) -> RawImu:
