@@ -1,4 +1,5 @@
-"""Two constant rotations that map a ground truth given in frames of its own onto ours.
+"""Two constant rotations that map a ground truth given in frames of its own onto ours,
+fitted once per recording from the IMU's own measurements.
 
 Public datasets often give motion-capture orientations `R_truth(t)` = R_truthworld_truthbody
 in a world frame whose vertical is not z and for a marker body frame rotated against the IMU.
@@ -11,43 +12,46 @@ the truth expressed in our frames is
 
     R_aligned(t) = A R_truth(t) B        (= R_ourworld_imubody, what an estimate estimates)
 
-and equivalently R_truth(t) = A^-1 R_aligned(t) B^-1. Scoring compares the estimate with
-`R_aligned`, so inclination still means the tilt from our world's z and heading the twist
-about it.
+and equivalently R_truth(t) = A^-1 R_aligned(t) B^-1. Scoring then compares every estimate
+with the same `R_aligned`, so inclination still means the tilt from our world's z and heading
+the twist about it.
 
-`estimate_alignment` finds A and B by least squares over all the given samples, minimising
-the chordal cost
+`fit_alignment` uses only the recording (gyro, accelerometer, truth), never an estimate, so
+an estimator's errors cannot leak into the alignment and every estimator of a recording is
+scored against the same aligned truth.
 
-    J(A, B) = sum_t || A R_truth(t) B - R_est(t) ||_F^2
+1. B from angular rates. The truth's body rate omega_truth(tau_j), the rotation vector of
+   R_truth(t_j)^-1 R_truth(t_{j+1}) over the step (`fusion.checks.vicon_body_rate`, on the
+   truth's own clock, tau_j the step midpoints), equals B applied to the gyro rate at the same
+   instant, omega_truth = B omega_gyro. The gyro's interval rates (`ImuSamples.interval_rates`,
+   which honours the recording's `gyr_timing`) live on the IMU interval midpoints and are
+   interpolated linearly to tau_j. B solves Wahba's problem over all pairs,
+   min_B sum_j w_j |omega_truth_j - B omega_gyro_j|^2, by the SVD of the attitude profile matrix
+   (Markley 1988, "Attitude determination using vector observations and the singular value
+   decomposition", J. Astronautical Sciences 36(3), eqs. 14-19; SciPy's
+   `Rotation.align_vectors`). Pairs where the gyro is invalid (either neighbour) or the truth
+   step spans a gap are skipped. The weights are iteratively reweighted with Huber's weight
+   min(1, k s / r_j) on the residual norm r_j, s the normalised median absolute residual
+   (Huber 1964, "Robust estimation of a location parameter", Ann. Math. Statist. 35(1)), so
+   saturated gyro samples, undetected freezes and truth glitches do not pull B.
+2. A's tilt from the accelerometer. The specific force in the truth world,
+   R_truth(t) B a(t) = g up_truthworld + (linear acceleration), averaged over the recording
+   gives the truth world's up direction: the linear acceleration averages to the change of
+   velocity over the duration, which is bounded. A is the smallest rotation taking that up
+   direction to our +z (its axis is horizontal).
+3. A's rotation about the vertical is not observable from a gyro and an accelerometer; we fit
+   none: A is the smallest tilt (step 2). Scores do not depend on that choice when the
+   estimators start from the aligned truth (`--init truth`, the default with truth, also
+   under `--align`): a turn of A about z turns the aligned truth and the shared start alike.
+   Like the unaligned scores, heading errors then are relative to the truth's heading at the
+   first sample; the BROAD protocol removes each estimate's mean heading offset as usual.
 
-(Frobenius norm of rotation matrices: for small residuals, 8 sin^2(angle / 2), i.e. about
-twice the squared geodesic angle per sample).
-
-1. A closed-form start: with X = B^-1, Y = A the equations read R_est(t) X = Y R_truth(t),
-   the rotation part of the robot-world/hand-eye problem "AX = YB" (Zhuang, Roth and
-   Sudhakar 1994, IEEE Trans. Robotics and Automation 10(4)). Its Kronecker-product form
-   (Shah 2013, "Solving the robot-world/hand-eye calibration problem using the Kronecker
-   product", J. Mechanisms and Robotics 5(3)) is linear in vec(X), vec(Y):
-   [I (x) R_est(t), -(R_truth(t)^T (x) I)] [vec X; vec Y] = 0; the least-squares null vector is
-   the eigenvector of the summed 18 x 18 normal matrix with the smallest eigenvalue, and each
-   3 x 3 block is projected onto SO(3) by SVD. This needs no starting guess, so a large
-   mounting rotation (90 deg axis swaps) cannot trap the refinement in a local minimum.
-2. Alternating least squares on J: with B fixed, ||A R_truth B - R_est|| = ||A - R_est B^-1
-   R_truth^-1|| (the norm is invariant under rotations), so the best A is the chordal L2 mean
-   of the rotations R_est(t) B^-1 R_truth(t)^-1; with A fixed, the best B is the mean of
-   R_truth(t)^-1 A^-1 R_est(t). The mean is the quaternion average of Markley, Cheng,
-   Crassidis and Oshman 2007 ("Averaging quaternions", J. Guidance, Control, and Dynamics
-   30(4)): the eigenvector of sum_t q_t q_t^T with the largest eigenvalue, which minimises the
-   summed squared Frobenius distance of the attitude matrices; SciPy's `Rotation.mean`
-   implements it. Each half-step cannot increase J; the loop stops when neither rotation
-   moves by more than `tol_rad`.
-
-Observability. The pair is determined only if the truth rotates about at least two
-different axes over the recording: for motion about a single fixed axis n, A and B can trade
-any rotation about n. Such a recording (and a constant orientation) is rejected. A real
-estimator's errors are absorbed where they are constant: a constant heading offset goes into
-A's rotation about the vertical, a constant tilt of the estimate into A or B. See README,
-"Scoring against truth in other frames (--align)".
+Observability. B is determined only if the recording rotates about at least two different
+axes; a recording whose gyro rates span one axis (or none) is rejected, as is one with fewer
+than `MIN_PAIRS` usable rate pairs. What the alignment hides: a constant mounting rotation
+between IMU and markers (B) and the tilt of the truth world (A); it no longer hides an
+estimator's constant tilt or heading errors. See README, "Scoring against truth in other
+frames (--align)".
 """
 from __future__ import annotations
 
@@ -57,95 +61,140 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-MIN_SAMPLES = 3
+from fusion.checks import vicon_body_rate
+from fusion.types import ImuSamples, Trajectory
+
+MIN_PAIRS = 3
+SECOND_AXIS_RATIO = 1e-3  # second / largest eigenvalue of the gyro rates' scatter matrix
+HUBER_K = 2.5  # residuals beyond 2.5 robust sigmas are down-weighted
+MAX_ITERATIONS = 100
+SCALE_AXIS_RATIO = 1e-2  # fit a gyro scale factor only on axes with 1 % of the largest axis' rate power
 
 
 @dataclass(frozen=True, eq=False)
 class Alignment:
     """The constant rotations between the truth's frames and ours (module docstring).
 
-    world: A = R_ourworld_truthworld.
+    world: A = R_ourworld_truthworld (a tilt only: the smallest rotation taking the truth
+        world's up direction to our z).
     body: B = R_truthbody_imubody.
-    samples: how many (truth, estimate) pairs they were fitted on.
-    iterations: alternating least-squares iterations run.
+    rate_pairs: how many (truth rate, gyro rate) pairs B was fitted on.
+    rate_residual_deg_s: median of |omega_truth - B omega_gyro| over those pairs, deg/s.
+    gravity_g: norm of the averaged specific force, in g (about 1 for a good fit).
+    gyro_scale: the per-axis gyro scale factors fitted with B (truth rate / gyro rate on each
+        IMU axis; a by-product, not applied to any estimator).
     """
 
     world: Rotation
     body: Rotation
-    samples: int
-    iterations: int
+    rate_pairs: int
+    rate_residual_deg_s: float
+    gravity_g: float
+    gyro_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
-    def apply(self, truth: Rotation) -> Rotation:
-        """The truth in our frames: `A R_truth B` (a new `Rotation`; the input is untouched)."""
-        return self.world * truth * self.body
-
-    def to_truth_frames(self, estimate: Rotation) -> Rotation:
-        """An estimate expressed in the truth's frames: `A^-1 R_est B^-1` (for plots over the truth)."""
-        return self.world.inv() * estimate * self.body.inv()
+    def apply(self, truth: Trajectory) -> Trajectory:
+        """The truth in our frames, `A R_truth B` (a new `Trajectory`; NaN rows stay NaN)."""
+        out = np.full_like(truth.quat_wxyz, np.nan)
+        ok = truth.valid
+        if ok.any():
+            rot = self.world * Rotation.from_quat(truth.quat_wxyz[ok], scalar_first=True) * self.body
+            out[ok] = rot.as_quat(scalar_first=True)
+        return Trajectory(truth.t, out, truth.diagnostics)
 
     def to_json(self) -> dict[str, Any]:
-        """`world_deg`, `body_deg`: rotation vectors (axis * angle) in degrees; their norms."""
+        """`world_deg`, `body_deg`: rotation vectors (axis * angle) in degrees; their norms; the
+        fit's diagnostics."""
         world, body = self.world.as_rotvec(degrees=True), self.body.as_rotvec(degrees=True)
         return {"world_deg": [float(x) for x in world], "body_deg": [float(x) for x in body],
                 "world_angle_deg": float(np.linalg.norm(world)), "body_angle_deg": float(np.linalg.norm(body)),
-                "samples": self.samples}
+                "rate_pairs": self.rate_pairs, "rate_residual_deg_s": self.rate_residual_deg_s,
+                "gravity_g": self.gravity_g, "gyro_scale": list(self.gyro_scale)}
 
 
-def _nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """The rotation matrix closest to `m` (3, 3) in the Frobenius norm (SVD projection)."""
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+def _interp_rates(t_query: np.ndarray, t: np.ndarray, rate: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of (K, 3) `rate` at (M,) `t_query`; the mask says where both
+    neighbours are valid and the query is inside the span."""
+    right = np.clip(np.searchsorted(t, t_query, side="right"), 1, len(t) - 1)
+    left = right - 1
+    frac = ((t_query - t[left]) / (t[right] - t[left]))[:, None]
+    out = rate[left] + (rate[right] - rate[left]) * frac
+    ok = valid[left] & valid[right] & (t_query >= t[0]) & (t_query <= t[-1])
+    return out, ok
 
 
-def closed_form(r_truth: Rotation, r_est: Rotation) -> tuple[Rotation, Rotation, np.ndarray]:
-    """Start values (A, B) from the linear Kronecker-product form (module docstring, step 1).
+def rate_pairs(imu: ImuSamples, truth: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """Matching angular rates at the truth's step midpoints (module docstring, step 1).
 
-    Returns A, B and the 18 eigenvalues of the normal matrix divided by the sample count,
-    ascending: the second smallest is about 0 when the motion does not determine A and B.
+    Returns `(truth_rate, gyro_rate)`: (M, 3) rad/s each, the truth's body rate (truth body
+    frame) and the gyro's (IMU body frame), only where both are usable.
     """
-    est, truth = r_est.as_matrix(), r_truth.as_matrix()  # (N, 3, 3)
-    eye = np.eye(3)
-    # Column-major vec: vec(P X Q) = (Q^T (x) P) vec X (Shah 2013, the rotation equation).
-    left = np.einsum("ij,nkl->nikjl", eye, est).reshape(-1, 9, 9)  # I (x) R_est
-    right = np.einsum("nji,kl->nikjl", truth, eye).reshape(-1, 9, 9)  # R_truth^T (x) I
-    k = np.concatenate([left, -right], axis=2)  # (N, 9, 18)
-    normal = np.einsum("nij,nik->jk", k, k) / len(k)
-    values, vectors = np.linalg.eigh(normal)
-    v = vectors[:, 0]
-    x = v[:9].reshape(3, 3, order="F")
-    y = v[9:].reshape(3, 3, order="F")
-    if np.linalg.det(y) < 0:  # the null vector's sign is arbitrary; rotations have det +1
-        x, y = -x, -y
-    a = Rotation.from_matrix(_nearest_rotation(y))
-    b = Rotation.from_matrix(_nearest_rotation(x)).inv()
-    return a, b, values
+    if len(imu) < 3 or len(truth) < 2:
+        return np.empty((0, 3)), np.empty((0, 3))
+    tau, omega = vicon_body_rate(truth)
+    rate, valid = imu.interval_rates()
+    mid = 0.5 * (imu.t[:-1] + imu.t[1:])
+    valid = valid & np.all(np.isfinite(rate), axis=1)
+    gyro, ok = _interp_rates(tau, mid, rate, valid)
+    ok &= np.all(np.isfinite(omega), axis=1)
+    return omega[ok], gyro[ok]
 
 
-def estimate_alignment(r_truth: Rotation, r_est: Rotation, tol_rad: float = 1e-10,
-                       max_iterations: int = 200) -> Alignment:
-    """Least-squares A, B with `A R_truth(t) B ~ R_est(t)` (module docstring).
+def fit_body(truth_rate: np.ndarray, gyro_rate: np.ndarray) -> tuple[Rotation, np.ndarray, np.ndarray]:
+    """B with `truth_rate ~ B diag(scale) gyro_rate`: Wahba's problem with per-axis gyro scale
+    factors and Huber reweighting (module docstring, step 1). truth_rate, gyro_rate: (M, 3)
+    rad/s. Returns B, the (3,) scale factors and the (M,) residual norms, rad/s.
 
-    r_truth: (N,) truth orientations R_truthworld_truthbody at the estimate's time stamps.
-    r_est: (N,) estimated orientations R_ourworld_imubody at the same times.
-    Raises ValueError for fewer than 3 pairs or motion that does not determine A and B.
+    Raises ValueError for fewer than `MIN_PAIRS` pairs or rates about a single axis.
     """
-    n = len(r_truth) if not r_truth.single else 1
-    if n != (len(r_est) if not r_est.single else 1):
-        raise ValueError(f"alignment: {n} truth orientations but {len(r_est)} estimates")
-    if n < MIN_SAMPLES:
-        raise ValueError(f"alignment needs at least {MIN_SAMPLES} time stamps with both truth and estimate, got {n}")
-    a, b, values = closed_form(r_truth, r_est)
-    # Exact data with motion about one axis has a 3-dim null space; rich motion a 1-dim one.
-    if values[1] <= 1e-9 * values[-1]:
-        raise ValueError("alignment is not determined: the truth rotates about a single axis (or not at all) "
-                         "over the scored samples, so the world and body rotations can trade a turn about it")
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        a_new = (r_est * b.inv() * r_truth.inv()).mean()  # Markley et al. 2007 average
-        b_new = (r_truth.inv() * a_new.inv() * r_est).mean()
-        step = max((a_new * a.inv()).magnitude(), (b_new * b.inv()).magnitude())
-        a, b = a_new, b_new
-        if step < tol_rad:
+    n = len(truth_rate)
+    if n < MIN_PAIRS:
+        raise ValueError(f"alignment needs at least {MIN_PAIRS} truth steps with a valid gyro rate "
+                         f"(truth rows on both sides, gyro valid), got {n}")
+    scatter = np.linalg.eigvalsh(gyro_rate.T @ gyro_rate)  # ascending
+    if scatter[2] == 0.0 or scatter[1] <= SECOND_AXIS_RATIO * scatter[2]:
+        raise ValueError("alignment is not determined: the recording rotates about a single axis (or not at all), "
+                         "so the body rotation can take any turn about it")
+    power = np.sum(gyro_rate**2, axis=0)
+    scalable = power > SCALE_AXIS_RATIO * power.max()  # axes with enough motion to fit a scale on
+    weights, scale, body = np.ones(n), np.ones(3), Rotation.identity()
+    for _ in range(MAX_ITERATIONS):
+        body_new, _ = Rotation.align_vectors(truth_rate, gyro_rate * scale, weights=weights)  # Markley 1988
+        in_imu = body_new.inv().apply(truth_rate)  # the truth's rate on the IMU axes
+        scale_new = scale.copy()
+        scale_new[scalable] = ((weights[:, None] * in_imu * gyro_rate).sum(axis=0)
+                               / (weights[:, None] * gyro_rate**2).sum(axis=0))[scalable]  # per-axis least squares
+        residual = np.linalg.norm(truth_rate - body_new.apply(gyro_rate * scale_new), axis=1)
+        sigma = 1.4826 * np.median(residual)  # robust sigma (normalised median absolute deviation)
+        weights = np.minimum(1.0, HUBER_K * sigma / np.maximum(residual, 1e-300)) if sigma > 0 else np.ones(n)
+        step = max((body_new * body.inv()).magnitude(), np.max(np.abs(scale_new - scale)))
+        body, scale = body_new, scale_new
+        if step < 1e-10:
             break
-    return Alignment(a, b, n, iterations)
+    return body, scale, residual
+
+
+def truth_up(imu: ImuSamples, truth: Trajectory, body: Rotation) -> np.ndarray:
+    """(3,) the averaged specific force in the truth world, g: `mean_t R_truth(t) B a(t)`
+    over the IMU samples inside the truth's span (module docstring, step 2)."""
+    r_truth, mask = truth.interpolate(imu.t)
+    if r_truth is None:
+        raise ValueError("alignment: no IMU sample falls inside the ground truth's span")
+    return np.mean((r_truth * body).apply(imu.acc_g[mask]), axis=0)
+
+
+def fit_alignment(imu: ImuSamples, truth: Trajectory) -> Alignment:
+    """A and B of one recording from its gyro, accelerometer and truth (module docstring).
+
+    imu: calibrated samples (gyro rad/s and accelerometer g, IMU body frame).
+    truth: R_truthworld_truthbody on the truth's clock, NaN rows in gaps.
+    Raises ValueError when the recording does not determine them.
+    """
+    truth_rate, gyro_rate = rate_pairs(imu, truth)
+    body, scale, residual = fit_body(truth_rate, gyro_rate)
+    up = truth_up(imu, truth, body)
+    gravity = float(np.linalg.norm(up))
+    if not gravity > 0.1:
+        raise ValueError(f"alignment: the averaged specific force is {gravity:.3f} g, not gravity; "
+                         "is the accelerometer in g?")
+    world, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up / gravity])  # smallest rotation up -> +z
+    return Alignment(world, body, len(truth_rate), float(np.degrees(np.median(residual))), gravity, tuple(float(x) for x in scale))

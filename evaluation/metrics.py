@@ -12,9 +12,9 @@ Protocol:
      (swing-twist split), wrapped to [0, pi].
    All three are invariant under q -> -q. By default no alignment is applied: every
    estimator starts from the same initial orientation (see `fusion.datasets.initial_orientation`).
-   With `align=True` (`--align`) the truth is first mapped into our frames, `A R_truth B`,
-   with the constant world and body rotations A, B fitted by least squares over every sample
-   with both truth and estimate (`evaluation.align`); the protocol then scores as usual.
+   With `--align` the caller first maps the truth into our frames, `A R_truth B`, with
+   constant world and body rotations A, B fitted once per recording from the IMU and the
+   truth alone (`evaluation.align`); every estimator is then scored against the same truth.
 3. Summaries: RMSE and maximum of each over the scored samples.
 
 `protocol="broad"` scores as the BROAD benchmark does for 6-D estimates (Laidig et al.
@@ -32,8 +32,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fusion.types import Trajectory
-
-from .align import Alignment, estimate_alignment
 
 KINDS = ("total", "inclination", "heading")
 
@@ -64,7 +62,6 @@ class Score:
     mask: np.ndarray
     rmse_deg: dict[str, float] = field(default_factory=dict)
     max_deg: dict[str, float] = field(default_factory=dict)
-    alignment: Alignment | None = None  # with align=True: the rotations applied to the truth
 
     @property
     def samples(self) -> int:
@@ -81,24 +78,16 @@ def mean_heading_offset(r_true: Rotation, r_est: Rotation) -> float:
     return float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
 
 
-def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None,
-          align: bool = False) -> Score:
+def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None) -> Score:
     """Score `estimate` against `truth` (see the module docstring for the protocols).
 
     protocol: "full" (every sample with truth) or "broad".
     movement: (N,) bool over the estimate's samples, the samples "broad" scores (None: all).
-    align: first map the truth into our frames with fitted constant world and body rotations
-        (`evaluation.align`; fitted on every sample with truth, whatever the protocol).
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown scoring protocol {protocol!r}; use one of {', '.join(PROTOCOLS)}")
     r_true, mask = truth.interpolate(estimate.t)
     finite = np.all(np.isfinite(estimate.quat_wxyz), axis=1)
-    alignment = None
-    if align and r_true is not None:
-        use = finite[mask]
-        alignment = estimate_alignment(r_true[use], Rotation.from_quat(estimate.quat_wxyz[mask][use], scalar_first=True))
-        r_true = alignment.apply(r_true)
     if protocol == "broad" and movement is not None:
         movement = np.asarray(movement, dtype=bool)
         if movement.shape != mask.shape:
@@ -118,4 +107,4 @@ def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movem
     errors = error_angles(r_true, r_est)
     rmse = {k: float(np.degrees(np.sqrt(np.mean(v**2)))) for k, v in errors.items()}
     worst = {k: float(np.degrees(np.max(v))) for k, v in errors.items()}
-    return Score(estimate.t[mask], errors, mask, rmse, worst, alignment)
+    return Score(estimate.t[mask], errors, mask, rmse, worst)

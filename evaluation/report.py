@@ -218,27 +218,42 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
     return header, body, mean_header, means
 
 
-ALIGNMENT_HEADER = ["dataset", "estimator", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg",
-                    "|B| deg"]
+ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg", "|B| deg",
+                    "rate pairs", "rate residual deg/s", "|g| g"]
 
 
 def _alignment_text(doc: dict[str, Any]) -> str:
     if doc.get("settings", {}).get("align"):
         return ("Aligned (--align): the truth was mapped into our frames as A R_truth B, with A = R_ourworld_truthworld "
-                "and B = R_truthbody_imubody fitted by least squares per recording and estimator; this hides constant "
-                "heading, mounting and inclination errors.")
+                "(a tilt only) and B = R_truthbody_imubody fitted once per recording from its gyro, accelerometer and "
+                "truth, the same for every estimator; this hides a constant IMU-to-marker mounting rotation and a "
+                "tilted truth world, not an estimator's errors.")
     return "No alignment applied; every estimator starts from the same initial orientation."
 
 
 def _alignment_rows(doc: dict[str, Any]) -> list[list[str]]:
     out = []
-    for r in doc["results"]:
-        a = r.get("alignment")
-        if a:
-            out.append([r["dataset"], r["estimator"], ", ".join(f"{x:+.2f}" for x in a["world_deg"]),
-                        f"{np.linalg.norm(a['world_deg']):.2f}", ", ".join(f"{x:+.2f}" for x in a["body_deg"]),
-                        f"{np.linalg.norm(a['body_deg']):.2f}"])
+    for a in recording_alignments_of(doc):
+        out.append([a["dataset"], ", ".join(f"{x:+.2f}" for x in a["world_deg"]), f"{np.linalg.norm(a['world_deg']):.2f}",
+                    ", ".join(f"{x:+.2f}" for x in a["body_deg"]), f"{np.linalg.norm(a['body_deg']):.2f}",
+                    str(a.get("rate_pairs", "-")), _fmt_opt(a.get("rate_residual_deg_s"), ".2f"),
+                    _fmt_opt(a.get("gravity_g"), ".3f")])
     return out
+
+
+def recording_alignments_of(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """A results document's per-recording alignments (`alignments`, else the rows' first)."""
+    if doc.get("alignments"):
+        return doc["alignments"]
+    out: dict[str, dict[str, Any]] = {}
+    for r in doc["results"]:
+        if r.get("alignment") and r["dataset"] not in out:
+            out[r["dataset"]] = {"dataset": r["dataset"], **r["alignment"]}
+    return list(out.values())
+
+
+def _fmt_opt(value: Any, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
 
 
 def _settings_items(doc: dict[str, Any]) -> list[tuple[str, str]]:
@@ -335,7 +350,7 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         f"the error. {html.escape(_alignment_text(doc))}</p>",
         _html_table(header, body, "results", 2),
         "<h2>Means per estimator</h2>", _html_table(mean_header, means, "means", 1),
-        *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 2)]
+        *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
     ]

@@ -7,12 +7,12 @@ that `fusion report DIR` can draw the figures again without running any estimato
     imu_t         (N,)     float64 s, the IMU time stamps every estimate lives on
     gyr_valid     (N,)     bool, False where the gyro was marked unusable
     truth_t       (K,)     float64 s, VICON time stamps (K = 0 without ground truth)
-    truth_quat    (K, 4)   float64 quat_wxyz R_world_body, NaN rows in tracking gaps
+    truth_quat    (K, 4)   float64 quat_wxyz R_world_body, NaN rows in tracking gaps; with
+                            `--align`, the truth mapped into our frames (`A R_truth B`,
+                            `evaluation.align`), what the estimates were scored against
     labels        (E,)     str, estimator specs as in results.json
     causal        (E,)     bool, False for smoothers
-    quat          (E, N, 4) float32 quat_wxyz R_world_body of each estimator; for a result
-                            scored with `--align`, expressed in the truth's frames
-                            (`A^-1 R_est B^-1`, `evaluation.align`) so that it plots over the truth
+    quat          (E, N, 4) float32 quat_wxyz R_world_body of each estimator
     err_deg       (E, 3, N) float32 total/inclination/heading error, deg; NaN where not
                             scored (outside the truth span, in gaps; all NaN without truth)
     loss_<e>      (K_e,)   float64 cost per iteration of estimator e, where it reports one
@@ -60,9 +60,6 @@ def from_results(info, results: list, causal: dict[str, bool]) -> RecordingSerie
         if r.trajectory is None:
             raise ValueError(f"{info.id}: result {r.estimator!r} has no trajectory to plot")
         quat[e] = r.trajectory.quat_wxyz
-        if r.score is not None and r.score.alignment is not None:
-            rot = r.score.alignment.to_truth_frames(r.trajectory.rotation())
-            quat[e] = rot.as_quat(scalar_first=True)
         if r.score is not None:
             for k, kind in enumerate(KINDS):
                 err[e, k, r.score.mask] = np.degrees(r.score.errors_rad[kind])

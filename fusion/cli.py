@@ -27,7 +27,8 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", default=None,
                         help="folder with recordings (default: $FUSION_DATA, else ./data)")
     parser.add_argument("--init", choices=datasets.INIT_MODES, default=None,
-                        help="initial orientation: truth (default with ground truth), accel (default without), identity")
+                        help="initial orientation: truth (default with ground truth; with --align the aligned truth), "
+                             "accel (default without), identity")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
                         help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
@@ -178,7 +179,7 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
         return 0
     settings = {"command": shlex.join(["fusion", *args.argv]), **settings, "dataset": args.dataset,
                 "data_dir": str(datasets.data_dir_from(args.data_dir).resolve()),
-                "init": args.init or ("default with --align: accel" if args.align
+                "init": args.init or ("default (the aligned truth where available, else accel)" if args.align
                                       else "default (truth where available, else accel)"),
                 "align": bool(args.align),
                 "protocol": args.protocol or "default (broad for recordings with a movement mask, else full)",
@@ -254,10 +255,10 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
 
 def _add_align_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--align", action="store_true",
-                        help="for ground truth given in other frames: fit a constant world rotation and a constant "
-                             "body rotation per recording and estimator (least squares), print them, and score after "
-                             "applying them; hides constant heading, mounting and inclination errors (see README); "
-                             "--init then defaults to accel")
+                        help="for ground truth given in other frames: fit a constant world tilt and a constant "
+                             "body rotation once per recording from its gyro, accelerometer and truth (never from "
+                             "an estimate), print them, and score every estimator against the same aligned truth; "
+                             "--init truth then starts from the aligned truth (see README)")
 
 
 def build_parser() -> argparse.ArgumentParser:
