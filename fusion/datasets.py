@@ -12,14 +12,23 @@ directly in it, the data directory's own name) plus its number, e.g. `ece276a/3`
 file's or BROAD trial's id is its path without the suffix. A `.mat` file that is not a
 course file (imuRawN/viconRotN/camN) is taken for a BROAD trial. The built-in simulated recording is always `sim`.
 
-The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`.
+The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`. A course's `imu/`
+(or `vicon/`, `cam/`) folder given as the data directory stands for its parent.
+
+The same session may be present in several formats (`ece276a/3`, `ese650/3` and the IMU-only
+`ece276a-2018/3` hold identical raw samples). `select` counts each recording once: course
+recordings whose loaded time stamps and counts are bit-identical are merged (`merge_identical`,
+a hash of the loaded arrays: some 0.1 s for 27 files), keeping the id with ground truth; the
+kept `Source` lists the others in `aliases`. CSV files and BROAD trials are not hashed (they
+are not raw counts of the course board and would need a full load; each file counts as one).
 """
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,11 +52,21 @@ class Source:
     imu: Path | None = None
     vicon: Path | None = None
     cam: Path | None = None
+    aliases: tuple[str, ...] = ()  # ids of identical recordings merged into this one (`merge_identical`)
+
+
+COURSE_SUBFOLDERS = ("imu", "vicon", "cam")
 
 
 def data_dir_from(arg: str | os.PathLike | None = None) -> Path:
     """`arg`, else `$FUSION_DATA`, else `./data`."""
     return Path(arg or os.environ.get("FUSION_DATA") or "data")
+
+
+def course_root(root: Path) -> Path:
+    """`root`, or its parent when `root` is a course's `imu/`, `vicon/` or `cam/` folder (ids
+    are `<folder>/<N>`, so they need the folder above)."""
+    return root.parent if root.name in COURSE_SUBFOLDERS and root.is_dir() else root
 
 
 def _natural_key(text: str) -> list:
@@ -67,7 +86,7 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
 
     A missing directory is not an error (a fresh clone has none): only `sim` is found.
     """
-    root = data_dir_from(data_dir)
+    root = course_root(data_dir_from(data_dir))
     found: dict[str, Source] = {}
     if root.is_dir():
         for path in sorted(root.rglob("*")):
@@ -97,12 +116,14 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
     return ordered
 
 
-def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[Source]:
-    """Sources for `all`, a comma list of ids, globs (`ece276a/*`), paths to files, or
-    paths to folders (every recording found below them).
+def select(selection: str, data_dir: str | os.PathLike | None = None, dedupe: bool = True) -> list[Source]:
+    """Sources for `all`, a comma list of ids, folder names (`ece276a`: every recording in it),
+    bare numbers (`3`, when one recording has it after merging identical ones), globs
+    (`ece276a/*`), paths to files, or paths to folders (every recording found below them).
 
     `all` means every real recording found, or `sim` when there is none. Raises with the
-    list of available ids when a name matches nothing.
+    list of available ids when a name matches nothing. dedupe: merge identical recordings
+    (`merge_identical`), so that each is counted once.
     """
     available = discover(data_dir)
     real = [s for rid, s in available.items() if rid != SIM_ID]
@@ -116,6 +137,13 @@ def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[So
             matches = [available[token]]
         elif any(ch in token for ch in "*?["):
             matches = [s for rid, s in available.items() if fnmatch.fnmatchcase(rid, token)]
+        elif token.isdigit():
+            matches = merge_identical([s for rid, s in available.items() if rid.rsplit("/", 1)[-1] == token])
+            if len(matches) > 1:
+                raise ValueError(f"dataset {token!r} is ambiguous: {', '.join(s.id for s in matches)} "
+                                 "(different recordings); give the id")
+        elif any(rid.startswith(token.rstrip("/") + "/") for rid in available):
+            matches = [s for rid, s in available.items() if rid.startswith(token.rstrip("/") + "/")]
         elif Path(token).is_file():
             matches = [_source_for_file(Path(token))]
         elif Path(token).is_dir():
@@ -129,7 +157,87 @@ def select(selection: str, data_dir: str | os.PathLike | None = None) -> list[So
         chosen.extend(s for s in matches if s not in chosen)
     if not chosen:
         raise ValueError(f"dataset selection {selection!r} names no recording")
-    return chosen
+    return merge_identical(chosen) if dedupe else chosen
+
+
+def fingerprint(source: Source) -> str | None:
+    """A hash of a course recording's loaded time stamps and raw counts (identical for the same
+    session in any release), or None for other kinds and unreadable files (their error comes
+    when they are loaded)."""
+    if source.kind != "course" or source.imu is None:
+        return None
+    try:
+        raw = load_imu(source.imu)
+    except (ValueError, OSError):
+        return None
+    digest = hashlib.sha1(np.ascontiguousarray(raw.t, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(raw.counts, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def merge_identical(sources: list[Source]) -> list[Source]:
+    """`sources` with identical recordings (same `fingerprint`) counted once, in order.
+
+    Of a group, the one with ground truth (then with camera frames, then the first) is kept, at
+    its own position, with the others' ids (and aliases) in its `aliases`.
+    """
+    if sum(s.kind == "course" for s in sources) < 2:
+        return list(sources)
+    groups: dict[str, list[Source]] = {}
+    keys = []
+    for s in sources:
+        key = fingerprint(s) or f"unique:{s.id}"
+        keys.append(key)
+        groups.setdefault(key, []).append(s)
+    out = []
+    for s, key in zip(sources, keys):
+        group = groups[key]
+        best = min(group, key=lambda g: (g.vicon is None, g.cam is None))
+        if s is not best:
+            continue
+        others = [a for g in group if g is not best for a in (g.id, *g.aliases)]
+        out.append(replace(best, aliases=tuple(dict.fromkeys([*best.aliases, *others]))) if others else best)
+    return out
+
+
+def merged_ids(sources: list[Source]) -> dict[str, list[str]]:
+    """{kept id: [merged ids]} for the sources that absorbed identical recordings."""
+    return {s.id: list(s.aliases) for s in sources if s.aliases}
+
+
+def describe_merged(sources: list[Source]) -> str:
+    """One line saying which ids were merged, compact when whole folders match by number:
+    `ece276a/1-9 also found as ece276a-2018/N, ese650/N (identical samples; counted once)`."""
+    merged = merged_ids(sources)
+    if not merged:
+        return ""
+    patterns: dict[tuple[str, tuple[str, ...]], list[str]] = {}
+    singles = []
+    for kept, others in merged.items():
+        folder, _, number = kept.rpartition("/")
+        folders = tuple(o.rpartition("/")[0] for o in others)
+        if number.isdigit() and all(o.rpartition("/")[2] == number for o in others):
+            patterns.setdefault((folder, folders), []).append(number)
+        else:
+            singles.append(f"{kept} = {', '.join(others)}")
+    parts = []
+    for (folder, folders), numbers in patterns.items():
+        if len(numbers) == 1:
+            parts.append(f"{folder}/{numbers[0]} = {', '.join(f'{f}/{numbers[0]}' for f in folders)}")
+        else:
+            parts.append(f"{folder}/N = {', '.join(f'{f}/N' for f in folders)} for N = {_ranges(numbers)}")
+    return "; ".join(parts + singles)
+
+
+def _ranges(numbers: list[str]) -> str:
+    values = sorted(int(n) for n in numbers)
+    runs: list[list[int]] = []
+    for v in values:
+        if runs and v == runs[-1][-1] + 1:
+            runs[-1].append(v)
+        else:
+            runs.append([v])
+    return ",".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs)
 
 
 def _source_for_file(path: Path) -> Source:
