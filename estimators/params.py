@@ -87,6 +87,7 @@ def make_params(params_cls: type, overrides: tuple[tuple[str, str], ...] | dict[
     aliases = {f.metadata["alias"]: f.name for f in fields.values() if "alias" in f.metadata}
     hints = typing.get_type_hints(params_cls)
     values: dict[str, Any] = {}
+    typed: dict[str, str] = {}  # field name -> the key as typed (a field name or its alias)
     for key, text in items:
         name = aliases.get(key, key)
         if name not in fields:
@@ -95,7 +96,14 @@ def make_params(params_cls: type, overrides: tuple[tuple[str, str], ...] | dict[
                 f"estimator {owner!r}: unknown parameter {key!r}; valid: {', '.join(valid) or '(none)'}"
             )
         values[name] = _convert(text, hints[name], f"estimator {owner!r} parameter {key!r}")
-    return params_cls(**values)
+        typed[name] = key
+    try:
+        return params_cls(**values)
+    except ValueError as exc:  # the dataclass names its field: name what the user typed as well
+        message = str(exc)
+        named = [f"{key!r}" + (f" ({name})" if key != name else "") for name, key in typed.items() if name in message]
+        named = named or [f"{key!r}" for key in typed.values()]
+        raise ValueError(f"estimator {owner!r} parameter {', '.join(named)}: {message}") from None
 
 
 def describe(params_cls: type) -> list[tuple[str, str, Any]]:
