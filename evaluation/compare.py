@@ -214,9 +214,9 @@ ALIGN_NOTE = ("after --align: truth mapped into our frames as A R_truth B, A = R
 
 
 def format_table(results: list[Result], align: bool | None = None) -> str:
-    """A readable table: one row per recording x estimator, RMSE in degrees, and a mean row
-    per estimator over the recordings that have ground truth; with alignment, the fitted
-    rotations after it.
+    """A readable table: first a mean row per estimator over the recordings that have ground
+    truth, then one row per recording x estimator (RMSE in degrees), recordings without ground
+    truth last; with alignment, the fitted rotations after it.
 
     align: whether the run used `--align` (None: whether any result carries an alignment).
     """
@@ -251,10 +251,16 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
     out = ["RMSE in degrees (total = geodesic angle; inclination = gravity direction; heading = twist about world z); "
            + (ALIGN_NOTE if align else "no alignment"),
            line(header), line(["-" * w for w in widths])]
-    out += [line(r) for r in rows]
+    scored_rows = [row for row, r in zip(rows, results) if r.rmse_deg]
+    unscored_rows = [row for row, r in zip(rows, results) if not r.rmse_deg]
     if means:
-        out.append(line(["-" * w for w in widths]))
         out += [line(r) for r in means]
+        out.append(line(["-" * w for w in widths]))
+    out += [line(r) for r in scored_rows]
+    if unscored_rows:
+        if scored_rows or means:
+            out += [f"without ground truth (not scored): {len({r.dataset for r in results if not r.rmse_deg})} recordings"]
+        out += [line(r) for r in unscored_rows]
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
     return "\n".join(out)

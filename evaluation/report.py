@@ -197,8 +197,9 @@ def _fmt(v: Any) -> str:
 
 
 def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
-    """(header, rows) of the per-run table and of the per-estimator means, as text cells."""
-    rows = doc["results"]
+    """(header, rows) of the per-run table and of the per-estimator means, as text cells; rows
+    without ground truth come after the scored ones."""
+    rows = [r for r in doc["results"] if r["rmse_deg"]] + [r for r in doc["results"] if not r["rmse_deg"]]
     header = ["dataset", "estimator", "samples", *(f"{k} RMSE" for k in KINDS), *(f"{k} max" for k in KINDS),
               "us/sample"]
     body = []
@@ -292,8 +293,9 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
 
     settings = doc.get("settings", {})
     lines = [f"# {_title(doc)}", "", "Command:", "", "    " + settings.get("command", "(unknown)"), "",
-             "Re-render without recomputing: `fusion report <this folder>`.", "", "## Results (RMSE and maximum, deg)", ""]
-    lines += md_table(header, body) + ["", "## Means per estimator", ""] + md_table(mean_header, means)
+             "Re-render without recomputing: `fusion report <this folder>`.", "", "## Means per estimator (RMSE, deg)", ""]
+    lines += md_table(mean_header, means) + ["", "## Results per recording (RMSE and maximum, deg)", ""]
+    lines += md_table(header, body)
     lines += ["", "Errors: total = geodesic angle between estimate and VICON; inclination = angle between the true and "
               "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
     if _alignment_rows(doc):
@@ -345,11 +347,12 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         f"<h1>{html.escape(_title(doc))}</h1>",
         "<p>Command (re-render this page without recomputing: <code>fusion report &lt;folder&gt;</code>):</p>",
         f"<pre>{html.escape(settings.get('command', '(unknown)'))}</pre>",
-        "<h2>Results</h2><p>RMSE and maximum error in degrees. total = geodesic angle between estimate and VICON; "
-        "inclination = angle between the true and estimated gravity direction; heading = twist about world z of "
-        f"the error. {html.escape(_alignment_text(doc))}</p>",
+        "<h2>Means per estimator</h2><p>RMSE and maximum error in degrees. total = geodesic angle between estimate "
+        "and VICON; inclination = angle between the true and estimated gravity direction; heading = twist about "
+        f"world z of the error. {html.escape(_alignment_text(doc))}</p>",
+        _html_table(mean_header, means, "means", 1),
+        "<h2>Results per recording</h2><p>Recordings without ground truth (not scored) come last.</p>",
         _html_table(header, body, "results", 2),
-        "<h2>Means per estimator</h2>", _html_table(mean_header, means, "means", 1),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
