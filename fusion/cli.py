@@ -8,6 +8,7 @@ one line `fusion: error: ...` and exit code 1, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shlex
@@ -22,8 +23,9 @@ from . import datasets
 
 def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default="all",
-                        help="'all', comma-separated ids (ece276a/3), globs ('ece276a/*') or file paths; "
-                             "'sim' is the built-in simulated recording (default: all)")
+                        help="'all', comma-separated ids (ece276a/3), folder names (ece276a), bare numbers (3, when "
+                             "unambiguous), globs ('ece276a/*') or file paths; 'sim' is the built-in simulated "
+                             "recording; identical recordings in several formats are counted once (default: all)")
     parser.add_argument("--data-dir", default=None,
                         help="folder with recordings (default: $FUSION_DATA, else ./data)")
     parser.add_argument("--init", choices=datasets.INIT_MODES, default=None,
@@ -38,16 +40,38 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
                              "and per-recording clock offsets if it holds them)")
 
 
+def note(text: str) -> None:
+    """One line on stderr that is neither an error nor a warning."""
+    print(f"fusion: note: {text}", file=sys.stderr)
+
+
 def select_sources(args: argparse.Namespace) -> list:
-    """The dataset `Source`s `--dataset` names (not loaded yet)."""
+    """The dataset `Source`s `--dataset` names (not loaded yet), identical recordings merged
+    (a note says which; `merged_settings` records them)."""
     user_dir = args.data_dir or os.environ.get("FUSION_DATA")
     root = datasets.data_dir_from(args.data_dir)
+    if user_dir and root.is_file():
+        raise ValueError(f"{root}: data directory is a file; give the folder holding the recordings "
+                         f"(or the file itself to --dataset)")
     if user_dir and not root.is_dir():
         raise FileNotFoundError(f"{root}: data directory does not exist")
+    if datasets.course_root(root) != root:
+        note(f"{root} is a course's {root.name}/ folder; reading recordings from its parent {root.parent}")
     sources = datasets.select(args.dataset, args.data_dir)
-    if user_dir and args.dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
-        raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
+    if args.dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
+        if user_dir:
+            raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
+        note(f"no recordings found in {root.resolve()}; running on the built-in simulated recording `sim` "
+             "(--data-dir or $FUSION_DATA points at recordings)")
+    merged = datasets.describe_merged(sources)
+    if merged:
+        note(f"identical recordings counted once: {merged}")
     return sources
+
+
+def merged_settings(sources: list) -> dict[str, list[str]]:
+    """{kept id: [ids of identical recordings merged into it]} for results.json `settings`."""
+    return datasets.merged_ids(sources)
 
 
 def load_selected(args: argparse.Namespace) -> list:
@@ -70,6 +94,17 @@ def load_options(args: argparse.Namespace) -> datasets.LoadOptions:
 
     calib_file = gyro_fit.read(args.calibration)
     return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())))
+
+
+def calibration_settings(args: argparse.Namespace) -> dict | None:
+    """What `--calibration` applied (for results.json `settings`), None without it."""
+    if not getattr(args, "calibration", None):
+        return None
+    from . import gyro_fit
+
+    calib_file = gyro_fit.read(args.calibration)
+    return {"file": str(Path(args.calibration).resolve()), "gyro_scale_factor": list(calib_file.gyro_scale_factor),
+            "clock_offset_s": calib_file.clock_offset_s}
 
 
 def cmd_panorama(args: argparse.Namespace) -> int:
@@ -119,7 +154,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     checks = [check_recording(rec) for rec in recordings]
     print("\n\n".join(format_check(c) for c in checks))
     if args.json:
-        doc = {"command": " ".join(["fusion", *sys.argv[1:]]), "recordings": [c.to_json() for c in checks]}
+        doc = {"command": shlex.join(["fusion", *args.argv]), "recordings": [c.to_json() for c in checks]}
         Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     if args.out:
         from evaluation.inspect_plots import plot_check
@@ -159,8 +194,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         for rid, off in result.clock_offset_s.items():
             print(f"  clock offset {rid}: VICON lags by {off * 1e3:+.1f} ms")
     if args.out:
-        gyro_fit.write(args.out, result, with_clock_offset=args.clock_offset, command=" ".join(["fusion", *sys.argv[1:]]))
+        gyro_fit.write(args.out, result, with_clock_offset=args.clock_offset, command=shlex.join(["fusion", *args.argv]))
         print(f"wrote {args.out}")
+    else:
+        print(gyro_fit.to_json_text(result, with_clock_offset=args.clock_offset,
+                                    command=shlex.join(["fusion", *args.argv])), end="")
+        note("not saved: --out FILE writes this calibration file (then use it with --calibration FILE)")
     return 0
 
 
@@ -177,20 +216,25 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
     print(format_table(results, align=args.align))
     if not (args.json or out):
         return 0
+    from evaluation.report import git_commit
+
     settings = {"command": shlex.join(["fusion", *args.argv]), **settings, "dataset": args.dataset,
                 "data_dir": str(datasets.data_dir_from(args.data_dir).resolve()),
+                "merged": merged_settings(sources),
+                "dropouts": getattr(args, "dropouts", "on"),
+                "calibration": calibration_settings(args),
                 "init": args.init or ("default (the aligned truth where available, else accel)" if args.align
                                       else "default (truth where available, else accel)"),
                 "align": bool(args.align),
                 "protocol": args.protocol or "default (broad for recordings with a movement mask, else full)",
-                "estimator_details": describe_specs(specs)}
+                "estimator_details": describe_specs(specs),
+                "git_commit": git_commit()}
     doc = results_json(results, settings)
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     if out:
-        from evaluation.report import git_commit, write_run
+        from evaluation.report import write_run
 
-        doc["settings"]["git_commit"] = git_commit()
         report = write_run(out, doc, results, infos, jobs=args.jobs, progress=not args.no_progress,
                            per_recording=per_recording)
         print(f"report: {report}", file=sys.stderr)
@@ -268,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
 
     p = sub.add_parser("compare", help="run estimators on recordings and print a table of errors")
-    p.add_argument("--estimators", default="all",
+    p.add_argument("--estimators", "--estimator", dest="estimators", default="all",
                    help="comma-separated registry names with optional parameters, e.g. 'dr,ukf:R=1e-3' (default: all)")
     _add_data_args(p)
     _add_run_args(p)
@@ -278,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings")
-    p.add_argument("--estimator", help="the estimator to sweep, optionally with fixed parameters: 'ukf:Q=1e-5'")
+    p.add_argument("--estimator", "--estimators", dest="estimator", help="the estimator to sweep, optionally with fixed parameters: 'ukf:Q=1e-5'")
     p.add_argument("--param", action="append", default=[], metavar="NAME=V1,V2",
                    help="a parameter and its values; repeat for a grid, e.g. --param R=1e-4,1e-3 --param sigma=kraft,julier")
     p.add_argument("--preset", metavar="NAME", help=f"a named ablation: {', '.join(PRESETS)}")
@@ -295,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("panorama", help="stitch camera frames (or frames rendered from a scene) into a panorama")
-    p.add_argument("--estimator", default="dr", help="one estimator spec, e.g. 'ukf:R=1e-3' (default: dr)")
+    p.add_argument("--estimator", "--estimators", dest="estimator", default="dr", help="one estimator spec, e.g. 'ukf:R=1e-3' (default: dr)")
     _add_data_args(p)
     p.add_argument("--out", required=True, help="output image (.png, .jpg)")
     p.add_argument("--reference", action="store_true",
@@ -321,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also store each recording's measured IMU-VICON clock offset (applied to that recording's truth)")
     p.add_argument("--leave-one-out", action="store_true",
                    help="score each recording with the scales fitted on the others, and print the fitted scales per fold")
-    p.add_argument("--estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
+    p.add_argument("--estimators", "--estimator", dest="estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
     _add_align_arg(p)
     p.set_defaults(func=cmd_calibrate)
     return parser
@@ -329,6 +373,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _one_line_warnings(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"fusion: warning: {message}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def one_line_warnings():
+    """Warnings as one `fusion: warning: ...` line on stderr, while the block runs (the previous
+    `warnings.showwarning` is restored after it)."""
+    previous = warnings.showwarning
+    warnings.showwarning = _one_line_warnings
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -339,7 +395,11 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["compare", *argv]
         args = parser.parse_args(argv)
     args.argv = argv
-    warnings.showwarning = _one_line_warnings
+    with one_line_warnings():
+        return _dispatch(args)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
     try:
         return args.func(args)
     except (ValueError, OSError) as exc:  # bad input: one line, exit 1

@@ -185,8 +185,13 @@ def to_document(result: GyroFit, with_clock_offset: bool, command: str = "") -> 
     return to_jsonable(doc)
 
 
+def to_json_text(result: GyroFit, with_clock_offset: bool = False, command: str = "") -> str:
+    """The calibration file's text (what `write` writes)."""
+    return json.dumps(to_document(result, with_clock_offset, command), indent=2) + "\n"
+
+
 def write(path: str | Path, result: GyroFit, with_clock_offset: bool = False, command: str = "") -> None:
-    Path(path).write_text(json.dumps(to_document(result, with_clock_offset, command), indent=2) + "\n")
+    Path(path).write_text(to_json_text(result, with_clock_offset, command))
 
 
 def read(path: str | Path) -> CalibrationFile:
