@@ -34,6 +34,12 @@ def test_compare_on_sim_without_data(tmp_path, capsys, monkeypatch):
     # the table prints the same numbers as the JSON
     assert float(row[0][2]) == pytest.approx(result["rmse_deg"]["total"], abs=0.006)
     assert "numpy" in doc["versions"] and doc["settings"]["estimators"] == "dr"
+    # the fallback is said, once, on stderr
+    assert err.count("fusion: note: no recordings found in ") == 1
+    assert "running on the built-in simulated recording `sim`" in err
+    # settings say what shaped the numbers, --json as --out does
+    assert doc["settings"]["dropouts"] == "on" and doc["settings"]["calibration"] is None
+    assert doc["settings"]["git_commit"] and doc["settings"]["merged"] == {}
 
 
 def test_compare_real_recordings(data_dir, tmp_path, capsys):
@@ -64,6 +70,8 @@ def test_recording_without_truth_still_runs(data_dir, capsys):
     (["--estimators", "dr:x=1", "--dataset", "sim"], "unknown parameter 'x'"),
     (["--estimators", "dr", "--dataset", "nothing/9"], "dataset 'nothing/9' not found"),
     (["--estimators", "dr", "--dataset", "sim", "--init", "truth", "--data-dir", "/no/such/dir"], "/no/such/dir: data directory does not exist"),
+    (["--estimators", "ukf:R=-1", "--dataset", "sim"], "parameter 'R' (acc_noise_g2)"),
+    (["--estimators", "dr", "--dataset", "sim", "--data-dir", __file__], "data directory is a file"),
 ])
 def test_bad_input_is_one_line_and_exit_1(capsys, argv, message):
     code, out, err = run(capsys, "compare", "--no-progress", *argv)
@@ -90,3 +98,87 @@ def test_python_dash_m_entry_point(tmp_path):
                           capture_output=True, text=True, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "sim" in proc.stdout and "RMSE in degrees" in proc.stdout
+
+
+def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_path, capsys):
+    code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "all", "--data-dir", str(data_dir),
+                         "--json", str(tmp_path / "r.json"), "--no-progress")
+    assert code == 0, err
+    doc = json.loads((tmp_path / "r.json").read_text())
+    ids = [r["dataset"] for r in doc["results"]]
+    assert [i for i in ids if not i.startswith("broad/")] == [f"ece276a/{n}" for n in range(1, 10)]
+    assert len([i for i in ids if i.startswith("broad/")]) == 9 and len(ids) == 18
+    assert all(r["rmse_deg"] for r in doc["results"])  # the truth-less 2018 copies are merged away
+    merged = doc["settings"]["merged"]
+    assert merged["ece276a/4"] == ["ece276a-2018/4", "ese650/4"] and len(merged) == 9
+    notes = [line for line in err.splitlines() if "identical recordings counted once" in line]
+    assert notes == ["fusion: note: identical recordings counted once: "
+                     "ece276a/N = ece276a-2018/N, ese650/N for N = 1-9"]
+    lines = out.splitlines()
+    first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean (18)"))
+    first_row = next(i for i, line in enumerate(lines) if line.startswith(("broad/", "ece276a/")))
+    assert first_mean < first_row  # the summary comes first
+
+
+def test_rows_without_truth_come_after_the_scored_ones(data_dir, capsys):
+    code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "ece276a-2018/3,sim",
+                         "--data-dir", str(data_dir), "--no-progress")
+    assert code == 0, err
+    lines = out.splitlines()
+    order = [i for key in ("mean (1)", "sim ", "without ground truth", "ece276a-2018/3")
+             for i, line in enumerate(lines) if line.startswith(key)]
+    assert len(order) == 4 and order == sorted(order)
+
+
+def test_bare_number_folder_name_and_imu_folder(data_dir, capsys):
+    code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "3", "--data-dir", str(data_dir),
+                         "--no-progress")
+    assert code == 0, err
+    assert [line.split()[0] for line in out.splitlines() if "  dr  " in line] == ["ece276a/3"]
+    code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "ese650", "--data-dir",
+                         str(data_dir), "--no-progress")
+    assert code == 0, err
+    assert [line.split()[0] for line in out.splitlines() if line.startswith("ese650/")] == \
+        [f"ese650/{n}" for n in range(1, 10)]
+    code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "2",
+                         "--data-dir", str(data_dir / "ece276a" / "imu"), "--no-progress")
+    assert code == 0, err
+    assert "is a course's imu/ folder; reading recordings from its parent" in err
+    assert [line.split()[0] for line in out.splitlines() if "  dr  " in line] == ["ece276a/2"]
+
+
+def test_estimator_spellings_on_every_command():
+    from fusion.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["compare", "--estimator", "dr"]).estimators == "dr"
+    assert parser.parse_args(["compare", "--estimators", "dr"]).estimators == "dr"
+    assert parser.parse_args(["ablate", "--estimators", "ukf"]).estimator == "ukf"
+    assert parser.parse_args(["ablate", "--estimator", "ukf"]).estimator == "ukf"
+    assert parser.parse_args(["panorama", "--estimators", "gn", "--out", "x.png"]).estimator == "gn"
+    assert parser.parse_args(["calibrate", "--estimator", "ekf"]).estimators == "ekf"
+
+
+def test_inspect_and_calibrate_record_the_argv_given_and_restore_warnings(tmp_path, capsys, monkeypatch):
+    import warnings
+
+    monkeypatch.delenv("FUSION_DATA", raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["pytest", "--something-else"])
+    before = warnings.showwarning
+    assert main(["inspect", "--dataset", "sim", "--json", "i.json", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "i.json").read_text())["command"] == "fusion inspect --dataset sim --json i.json --no-progress"
+    assert main(["calibrate", "--dataset", "sim", "--out", "c.json", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["info"]["command"].startswith("fusion calibrate --dataset sim")
+    assert warnings.showwarning is before
+    capsys.readouterr()
+
+
+def test_calibrate_without_out_prints_the_result_and_how_to_save_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("FUSION_DATA", raising=False)
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(capsys, "calibrate", "--dataset", "sim", "--no-progress")
+    assert code == 0 and list(tmp_path.iterdir()) == []
+    doc = json.loads(out[out.index("{"):])
+    assert doc["format"] == "fusion-gyro-calibration" and len(doc["gyro_scale_factor"]) == 3
+    assert "--out FILE writes this calibration file" in err
