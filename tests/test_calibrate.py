@@ -98,3 +98,14 @@ def test_real_leave_one_out_scales(data_dir):
         assert held not in result.fitted_on
         # the README: about +9 %, +4 %, -4 % vs nominal; measured +9.1, +5.6, -3.4 %
         np.testing.assert_allclose(result.sensitivity_ratio, (1.09, 1.055, 0.966), atol=0.01)
+
+
+def test_leave_one_out_holds_out_a_recording_in_all_its_formats(data_dir, capsys):
+    # ece276a/N and ese650/N are one session: a fold fitted on ese650/N would score ece276a/N
+    # with a calibration fitted on itself; merged, each session is one fold
+    assert main(["calibrate", "--leave-one-out", "--estimators", "dr", "--dataset", "ece276a,ese650",
+                 "--data-dir", str(data_dir), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    held = [line.split()[0] for line in out.splitlines() if line.startswith(("ece276a/", "ese650/")) and "%" in line]
+    assert held == [f"ece276a/{n}" for n in range(1, 10)]
+    assert "fit on 9 recordings" in out
