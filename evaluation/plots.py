@@ -208,22 +208,25 @@ def error_figure(s: RecordingSeries) -> Figure | None:
 
 
 def loss_figure(s: RecordingSeries) -> Figure | None:
-    """Cost per iteration of the estimators that report one (smoothers); None if none does."""
+    """Cost per iteration of the estimators that report one (smoothers), one panel per
+    estimator: their costs are different functions (gd's is ~20, gn's ~5,000 on the same
+    recording), so each gets its own y axis; None if none reports a cost."""
     if not s.losses:
         return None
-    fig = _new_figure(8, 4.5)
-    ax = fig.subplots()
-    positive = all(np.all(v[np.isfinite(v)] > 0) for v in s.losses.values())
-    for e, loss in sorted(s.losses.items()):
-        ax.plot(np.arange(len(loss)), loss, color=color(e), ls=linestyle(e), marker="." if len(loss) < 60 else None,
-                label=_display_label(s.labels[e], s.causal[e]))
-    if positive:
-        ax.set_yscale("log")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("cost")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=9)
-    ax.set_title(f"{s.id}: smoother cost per iteration")
+    items = sorted(s.losses.items())
+    fig = _new_figure(8, 1.2 + 2.6 * len(items))
+    axes = np.atleast_1d(fig.subplots(len(items), 1))
+    for ax, (e, loss) in zip(axes, items):
+        ax.plot(np.arange(len(loss)), loss, color=color(e), ls=linestyle(e), marker="." if len(loss) < 60 else None)
+        finite = loss[np.isfinite(loss)]
+        log = finite.size > 0 and np.all(finite > 0)
+        if log:
+            ax.set_yscale("log")
+        ax.set_ylabel(f"cost J{' (log)' if log else ''}\n(own axis)")
+        ax.grid(alpha=0.3, which="both")
+        ax.set_title(_display_label(s.labels[e], s.causal[e]), fontsize=10, loc="left")
+    axes[-1].set_xlabel("iteration")
+    fig.suptitle(f"{s.id}: smoother cost per iteration (each estimator's own cost, own y axis)", fontsize=11)
     return fig
 
 
@@ -293,7 +296,6 @@ def speed_figure(rows: list[dict], causal: dict[str, bool]) -> Figure:
         smoother = not causal.get(label, True)
         ax.scatter([us[e]], [err[e]], s=60, color=color(e), marker="s" if smoother else "o", zorder=3,
                    label=_display_label(label, not smoother))
-        ax.annotate(label, (us[e], err[e]), textcoords="offset points", xytext=(6, 4), fontsize=8)
     positive = us[np.isfinite(us) & (us > 0)]
     if positive.size and positive.max() / positive.min() > 20:
         ax.set_xscale("log")
@@ -303,9 +305,69 @@ def speed_figure(rows: list[dict], causal: dict[str, bool]) -> Figure:
     ax.set_ylabel("total RMSE [deg] (mean over recordings with truth)")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, ncol=2 if len(labels) > 6 else 1, loc="lower right")
     ax.set_title("accuracy vs speed (lower left is better; squares: smoothers)", fontsize=10)
+    place_labels(ax, us, err, labels, fontsize=8)
     return fig
+
+
+# Where a point's label may go, tried in this order: (dx, dy) in points from the point, and
+# the text's horizontal and vertical alignment.
+_LABEL_SLOTS = [(6, 4, "left", "bottom"), (6, -4, "left", "top"), (-6, 4, "right", "bottom"),
+                (-6, -4, "right", "top"), (0, 8, "center", "bottom"), (0, -8, "center", "top"),
+                (8, 0, "left", "center"), (-8, 0, "right", "center"), (10, 14, "left", "bottom"),
+                (10, -14, "left", "top"), (-10, 14, "right", "bottom"), (-10, -14, "right", "top"),
+                (0, 20, "center", "bottom"), (0, -20, "center", "top")]
+
+
+def place_labels(ax, xs: np.ndarray, ys: np.ndarray, labels: list[str], fontsize: float = 8,
+                 marker_radius_pt: float = 5.0) -> list:
+    """Label each point (xs[i], ys[i]) with labels[i] next to it, avoiding the other labels,
+    the markers and the axes' edges: each label takes the first of a few slots around its point
+    (`_LABEL_SLOTS`) whose text box overlaps nothing placed so far, else the least overlapping
+    one. Call after the axes' scales and limits are set (the layout is fixed here). Returns the
+    annotations."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.transforms import Bbox
+
+    fig = ax.figure
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
+    fig.draw_without_rendering()  # runs the layout, so display coordinates are final
+    fig.set_layout_engine("none")
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    r = marker_radius_pt * fig.dpi / 72
+    points = [ax.transData.transform((x, y)) for x, y in zip(xs, ys)]
+    taken = [Bbox.from_extents(px - r, py - r, px + r, py + r) for px, py in points if np.all(np.isfinite((px, py)))]
+
+    def overlap(box: Bbox) -> float:
+        area = sum(max(0.0, min(box.x1, b.x1) - max(box.x0, b.x0)) * max(0.0, min(box.y1, b.y1) - max(box.y0, b.y0))
+                   for b in taken)
+        outside = box.width * box.height - max(0.0, min(box.x1, frame.x1) - max(box.x0, frame.x0)) * \
+            max(0.0, min(box.y1, frame.y1) - max(box.y0, frame.y0))
+        return area + 10 * outside
+
+    out = []
+    for (x, y), label in zip(zip(xs, ys), labels):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        best = None
+        for dx, dy, ha, va in _LABEL_SLOTS:
+            text = ax.annotate(label, (x, y), textcoords="offset points", xytext=(dx, dy), ha=ha, va=va,
+                               fontsize=fontsize, zorder=4)
+            box = text.get_window_extent(renderer).expanded(1.05, 1.1)
+            cost = overlap(box)
+            if best is None or cost < best[0]:
+                if best is not None:
+                    best[1].remove()
+                best = (cost, text, box)
+            else:
+                text.remove()
+            if cost == 0:
+                break
+        taken.append(best[2])
+        out.append(best[1])
+    return out
 
 
 # --- ablations (parameters read back from the estimator labels) ---
@@ -342,7 +404,7 @@ def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:
     if not table:
         return None
     keys = list(table)
-    fig = _new_figure(5.2 * len(keys), 4.4)
+    fig = _new_figure(max(6.5, 5.2 * len(keys)), 4.6)
     axes = np.atleast_1d(fig.subplots(1, len(keys)))
     means = np.array([_mean_rmse(rows, label, kind) for label in labels])
     for ax, key in zip(axes, keys):
@@ -369,7 +431,8 @@ def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:
         ax.grid(alpha=0.3)
         if len(groups) > 1:
             ax.legend(fontsize=8)
-    fig.suptitle(f"{name}: mean {kind} RMSE over recordings with truth, against each parameter", fontsize=11)
+    # two short lines: one panel is narrower than the one-line title
+    fig.suptitle(f"{name}: mean {kind} RMSE against each parameter\n(over the recordings with truth)", fontsize=11)
     return fig
 
 
@@ -406,7 +469,7 @@ def bars_figure(rows: list[dict]) -> Figure:
                   fontsize=8)
     ax.set_ylabel("mean RMSE [deg] over recordings with truth")
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=9)
+    fig.legend(fontsize=9, loc="outside right upper")  # beside the axes: never over a bar
     ax.set_title("mean RMSE per setting", fontsize=10)
     return fig
 

@@ -302,3 +302,70 @@ def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
     assert sum(b - a for a, b in inside) == pytest.approx(nan_rows / 100.0, rel=0.2)
     fig = plots.euler_figure(s)
     assert len(fig.axes[0].patches) == len(plots.truth_gaps(s))
+
+
+def _rows(labels, us, err):
+    return [{"dataset": "a", "estimator": label, "samples": 1000, "seconds": 1e-3 * u,
+             "rmse_deg": {"total": e, "inclination": e / 2, "heading": e / 2}, "max_deg": None}
+            for label, u, e in zip(labels, us, err)]
+
+
+def test_speed_figure_labels_do_not_overlap():
+    # the crowded corner of the real table: ukf-bias and ahrs-ekf, dr/vqf/vqf-basic/vqf-offline
+    labels = ["dr", "vqf", "vqf-basic", "vqf-offline", "ukf-bias", "ahrs-ekf", "ekf", "madgwick"]
+    rows = _rows(labels, [0.87, 0.93, 0.55, 1.1, 205, 175, 88, 72], [8.9, 8.1, 8.6, 7.4, 6.85, 6.66, 6.85, 7.7])
+    fig = plots.speed_figure(rows, {label: label != "vqf-offline" for label in labels})
+    renderer = fig.canvas.get_renderer()
+    texts = [t for t in fig.axes[0].texts]
+    assert sorted(t.get_text() for t in texts) == sorted(labels)
+    boxes = [t.get_window_extent(renderer) for t in texts]
+    frame = fig.axes[0].get_window_extent(renderer)
+    for i, a in enumerate(boxes):
+        assert frame.x0 <= a.x0 and a.x1 <= frame.x1 and frame.y0 <= a.y0 and a.y1 <= frame.y1
+        for b in boxes[i + 1:]:
+            assert not a.overlaps(b), (texts[i].get_text(), a, b)
+
+
+def test_loss_figure_gives_each_smoother_its_own_axis():
+    from evaluation.series import RecordingSeries
+
+    s = _series()
+    losses = {1: np.geomspace(20, 5, 150), 2: np.array([8000.0, 2000, 1990, 1990])}
+    two = RecordingSeries(**{**s.__dict__, "losses": losses, "labels": ["dr", "gd", "gn"],
+                             "causal": [True, False, False]})
+    fig = plots.loss_figure(two)
+    axes = [ax for ax in fig.axes if ax.get_lines()]
+    assert len(axes) == 2 and all(ax.get_yscale() == "log" for ax in axes)
+    assert [ax.get_title(loc="left") for ax in axes] == ["gd (smoother)", "gn (smoother)"]
+    assert axes[1].get_ylim()[0] > 100 and axes[0].get_ylim()[1] < 100  # not squeezed onto one axis
+    assert all("own axis" in ax.get_ylabel() for ax in axes)
+
+
+def test_bars_legend_is_outside_the_axes_and_param_title_fits():
+    labels = ["ukf:R=1e-3", "ukf:R=1e-2"]
+    rows = _rows(labels, [100, 100], [9.6, 6.3])
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = plots.bars_figure(rows)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw_without_rendering()
+    (legend,) = fig.legends
+    assert not legend.get_window_extent(renderer).overlaps(fig.axes[0].get_window_extent(renderer))
+    fig = plots.param_figure(rows)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw_without_rendering()
+    title = fig._suptitle.get_window_extent(renderer)
+    assert 0 <= title.x0 and title.x1 <= fig.bbox.width
+
+
+def test_reports_open_with_the_means(run_dir):
+    md = (run_dir / "report.md").read_text()
+    assert md.index("## Means per estimator") < md.index("## Results per recording")
+    page = (run_dir / "report.html").read_text()
+    assert page.index('id="means"') < page.index('id="results"')
+    table = (run_dir / "table.txt").read_text().splitlines()
+    first_mean = next(i for i, line in enumerate(table) if line.startswith("mean (2)"))
+    first_row = next(i for i, line in enumerate(table) if line.startswith("lab/rec1"))
+    assert first_mean < first_row
+    settings = json.loads((run_dir / "results.json").read_text())["settings"]
+    assert settings["dropouts"] == "on" and settings["calibration"] is None and settings["git_commit"]
