@@ -84,7 +84,7 @@ MAX_NESTING = 8  # nested lists/tuples/dicts in a pickle (a 3 x 3 x K list in a 
 
 # Physical plausibility of files in physical units (CSV, BROAD): see `check_physical`.
 GYRO_LIMIT_RAD_S = 70.0  # 4000 deg/s: the widest range of common MEMS gyros
-GYRO_MEDIAN_WARN_RAD_S = 5.0  # median |rate| over a whole recording (hand-held: ~0.3-1 rad/s)
+GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-1 rad/s; BROAD up to 5.3)
 ACC_LIMIT_M_S2 = 200 * 9.80665  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
 
 # Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
