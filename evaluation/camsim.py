@@ -188,15 +188,28 @@ class RenderedCamera(CameraSource):
         return self._renderer.render(self._rot[k])
 
 
+MAX_RATE_HZ = 60.0  # a video camera's rate; rendering and stitching cost ~10 ms per frame
+MAX_FRAMES = 20_000  # ~3-4 min of stitching; the course recordings need ~1,500 frames at 10 Hz
+
+
+def check_rate(rate_hz: float, what: str = "camera simulation: rate_hz") -> None:
+    """A frame rate in (0, MAX_RATE_HZ] Hz, else one line."""
+    if not (isinstance(rate_hz, (int, float)) and 0 < rate_hz <= MAX_RATE_HZ):
+        raise ValueError(f"{what} {rate_hz!r} Hz: must be a frame rate in (0, {MAX_RATE_HZ:g}] Hz")
+
+
 def simulate_camera(truth: Trajectory, scene: np.ndarray, rate_hz: float = 10.0, model: CameraModel | None = None,
                     source: str = "rendered") -> RenderedCamera:
     """Frames at `rate_hz` across the ground truth's span (skipping its gaps), rendered from
     `scene` with the true orientations."""
-    if not rate_hz > 0:
-        raise ValueError(f"camera simulation: rate_hz must be positive, got {rate_hz}")
+    check_rate(rate_hz)
     valid = truth.t[truth.valid]
     if len(valid) == 0:
         raise ValueError(f"{source}: the trajectory has no valid orientation")
+    frames = (valid[-1] - valid[0]) * rate_hz
+    if frames > MAX_FRAMES:
+        raise ValueError(f"{source}: {frames:.0f} frames at {rate_hz:g} Hz over {valid[-1] - valid[0]:.0f} s, more than "
+                         f"{MAX_FRAMES}; use a lower rate")
     t = valid[0] + np.arange(int(math.floor((valid[-1] - valid[0]) * rate_hz)) + 1) / rate_hz
     _, mask = truth.interpolate(t)
     return RenderedCamera(scene, truth, t[mask], model, source)

@@ -24,12 +24,17 @@ from fusion.datasets import initial_orientation
 from fusion.types import Recording, Trajectory
 
 from .align import Alignment, fit_alignment
-from .metrics import KINDS, Score, score
+from .metrics import KINDS, MIN_COVERAGE, Score, score
 
 
 @dataclass(frozen=True, eq=False)
 class Result:
-    """One recording x estimator. `rmse_deg`/`max_deg` are None without ground truth."""
+    """One recording x estimator. `rmse_deg`/`max_deg` are None without ground truth.
+
+    scored_samples, coverage: how many samples were scored and their fraction of what the
+    protocol scores (`evaluation.metrics.Score.coverage`); None without ground truth (or
+    from an older results.json). Below `MIN_COVERAGE` the row is flagged and left out of means.
+    """
 
     dataset: str
     estimator: str
@@ -41,10 +46,21 @@ class Result:
     score: Score | None = None
     panorama: dict[str, float] | None = None  # with --panorama: `evaluation.panorama.panorama_scores`
     alignment: dict[str, Any] | None = None  # with --align: the recording's `evaluation.align.Alignment.to_json`
+    scored_samples: int | None = None
+    coverage: float | None = None
 
     @property
     def us_per_sample(self) -> float:
         return 1e6 * self.seconds / max(self.samples, 1)
+
+    @property
+    def low_coverage(self) -> bool:
+        """Scored on less than `MIN_COVERAGE` of the recording (flagged, left out of means)."""
+        return self.coverage is not None and self.coverage < MIN_COVERAGE
+
+    @property
+    def in_means(self) -> bool:
+        return bool(self.rmse_deg) and not self.low_coverage
 
     def to_json(self) -> dict[str, Any]:
         """The row of `results.json` (the keys are a documented format: see README; `panorama`
@@ -56,6 +72,8 @@ class Result:
             "seconds": self.seconds,
             "rmse_deg": self.rmse_deg,
             "max_deg": self.max_deg,
+            "scored_samples": self.scored_samples,
+            "coverage": self.coverage,
             "alignment": self.alignment,
         }
         if self.panorama is not None:
@@ -136,10 +154,19 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, 
     estimator = estimators.build(spec)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
-    trajectory = estimator.estimate(recording.imu, q0)
+    # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
+    # numpy's floating-point warnings are silenced here and the result judged by its finiteness,
+    # and a numerical exception becomes one line naming the estimator and the recording.
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+            trajectory = estimator.estimate(recording.imu, q0)
+    except (ArithmeticError, np.linalg.LinAlgError) as exc:
+        raise ValueError(f"{recording.id}: estimator {spec.label!r} failed numerically ({type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())[:200]}); check its parameter values") from None
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
-        raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations")
+        raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations "
+                         "(diverged or overflowed; check its parameter values)")
     protocol = protocol or default_protocol(recording)
     result_score = None
     if recording.truth is not None:
@@ -152,6 +179,8 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, 
         result_score.rmse_deg if result_score else None,
         result_score.max_deg if result_score else None,
         trajectory, result_score, alignment=alignment.to_json() if alignment else None,
+        scored_samples=result_score.samples if result_score else None,
+        coverage=result_score.coverage if result_score else None,
     )
 
 
@@ -222,21 +251,21 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
     """
     if align is None:
         align = any(r.alignment for r in results)
-    header = ["dataset", "estimator", "total", "inclination", "heading", "us/sample"]
+    header = ["dataset", "estimator", "total", "inclination", "heading", "coverage", "us/sample"]
     rows = []
     for r in results:
         rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["-"] * 3
-        rows.append([r.dataset, r.estimator, *rmse, f"{r.us_per_sample:.1f}"])
+        rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), f"{r.us_per_sample:.1f}"])
     labels = list(dict.fromkeys(r.estimator for r in results))
     means = []
     for label in labels:
-        scored = [r for r in results if r.estimator == label and r.rmse_deg]
+        scored = [r for r in results if r.estimator == label and r.in_means]
         mine = [r for r in results if r.estimator == label]
         if len({r.dataset for r in results}) < 2:
             continue
         mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
         us = np.mean([r.us_per_sample for r in mine])
-        means.append([f"mean ({len(scored)})", label, *mean, f"{us:.1f}"])
+        means.append([f"mean ({len(scored)})", label, *mean, "", f"{us:.1f}"])
     if any(r.panorama for r in results):
         header += ["pano PSNR dB", "SSIM"]
         for row, r in zip(rows, results):
@@ -261,9 +290,31 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
         if scored_rows or means:
             out += [f"without ground truth (not scored): {len({r.dataset for r in results if not r.rmse_deg})} recordings"]
         out += [line(r) for r in unscored_rows]
+    if any(r.low_coverage for r in results):
+        out += [LOW_COVERAGE_NOTE]
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
     return "\n".join(out)
+
+
+LOW_COVERAGE_NOTE = (f"LOW: scored on less than {MIN_COVERAGE:.0%} of the recording (the truth covers too little of it); "
+                     "left out of the means")
+
+
+def format_coverage(r: Result) -> str:
+    """`98.5%` (scored samples / samples the protocol scores), `0.0% LOW` below `MIN_COVERAGE`, `-` without."""
+    if r.coverage is None:
+        return "-"
+    return f"{100 * r.coverage:.1f}%" + (" LOW" if r.low_coverage else "")
+
+
+def warn_low_coverage(results: list[Result]) -> None:
+    """One warning per row scored on less than `MIN_COVERAGE` of its recording."""
+    for r in results:
+        if r.low_coverage:
+            warnings.warn(f"{r.dataset}, {r.estimator}: scored on {r.scored_samples} of the recording's samples "
+                          f"({100 * r.coverage:.2g}% < {MIN_COVERAGE:.0%}: the truth covers too little of it); "
+                          "flagged and left out of the means", stacklevel=2)
 
 
 def format_alignments(results: list[Result]) -> str:

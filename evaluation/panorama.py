@@ -40,6 +40,25 @@ BLENDS = ("last", "average", "feather")
 
 
 # --------------------------------------------------------------------------- geometry
+# Largest panorama: 8K equirectangular, 33.5 Mpx; the stitcher's float32 accumulators take
+# ~16 bytes per pixel (0.5 GB here); 100000 x 100000 would take 160 GB.
+MAX_WIDTH_PX, MAX_HEIGHT_PX = 8192, 4096
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def check_options(out: Any, rate_hz: float) -> None:
+    """The `fusion panorama` options checked before any work: an image name OpenCV writes
+    (`IMAGE_SUFFIXES`) and a rendering frame rate within `evaluation.camsim.check_rate`."""
+    from pathlib import Path
+
+    from .camsim import check_rate
+
+    suffix = Path(out).suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ValueError(f"--out {out}: unsupported image extension {suffix or '(none)'!r}; use "
+                         f"{', '.join(IMAGE_SUFFIXES)}")
+    check_rate(rate_hz, "--rate")
+
 @dataclass(frozen=True)
 class PanoramaGrid:
     """Equirectangular pixel grid: width_px columns of longitude, height_px rows of latitude."""
@@ -50,6 +69,9 @@ class PanoramaGrid:
     def __post_init__(self) -> None:
         if self.width_px < 4 or self.height_px < 2:
             raise ValueError(f"panorama: size must be at least 4 x 2 px, got {self.width_px} x {self.height_px}")
+        if self.width_px > MAX_WIDTH_PX or self.height_px > MAX_HEIGHT_PX:
+            raise ValueError(f"panorama: size {self.width_px} x {self.height_px} px exceeds {MAX_WIDTH_PX} x {MAX_HEIGHT_PX} "
+                             "(8K equirectangular; the stitcher keeps several float buffers of this size)")
 
     def lon(self, col: np.ndarray | float) -> np.ndarray:
         """Longitude (rad) of column coordinate(s) (pixel centres at integers)."""

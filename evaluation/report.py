@@ -9,6 +9,10 @@
     DIR/report.html      one self-contained page (images embedded as base64 PNG), readable offline
     DIR/report.md        the same for a repository (links to figures/)
 
+Only files the toolkit wrote are ever replaced or removed: they are listed in
+`DIR/.fusion-manifest.json`; a run holds `DIR/.fusion.lock` (flock) and writes into a staging
+folder that is moved in at the end, results.json last (`OutputFolder`).
+
 `render(DIR)` (the command `fusion report DIR`) rebuilds table, figures and both reports
 from results.json and series/ alone: no estimator runs, and the estimators need not even
 be installed. Figures are drawn in a process pool, one job per recording.
@@ -18,6 +22,9 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
+import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -26,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import series as series_io
-from .compare import Result, format_table
+from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table
 from .metrics import KINDS
 
 RESULTS = "results.json"
@@ -49,25 +56,30 @@ def git_commit() -> str:
         return "unknown"
 
 
-def write_run(out_dir: str | Path, doc: dict[str, Any], results: list[Result], infos: list, jobs: int | None = 1,
-              progress: bool = False, per_recording: bool = True) -> Path:
+def write_run(out_dir: "str | Path | OutputFolder", doc: dict[str, Any], results: list[Result], infos: list,
+              jobs: int | None = 1, progress: bool = False, per_recording: bool = True) -> Path:
     """Write results.json, the series and the report of a run; returns report.html's path.
 
+    out_dir: the folder, or an `OutputFolder` already held (`fusion compare --out` takes it
+        before computing, so that a second run on the same folder is refused at once).
     doc: the results.json document (`evaluation.compare.results_json`).
     results: the run's results with trajectories, recording-major.
     infos: one `evaluation.runner.RecordingInfo` per recording (needed when per_recording).
+
+    Everything is written into a staging folder first and moved in at the end (`OutputFolder`),
+    results.json last; files the toolkit did not write are never removed.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / RESULTS).write_text(json.dumps(doc, indent=2) + "\n")
+    if not isinstance(out_dir, OutputFolder):
+        with OutputFolder(out_dir) as folder:
+            return write_run(folder, doc, results, infos, jobs, progress, per_recording)
+    folder, stage = out_dir, out_dir.staging
+    out = folder.path
+    _atomic_text(stage / RESULTS, json.dumps(doc, indent=2) + "\n")
     command = doc.get("settings", {}).get("command", "")
-    (out / "command.txt").write_text(f"{command}\n# re-render the report from this folder without recomputing:\n"
-                                     f"fusion report {out}\n")
-    series_dir = out / "series"
-    if series_dir.is_dir():
-        for old in series_dir.glob("*.npz"):
-            old.unlink()
+    (stage / "command.txt").write_text(f"{command}\n# re-render the report from this folder without recomputing:\n"
+                                       f"fusion report {out}\n")
     if per_recording:
+        series_dir = stage / "series"
         series_dir.mkdir(exist_ok=True)
         causal = {label: d.get("causal", True) for label, d in doc["settings"].get("estimator_details", {}).items()}
         if len(results) % max(len(infos), 1):
@@ -76,7 +88,174 @@ def write_run(out_dir: str | Path, doc: dict[str, Any], results: list[Result], i
         for n, info in enumerate(infos):
             mine = results[n * per:(n + 1) * per]  # recording-major order
             series_io.save(series_dir / f"{n:03d}.npz", series_io.from_results(info, mine, causal))
-    return render(out, jobs=jobs, progress=progress)
+    _render_into(stage, stage, jobs, progress)
+    folder.commit(full=True)
+    return out / "report.html"
+
+
+# --- the output folder: lock, staging, manifest ---
+
+MANIFEST = ".fusion-manifest.json"
+LOCK = ".fusion.lock"
+STAGING_PREFIX = ".fusion-staging-"
+_MANIFEST_FORMAT = "fusion-output-manifest"
+
+
+class OutputFolder:
+    """An output folder held by one run (a context manager).
+
+    - Lock: `DIR/.fusion.lock`, held with `fcntl.flock` for the whole run (the PID inside is
+      for the message only). A second run on the folder is refused with one line; the kernel
+      releases the lock when a run dies, however it dies, so a crash never leaves it stuck.
+    - Staging: the run writes into `DIR/.fusion-staging-XXXX/`; on an error, SIGINT or SIGTERM
+      that folder is removed and DIR is as it was. Staging folders left by a killed run
+      (SIGKILL) are removed by the next run that holds the lock.
+    - Commit (`commit`): with SIGINT/SIGTERM held back until it is done, results.json is
+      removed first, the files of the previous run (those in `DIR/.fusion-manifest.json`) that
+      the new run does not write again are removed, the staged files are moved in (`os.replace`:
+      each file is whole), the manifest is written, and results.json is moved in last. So a
+      folder with results.json is complete; only files listed in the manifest are ever removed,
+      and a staged file would never replace a file the toolkit did not write (an error instead).
+      A folder written before manifests existed has its files overwritten, never removed.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.staging: Path | None = None
+        self._fd: int | None = None
+
+    def __enter__(self) -> "OutputFolder":
+        import tempfile
+
+        out = self.path
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"{out}: exists and is not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+        self._fd = _lock(out)
+        try:
+            for stale in out.glob(STAGING_PREFIX + "*"):  # left by a killed run; we hold the lock
+                if stale.is_dir() and not stale.is_symlink():
+                    shutil.rmtree(stale, ignore_errors=True)
+            self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out))
+        except BaseException:
+            self._release()
+            raise
+        return self
+
+    def __exit__(self, *exc: Any) -> bool:
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None
+        self._release()
+        return False
+
+    def _release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+    def manifest(self) -> list[str] | None:
+        """The files (relative paths) the toolkit wrote here, None if there is no manifest."""
+        return read_manifest(self.path)
+
+    def commit(self, full: bool) -> None:
+        """Move the staged files in (see the class docstring).
+
+        full: a whole run (results.json and series are replaced too); False for `fusion report`,
+            which replaces only table, figures and reports.
+        """
+        out, stage = self.path, self.staging
+        staged = sorted(p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file())
+        old = self.manifest()
+        legacy = old is None and (out / RESULTS).exists()
+        owned = set(old or [])
+        if not legacy:
+            clash = [rel for rel in staged if (out / rel).exists() and rel not in owned]
+            if clash:
+                raise ValueError(f"{out / clash[0]}: exists and was not written by fusion; move it away or choose "
+                                 "another output folder (nothing was changed)")
+
+        def regenerated(rel: str) -> bool:
+            return full or not (rel == RESULTS or rel == "command.txt" or rel.startswith("series/"))
+
+        keep = [rel for rel in owned if not regenerated(rel) and (out / rel).is_file()]
+        with _signals_held():
+            if full and RESULTS in staged and (out / RESULTS).exists():
+                (out / RESULTS).unlink()  # from here until the end the folder reads as incomplete
+            for rel in sorted(owned):
+                target = out / rel
+                if regenerated(rel) and rel not in staged and target.is_file() and not target.is_symlink():
+                    target.unlink()
+            for rel in staged:
+                if rel != RESULTS:
+                    (out / rel).parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(stage / rel, out / rel)
+            files = sorted(set(staged) | set(keep))
+            _atomic_text(out / MANIFEST, json.dumps({"format": _MANIFEST_FORMAT, "files": files}, indent=1) + "\n")
+            if RESULTS in staged:
+                os.replace(stage / RESULTS, out / RESULTS)
+
+
+def read_manifest(out: Path) -> list[str] | None:
+    """`DIR/.fusion-manifest.json`'s file list (None without one); a broken one is an error."""
+    path = Path(out) / MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        files = doc["files"]
+        if doc.get("format") != _MANIFEST_FORMAT or not all(isinstance(f, str) for f in files):
+            raise TypeError("not a fusion manifest")
+    except (ValueError, KeyError, TypeError, RecursionError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable fusion manifest ({type(exc).__name__}); delete it to start afresh") from None
+    # Only plain relative paths inside the folder: a hand-edited manifest must not reach outside.
+    return [f for f in files if f and not Path(f).is_absolute() and ".." not in Path(f).parts]
+
+
+def _lock(out: Path) -> int | None:
+    try:
+        import fcntl
+    except ImportError:  # not on a POSIX system: no lock
+        return None
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.read(fd, 32).decode("ascii", "replace").strip()
+        os.close(fd)
+        raise ValueError(f"{out}: in use by another fusion run (pid {holder or 'unknown'}); wait for it to finish "
+                         "or choose another output folder") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+class _signals_held:
+    """SIGINT and SIGTERM wait until the block is done (then raise KeyboardInterrupt), so a
+    commit is never cut in half by them (only the main thread can set handlers; elsewhere a no-op)."""
+
+    def __enter__(self) -> None:
+        import threading
+
+        self.caught: list[int] = []
+        self.old: dict[int, Any] = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.old[sig] = signal.signal(sig, lambda signum, frame: self.caught.append(signum))
+
+    def __exit__(self, *exc: Any) -> bool:
+        for sig, handler in self.old.items():
+            signal.signal(sig, handler)
+        if self.caught and exc[0] is None:
+            raise KeyboardInterrupt
+        return False
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    """Write `path` under a temporary name in the same folder, then rename: never half a file."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
 
 
 # --- rendering ---
@@ -131,40 +310,141 @@ def _render_summary(doc: dict[str, Any], fig_dir: str) -> list[tuple[str, str]]:
 
 
 def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) -> Path:
-    """(Re)build table.txt, figures/, report.html and report.md from results.json and series/."""
+    """(Re)build table.txt, figures/, report.html and report.md from results.json and series/
+    (in a staging folder, moved in at the end: see `OutputFolder`)."""
     out = Path(out_dir)
     doc_path = out / RESULTS
     if not doc_path.is_file():
         raise FileNotFoundError(f"{doc_path}: no results.json here (is {out} the --out folder of a run?)")
-    try:
-        doc = json.loads(doc_path.read_text())
-        rows = doc["results"]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise ValueError(f"{doc_path}: not a results document ({exc})") from None
-    doc.setdefault("settings", {})
-    results = [Result(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
-                      alignment=r.get("alignment")) for r in rows]
+    read_results(doc_path)  # fail before taking the folder
+    with OutputFolder(out) as folder:
+        _render_into(out, folder.staging, jobs, progress)
+        folder.commit(full=False)
+    return out / "report.html"
+
+
+def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> None:
+    """Table, figures and both reports of the run in `source`, written into `dest`."""
+    doc = read_results(source / RESULTS)
+    results = [_result(r) for r in doc["results"]]
     table = format_table(results, align=bool(doc["settings"].get("align", False)))
-    (out / "table.txt").write_text(table + "\n")
-    fig_dir = out / "figures"
+    (dest / "table.txt").write_text(table + "\n")
+    fig_dir = dest / "figures"
     fig_dir.mkdir(exist_ok=True)
-    for old in fig_dir.glob("*.png"):
-        old.unlink()
-    series_paths = sorted((out / "series").glob("*.npz")) if (out / "series").is_dir() else []
+    series_paths = series_files(source)
+    for path in series_paths:
+        check_series(path)
     tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir)))]
     tasks += [(_render_recording, (str(p), str(fig_dir))) for p in series_paths]
     outputs = _run_tasks(tasks, jobs, progress)
     summary, per_recording = outputs[0], [fig for figs in outputs[1:] for fig in figs]
-    (out / "report.md").write_text(_markdown(doc, table, summary, per_recording))
-    path = out / "report.html"
-    path.write_text(_html(doc, summary, per_recording, fig_dir))
-    return path
+    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording))
+    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir))
+
+
+def series_files(out: Path) -> list[Path]:
+    """The run's series files: those in the manifest, else (a staging folder, or a folder
+    written before manifests) every series/*.npz."""
+    files = read_manifest(out)
+    if files is not None:
+        return [out / f for f in sorted(files) if f.startswith("series/") and f.endswith(".npz") and (out / f).is_file()]
+    return sorted((out / "series").glob("*.npz")) if (out / "series").is_dir() else []
+
+
+def check_series(path: Path) -> None:
+    """A series file that `evaluation.series.load` reads and whose arrays agree in shape; else
+    one line naming it."""
+    try:
+        s = series_io.load(path)
+    except Exception as exc:  # zipfile/numpy raise many types for a corrupt file; all are one line here
+        raise ValueError(f"{path}: not a readable series file ({type(exc).__name__}: {' '.join(str(exc).split())[:150]})") from None
+    n, e = len(s.imu_t), len(s.labels)
+    expect = {"imu_t": ((n,), s.imu_t.shape), "gyr_valid": ((n,), s.gyr_valid.shape),
+              "truth_quat": ((len(s.truth_t), 4), s.truth_quat.shape), "causal": ((e,), (len(s.causal),)),
+              "quat": ((e, n, 4), s.quat.shape), "err_deg": ((e, len(KINDS), n), s.err_deg.shape)}
+    for name, (want, got) in expect.items():
+        if tuple(want) != tuple(got) or (name in ("imu_t", "truth_t") and np.ndim(getattr(s, name)) != 1):
+            raise ValueError(f"{path}: {name!r} has shape {tuple(got)}, expected {tuple(want)}; not a series this toolkit wrote")
+
+
+def read_results(path: Path) -> dict[str, Any]:
+    """results.json, checked row by row against what `fusion compare` writes; one line naming
+    the file (and the row) otherwise."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, RecursionError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a results document ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("results"), list):
+        raise ValueError(f"{path}: not a results document (no 'results' list)")
+    for key in ("settings", "versions"):
+        if not isinstance(doc.setdefault(key, {}), dict):
+            raise ValueError(f"{path}: {key!r} must be an object")
+    details = doc["settings"].get("estimator_details", {})
+    if not isinstance(details, dict) or not all(isinstance(d, dict) and isinstance(d.get("params", {}), dict)
+                                                for d in details.values()):
+        raise ValueError(f"{path}: 'settings.estimator_details' is not what fusion writes")
+    for i, row in enumerate(doc["results"]):
+        problem = _row_problem(row)
+        if problem:
+            raise ValueError(f"{path}: results row {i}: {problem}")
+    alignments = doc.get("alignments") or []
+    if not isinstance(alignments, list) or not all(isinstance(a, dict) and isinstance(a.get("dataset"), str)
+                                                   and _alignment_problem(a) is None for a in alignments):
+        raise ValueError(f"{path}: 'alignments' is not what fusion writes")
+    return doc
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _alignment_problem(a: Any) -> str | None:
+    if a is None:
+        return None
+    if not isinstance(a, dict) or not all(isinstance(a.get(k), list) and len(a[k]) == 3 and all(map(_number, a[k]))
+                                          for k in ("world_deg", "body_deg")):
+        return "'alignment' must hold 'world_deg' and 'body_deg' as 3 numbers"
+    return None
+
+
+def _row_problem(r: Any) -> str | None:
+    if not isinstance(r, dict):
+        return f"not an object ({type(r).__name__})"
+    for key in ("dataset", "estimator"):
+        if not isinstance(r.get(key), str):
+            return f"{key!r} must be a string"
+    if not (isinstance(r.get("samples"), int) and not isinstance(r["samples"], bool) and r["samples"] >= 0):
+        return "'samples' must be a whole number >= 0"
+    if not (_number(r.get("seconds")) and r["seconds"] >= 0):
+        return "'seconds' must be a finite number >= 0"
+    for key in ("rmse_deg", "max_deg"):
+        v = r.get(key)
+        if v is not None and not (isinstance(v, dict) and all(_number(v.get(k)) and v[k] >= 0 for k in KINDS)):
+            return f"{key!r} must be null or hold {', '.join(KINDS)} as finite numbers >= 0"
+    if (r.get("rmse_deg") is None) != (r.get("max_deg") is None):
+        return "'rmse_deg' and 'max_deg' must both be null or both be given"
+    n = r.get("scored_samples")
+    if n is not None and not (isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= r["samples"]):
+        return "'scored_samples' must be null or a whole number within 0..samples"
+    c = r.get("coverage")
+    if c is not None and not (_number(c) and 0 <= c <= 1):
+        return "'coverage' must be null or a number in [0, 1]"
+    if r.get("panorama") is not None and not (isinstance(r["panorama"], dict) and all(
+            v is None or _number(v) for v in r["panorama"].values())):
+        return "'panorama' must be null or an object of numbers"
+    return _alignment_problem(r.get("alignment"))
+
+
+def _result(r: dict[str, Any]) -> Result:
+    """A results.json row (checked by `read_results`) as a `Result` without trajectory."""
+    return Result(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
+                  alignment=r.get("alignment"), scored_samples=r.get("scored_samples"), coverage=r.get("coverage"))
 
 
 def _run_tasks(tasks: list[tuple[Callable, tuple]], jobs: int | None, progress: bool) -> list[Any]:
     from tqdm import tqdm
 
-    from .runner import default_jobs, pool_context
+    from .runner import default_jobs, pool_context, quiet_worker, stop_pool
 
     jobs = min(default_jobs() if not jobs else jobs, len(tasks))
     bar = tqdm(total=len(tasks), disable=not progress, file=sys.stderr, unit="fig", desc="figures", leave=False)
@@ -180,11 +460,15 @@ def _run_tasks(tasks: list[tuple[Callable, tuple]], jobs: int | None, progress: 
         from . import plots  # noqa: F401  (imported once here, inherited by forked workers)
 
         outputs: list[Any] = [None] * len(tasks)
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=pool_context()) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=pool_context(), initializer=quiet_worker) as pool:
             futures = {pool.submit(fn, *args): n for n, (fn, args) in enumerate(tasks)}
-            for future in as_completed(futures):
-                outputs[futures[future]] = future.result()
-                bar.update()
+            try:
+                for future in as_completed(futures):
+                    outputs[futures[future]] = future.result()
+                    bar.update()
+            except BaseException:
+                stop_pool(pool)
+                raise
         return outputs
     finally:
         bar.close()
@@ -200,23 +484,29 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
     """(header, rows) of the per-run table and of the per-estimator means, as text cells; rows
     without ground truth come after the scored ones."""
     rows = [r for r in doc["results"] if r["rmse_deg"]] + [r for r in doc["results"] if not r["rmse_deg"]]
-    header = ["dataset", "estimator", "samples", *(f"{k} RMSE" for k in KINDS), *(f"{k} max" for k in KINDS),
-              "us/sample"]
+    header = ["dataset", "estimator", "samples", "scored samples", "coverage", *(f"{k} RMSE" for k in KINDS),
+              *(f"{k} max" for k in KINDS), "us/sample"]
     body = []
     for r in rows:
         rmse = [_fmt(r["rmse_deg"][k]) if r["rmse_deg"] else "-" for k in KINDS]
         worst = [_fmt(r["max_deg"][k]) if r["max_deg"] else "-" for k in KINDS]
-        body.append([r["dataset"], r["estimator"], str(r["samples"]), *rmse, *worst,
-                     f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
+        scored_samples = r.get("scored_samples")
+        body.append([r["dataset"], r["estimator"], str(r["samples"]), "-" if scored_samples is None else str(scored_samples),
+                     format_coverage(_result(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
     mean_header = ["estimator", "recordings scored", *(f"mean {k} RMSE" for k in KINDS), "mean us/sample"]
     means = []
     for label in dict.fromkeys(r["estimator"] for r in rows):
         mine = [r for r in rows if r["estimator"] == label]
-        scored = [r for r in mine if r["rmse_deg"]]
+        scored = [r for r in mine if _result(r).in_means]
         values = [_fmt(float(np.mean([r["rmse_deg"][k] for r in scored]))) if scored else "-" for k in KINDS]
         us = np.mean([1e6 * r["seconds"] / max(r["samples"], 1) for r in mine])
         means.append([label, str(len(scored)), *values, f"{us:.1f}"])
     return header, body, mean_header, means
+
+
+def _coverage_text(doc: dict[str, Any]) -> str:
+    """The note under the results table when a row was scored on too little of its recording."""
+    return LOW_COVERAGE_NOTE if any(_result(r).low_coverage for r in doc["results"]) else ""
 
 
 ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg", "|B| deg",
@@ -295,7 +585,7 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
     lines = [f"# {_title(doc)}", "", "Command:", "", "    " + settings.get("command", "(unknown)"), "",
              "Re-render without recomputing: `fusion report <this folder>`.", "", "## Means per estimator (RMSE, deg)", ""]
     lines += md_table(mean_header, means) + ["", "## Results per recording (RMSE and maximum, deg)", ""]
-    lines += md_table(header, body)
+    lines += md_table(header, body) + (["", _coverage_text(doc)] if _coverage_text(doc) else [])
     lines += ["", "Errors: total = geodesic angle between estimate and VICON; inclination = angle between the true and "
               "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
     if _alignment_rows(doc):
@@ -353,6 +643,7 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         _html_table(mean_header, means, "means", 1),
         "<h2>Results per recording</h2><p>Recordings without ground truth (not scored) come last.</p>",
         _html_table(header, body, "results", 2),
+        *([f"<p>{html.escape(_coverage_text(doc))}</p>"] if _coverage_text(doc) else []),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),

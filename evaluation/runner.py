@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import sys
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from dataclasses import dataclass, replace
@@ -33,7 +34,7 @@ from fusion.datasets import LoadOptions, Source
 from fusion.types import Recording, Trajectory
 
 from .align import Alignment
-from .compare import Result, aligned, recording_alignment, run_one
+from .compare import Result, aligned, recording_alignment, run_one, warn_low_coverage
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +60,31 @@ _ALIGNMENTS: dict[int, Alignment | None] = {}
 _LOAD = LoadOptions()
 
 
+def quiet_worker() -> None:
+    """In a worker process: Ctrl-C goes to the whole process group, but only the parent acts on
+    it (it stops the workers, `stop_pool`); SIGTERM kills (a forked worker would otherwise
+    inherit the parent's handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool now: cancel what has not started and terminate the running workers (a job
+    can run for minutes; waiting for it would leave it running after an interrupt)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in processes:
+        proc.join(timeout=5)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+
+
 def _init_worker(items: Sequence[Source | Recording], registry: dict[str, type] | None, load: LoadOptions = LoadOptions()) -> None:
+    quiet_worker()
     global _ITEMS, _LOAD
     _ITEMS = list(items)
     _LOAD = load
@@ -158,6 +183,7 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
         _ALIGNMENTS.clear()
     results = [r for r, _ in outputs]
     infos = [info for _, info in outputs if info is not None]
+    warn_low_coverage(results)
     return results, infos
 
 
@@ -177,8 +203,8 @@ def _run_pool(tasks: list[tuple], items: list, jobs: int, bar: Any, load: LoadOp
                     outputs[n] = future.result()  # re-raises a worker's error here
                     bar.set_postfix_str(_label(items, tasks[n]))
                     bar.update()
-        except BaseException:
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:  # a job's error, Ctrl-C, SIGTERM (see `fusion.cli`): no orphaned workers
+            stop_pool(pool)
             raise
     return outputs
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .loaders import read_isolated
+from .loaders import check_declared, check_physical, read_isolated
 from .types import ImuSamples, Trajectory
 
 G = 9.80665  # m/s^2 per g
@@ -47,7 +47,11 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
     h5py = _h5py(path)
     try:
         with h5py.File(path, "r") as f:
-            data = {key: np.array(f[key]) for key in f.keys() if isinstance(f[key], h5py.Dataset)}
+            datasets = [key for key in f.keys() if isinstance(f[key], h5py.Dataset)]
+            # Shapes from the header, before reading: a 2 KB file can declare 30 million compressed rows.
+            check_declared(path, [(key, f[key].shape or ()) for key in datasets]
+                           + [(key, f.attrs.get_id(key).shape or ()) for key in f.attrs.keys()])
+            data = {key: np.array(f[key]) for key in datasets}
             # BROAD's published .hdf5 files keep `sampling_rate` as a file attribute, not a dataset.
             for key, value in f.attrs.items():
                 if key not in data and not isinstance(value, (str, bytes)):
@@ -61,9 +65,14 @@ def _read_mat(path: Path) -> dict[str, np.ndarray]:
     import scipy.io
 
     try:
+        check_declared(path, ((name, shape) for name, shape, _ in scipy.io.whosmat(str(path))))
         return {k: v for k, v in scipy.io.loadmat(str(path)).items() if not k.startswith("__")}
     except NotImplementedError:  # MATLAB v7.3: an HDF5 file
         return _read_hdf5(path)
+    except ValueError as exc:
+        if str(exc).startswith(f"{path}:"):
+            raise
+        raise ValueError(f"{path}: not a readable MATLAB file (ValueError: {exc})") from None
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
         raise ValueError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: {exc})") from None
 
@@ -134,6 +143,7 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
         raise ValueError(f"{path}: needs at least 2 samples, has {n}")
     if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
         raise ValueError(f"{path}: 'imu_gyr' or 'imu_acc' contain NaN or Inf")
+    check_physical(path, gyr, acc, ("imu_gyr x", "imu_gyr y", "imu_gyr z"), ("imu_acc x", "imu_acc y", "imu_acc z"))
     if "movement" in data:
         movement = np.asarray(data["movement"]).ravel()
         if movement.shape != (n,):

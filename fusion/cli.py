@@ -12,6 +12,7 @@ import contextlib
 import json
 import os
 import shlex
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -58,6 +59,10 @@ def select_sources(args: argparse.Namespace) -> list:
     if datasets.course_root(root) != root:
         note(f"{root} is a course's {root.name}/ folder; reading recordings from its parent {root.parent}")
     sources = datasets.select(args.dataset, args.data_dir)
+    if getattr(args, "calibration", None):
+        from .gyro_fit import warn_not_applied
+
+        warn_not_applied(args.calibration, sources)
     if args.dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
         if user_dir:
             raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
@@ -114,6 +119,9 @@ def cmd_panorama(args: argparse.Namespace) -> int:
     from evaluation.compare import run_one
     from evaluation.panorama import PanoramaGrid, comparison_image, estimate_panorama, reference_panorama
 
+    from evaluation.panorama import check_options
+
+    check_options(args.out, args.rate)  # before any work: the image format and the frame rate
     recordings = load_selected(args)
     if len(recordings) != 1:
         raise ValueError(f"--dataset {args.dataset!r} names {len(recordings)} recordings; panorama takes one")
@@ -204,7 +212,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool = True) -> int:
-    """Run `specs` on the selected recordings; print the table; write --json and --out."""
+    """Run `specs` on the selected recordings; print the table; write --json and --out (the
+    --out folder is taken, locked, before computing: see `evaluation.report.OutputFolder`)."""
+    if not getattr(args, "out", None):
+        return _run_in(args, specs, settings, per_recording, None)
+    from evaluation.report import OutputFolder
+
+    with OutputFolder(args.out) as folder:
+        return _run_in(args, specs, settings, per_recording, folder)
+
+
+def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool, folder) -> int:
     from evaluation.compare import format_table, results_json
     from evaluation.runner import describe_specs, run
 
@@ -235,7 +253,7 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
     if out:
         from evaluation.report import write_run
 
-        report = write_run(out, doc, results, infos, jobs=args.jobs, progress=not args.no_progress,
+        report = write_run(folder, doc, results, infos, jobs=args.jobs, progress=not args.no_progress,
                            per_recording=per_recording)
         print(f"report: {report}", file=sys.stderr)
     return 0
@@ -400,6 +418,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(args: argparse.Namespace) -> int:
+    previous = _terminate_as_interrupt()
     try:
         return args.func(args)
     except (ValueError, OSError) as exc:  # bad input: one line, exit 1
@@ -411,6 +430,23 @@ def _dispatch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("fusion: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt, as Ctrl-C does, so that worker processes are stopped
+    and an --out folder is left as it was (returns the previous handler; None off the main thread)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ The calibration file (JSON, `FORMAT`, version 1) is documented in the README.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
@@ -199,20 +200,53 @@ def read(path: str | Path) -> CalibrationFile:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such calibration file")
+    if path.stat().st_size > 10 * 1024**2:  # ours are ~2 KB
+        raise ValueError(f"{path}: {path.stat().st_size} bytes, far larger than a calibration file")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a calibration file (not UTF-8 text: byte {exc.start})") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a calibration file (JSON nested too deeply)") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ValueError(f"{path}: not a {FORMAT} file (missing or wrong 'format')")
-    if doc.get("version") != VERSION:
-        raise ValueError(f"{path}: calibration file version {doc.get('version')!r}, this fusion reads version {VERSION}")
+    if doc.get("version") != VERSION or isinstance(doc.get("version"), bool):
+        raise ValueError(f"{path}: calibration file version {_short(doc.get('version'))}, this fusion reads version {VERSION}")
     scale = doc.get("gyro_scale_factor")
-    if not (isinstance(scale, list) and len(scale) == 3 and all(isinstance(x, (int, float)) for x in scale)):
-        raise ValueError(f"{path}: 'gyro_scale_factor' must be a list of 3 numbers, got {scale!r}")
+    if not (isinstance(scale, list) and len(scale) == 3 and all(_is_number(x) for x in scale)):
+        raise ValueError(f"{path}: 'gyro_scale_factor' must be a list of 3 numbers (not booleans), got {_short(scale)}")
     if not all(0.5 <= x <= 2.0 for x in scale):
         raise ValueError(f"{path}: 'gyro_scale_factor' {scale} outside the plausible 0.5-2")
     offsets = doc.get("clock_offset_s", {}) or {}
-    if not isinstance(offsets, dict) or not all(isinstance(v, (int, float)) and abs(v) < 1.0 for v in offsets.values()):
-        raise ValueError(f"{path}: 'clock_offset_s' must map recording ids to offsets in s (|offset| < 1)")
-    return CalibrationFile(tuple(float(x) for x in scale), {str(k): float(v) for k, v in offsets.items()}, doc.get("info", {}))
+    if not isinstance(offsets, dict) or not all(_is_number(v) and abs(v) < 1.0 for v in offsets.values()):
+        raise ValueError(f"{path}: 'clock_offset_s' must map recording ids to offsets in s (numbers, |offset| < 1)")
+    info = doc.get("info", {})
+    return CalibrationFile(tuple(float(x) for x in scale), {str(k): float(v) for k, v in offsets.items()},
+                           info if isinstance(info, dict) else {})
+
+
+def _is_number(x: Any) -> bool:
+    """A finite int or float; JSON's true/false are Python bools, which are ints: refused."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
+
+
+def _short(value: Any) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def warn_not_applied(path: str | Path, sources: Iterable[Any]) -> None:
+    """Warn, per recording, that a calibration file's gyro scale factors are not applied to it.
+
+    The factors multiply the nominal counts-to-rad/s scale of the course board (`BoardModel`);
+    CSV and BROAD recordings are already in rad/s, calibrated by whoever wrote them, so the
+    factors are not applied there (their clock offsets, if the file has one for the recording,
+    are). Applying a scale fitted on another sensor would be a silent wrong answer.
+    """
+    for source in sources:
+        if getattr(source, "kind", None) in ("csv", "broad"):
+            warnings.warn(f"{source.id}: --calibration {path}: gyro scale factors not applied ({source.kind.upper()} "
+                          "recordings are already in rad/s; the factors are for the course board's raw counts)",
+                          stacklevel=2)

@@ -63,7 +63,7 @@ import pickle
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -73,6 +73,19 @@ G = 9.80665  # m/s^2 per g (CSV files are in m/s^2)
 ADC_LIMIT_COUNTS = 65535  # raw IMU values are ADC counts (10-bit here; any 16-bit ADC fits)
 GAP_S = 0.5  # a time step longer than this is a gap (warned about; see the module docstring)
 MIN_STEP_S, MAX_STEP_S = 1e-5, 1.0  # plausible median time step (100 kHz .. 1 Hz)
+
+# Resource bounds, checked on what a file *declares* (array shapes in the HDF5/MATLAB headers,
+# the structure of unpickled containers) before anything is allocated. A real recording is far
+# below them: the course files hold ~5,000-10,000 samples, BROAD trials ~50,000-100,000.
+MAX_SAMPLES = 10_000_000  # per array, its longest axis: 27 h at 100 Hz, 2.8 h at 1 kHz
+MAX_VALUES = 16 * MAX_SAMPLES  # per array, all values (16 channels of MAX_SAMPLES)
+MAX_BYTES = 2 * 1024**3  # all arrays of one file together, as float64 (what loading makes of them)
+MAX_NESTING = 8  # nested lists/tuples/dicts in a pickle (a 3 x 3 x K list in a dict is 4)
+
+# Physical plausibility of files in physical units (CSV, BROAD): see `check_physical`.
+GYRO_LIMIT_RAD_S = 70.0  # 4000 deg/s: the widest range of common MEMS gyros
+GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-1 rad/s; BROAD up to 5.3)
+ACC_LIMIT_M_S2 = 200 * 9.80665  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
 
 # Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
 # .mat and 2018 files.
@@ -114,9 +127,73 @@ def _one_line(exc: BaseException, limit: int = 200) -> str:
 def _read_pickle(path: Path) -> Any:
     data = _read_bytes(path)
     try:
-        return _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
+        obj = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
         raise ValueError(f"{path}: not a readable pickle ({_one_line(exc)})") from None
+    check_structure(obj, path)
+    return obj
+
+
+_CONTAINERS = (list, tuple, dict)
+
+
+def check_structure(obj: Any, path: Path | str) -> None:
+    """Refuse nested containers whose arrays would be unboundedly large, by structure alone.
+
+    A 663-byte pickle of lists sharing references (`l = [l] * 10`, 30 times) holds 10**30
+    values once `np.asarray` materialises it. Here each container's nesting depth and total
+    value count (an ndarray counts its `size`, anything else 1) are computed once per object
+    (memo on `id`, so shared references cost nothing, and are counted as often as they are
+    referenced, as materialising would), iteratively (no recursion limit), and a container
+    holding itself is refused. Limits: `MAX_NESTING` levels, `MAX_VALUES` values.
+    """
+    if not isinstance(obj, _CONTAINERS):
+        return
+    memo: dict[int, int] = {}  # id -> total values
+    active: set[int] = set()  # the containers on the current path (a repeat is a cycle)
+    stack: list[tuple[Any, int, bool]] = [(obj, 1, False)]
+    while stack:
+        node, level, done = stack.pop()
+        children = list(node.values()) if isinstance(node, dict) else node
+        key = id(node)
+        if done:
+            total = 0
+            for child in children:
+                total += memo[id(child)] if isinstance(child, _CONTAINERS) else (child.size if isinstance(child, np.ndarray) else 1)
+            if total > MAX_VALUES:
+                raise ValueError(f"{path}: nested containers hold {total:.3g} values, more than any recording "
+                                 f"(limit {MAX_VALUES:.3g})")
+            memo[key] = total
+            active.discard(key)
+            continue
+        if key in memo:
+            continue
+        if key in active:
+            raise ValueError(f"{path}: a container holds itself (a reference cycle); not a recording")
+        if level > MAX_NESTING:
+            raise ValueError(f"{path}: containers nested more than {MAX_NESTING} deep; not a recording")
+        active.add(key)
+        stack.append((node, level, True))
+        for child in children:
+            if isinstance(child, _CONTAINERS) and id(child) not in memo:
+                stack.append((child, level + 1, False))
+
+
+def check_declared(path: Path | str, arrays: Iterable[tuple[str, tuple[int, ...]]]) -> None:
+    """Refuse a file whose arrays, as its header declares them (`(name, shape)` pairs), exceed
+    `MAX_SAMPLES` along an axis, `MAX_VALUES` in one array or `MAX_BYTES` (as float64) in all;
+    called before any array is read."""
+    total = 0
+    for name, shape in arrays:
+        shape = tuple(int(n) for n in shape)
+        values = int(np.prod(shape, dtype=object)) if shape else 1
+        if any(n > MAX_SAMPLES for n in shape) or values > MAX_VALUES:
+            raise ValueError(f"{path}: {name!r} declares shape {shape} ({values:.3g} values); a recording has at most "
+                             f"{MAX_SAMPLES:.3g} samples per array and {MAX_VALUES:.3g} values")
+        total += 8 * values
+        if total > MAX_BYTES:
+            raise ValueError(f"{path}: the arrays declare {total / 1024**3:.3g} GiB, more than the {MAX_BYTES / 1024**3:.3g} "
+                             "GiB limit of one recording")
 
 
 def _read_mat(path: Path) -> dict[str, Any]:
@@ -191,7 +268,12 @@ def _loadmat(path: Path) -> dict[str, Any]:
     import scipy.io
 
     try:
+        check_declared(path, ((name, shape) for name, shape, _ in scipy.io.whosmat(str(path))))
         return scipy.io.loadmat(str(path))
+    except ValueError as exc:
+        if str(exc).startswith(f"{path}:"):
+            raise
+        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
         raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
 
@@ -265,8 +347,12 @@ def check_sampling(t: np.ndarray, path: Path | str) -> None:
         span = t[-1] - t[0]
     step = float(np.median(dt))
     if not (MIN_STEP_S <= step <= MAX_STEP_S):
+        hint = " (milliseconds? divide by 1000)" if 1e-3 <= step <= 1e3 else ""
         raise ValueError(f"{path}: median time step {step:.3g} s is outside [{MIN_STEP_S:g}, {MAX_STEP_S:g}] s; "
-                         "time stamps must be in seconds")
+                         f"time stamps must be in seconds{hint}")
+    if step == 1.0 and np.all(t == np.round(t)):
+        raise ValueError(f"{path}: time stamps {t[0]:g}, {t[1]:g}, {t[2] if len(t) > 2 else t[1] + 1:g} ... look like "
+                         "sample numbers (an IMU at exactly 1 Hz is implausible); time stamps must be in seconds")
     gaps = _gaps(dt)
     if np.any(gaps):
         covered = float(dt[gaps].sum())
@@ -276,6 +362,31 @@ def check_sampling(t: np.ndarray, path: Path | str) -> None:
         k = int(np.argmax(dt))
         warnings.warn(f"{path}: {int(gaps.sum())} gaps in the time stamps longer than {max(GAP_S, 10 * step):.3g} s "
                       f"(longest {dt[k]:.3g} s, {t[k] - t[0]:.1f} s after the start)", stacklevel=3)
+
+
+def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray, gyr_names: tuple[str, ...],
+                   acc_names: tuple[str, ...]) -> None:
+    """Plausibility of IMU values in physical units (finite (N, 3) arrays; names for messages).
+
+    Errors: a gyro value beyond `GYRO_LIMIT_RAD_S` (4000 deg/s; deg/s or scaled values, e.g.
+    x1e6, end up here) or an accelerometer value beyond `ACC_LIMIT_M_S2` (200 g; 1e308 too).
+    Warning: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion).
+    """
+    for values, names, limit, unit, fix in (
+        (gyr_rad_s, gyr_names, GYRO_LIMIT_RAD_S, "rad/s", "beyond any MEMS gyro (4000 deg/s); "
+         "in deg/s? convert to rad/s (multiply by pi/180)"),
+        (acc_m_s2, acc_names, ACC_LIMIT_M_S2, "m/s^2", "beyond any accelerometer range (200 g); "
+         "the column must be in m/s^2"),
+    ):
+        peak = np.abs(values).max(axis=0)
+        worst = int(np.argmax(peak))
+        if peak[worst] > limit:
+            raise ValueError(f"{path}: column {names[worst]!r} reaches {peak[worst]:.3g} {unit}, {fix}")
+    median = float(np.median(np.sqrt(np.sum(gyr_rad_s**2, axis=1))))
+    if median > GYRO_MEDIAN_WARN_RAD_S:
+        warnings.warn(f"{path}: columns {','.join(gyr_names)}: the median angular rate is {median:.3g} rad/s "
+                      f"({np.degrees(median):.0f} deg/s) over the whole recording, implausible for hand-held motion; "
+                      "if they are in deg/s, convert them to rad/s (multiply by pi/180)", stacklevel=3)
 
 
 def _gaps(dt: np.ndarray) -> np.ndarray:
@@ -400,6 +511,11 @@ def load_csv(path: str | Path, with_movement: bool = False):
     path = Path(path)
     text = _read_bytes(path).decode("utf-8-sig", errors="replace").splitlines()  # -sig: drop a BOM
     header = [h.strip().strip("\"'").strip().lower() for h in text[0].split(",")]
+    repeated = sorted({h for h in header if header.count(h) > 1 and h})
+    if repeated:
+        raise ValueError(f"{path}: the header names column {', '.join(repr(h) for h in repeated)} more than once")
+    if len(text) - 1 > MAX_SAMPLES:
+        raise ValueError(f"{path}: {len(text) - 1} rows, more than the {MAX_SAMPLES:.3g} samples of any recording")
     missing = [c for c in CSV_COLUMNS if c not in header]
     if missing:
         raise ValueError(f"{path}: missing CSV columns {', '.join(missing)} (need {','.join(CSV_COLUMNS)}[,{','.join(CSV_TRUTH)}])")
@@ -413,9 +529,11 @@ def load_csv(path: str | Path, with_movement: bool = False):
         raise ValueError(f"{path}: need at least 2 rows of {len(header)} columns, got shape {table.shape}")
     col = {name: table[:, i] for i, name in enumerate(header)}
     gyr = np.column_stack([col[c] for c in ("gx", "gy", "gz")])
-    acc = np.column_stack([col[c] for c in ("ax", "ay", "az")]) / G
+    acc = np.column_stack([col[c] for c in ("ax", "ay", "az")])
     if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
         raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
+    check_physical(path, gyr, acc, ("gx", "gy", "gz"), ("ax", "ay", "az"))
+    acc = acc / G
     has_truth = all(c in header for c in CSV_TRUTH)
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
     movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)

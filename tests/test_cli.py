@@ -9,7 +9,7 @@ import pytest
 
 from fusion.cli import main
 
-KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "alignment"}
+KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "scored_samples", "coverage", "alignment"}
 
 
 def run(capsys, *argv):

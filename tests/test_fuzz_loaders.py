@@ -3,6 +3,8 @@ or one line of `ValueError`/`FileNotFoundError` naming the file; never another t
 
 Two parts:
 - a corpus of named broken files (truncated pickles and .mat files, wrong dtypes and shapes,
+  resource bombs (nested shared-reference pickles, HDF5/.mat headers declaring huge shapes),
+  implausible physical values and duplicate CSV columns,
   empty arrays, NaN/Inf, non-monotonic and duplicated stamps, time gaps, a VICON file with no
   overlap, pickles of the wrong structure, CSVs with junk), each with its expected outcome,
   run through the loaders and through `fusion compare` in-process;
@@ -320,7 +322,35 @@ def _corpus():
     add("vicon-ts-length", "imuRaw1.p", a, "ok", 1, vicon={"rots": v["rots"], "ts": vt[:, :-3]})
     add("vicon-list", "imuRaw1.p", a, "ok", 1, vicon=[v])
     add("no-rest-at-start", "imuRaw1.p", imu_276a(t, c[::-1].copy()), "ok", 1)
+    # resource bombs: tiny files declaring huge arrays, refused by structure or header before allocation
+    add("nested-shared-refs-10**30", "imuRaw1.p", {"vals": shared_list_bomb(30, 10), "ts": [0.0, 0.01]},
+        "error:nested more than 8 deep", 1)
+    add("nested-shared-refs-wide", "imuRaw1.p", {"vals": shared_list_bomb(6, 40), "ts": [0.0, 0.01]},
+        "error:nested containers hold", 1)
+    add("nested-shared-refs-array", "imuRaw1.p", [np.zeros((7, 100_000))] * 300, "error:nested containers hold", 1)
+    cycle: list = [1.0]
+    cycle.append(cycle)
+    add("pickle-cycle", "imuRaw1.p", {"vals": cycle, "ts": [0.0]}, "error:holds itself", 1)
+    add("mat-declares-huge-shape", "imuRaw1.mat", huge_mat({"vals": (6, 10_000_001), "ts": (1, 2)}),
+        "error:declares shape (6, 10000001)", 1)
+    add("vicon-nested-shared-refs", "imuRaw1.p", a, "ok", 1, vicon={"rots": shared_list_bomb(30, 10), "ts": vt})
+    add("vicon-mat-declares-huge", "imuRaw1.p", a, "ok", 1, vicon=huge_mat({"rots": (3, 3, 10_000_001), "ts": (1, 2)}))
     return cases
+
+
+def shared_list_bomb(levels: int, width: int) -> list:
+    """`l = [l] * width`, `levels` times: a few hundred bytes pickled, width**levels values."""
+    nested: list = [0]
+    for _ in range(levels):
+        nested = [nested] * width
+    return nested
+
+
+def huge_mat(shapes: dict) -> bytes:
+    """A compressed .mat of uint8 zeros with these shapes (a few hundred KB for 60 M values)."""
+    buf = io.BytesIO()
+    scipy.io.savemat(buf, {k: np.zeros(v, np.uint8) for k, v in shapes.items()}, do_compression=True)
+    return buf.getvalue()
 
 
 def _csv_corpus():
@@ -347,6 +377,19 @@ def _csv_corpus():
         pytest.param(b"\x00\xff\xfe" * 100, "error:missing CSV columns", 1, id="csv-binary"),
         pytest.param(f"{hdr}\n" + body.replace("9.80665", "9,80665"), "error:", 1, id="csv-decimal-comma"),
         pytest.param(f"{hdr}\n1,0,0,0,0,0,9.8,1,0,0,0\n", "error:need at least 2 rows", 1, id="csv-one-row"),
+        pytest.param(f"{hdr.replace('gy', 'gx')}\n{body}\n", "error:names column 'gx' more than once", 1, id="csv-duplicate-column"),
+        pytest.param(f"{hdr},ax\n" + "\n".join(ln + ",0" for ln in lines), "error:names column 'ax' more than once", 1,
+                     id="csv-duplicate-extra-column"),
+        pytest.param(f"{hdr}\n" + body.replace("0,0,9.80665", "0,1e308,9.80665", 1), "error:reaches 1e+308 m/s^2", 1,
+                     id="csv-acc-1e308"),
+        pytest.param(f"{hdr}\n" + "\n".join(f"{r[0]:.6g},{r[1] + 200},0,0,0,0,9.80665,1,0,0,0" for r in rows),
+                     "error:in deg/s? convert to rad/s", 1, id="csv-gyro-deg-s"),
+        pytest.param(f"{hdr}\n" + "\n".join(f"{k},0,0,0,0,0,9.80665,1,0,0,0" for k in range(n)),
+                     "error:look like sample numbers", 1, id="csv-sample-numbers"),
+        pytest.param(f"{hdr}\n" + "\n".join(f"{10 * k},0,0,0,0,0,9.80665,1,0,0,0" for k in range(n)),
+                     "error:milliseconds? divide by 1000", 1, id="csv-milliseconds"),
+        pytest.param(f"{hdr}\n" + "\n".join(lines[:60] + [lines[59]] + lines[60:]), "warn:dropped 1", 0,
+                     id="csv-duplicated-stamp-repaired"),
     ]
 
 
@@ -597,7 +640,29 @@ def _broad_corpus():
         pytest.param({**b, "opt_quat": b["opt_quat"] * np.nan}, "error:no finite row", 1, id="broad-no-truth"),
         pytest.param({k: v for k, v in b.items() if k != "imu_gyr"}, "error:no 'imu_gyr'", 1, id="broad-missing-gyr"),
         pytest.param({**b, "imu_gyr": b["imu_gyr"][:10]}, "error:", 1, id="broad-short-gyr"),
+        pytest.param(huge_mat({"imu_gyr": (10_000_001, 3), "imu_acc": (3, 3), "opt_quat": (3, 4), "sampling_rate": (1, 1)}),
+                     "error:'imu_gyr' declares shape (10000001, 3)", 1, id="broad-mat-declares-huge"),
+        pytest.param({**b, "imu_acc": b["imu_acc"] * 1e6}, "error:beyond any accelerometer range", 1, id="broad-acc-x1e6"),
     ]
+
+
+@pytest.mark.parametrize("rows, cols, expect", [
+    (30_000_000, 3, "error:declares shape (30000000, 3)"),
+    (10_000_001, 3, "error:declares shape (10000001, 3)"),
+    (2_000, 3, "error:not unit quaternions"),  # within the limits: read, then judged on its values
+])
+def test_corpus_broad_hdf5_declared_shapes(root, fuzz_stats, rows, cols, expect):
+    """A ~2 KB .hdf5 declaring 30 million compressed (never written) rows is refused from its header."""
+    h5py = pytest.importorskip("h5py")
+    path = fresh_dir(root) / "trial01.hdf5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("imu_gyr", shape=(rows, cols), dtype="f8", chunks=(min(rows, 50_000), cols), compression="gzip")
+        f.create_dataset("imu_acc", shape=(rows, 3), dtype="f8", chunks=(min(rows, 50_000), 3), compression="gzip")
+        f.create_dataset("opt_quat", shape=(rows, 4), dtype="f8", chunks=(min(rows, 50_000), 4), compression="gzip")
+        f.attrs["sampling_rate"] = 286.0
+    assert path.stat().st_size < 50_000
+    judge(fuzz_stats, lambda: load_file(path), [path], expect=expect)
+    run_cli(fuzz_stats, cli_args(path), [path], expect_code=1)
 
 
 @pytest.mark.parametrize("obj, expect, code", _broad_corpus())

@@ -130,7 +130,7 @@ def test_duplicate_and_backward_stamps_are_repaired_with_a_warning(tmp_path):
 
 
 def test_vicon_wrong_layout(tmp_path):
-    path = write_pickle(tmp_path / "viconRot1.p", {"rots": np.random.default_rng(0).normal(size=(3, 3, 20)), "ts": np.arange(20.0)[None]})
+    path = write_pickle(tmp_path / "viconRot1.p", {"rots": np.random.default_rng(0).normal(size=(3, 3, 20)), "ts": 0.01 * np.arange(20.0)[None]})
     with pytest.raises(ValueError, match="not rotation matrices"):
         loaders.load_vicon(path)
 

@@ -1,0 +1,234 @@
+"""Output folders (`compare --out`, `fusion report`): only the toolkit's own files are replaced
+or removed (manifest), a folder in use is refused (lock), an interrupted run leaves the folder
+as it was (staging + commit, results.json last), workers are stopped on SIGTERM, and
+`fusion report` refuses results.json rows and series files it did not write, in one line."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation import report
+from fusion.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def compare(capsys, out: Path, estimators: str = "dr", *extra: str):
+    return run(capsys, "compare", "--estimators", estimators, "--dataset", "sim", "--no-progress", "--jobs", "1",
+               "--out", str(out), *extra)
+
+
+def snapshot(folder: Path) -> dict[str, str]:
+    """Relative path -> md5 of every file, except the lock file (it holds the last run's PID)."""
+    return {p.relative_to(folder).as_posix(): hashlib.md5(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != report.LOCK}
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    """A folder after one `compare --out` with gn (which draws a loss figure)."""
+    out = tmp_path_factory.mktemp("runs") / "run"
+    assert main(["compare", "--estimators", "gn", "--dataset", "sim", "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
+    return out
+
+
+def copy_of(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_manifest_lists_what_was_written(first_run):
+    files = report.read_manifest(first_run)
+    assert "results.json" in files and "series/000.npz" in files and "figures/rec-000-sim-loss.png" in files
+    on_disk = {p.relative_to(first_run).as_posix() for p in first_run.rglob("*") if p.is_file()}
+    assert on_disk - set(files) == {report.MANIFEST, report.LOCK}
+    assert not list(first_run.glob(report.STAGING_PREFIX + "*"))
+
+
+def test_rerun_removes_only_its_own_files(first_run, tmp_path, capsys):
+    out = copy_of(first_run, tmp_path / "run")
+    (out / "figures" / "mine.png").write_bytes(b"user figure")
+    (out / "series" / "mine.npz").write_bytes(b"user data, not a zip")
+    (out / "notes.txt").write_text("mine")
+    code, _, err = compare(capsys, out, "dr")  # dr draws no loss figure: the old one goes
+    assert code == 0, err
+    assert (out / "figures" / "mine.png").read_bytes() == b"user figure"
+    assert (out / "series" / "mine.npz").read_bytes() == b"user data, not a zip"
+    assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / "figures" / "rec-000-sim-loss.png").exists()
+    assert "mine.png" not in (out / "report.html").read_text()
+    # the user's broken npz is not a series of the run: re-rendering ignores it
+    code, _, err = run(capsys, "report", str(out), "--no-progress", "--jobs", "1")
+    assert code == 0, err
+    assert (out / "series" / "mine.npz").read_bytes() == b"user data, not a zip"
+    assert json.loads((out / "results.json").read_text())["results"][0]["estimator"] == "dr"
+
+
+def test_user_file_in_the_way_is_refused_and_nothing_changes(tmp_path, capsys):
+    out = tmp_path / "run"
+    (out / "figures").mkdir(parents=True)
+    (out / "figures" / "summary-rmse.png").write_bytes(b"my own plot")
+    before = snapshot(out)
+    code, _, err = compare(capsys, out)
+    assert code == 1
+    assert err.strip().splitlines()[-1].startswith(f"fusion: error: {out / 'figures' / 'summary-rmse.png'}: exists and "
+                                                   "was not written by fusion")
+    assert snapshot(out) == before and not (out / "results.json").exists()
+
+
+def test_folder_in_use_is_refused_and_a_dead_holder_does_not_block(tmp_path, capsys):
+    out = tmp_path / "run"
+    with report.OutputFolder(out):  # another live run holds it
+        code, _, err = compare(capsys, out)
+    assert code == 1 and f"fusion: error: {out}: in use by another fusion run (pid {os.getpid()})" in err
+    assert len(err.strip().splitlines()) == 1
+    (out / report.LOCK).write_text("999999999\n")  # a crashed run's lock file: no process holds the flock
+    (out / (report.STAGING_PREFIX + "dead")).mkdir()  # and its staging folder
+    code, _, err = compare(capsys, out)
+    assert code == 0, err
+    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+
+
+def test_results_json_is_moved_in_last(first_run, tmp_path, capsys, monkeypatch):
+    out = copy_of(first_run, tmp_path / "run")
+    moved = []
+    real = os.replace
+
+    def spy(src, dst):
+        moved.append(Path(dst).name)
+        return real(src, dst)
+
+    monkeypatch.setattr(report.os, "replace", spy)
+    code, _, err = compare(capsys, out)
+    assert code == 0, err
+    assert moved[-1] == "results.json" and moved[-2] == report.MANIFEST
+
+
+def test_interrupt_while_writing_leaves_the_folder_as_it_was(first_run, tmp_path, capsys, monkeypatch):
+    out = copy_of(first_run, tmp_path / "run")
+    before = snapshot(out)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report.series_io, "save", interrupted)
+    code, _, err = compare(capsys, out, "dr")
+    assert code == 130 and "interrupted" in err
+    assert snapshot(out) == before
+    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_stops_the_workers_and_leaves_the_folder_as_it_was(first_run, tmp_path):
+    out = copy_of(first_run, tmp_path / "run")
+    before = snapshot(out)
+    proc = subprocess.Popen([sys.executable, "-m", "fusion", "compare", "--estimators", "gd,gd:update=normalise",
+                             "--dataset", "sim", "--no-progress", "--jobs", "2", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    workers: list[int] = []
+    deadline = time.time() + 60
+    while time.time() < deadline and len(workers) < 2:  # gd runs for many seconds on sim
+        time.sleep(0.2)
+        workers = _children(proc.pid)
+    assert len(workers) >= 2, "the worker processes never started"
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    time.sleep(0.5)
+    alive = [w for w in workers if Path(f"/proc/{w}").exists()
+             and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+    assert not alive, f"orphaned workers {alive}"
+    assert snapshot(out) == before
+    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda doc: doc["results"][0].update(samples="many"), "results row 0: 'samples' must be a whole number"),
+    (lambda doc: doc["results"][0].update(rmse_deg={"total": -1, "inclination": 1, "heading": 1}), "results row 0: 'rmse_deg'"),
+    (lambda doc: doc["results"][0].update(coverage=2.0), "results row 0: 'coverage'"),
+    (lambda doc: doc["results"][0].pop("dataset"), "results row 0: 'dataset' must be a string"),
+    (lambda doc: doc["results"].append(7), "results row 1: not an object"),
+    (lambda doc: doc["results"][0].update(alignment={"world_deg": [1]}), "results row 0: 'alignment'"),
+    (lambda doc: doc["settings"].update(estimator_details={"dr": 3}), "'settings.estimator_details'"),
+])
+def test_report_refuses_rows_it_did_not_write(first_run, tmp_path, capsys, edit, message):
+    out = copy_of(first_run, tmp_path / "run")
+    doc = json.loads((out / "results.json").read_text())
+    edit(doc)
+    (out / "results.json").write_text(json.dumps(doc))
+    before = snapshot(out)
+    code, _, err = run(capsys, "report", str(out), "--no-progress", "--jobs", "1")
+    assert code == 1
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"fusion: error: {out / 'results.json'}: ") and message in line
+    assert snapshot(out) == before
+
+
+@pytest.mark.parametrize("content", [b"", b"not json", b"[" * 100_000 + b"]" * 100_000, b"\xff\xfe{}"])
+def test_report_refuses_unreadable_results(first_run, tmp_path, capsys, content):
+    out = copy_of(first_run, tmp_path / "run")
+    (out / "results.json").write_bytes(content)
+    code, _, err = run(capsys, "report", str(out), "--no-progress", "--jobs", "1")
+    assert code == 1
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"fusion: error: {out / 'results.json'}: not a results document")
+
+
+@pytest.mark.parametrize("corrupt", ["truncated", "garbage", "wrong-shape"])
+def test_report_refuses_a_corrupt_series_file(first_run, tmp_path, capsys, corrupt):
+    out = copy_of(first_run, tmp_path / "run")
+    path = out / "series" / "000.npz"
+    if corrupt == "truncated":
+        path.write_bytes(path.read_bytes()[:5000])
+    elif corrupt == "garbage":
+        path.write_bytes(b"\x00" * 100)
+    else:
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["quat"] = arrays["quat"][:, :-5]
+        np.savez(path, **arrays)
+    before = snapshot(out)
+    code, _, err = run(capsys, "report", str(out), "--no-progress", "--jobs", "1")
+    assert code == 1
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"fusion: error: {path}: ")
+    assert snapshot(out) == before
+
+
+def test_out_naming_a_file_is_refused(tmp_path, capsys):
+    target = tmp_path / "results"
+    target.write_text("mine")
+    code, _, err = compare(capsys, target)
+    assert code == 1 and f"{target}: exists and is not a folder" in err
+    assert target.read_text() == "mine"
