@@ -242,9 +242,28 @@ ALIGN_NOTE = ("after --align: truth mapped into our frames as A R_truth B, A = R
               "the same for every estimator")
 
 
+def dataset_group(dataset: str) -> str:
+    """The folder a recording id belongs to: "ece276a/3" -> "ece276a", "broad/06_..." -> "broad";
+    "other" for ids without one (`sim`, files at the top of the data directory)."""
+    return dataset.rsplit("/", 1)[0] if "/" in dataset else "other"
+
+
+def summary_groups(results: list[Result]) -> list[tuple[str | None, list[Result]]]:
+    """The results split into the groups their means are taken over.
+
+    One group (named None) when every scored recording comes from one folder; else one group
+    per folder (`ece276a`, `broad`, ...) in run order: recordings of different sensors, scored
+    under different protocols, are never averaged together.
+    """
+    groups = list(dict.fromkeys(dataset_group(r.dataset) for r in results if r.rmse_deg))
+    if len(groups) <= 1:
+        return [(None, list(results))]
+    return [(g, [r for r in results if dataset_group(r.dataset) == g]) for g in groups]
+
+
 def format_table(results: list[Result], align: bool | None = None) -> str:
     """A readable table: first a mean row per estimator over the recordings that have ground
-    truth, then one row per recording x estimator (RMSE in degrees), recordings without ground
+    truth (per folder when they come from several, see `summary_groups`), then one row per recording x estimator (RMSE in degrees), recordings without ground
     truth last; with alignment, the fitted rotations after it.
 
     align: whether the run used `--align` (None: whether any result carries an alignment).
@@ -258,14 +277,17 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
         rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), f"{r.us_per_sample:.1f}"])
     labels = list(dict.fromkeys(r.estimator for r in results))
     means = []
-    for label in labels:
-        scored = [r for r in results if r.estimator == label and r.in_means]
-        mine = [r for r in results if r.estimator == label]
-        if len({r.dataset for r in results}) < 2:
-            continue
-        mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
-        us = np.mean([r.us_per_sample for r in mine])
-        means.append([f"mean ({len(scored)})", label, *mean, "", f"{us:.1f}"])
+    if len({r.dataset for r in results}) >= 2:
+        for group, members in summary_groups(results):
+            for label in labels:
+                mine = [r for r in members if r.estimator == label]
+                scored = [r for r in mine if r.in_means]
+                if not mine:
+                    continue
+                mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
+                us = np.mean([r.us_per_sample for r in mine])
+                name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
+                means.append([name, label, *mean, "", f"{us:.1f}"])
     if any(r.panorama for r in results):
         header += ["pano PSNR dB", "SSIM"]
         for row, r in zip(rows, results):

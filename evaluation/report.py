@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import series as series_io
-from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table
+from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table, summary_groups
 from .metrics import KINDS
 
 RESULTS = "results.json"
@@ -495,12 +495,15 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
                      format_coverage(_result(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
     mean_header = ["estimator", "recordings scored", *(f"mean {k} RMSE" for k in KINDS), "mean us/sample"]
     means = []
-    for label in dict.fromkeys(r["estimator"] for r in rows):
-        mine = [r for r in rows if r["estimator"] == label]
-        scored = [r for r in mine if _result(r).in_means]
-        values = [_fmt(float(np.mean([r["rmse_deg"][k] for r in scored]))) if scored else "-" for k in KINDS]
-        us = np.mean([1e6 * r["seconds"] / max(r["samples"], 1) for r in mine])
-        means.append([label, str(len(scored)), *values, f"{us:.1f}"])
+    for group, members in summary_groups([_result(r) for r in rows]):
+        for label in dict.fromkeys(r["estimator"] for r in rows):
+            mine = [r for r in members if r.estimator == label]
+            scored = [r for r in mine if r.in_means]
+            if not mine:
+                continue
+            values = [_fmt(float(np.mean([r.rmse_deg[k] for r in scored]))) if scored else "-" for k in KINDS]
+            us = np.mean([r.us_per_sample for r in mine])
+            means.append([label, str(len(scored)) if group is None else f"{len(scored)} ({group})", *values, f"{us:.1f}"])
     return header, body, mean_header, means
 
 

@@ -106,6 +106,6 @@ def test_leave_one_out_holds_out_a_recording_in_all_its_formats(data_dir, capsys
     assert main(["calibrate", "--leave-one-out", "--estimators", "dr", "--dataset", "ece276a,ese650",
                  "--data-dir", str(data_dir), "--no-progress"]) == 0
     out = capsys.readouterr().out
-    held = [line.split()[0] for line in out.splitlines() if line.startswith(("ece276a/", "ese650/")) and "%" in line]
+    held = [line.split()[0] for line in out.splitlines() if line.startswith(("ece276a/", "ese650/")) and "%," in line]
     assert held == [f"ece276a/{n}" for n in range(1, 10)]
     assert "fit on 9 recordings" in out

@@ -115,7 +115,10 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     assert notes == ["fusion: note: identical recordings counted once: "
                      "ece276a/N = ece276a-2018/N, ese650/N for N = 1-9"]
     lines = out.splitlines()
-    first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean (18)"))
+    # one mean per folder (different sensors and protocols are never averaged together)
+    assert [line.split()[:4] for line in lines if line.startswith("mean ")] == [
+        ["mean", "broad", "(9)", "dr"], ["mean", "ece276a", "(9)", "dr"]]
+    first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean "))
     first_row = next(i for i, line in enumerate(lines) if line.startswith(("broad/", "ece276a/")))
     assert first_mean < first_row  # the summary comes first
 

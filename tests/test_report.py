@@ -272,9 +272,10 @@ def test_report_html_in_headless_chromium(run_dir, tmp_path):
     assert len(table) == 1 + len(doc["results"])
     for cells, r in zip(table[1:], doc["results"]):
         assert cells[:3] == [r["dataset"], r["estimator"], str(r["samples"])]
-        assert cells[3:6] == [f"{r['rmse_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
-        assert cells[6:9] == [f"{r['max_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
-        assert cells[9] == f"{1e6 * r['seconds'] / r['samples']:.1f}"
+        assert cells[3:5] == [str(r["scored_samples"]), f"{100 * r['coverage']:.1f}%"]
+        assert cells[5:8] == [f"{r['rmse_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
+        assert cells[8:11] == [f"{r['max_deg'][k]:.2f}" for k in ("total", "inclination", "heading")]
+        assert cells[11] == f"{1e6 * r['seconds'] / r['samples']:.1f}"
     means = {row[0]: row for row in found["tables"]["means"][1:]}
     for label in SPECS:
         mine = [r["rmse_deg"]["total"] for r in doc["results"] if r["estimator"] == label]
