@@ -109,8 +109,8 @@ class GradientDescentSmoother(BatchSmoother):
                     # accelerometer term is not scale-invariant: d/ds c(s q) at s = 1 = -2 rho' w r_a . h.
                     h = quat.gravity_in_body(q)
                     r_a = problem.acc - h
-                    _, drho = problem.huber(problem.w_acc * np.sum(r_a**2, axis=1))
-                    G = G + (-2.0 * problem.w_acc * drho * np.sum(r_a * h, axis=1))[:, None] * q
+                    _, wa = problem.acc_terms(r_a)
+                    G = G + (-2.0 * wa * np.sum(r_a * h, axis=1))[:, None] * q
                 norm = np.linalg.norm(G, axis=1, keepdims=True)
                 direction = -G / np.where(norm > 0, norm, 1.0)
                 # Seed step 5: per-quaternion step search with a halving schedule.

@@ -41,11 +41,17 @@ def _check_axes(name: str, value: str) -> None:
 class SmootherParams:
     """Parameters shared by `gn` and `gd` (the cost), plus the initialisation.
 
-    gyro_noise_rad_s (sg): gyro rate noise per sample, rad/s (motion information 1/(sg dt)^2).
-    acc_noise_g (sa): accelerometer noise, g.
-    huber_g (huber): Huber threshold on the accelerometer residual norm, g (inf: none).
+    All noise levels are densities of continuous-time white noise, so one value means the
+    same at any sampling rate (see `estimators.smoother_cost.Weights`):
+    gyro_noise_rad_sqrt_s (sg): gyro noise density, rad/sqrt(s); a step of dt s has angle
+        variance sg^2 dt.
+    acc_noise_g_sqrt_s (sa): accelerometer noise density, g sqrt(s); a sample standing for dt s
+        has variance sa^2 / dt.
+    loss: robust loss on the accelerometer residual: "huber", "cauchy", "geman-mcclure", "none".
+    loss_scale_g (huber, the alias it had when the loss was always Huber): the loss's scale on
+        the accelerometer residual norm, g (inf: plain least squares).
     prior_std_rad (p0): std of the anchor of the first orientation at the initial one, rad.
-    dropout_rate_std_rad_s (sdrop): continuity std where `gyr_valid` is False, rad/s.
+    dropout_noise_rad_sqrt_s (sdrop): angle random walk density where `gyr_valid` is False.
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" none). scale_axes (scale): scale errors.
     bias_prior_rad_s, scale_prior: prior std of those variables around zero.
@@ -57,11 +63,12 @@ class SmootherParams:
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
     """
 
-    gyro_noise_rad_s: float = field(default=0.2, metadata={"alias": "sg"})
-    acc_noise_g: float = field(default=0.05, metadata={"alias": "sa"})
-    huber_g: float = field(default=0.1, metadata={"alias": "huber"})
+    gyro_noise_rad_sqrt_s: float = field(default=0.02, metadata={"alias": "sg"})
+    acc_noise_g_sqrt_s: float = field(default=0.005, metadata={"alias": "sa"})
+    loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
+    loss_scale_g: float = field(default=0.1, metadata={"alias": "huber"})
     prior_std_rad: float = field(default=0.01, metadata={"alias": "p0"})
-    dropout_rate_std_rad_s: float = field(default=3.0, metadata={"alias": "sdrop"})
+    dropout_noise_rad_sqrt_s: float = field(default=0.3, metadata={"alias": "sdrop"})
     use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
     bias_axes: str = field(default="", metadata={"alias": "bias"})
     scale_axes: str = field(default="", metadata={"alias": "scale"})
@@ -75,7 +82,7 @@ class SmootherParams:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("gyro_noise_rad_s", "acc_noise_g", "huber_g", "prior_std_rad", "dropout_rate_std_rad_s",
+        for name in ("gyro_noise_rad_sqrt_s", "acc_noise_g_sqrt_s", "loss_scale_g", "prior_std_rad", "dropout_noise_rad_sqrt_s",
                      "bias_prior_rad_s", "scale_prior", "seed_motion_weight"):
             value = getattr(self, name)
             if not value > 0:
@@ -91,9 +98,9 @@ class SmootherParams:
         """The cost's `Weights` (the seeds' scalar weights when weighting="seed")."""
         seed = self.weighting == "seed"
         return Weights(
-            gyro_noise_rad_s=self.gyro_noise_rad_s, acc_noise_g=self.acc_noise_g,
-            huber_g=np.inf if seed else self.huber_g,
-            prior_std_rad=self.prior_std_rad, dropout_rate_std_rad_s=self.dropout_rate_std_rad_s,
+            gyro_noise_rad_sqrt_s=self.gyro_noise_rad_sqrt_s, acc_noise_g_sqrt_s=self.acc_noise_g_sqrt_s,
+            loss="none" if seed else self.loss, loss_scale_g=np.inf if seed else self.loss_scale_g,
+            prior_std_rad=self.prior_std_rad, dropout_noise_rad_sqrt_s=self.dropout_noise_rad_sqrt_s,
             motion_weight=self.seed_motion_weight if seed else None, acc_weight=1.0 if seed else None,
             bias_axes=self.bias_axes, scale_axes=self.scale_axes, bias_prior_rad_s=self.bias_prior_rad_s,
             scale_prior=self.scale_prior,

@@ -94,26 +94,70 @@ def retract(q: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the problem
+LOSSES = ("none", "huber", "cauchy", "geman-mcclure")
+
+
+def robust_loss(kind: str, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """rho(s) and rho'(s) of a robust loss on the normalised squared residual s = |r|^2 / c^2.
+
+    The cost term is `c^2 rho(s)` (so all losses equal |r|^2 for |r| << c):
+    - "none": rho = s;
+    - "huber": rho = s for s <= 1, 2 sqrt(s) - 1 beyond (linear pull; Huber 1964);
+    - "cauchy": rho = log(1 + s) (influence falls as 1/|r|; Black & Anandan 1996, eq. 8 family);
+    - "geman-mcclure": rho = s / (1 + s) (redescending, bounded: Geman & McClure 1987;
+      Black & Rangarajan 1996, eq. 11).
+    rho' is the iteratively reweighted least squares weight (Zhang 1997, "Parameter estimation
+    techniques", eq. 29).
+    """
+    if kind == "none":
+        return s, np.ones_like(s)
+    if kind == "huber":
+        root = np.sqrt(s)
+        inside = root <= 1.0
+        return np.where(inside, s, 2.0 * root - 1.0), np.where(inside, 1.0, 1.0 / np.maximum(root, 1e-300))
+    if kind == "cauchy":
+        return np.log1p(s), 1.0 / (1.0 + s)
+    if kind == "geman-mcclure":
+        return s / (1.0 + s), 1.0 / (1.0 + s) ** 2
+    raise ValueError(f"robust loss {kind!r}: expected one of {', '.join(LOSSES)}")
+
+
+def sample_durations(t: np.ndarray) -> np.ndarray:
+    """(T,) the time each sample stands for, s: half of each neighbouring interval
+    (the trapezoidal rule's weights), so that sum_t f_t dt_t approximates the integral of f."""
+    dt = np.diff(np.asarray(t, float))
+    out = np.zeros(len(t))
+    out[:-1] += 0.5 * dt
+    out[1:] += 0.5 * dt
+    return out
+
+
 @dataclass(frozen=True)
 class Weights:
-    """Noise model and robust loss of the cost.
+    """Noise model and robust loss of the cost, in continuous time.
 
-    gyro_noise_rad_s: per-sample gyro rate noise (motion information 1/(sigma dt)^2).
-    acc_noise_g: accelerometer noise, g (information 1/sigma^2).
-    huber_g: Huber threshold on the accelerometer residual norm, g (inf: plain least squares).
+    gyro_noise_rad_sqrt_s: gyro noise density sigma_g, rad/sqrt(s) (= rad/s/sqrt(Hz)); the
+        motion residual of a step of dt seconds has variance sigma_g^2 dt (integrated white
+        rate noise: a random walk in angle).
+    acc_noise_g_sqrt_s: accelerometer noise density sigma_a, g sqrt(s) (= g/sqrt(Hz)); a
+        sample standing for dt seconds has variance sigma_a^2 / dt, so the information per
+        second of accelerometer data does not depend on the sampling rate.
+    loss: robust loss on the accelerometer residual ("none", "huber", "cauchy", "geman-mcclure").
+    loss_scale_g: the loss's scale c on the residual norm, g (inf: plain least squares).
     prior_std_rad: std of the anchor of q_0 at the initial orientation.
-    dropout_rate_std_rad_s: continuity std where the gyro is invalid.
-    motion_weight / acc_weight: fixed scalar information instead of the noise model
+    dropout_noise_rad_sqrt_s: density of the angle random walk where the gyro is invalid.
+    motion_weight / acc_weight: fixed scalar information per term instead of the noise model
         (the seeds' weighting: motion 10, accelerometer 1); None uses the noise model.
     bias_axes / scale_axes: which gyro biases / scale errors are variables ("", "xy", "xyz").
     bias_prior_rad_s / scale_prior: priors (std) of those variables around zero.
     """
 
-    gyro_noise_rad_s: float = 0.01
-    acc_noise_g: float = 0.05
-    huber_g: float = 0.1
+    gyro_noise_rad_sqrt_s: float = 0.02
+    acc_noise_g_sqrt_s: float = 0.005
+    loss: str = "huber"
+    loss_scale_g: float = 0.1
     prior_std_rad: float = 0.01
-    dropout_rate_std_rad_s: float = 3.0
+    dropout_noise_rad_sqrt_s: float = 0.3
     motion_weight: float | None = None
     acc_weight: float | None = None
     bias_axes: str = ""
@@ -149,8 +193,9 @@ class SmootherProblem:
     valid: np.ndarray  # (T-1,) bool, gyro usable on step t
     acc: np.ndarray  # (T, 3) g
     w_motion: np.ndarray  # (T-1,) scalar information of each step
-    w_acc: np.ndarray  # (T,) accelerometer weight per sample, 0 where the sample is missing (NaN)
-    huber_c: float  # threshold on sqrt(r^T W_a r); inf: no robust loss
+    w_acc: np.ndarray  # (T,) accelerometer information per sample, 1/g^2, 0 where the sample is missing (NaN)
+    loss: str  # robust loss on the accelerometer residual (`robust_loss`)
+    loss_c: float  # its scale on the residual norm, g; inf: plain least squares
     init_quat: np.ndarray  # (4,)
     w_prior: float
     bias_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
@@ -166,12 +211,18 @@ class SmootherProblem:
             valid = np.ones(len(dt), bool)
         if weights.motion_weight is not None:
             w_motion = np.full(len(dt), float(weights.motion_weight))
-            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_s / weights.dropout_rate_std_rad_s) ** 2
+            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_sqrt_s / weights.dropout_noise_rad_sqrt_s) ** 2
         else:
-            sigma = np.where(valid, weights.gyro_noise_rad_s, weights.dropout_rate_std_rad_s) * dt
-            w_motion = 1.0 / sigma**2
-        w_acc = float(weights.acc_weight) if weights.acc_weight is not None else 1.0 / weights.acc_noise_g**2
-        huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) and w_acc > 0 else np.inf
+            # Angle random walk: variance sigma^2 dt per step (rad^2).
+            density = np.where(valid, weights.gyro_noise_rad_sqrt_s, weights.dropout_noise_rad_sqrt_s)
+            w_motion = 1.0 / (density**2 * dt)
+        if weights.acc_weight is not None:
+            w_acc = np.full(len(imu.t), float(weights.acc_weight))
+        else:
+            # White accelerometer noise of density sigma_a: variance sigma_a^2 / dt per sample.
+            w_acc = sample_durations(imu.t) / weights.acc_noise_g_sqrt_s**2
+        if weights.loss not in LOSSES:
+            raise ValueError(f"loss={weights.loss!r}: expected one of {', '.join(LOSSES)}")
         # A non-finite accelerometer sample carries no information: weight 0 (its value is zeroed
         # so that 0 * NaN never reaches the cost).
         acc_ok = np.all(np.isfinite(imu.acc_g), axis=1)
@@ -183,7 +234,8 @@ class SmootherProblem:
         )
         return cls(
             dt=dt, gyr=rate, valid=valid, acc=acc,
-            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0), huber_c=huber_c,
+            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0),
+            loss=weights.loss if np.isfinite(weights.loss_scale_g) else "none", loss_c=float(weights.loss_scale_g),
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
             w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
         )
@@ -231,23 +283,23 @@ class SmootherProblem:
             "theta": np.asarray(theta, float),
         }
 
-    def huber(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """rho(s) and rho'(s) for squared Mahalanobis norms s."""
-        c = self.huber_c
-        if not np.isfinite(c):
-            return s, np.ones_like(s)
-        root = np.sqrt(s)
-        inside = root <= c
-        return np.where(inside, s, 2.0 * c * root - c * c), np.where(inside, 1.0, c / np.maximum(root, 1e-300))
+    def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) accelerometer cost terms `1/2 w_t c^2 rho(|r_t|^2 / c^2)` and (T,) IRLS weights
+        `w_t rho'` (d term / d r = w_t rho' r) for residuals r_a (T, 3), g."""
+        sq = np.sum(r_a**2, axis=1)
+        if self.loss == "none":
+            return 0.5 * self.w_acc * sq, self.w_acc
+        c2 = self.loss_c**2
+        rho, drho = robust_loss(self.loss, sq / c2)
+        return 0.5 * self.w_acc * c2 * rho, self.w_acc * drho
 
     def cost(self, q: np.ndarray, theta: np.ndarray | None = None) -> float:
         """Total cost at q (T, 4), theta (P,)."""
         theta = np.zeros(self.n_theta) if theta is None else theta
         r = self.residuals(q, theta)
-        rho, _ = self.huber(self.w_acc * np.sum(r["acc"] ** 2, axis=1))
-        return 0.5 * float(
+        acc_cost, _ = self.acc_terms(r["acc"])
+        return float(np.sum(acc_cost)) + 0.5 * float(
             np.sum(self.w_motion * np.sum(r["motion"] ** 2, axis=1))
-            + np.sum(rho)
             + self.w_prior * r["prior"] @ r["prior"]
             + np.sum(self.w_theta * r["theta"] ** 2)
         )
@@ -264,8 +316,8 @@ class SmootherProblem:
         r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
         out[:-1] += 0.5 * self.w_motion * np.sum(r_fwd**2, axis=1)
         out[1:] += 0.5 * self.w_motion * np.sum(r_bwd**2, axis=1)
-        rho, _ = self.huber(self.w_acc * np.sum((self.acc - quat.gravity_in_body(q_new)) ** 2, axis=1))
-        out += 0.5 * rho
+        acc_cost, _ = self.acc_terms(self.acc - quat.gravity_in_body(q_new))
+        out += acc_cost
         r0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q_new[0]))
         out[0] += 0.5 * self.w_prior * r0 @ r0
         return out
@@ -285,9 +337,9 @@ class SmootherProblem:
         h = quat.gravity_in_body(q)
         r_a = self.acc - h
         r_0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0]))
-        rho, drho = self.huber(self.w_acc * np.sum(r_a**2, axis=1))
-        cost = 0.5 * float(
-            np.sum(self.w_motion * np.sum(r_m**2, axis=1)) + np.sum(rho) + self.w_prior * r_0 @ r_0
+        acc_cost, wa = self.acc_terms(r_a)
+        cost = float(np.sum(acc_cost)) + 0.5 * float(
+            np.sum(self.w_motion * np.sum(r_m**2, axis=1)) + self.w_prior * r_0 @ r_0
             + np.sum(self.w_theta * theta**2)
         )
 
@@ -303,7 +355,6 @@ class SmootherProblem:
         grad[1:] += np.einsum("tji,tj->ti", J1, Wr)
         # Accelerometer: h(q Exp(d)) ~ h + [h]x d, so d r_a / d delta = -[h]x.
         Ja = -skew(h)
-        wa = self.w_acc * drho
         grad += np.einsum("tji,tj->ti", Ja, wa[:, None] * r_a)
         # Anchor: d r_0 / d delta_0 = Jr^-1(r_0).
         J_0 = right_jacobian_inv(r_0)
