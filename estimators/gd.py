@@ -65,6 +65,8 @@ class GDParams(SmootherParams):
         super().__post_init__()
         if self.bias_axes or self.scale_axes:
             raise ValueError("gd does not estimate gyro bias or scale (bias_axes/scale_axes); use gn")
+        if np.isfinite(self.velocity_acc_noise_g_sqrt_s) or np.isfinite(self.velocity_bound_m_sqrt_s):
+            raise ValueError("gd does not estimate velocity (velocity_acc_noise_g_sqrt_s/velocity_bound_m_sqrt_s); use gn")
         if not 0 < self.step_rad <= np.pi / 2:
             raise ValueError(f"step_rad={self.step_rad!r}: must be in (0, pi/2]")
         if self.halvings < 1:
