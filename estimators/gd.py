@@ -54,8 +54,13 @@ class GDParams(SmootherParams):
     halvings: halvings of the step-size search per iteration.
     """
 
-    max_iter: int = field(default=5000, metadata={"alias": "iters"})
+    max_iter: int = field(default=500, metadata={"alias": "iters"})
     tol: float = 1e-6
+    # gd minimises the plain cost: no calibration variables, no velocity model (gn's defaults).
+    bias_axes: str = field(default="", metadata={"alias": "bias"})
+    scale_axes: str = field(default="", metadata={"alias": "scale"})
+    velocity_acc_noise_g_sqrt_s: float = field(default=np.inf, metadata={"alias": "sv"})
+    velocity_bound_m_sqrt_s: float = field(default=np.inf, metadata={"alias": "vb"})
     weighting: Literal["noise", "seed"] = "seed"
     update: Literal["geodesic", "normalise"] = "geodesic"
     step_rad: float = field(default=0.05, metadata={"alias": "alpha"})

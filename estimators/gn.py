@@ -14,7 +14,7 @@ the relative cost decrease of an accepted step is below `tol` or after `max_iter
 
 Per-sample variables are the rotation increment and, with the velocity model, the two
 horizontal velocities (5x5 blocks). Scale-error variables are released only after the rest
-has converged with them at zero.
+has converged with them at zero, and only those the recording determines (`released_scales`).
 
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
@@ -60,6 +60,10 @@ class SmootherParams:
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" none). scale_axes (scale): scale errors.
     bias_prior_rad_s, scale_prior: prior std of those variables around zero.
+    scale_release_ratio (release): a requested scale error is estimated only if the recording
+        determines it: its posterior std at the stage-1 solution (scales held at zero) is
+        below this fraction of its prior std (`released_scales`); the others stay zero.
+        Stage 1 ends at `tol` or after half of `max_iter`, so stage 2 always gets its turn.
     velocity_acc_noise_g_sqrt_s (sv), velocity_bound_m_sqrt_s (vb): the horizontal velocity
         model (see `estimators.smoother_cost`); inf (the default) switches it off. On the BROAD
         trials `bias=xyz,sa=0.05,sv=0.01,vb=0.5,tol=1e-5` gives 0.55 deg mean inclination.
@@ -82,6 +86,7 @@ class SmootherParams:
     scale_axes: str = field(default="", metadata={"alias": "scale"})
     bias_prior_rad_s: float = 0.05
     scale_prior: float = 0.2
+    scale_release_ratio: float = field(default=0.5, metadata={"alias": "release"})
     velocity_acc_noise_g_sqrt_s: float = field(default=np.inf, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=np.inf, metadata={"alias": "vb"})
     weighting: Literal["noise", "seed"] = "noise"
@@ -100,6 +105,8 @@ class SmootherParams:
                 raise ValueError(f"{name}={value!r}: must be positive")
         _check_axes("bias_axes", self.bias_axes)
         _check_axes("scale_axes", self.scale_axes)
+        if not 0 < self.scale_release_ratio <= 1:
+            raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
         if self.max_iter < 1:
             raise ValueError(f"max_iter={self.max_iter}: must be at least 1")
         if not self.tol >= 0:
@@ -176,6 +183,21 @@ def theta_posterior_std(lin) -> np.ndarray:
     return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))
 
 
+def released_scales(lin, n_bias: int, prior_std: np.ndarray, ratio: float) -> np.ndarray:
+    """(S,) which scale errors the recording determines, judged at the stage-1 solution `lin`.
+
+    Scale error k_i is released if its posterior std (data and prior, every other variable
+    marginalised: `theta_posterior_std`) is below `ratio` times its prior std `prior_std`
+    (S,), i.e. if the recording carries at least 1 / ratio^2 - 1 times the prior's information
+    about it (3 times for ratio 0.5). That information comes from rotation about axis i that
+    the accelerometer can check (a scale error on a vertical axis only changes the heading,
+    which nothing observes); a recording with little of it keeps k_i = 0 rather than fit
+    unmodelled linear acceleration with a scale error.
+    """
+    std = theta_posterior_std(lin)[n_bias:]
+    return std < ratio * prior_std
+
+
 class BatchSmoother(Estimator):
     """What `gn` and `gd` share: the problem set-up, the start trajectory and `estimate`;
     each supplies `solve(problem, q) -> (q, diagnostics)`."""
@@ -222,11 +244,13 @@ class GaussNewtonSmoother(BatchSmoother):
         iterations = 0
         start = time.perf_counter()
         elapsed = [0.0]
-        # Scale errors are released only once the rest has converged: from a drifting start
-        # (dead reckoning) their first steps would otherwise absorb the drift and land in a
-        # wrong basin on recordings with little rotation.
+        # Two stages. Stage 1 solves with the scale errors held at zero (from a drifting start,
+        # dead reckoning, their first steps would otherwise absorb the drift). Stage 2 releases a
+        # scale error only if the recording determines it (`released_scales`); the others stay 0.
         nb = len(problem.bias_idx)
         free = np.arange(problem.n_theta) < nb if problem.n_theta > nb else None
+        stage1_iter = max(1, p.max_iter // 2) if free is not None else p.max_iter
+        released = np.zeros(problem.n_theta - nb, bool)
         try:
             for iterations in range(1, p.max_iter + 1):
                 while True:
@@ -244,25 +268,25 @@ class GaussNewtonSmoother(BatchSmoother):
                     if cost_new <= lin.cost or damping > 1e12:
                         break
                     damping *= 10.0
-                if cost_new > lin.cost:  # no descent even with heavy damping: at the minimum
-                    if free is not None:
-                        free, damping = None, 1e-6
-                        continue
-                    converged = True
-                    break
-                decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
-                q, theta, v = q_new, theta_new, v_new
-                lin = problem.linearize(q, theta, v=v)
-                losses.append(lin.cost)
-                norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
-                elapsed.append(time.perf_counter() - start)
-                damping = max(damping / 10.0, 1e-12)
-                bar.update(1)
-                bar.set_postfix(cost=f"{lin.cost:.6g}")
-                if decrease < p.tol:
-                    if free is not None:
-                        free = None
-                        continue
+                stage_done = cost_new > lin.cost  # no descent even with heavy damping: at the minimum
+                if not stage_done:
+                    decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
+                    q, theta, v = q_new, theta_new, v_new
+                    lin = problem.linearize(q, theta, v=v)
+                    losses.append(lin.cost)
+                    norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
+                    elapsed.append(time.perf_counter() - start)
+                    damping = max(damping / 10.0, 1e-12)
+                    bar.update(1)
+                    bar.set_postfix(cost=f"{lin.cost:.6g}")
+                    stage_done = decrease < p.tol or (free is not None and iterations >= stage1_iter)
+                if stage_done:
+                    if free is not None and not free.all():
+                        released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
+                        free = np.concatenate([np.ones(nb, bool), released])
+                        damping = 1e-6
+                        if released.any():
+                            continue
                     converged = True
                     break
         finally:
@@ -280,6 +304,7 @@ class GaussNewtonSmoother(BatchSmoother):
             "theta": theta,
             "theta_std": theta_posterior_std(lin),
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
+            "scale_released": released,
             "velocity_m_s": v,
         }
         return q, diagnostics

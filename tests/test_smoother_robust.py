@@ -254,3 +254,34 @@ def parse(text: str):
 
     (spec,) = parse_specs(text)
     return spec
+
+
+# ----------------------------------------------------------------------------- scale release
+def test_scale_errors_without_information_are_not_released():
+    """A scale error on an axis the recording never rotates about carries no information
+    (posterior std = prior std): it stays exactly zero, while the excited axes are released
+    and estimated. Rotation only about x (no y or z rate at all)."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 30.0, 0.01)
+    rv = np.stack([0.5 * np.sin(2 * np.pi * 0.3 * t) + 0.3 * np.sin(2 * np.pi * 0.07 * t), 0 * t, 0 * t], axis=1)
+    q = quat.from_rotvec(rv)
+    gyr = np.zeros((len(t), 3))
+    gyr[:-1] = quat.relative_rotvec(q[:-1], q[1:]) / np.diff(t)[:, None]
+    gyr[-1] = gyr[-2]
+    gyr[:, 0] *= 1.05  # a 5 % scale error on x (correction 1/1.05 - 1)
+    acc = quat.gravity_in_body(q) + rng.normal(size=(len(t), 3)) * 1e-3
+    imu = ImuSamples(t, gyr, acc, gyr_timing="start")
+    est = build("gn:scale=xyz,progress=false").estimate(imu, q[0])
+    d = est.diagnostics
+    assert list(d["scale_released"]) == [True, False, False]
+    assert np.all(d["gyro_scale_error"][1:] == 0.0)
+    assert d["gyro_scale_error"][0] == pytest.approx(1 / 1.05 - 1, abs=0.005)
+
+
+def test_release_ratio_must_be_a_fraction():
+    from estimators.gn import SmootherParams
+
+    with pytest.raises(ValueError, match="scale_release_ratio"):
+        SmootherParams(scale_release_ratio=0.0)
+    with pytest.raises(ValueError, match="scale_release_ratio"):
+        build("gn:release=1.5")
