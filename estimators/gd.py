@@ -54,8 +54,13 @@ class GDParams(SmootherParams):
     halvings: halvings of the step-size search per iteration.
     """
 
-    max_iter: int = field(default=5000, metadata={"alias": "iters"})
+    max_iter: int = field(default=500, metadata={"alias": "iters"})
     tol: float = 1e-6
+    # gd minimises the plain cost: no calibration variables, no velocity model (gn's defaults).
+    bias_axes: str = field(default="", metadata={"alias": "bias"})
+    scale_axes: str = field(default="", metadata={"alias": "scale"})
+    velocity_acc_noise_g_sqrt_s: float = field(default=np.inf, metadata={"alias": "sv"})
+    velocity_bound_m_sqrt_s: float = field(default=np.inf, metadata={"alias": "vb"})
     weighting: Literal["noise", "seed"] = "seed"
     update: Literal["geodesic", "normalise"] = "geodesic"
     step_rad: float = field(default=0.05, metadata={"alias": "alpha"})
@@ -65,6 +70,8 @@ class GDParams(SmootherParams):
         super().__post_init__()
         if self.bias_axes or self.scale_axes:
             raise ValueError("gd does not estimate gyro bias or scale (bias_axes/scale_axes); use gn")
+        if np.isfinite(self.velocity_acc_noise_g_sqrt_s) or np.isfinite(self.velocity_bound_m_sqrt_s):
+            raise ValueError("gd does not estimate velocity (velocity_acc_noise_g_sqrt_s/velocity_bound_m_sqrt_s); use gn")
         if not 0 < self.step_rad <= np.pi / 2:
             raise ValueError(f"step_rad={self.step_rad!r}: must be in (0, pi/2]")
         if self.halvings < 1:
@@ -109,8 +116,8 @@ class GradientDescentSmoother(BatchSmoother):
                     # accelerometer term is not scale-invariant: d/ds c(s q) at s = 1 = -2 rho' w r_a . h.
                     h = quat.gravity_in_body(q)
                     r_a = problem.acc - h
-                    _, drho = problem.huber(problem.w_acc * np.sum(r_a**2, axis=1))
-                    G = G + (-2.0 * problem.w_acc * drho * np.sum(r_a * h, axis=1))[:, None] * q
+                    _, wa = problem.acc_terms(r_a)
+                    G = G + (-2.0 * wa * np.sum(r_a * h, axis=1))[:, None] * q
                 norm = np.linalg.norm(G, axis=1, keepdims=True)
                 direction = -G / np.where(norm > 0, norm, 1.0)
                 # Seed step 5: per-quaternion step search with a halving schedule.

@@ -12,12 +12,17 @@ Levenberg-Marquardt (Marquardt 1963): solve (H + lambda diag(H)) delta = -g, acc
 step if the cost decreases (lambda /= 10), otherwise reject it (lambda *= 10). Stops when
 the relative cost decrease of an accepted step is below `tol` or after `max_iter` iterations.
 
+Per-sample variables are the rotation increment and, with the velocity model, the two
+horizontal velocities (5x5 blocks). Scale-error variables are released only after the rest
+has converged with them at zero, and only those the recording determines (`released_scales`).
+
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
 its prior std. A variable the data cannot see keeps a posterior std near the prior's.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -41,14 +46,27 @@ def _check_axes(name: str, value: str) -> None:
 class SmootherParams:
     """Parameters shared by `gn` and `gd` (the cost), plus the initialisation.
 
-    gyro_noise_rad_s (sg): gyro rate noise per sample, rad/s (motion information 1/(sg dt)^2).
-    acc_noise_g (sa): accelerometer noise, g.
-    huber_g (huber): Huber threshold on the accelerometer residual norm, g (inf: none).
+    All noise levels are densities of continuous-time white noise, so one value means the
+    same at any sampling rate (see `estimators.smoother_cost.Weights`):
+    gyro_noise_rad_sqrt_s (sg): gyro noise density, rad/sqrt(s); a step of dt s has angle
+        variance sg^2 dt.
+    acc_noise_g_sqrt_s (sa): accelerometer noise density, g sqrt(s); a sample standing for dt s
+        has variance sa^2 / dt.
+    loss: robust loss on the accelerometer residual: "huber", "cauchy", "geman-mcclure", "none".
+    loss_scale_g (huber, the alias it had when the loss was always Huber): the loss's scale on
+        the accelerometer residual norm, g (inf: plain least squares).
     prior_std_rad (p0): std of the anchor of the first orientation at the initial one, rad.
-    dropout_rate_std_rad_s (sdrop): continuity std where `gyr_valid` is False, rad/s.
+    dropout_noise_rad_sqrt_s (sdrop): angle random walk density where `gyr_valid` is False.
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" none). scale_axes (scale): scale errors.
     bias_prior_rad_s, scale_prior: prior std of those variables around zero.
+    scale_release_ratio (release): a requested scale error is estimated only if the recording
+        determines it: its posterior std at the stage-1 solution (scales held at zero) is
+        below this fraction of its prior std (`released_scales`); the others stay zero.
+        Stage 1 ends at `tol` or after half of `max_iter`, so stage 2 always gets its turn.
+    velocity_acc_noise_g_sqrt_s (sv), velocity_bound_m_sqrt_s (vb): the horizontal velocity
+        model (see `estimators.smoother_cost`); inf (the default) switches it off. On the BROAD
+        trials `bias=xyz,sa=0.05,sv=0.01,vb=0.5,tol=1e-5` gives 0.55 deg mean inclination.
     weighting: "noise" (information matrices from the noise stds above) or "seed" (the seeds'
         scalar weights: motion `seed_motion_weight`, accelerometer 1, no Huber loss).
     seed_motion_weight (wm): the seeds' motion weight (10 in one report).
@@ -57,16 +75,20 @@ class SmootherParams:
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
     """
 
-    gyro_noise_rad_s: float = field(default=0.2, metadata={"alias": "sg"})
-    acc_noise_g: float = field(default=0.05, metadata={"alias": "sa"})
-    huber_g: float = field(default=0.1, metadata={"alias": "huber"})
+    gyro_noise_rad_sqrt_s: float = field(default=0.02, metadata={"alias": "sg"})
+    acc_noise_g_sqrt_s: float = field(default=0.005, metadata={"alias": "sa"})
+    loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
+    loss_scale_g: float = field(default=0.1, metadata={"alias": "huber"})
     prior_std_rad: float = field(default=0.01, metadata={"alias": "p0"})
-    dropout_rate_std_rad_s: float = field(default=3.0, metadata={"alias": "sdrop"})
+    dropout_noise_rad_sqrt_s: float = field(default=0.3, metadata={"alias": "sdrop"})
     use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
     bias_axes: str = field(default="", metadata={"alias": "bias"})
     scale_axes: str = field(default="", metadata={"alias": "scale"})
     bias_prior_rad_s: float = 0.05
     scale_prior: float = 0.2
+    scale_release_ratio: float = field(default=0.5, metadata={"alias": "release"})
+    velocity_acc_noise_g_sqrt_s: float = field(default=np.inf, metadata={"alias": "sv"})
+    velocity_bound_m_sqrt_s: float = field(default=np.inf, metadata={"alias": "vb"})
     weighting: Literal["noise", "seed"] = "noise"
     seed_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
     init: str = "dr"
@@ -75,13 +97,16 @@ class SmootherParams:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("gyro_noise_rad_s", "acc_noise_g", "huber_g", "prior_std_rad", "dropout_rate_std_rad_s",
-                     "bias_prior_rad_s", "scale_prior", "seed_motion_weight"):
+        for name in ("gyro_noise_rad_sqrt_s", "acc_noise_g_sqrt_s", "loss_scale_g", "prior_std_rad", "dropout_noise_rad_sqrt_s",
+                     "bias_prior_rad_s", "scale_prior", "seed_motion_weight", "velocity_acc_noise_g_sqrt_s",
+                     "velocity_bound_m_sqrt_s"):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"{name}={value!r}: must be positive")
         _check_axes("bias_axes", self.bias_axes)
         _check_axes("scale_axes", self.scale_axes)
+        if not 0 < self.scale_release_ratio <= 1:
+            raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
         if self.max_iter < 1:
             raise ValueError(f"max_iter={self.max_iter}: must be at least 1")
         if not self.tol >= 0:
@@ -91,12 +116,14 @@ class SmootherParams:
         """The cost's `Weights` (the seeds' scalar weights when weighting="seed")."""
         seed = self.weighting == "seed"
         return Weights(
-            gyro_noise_rad_s=self.gyro_noise_rad_s, acc_noise_g=self.acc_noise_g,
-            huber_g=np.inf if seed else self.huber_g,
-            prior_std_rad=self.prior_std_rad, dropout_rate_std_rad_s=self.dropout_rate_std_rad_s,
+            gyro_noise_rad_sqrt_s=self.gyro_noise_rad_sqrt_s, acc_noise_g_sqrt_s=self.acc_noise_g_sqrt_s,
+            loss="none" if seed else self.loss, loss_scale_g=np.inf if seed else self.loss_scale_g,
+            prior_std_rad=self.prior_std_rad, dropout_noise_rad_sqrt_s=self.dropout_noise_rad_sqrt_s,
             motion_weight=self.seed_motion_weight if seed else None, acc_weight=1.0 if seed else None,
             bias_axes=self.bias_axes, scale_axes=self.scale_axes, bias_prior_rad_s=self.bias_prior_rad_s,
             scale_prior=self.scale_prior,
+            velocity_acc_noise_g_sqrt_s=np.inf if seed else self.velocity_acc_noise_g_sqrt_s,
+            velocity_bound_m_sqrt_s=np.inf if seed else self.velocity_bound_m_sqrt_s,
         )
 
 
@@ -123,26 +150,27 @@ def progress_bar(enabled: bool, total: int, desc: str):
 def solve_normal_equations(lin, damping: float) -> tuple[np.ndarray, np.ndarray]:
     """Solve (H + damping diag(H)) [delta; dtheta] = -[g_q; g_theta] in O(T).
 
-    H is block-tridiagonal in the orientations with a dense border for the P calibration
-    variables; the border is eliminated by a Schur complement. Returns ((T, 3), (P,)).
+    H is block-tridiagonal in the per-sample variables (B = 3 rotation + V velocity) with a
+    dense border for the P calibration variables; the border is eliminated by a Schur
+    complement. Returns ((T, B), (P,)).
     """
-    T = len(lin.diag)
+    T, B = lin.diag.shape[:2]
     diag = lin.diag.copy()
-    idx = np.arange(3)
+    idx = np.arange(B)
     diag[:, idx, idx] *= 1.0 + damping
     ab = banded_lower(diag, lin.off)
     P = lin.cross.shape[2]
-    rhs = np.concatenate([-lin.grad_q.reshape(-1, 1), lin.cross.reshape(3 * T, P)], axis=1)
+    rhs = np.concatenate([-lin.grad_q.reshape(-1, 1), lin.cross.reshape(B * T, P)], axis=1)
     sol = solveh_banded(ab, rhs, lower=True, check_finite=False)
     x0, X1 = sol[:, 0], sol[:, 1:]
     if P == 0:
-        return x0.reshape(T, 3), np.zeros(0)
+        return x0.reshape(T, B), np.zeros(0)
     G = lin.theta_block.copy()
     G[np.arange(P), np.arange(P)] *= 1.0 + damping
-    C = lin.cross.reshape(3 * T, P)
+    C = lin.cross.reshape(B * T, P)
     schur = G - C.T @ X1
     dtheta = np.linalg.solve(schur, -lin.grad_theta - C.T @ x0)
-    return (x0 - X1 @ dtheta).reshape(T, 3), dtheta
+    return (x0 - X1 @ dtheta).reshape(T, B), dtheta
 
 
 def theta_posterior_std(lin) -> np.ndarray:
@@ -153,6 +181,21 @@ def theta_posterior_std(lin) -> np.ndarray:
     C = lin.cross.reshape(-1, P)
     X1 = solveh_banded(banded_lower(lin.diag, lin.off), C, lower=True, check_finite=False)
     return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))
+
+
+def released_scales(lin, n_bias: int, prior_std: np.ndarray, ratio: float) -> np.ndarray:
+    """(S,) which scale errors the recording determines, judged at the stage-1 solution `lin`.
+
+    Scale error k_i is released if its posterior std (data and prior, every other variable
+    marginalised: `theta_posterior_std`) is below `ratio` times its prior std `prior_std`
+    (S,), i.e. if the recording carries at least 1 / ratio^2 - 1 times the prior's information
+    about it (3 times for ratio 0.5). That information comes from rotation about axis i that
+    the accelerometer can check (a scale error on a vertical axis only changes the heading,
+    which nothing observes); a recording with little of it keeps k_i = 0 rather than fit
+    unmodelled linear acceleration with a scale error.
+    """
+    std = theta_posterior_std(lin)[n_bias:]
+    return std < ratio * prior_std
 
 
 class BatchSmoother(Estimator):
@@ -191,7 +234,8 @@ class GaussNewtonSmoother(BatchSmoother):
         """
         p = self.params
         theta = np.zeros(problem.n_theta)
-        lin = problem.linearize(q, theta)
+        v = problem.zero_velocity()
+        lin = problem.linearize(q, theta, v=v)
         losses = [lin.cost]
         norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
         damping = 1e-6
@@ -200,29 +244,49 @@ class GaussNewtonSmoother(BatchSmoother):
         iterations = 0
         start = time.perf_counter()
         elapsed = [0.0]
+        # Two stages. Stage 1 solves with the scale errors held at zero (from a drifting start,
+        # dead reckoning, their first steps would otherwise absorb the drift). Stage 2 releases a
+        # scale error only if the recording determines it (`released_scales`); the others stay 0.
+        nb = len(problem.bias_idx)
+        free = np.arange(problem.n_theta) < nb if problem.n_theta > nb else None
+        stage1_iter = max(1, p.max_iter // 2) if free is not None else p.max_iter
+        released = np.zeros(problem.n_theta - nb, bool)
         try:
             for iterations in range(1, p.max_iter + 1):
                 while True:
-                    delta, dtheta = solve_normal_equations(lin, damping)
-                    q_new = retract(q, delta)
+                    if free is None:
+                        delta, dtheta = solve_normal_equations(lin, damping)
+                    else:
+                        delta, dtheta = np.zeros((len(q), lin.diag.shape[1])), np.zeros(problem.n_theta)
+                        sub = dataclasses.replace(lin, grad_theta=lin.grad_theta[free], cross=lin.cross[:, :, free],
+                                                  theta_block=lin.theta_block[np.ix_(free, free)])
+                        delta, dtheta[free] = solve_normal_equations(sub, damping)
+                    q_new = retract(q, delta[:, :3])
+                    v_new = v + delta[:, 3:]
                     theta_new = theta + dtheta
-                    cost_new = problem.cost(q_new, theta_new)
+                    cost_new = problem.cost(q_new, theta_new, v_new)
                     if cost_new <= lin.cost or damping > 1e12:
                         break
                     damping *= 10.0
-                if cost_new > lin.cost:  # no descent even with heavy damping: at the minimum
-                    converged = True
-                    break
-                decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
-                q, theta = q_new, theta_new
-                lin = problem.linearize(q, theta)
-                losses.append(lin.cost)
-                norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
-                elapsed.append(time.perf_counter() - start)
-                damping = max(damping / 10.0, 1e-12)
-                bar.update(1)
-                bar.set_postfix(cost=f"{lin.cost:.6g}")
-                if decrease < p.tol:
+                stage_done = cost_new > lin.cost  # no descent even with heavy damping: at the minimum
+                if not stage_done:
+                    decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
+                    q, theta, v = q_new, theta_new, v_new
+                    lin = problem.linearize(q, theta, v=v)
+                    losses.append(lin.cost)
+                    norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
+                    elapsed.append(time.perf_counter() - start)
+                    damping = max(damping / 10.0, 1e-12)
+                    bar.update(1)
+                    bar.set_postfix(cost=f"{lin.cost:.6g}")
+                    stage_done = decrease < p.tol or (free is not None and iterations >= stage1_iter)
+                if stage_done:
+                    if free is not None and not free.all():
+                        released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
+                        free = np.concatenate([np.ones(nb, bool), released])
+                        damping = 1e-6
+                        if released.any():
+                            continue
                     converged = True
                     break
         finally:
@@ -240,6 +304,8 @@ class GaussNewtonSmoother(BatchSmoother):
             "theta": theta,
             "theta_std": theta_posterior_std(lin),
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
+            "scale_released": released,
+            "velocity_m_s": v,
         }
         return q, diagnostics
 

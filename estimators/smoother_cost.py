@@ -1,32 +1,45 @@
 """The batch smoother's cost, residuals and analytic Jacobians (shared by `gd` and `gn`).
 
-The cost over the whole recording (issue 4; the seeds' "batch" formulation, weighted):
+The cost over the whole recording (weighted least squares with a robust accelerometer term):
 
-    c(q, theta) = 1/2 sum_t  r_m,t^T W_m,t r_m,t                       (motion, t = 0 .. T-2)
-                + 1/2 sum_t  rho(r_a,t^T W_a r_a,t)                     (accelerometer, t = 0 .. T-1)
-                + 1/2 r_0^T W_0 r_0                                     (anchor of q_0)
-                + 1/2 theta^T W_theta theta                             (prior of the gyro calibration)
+    c(q, v, theta) = 1/2 sum_t  w_m,t |r_m,t|^2                          (motion, t = 0 .. T-2)
+                   + 1/2 sum_t  w_a,t c^2 rho(|r_a,t|^2 / c^2)            (accelerometer, t = 0 .. T-1)
+                   + 1/2 w_0 |r_0|^2 + 1/2 theta^T W_theta theta          (anchor of q_0, calibration prior)
+                   + 1/2 sum_t  w_v,t |r_v,t|^2 + 1/2 sum_t w_z,t |v_t|^2   (optional velocity model)
 
-    r_m,t = 2 log(q_{t+1}^-1 * q_t * exp([0, w_t dt_t / 2]))            (seed: motion residual)
-    r_a,t = a_t - h(q_t),   h(q) = R(q)^T e_z                           (seed: observation residual)
+    r_m,t = 2 log(q_{t+1}^-1 * q_t * exp([0, w_t dt_t / 2]))            (motion residual)
+    r_a,t = a_t - h(q_t),   h(q) = R(q)^T e_z                           (observation residual, g)
     r_0   = 2 log(q_init^-1 * q_0)
     w_t   = (1 + k) * g_t - b   (element-wise; k scale errors, b bias, both optional, in theta)
+    r_v,t = v_{t+1} - v_t - G P (R(q_t) a_t + R(q_{t+1}) a_{t+1}) dt_t / 2   (m/s; P: world x, y)
 
-`W_m,t = I / (sigma_g dt_t)^2` is the information of the integrated gyro noise over one
-step (sigma_g: per-sample rate noise, rad/s), `W_a = I / sigma_a^2` that of the
-accelerometer; `rho` is the Huber loss on the squared Mahalanobis norm (Ceres convention:
-`rho(s) = s` for `s <= c^2`, `2 c sqrt(s) - c^2` beyond), so accelerations well beyond gravity
-pull linearly, not quadratically. Where the gyro sample is invalid (`gyr_valid` False) the step
-predicts no rotation and its weight is the weak continuity weight `I / (sigma_drop dt_t)^2`:
-accelerometer + continuity carry the inclination through a dropout.
+Weights are those of continuous-time white noise, so one parameter set means the same at
+any sampling rate: gyro noise density sigma_g (rad/sqrt(s)) integrates to an angle random
+walk, w_m,t = 1 / (sigma_g^2 dt_t) (the angle random walk of IEEE Std 952-1997, Annex C);
+accelerometer noise density sigma_a (g sqrt(s)) gives a sample that stands for dt_t
+seconds the variance sigma_a^2 / dt_t, w_a,t = dt_t / sigma_a^2, so that the information
+per second of accelerometer is rate independent. `rho` is a robust loss (`robust_loss`),
+used through iteratively reweighted least squares. Where the gyro sample is invalid
+(`gyr_valid` False) the step predicts no rotation and its density is the dropout density.
+
+The velocity model uses what VQF exploits by low-pass filtering the accelerometer in an
+almost inertial frame (Laidig & Seel 2023, "VQF: Highly accurate IMU orientation estimation
+with bias estimation and magnetic disturbance rejection", Information Fusion 91): linear
+acceleration integrates to a bounded velocity. The horizontal world-frame specific force is
+integrated (trapezoidal rule) into a velocity v_t (2 variables per sample, m/s), and a
+pseudo-measurement v_t = 0 of density D (w_z,t = dt_t / D^2) keeps it bounded. A tilt error
+delta turns 1 g into a horizontal acceleration g delta, which the velocity cannot absorb
+for long; a linear acceleration that averages out over seconds, can. Each increment touches
+two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks).
 
 The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the whole
 trajectory about world z, so without it the normal equations are singular in heading.
 
 Perturbations are on the right, `q_t <- q_t * exp([0, delta_t / 2])` (delta_t in R^3, body
 frame). The Jacobians below are exact (SO(3) left/right Jacobians, Sola et al. 2018,
-"A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` checks them against finite
-differences. Everything is vectorised over samples.
+"A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` and
+`tests/test_smoother_robust.py` check them against finite differences. Everything is
+vectorised over samples.
 """
 from __future__ import annotations
 
@@ -38,6 +51,7 @@ from fusion import quaternion as quat
 from fusion.types import ImuSamples
 
 AXES = "xyz"
+GRAVITY_M_S2 = 9.80665  # standard gravity: 1 g of the accelerometer, m/s^2
 
 
 # ----------------------------------------------------------------------------- SO(3) helpers
@@ -94,41 +108,92 @@ def retract(q: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the problem
+LOSSES = ("none", "huber", "cauchy", "geman-mcclure")
+
+
+def robust_loss(kind: str, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """rho(s) and rho'(s) of a robust loss on the normalised squared residual s = |r|^2 / c^2.
+
+    The cost term is `c^2 rho(s)` (so all losses equal |r|^2 for |r| << c):
+    - "none": rho = s;
+    - "huber": rho = s for s <= 1, 2 sqrt(s) - 1 beyond (linear pull; Huber 1964);
+    - "cauchy": rho = log(1 + s) (influence falls as 1/|r|);
+    - "geman-mcclure": rho = s / (1 + s) (redescending, bounded; Geman & McClure 1987).
+    These are M-estimators as tabulated by Zhang 1997 ("Parameter estimation techniques: a
+    tutorial with application to conic fitting", Image and Vision Computing 15); rho' is the
+    weight of iteratively reweighted least squares.
+    """
+    if kind == "none":
+        return s, np.ones_like(s)
+    if kind == "huber":
+        root = np.sqrt(s)
+        inside = root <= 1.0
+        return np.where(inside, s, 2.0 * root - 1.0), np.where(inside, 1.0, 1.0 / np.maximum(root, 1e-300))
+    if kind == "cauchy":
+        return np.log1p(s), 1.0 / (1.0 + s)
+    if kind == "geman-mcclure":
+        return s / (1.0 + s), 1.0 / (1.0 + s) ** 2
+    raise ValueError(f"robust loss {kind!r}: expected one of {', '.join(LOSSES)}")
+
+
+def sample_durations(t: np.ndarray) -> np.ndarray:
+    """(T,) the time each sample stands for, s: half of each neighbouring interval
+    (the trapezoidal rule's weights), so that sum_t f_t dt_t approximates the integral of f."""
+    dt = np.diff(np.asarray(t, float))
+    out = np.zeros(len(t))
+    out[:-1] += 0.5 * dt
+    out[1:] += 0.5 * dt
+    return out
+
+
 @dataclass(frozen=True)
 class Weights:
-    """Noise model and robust loss of the cost.
+    """Noise model and robust loss of the cost, in continuous time.
 
-    gyro_noise_rad_s: per-sample gyro rate noise (motion information 1/(sigma dt)^2).
-    acc_noise_g: accelerometer noise, g (information 1/sigma^2).
-    huber_g: Huber threshold on the accelerometer residual norm, g (inf: plain least squares).
+    gyro_noise_rad_sqrt_s: gyro noise density sigma_g, rad/sqrt(s) (= rad/s/sqrt(Hz)); the
+        motion residual of a step of dt seconds has variance sigma_g^2 dt (integrated white
+        rate noise: a random walk in angle).
+    acc_noise_g_sqrt_s: accelerometer noise density sigma_a, g sqrt(s) (= g/sqrt(Hz)); a
+        sample standing for dt seconds has variance sigma_a^2 / dt, so the information per
+        second of accelerometer data does not depend on the sampling rate.
+    loss: robust loss on the accelerometer residual ("none", "huber", "cauchy", "geman-mcclure").
+    loss_scale_g: the loss's scale c on the residual norm, g (inf: plain least squares).
     prior_std_rad: std of the anchor of q_0 at the initial orientation.
-    dropout_rate_std_rad_s: continuity std where the gyro is invalid.
-    motion_weight / acc_weight: fixed scalar information instead of the noise model
+    dropout_noise_rad_sqrt_s: density of the angle random walk where the gyro is invalid.
+    motion_weight / acc_weight: fixed scalar information per term instead of the noise model
         (the seeds' weighting: motion 10, accelerometer 1); None uses the noise model.
     bias_axes / scale_axes: which gyro biases / scale errors are variables ("", "xy", "xyz").
     bias_prior_rad_s / scale_prior: priors (std) of those variables around zero.
+    velocity_acc_noise_g_sqrt_s: density of the accelerometer noise in the horizontal velocity
+        increments, g sqrt(s) (inf: no velocity model).
+    velocity_bound_m_sqrt_s: density D of the pseudo-measurement v = 0, m/s sqrt(s): per
+        second of recording, one observation "v = 0" of std D m/s (inf: no velocity model).
     """
 
-    gyro_noise_rad_s: float = 0.01
-    acc_noise_g: float = 0.05
-    huber_g: float = 0.1
+    gyro_noise_rad_sqrt_s: float = 0.02
+    acc_noise_g_sqrt_s: float = 0.005
+    loss: str = "huber"
+    loss_scale_g: float = 0.1
     prior_std_rad: float = 0.01
-    dropout_rate_std_rad_s: float = 3.0
+    dropout_noise_rad_sqrt_s: float = 0.3
     motion_weight: float | None = None
     acc_weight: float | None = None
     bias_axes: str = ""
     scale_axes: str = ""
     bias_prior_rad_s: float = 0.05
     scale_prior: float = 0.2
+    velocity_acc_noise_g_sqrt_s: float = np.inf
+    velocity_bound_m_sqrt_s: float = np.inf
 
 
 @dataclass(frozen=True, eq=False)
 class Linearization:
     """Cost, gradient and Gauss-Newton normal equations at one point.
 
-    grad_q: (T, 3) d cost / d delta_t. grad_theta: (P,).
-    diag: (T, 3, 3) blocks H[t, t]; off: (T-1, 3, 3) blocks H[t, t+1];
-    cross: (T, 3, P) blocks H[t, theta]; theta_block: (P, P).
+    The variables of sample t are x_t = [delta_t (3), v_t (V)] (V = 2 with the velocity model,
+    else 0), B = 3 + V of them. grad_q: (T, B) d cost / d x_t. grad_theta: (P,).
+    diag: (T, B, B) blocks H[t, t]; off: (T-1, B, B) blocks H[t, t+1];
+    cross: (T, B, P) blocks H[t, theta]; theta_block: (P, P).
     """
 
     cost: float
@@ -149,13 +214,16 @@ class SmootherProblem:
     valid: np.ndarray  # (T-1,) bool, gyro usable on step t
     acc: np.ndarray  # (T, 3) g
     w_motion: np.ndarray  # (T-1,) scalar information of each step
-    w_acc: np.ndarray  # (T,) accelerometer weight per sample, 0 where the sample is missing (NaN)
-    huber_c: float  # threshold on sqrt(r^T W_a r); inf: no robust loss
+    w_acc: np.ndarray  # (T,) accelerometer information per sample, 1/g^2, 0 where the sample is missing (NaN)
+    loss: str  # robust loss on the accelerometer residual (`robust_loss`)
+    loss_c: float  # its scale on the residual norm, g; inf: plain least squares
     init_quat: np.ndarray  # (4,)
     w_prior: float
     bias_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     scale_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     w_theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    w_vel: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T-1,) velocity increments, (s/m)^2; empty: no velocity model
+    w_vzero: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) zero-velocity pseudo-measurements, (s/m)^2
 
     @classmethod
     def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True) -> "SmootherProblem":
@@ -166,12 +234,18 @@ class SmootherProblem:
             valid = np.ones(len(dt), bool)
         if weights.motion_weight is not None:
             w_motion = np.full(len(dt), float(weights.motion_weight))
-            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_s / weights.dropout_rate_std_rad_s) ** 2
+            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_sqrt_s / weights.dropout_noise_rad_sqrt_s) ** 2
         else:
-            sigma = np.where(valid, weights.gyro_noise_rad_s, weights.dropout_rate_std_rad_s) * dt
-            w_motion = 1.0 / sigma**2
-        w_acc = float(weights.acc_weight) if weights.acc_weight is not None else 1.0 / weights.acc_noise_g**2
-        huber_c = weights.huber_g * np.sqrt(w_acc) if np.isfinite(weights.huber_g) and w_acc > 0 else np.inf
+            # Angle random walk: variance sigma^2 dt per step (rad^2).
+            density = np.where(valid, weights.gyro_noise_rad_sqrt_s, weights.dropout_noise_rad_sqrt_s)
+            w_motion = 1.0 / (density**2 * dt)
+        if weights.acc_weight is not None:
+            w_acc = np.full(len(imu.t), float(weights.acc_weight))
+        else:
+            # White accelerometer noise of density sigma_a: variance sigma_a^2 / dt per sample.
+            w_acc = sample_durations(imu.t) / weights.acc_noise_g_sqrt_s**2
+        if weights.loss not in LOSSES:
+            raise ValueError(f"loss={weights.loss!r}: expected one of {', '.join(LOSSES)}")
         # A non-finite accelerometer sample carries no information: weight 0 (its value is zeroed
         # so that 0 * NaN never reaches the cost).
         acc_ok = np.all(np.isfinite(imu.acc_g), axis=1)
@@ -181,9 +255,20 @@ class SmootherProblem:
         w_theta = np.concatenate(
             [np.full(len(bias_idx), weights.bias_prior_rad_s**-2), np.full(len(scale_idx), weights.scale_prior**-2)]
         )
+        velocity = np.isfinite(weights.velocity_acc_noise_g_sqrt_s) and np.isfinite(weights.velocity_bound_m_sqrt_s)
+        if velocity:
+            # Horizontal velocity increments: white acceleration noise of density G sigma (m/s^2 sqrt(s))
+            # integrated over dt has variance (G sigma)^2 dt; a step touching a missing sample has none.
+            w_vel = 1.0 / ((GRAVITY_M_S2 * weights.velocity_acc_noise_g_sqrt_s) ** 2 * dt)
+            w_vel = np.where(acc_ok[:-1] & acc_ok[1:], w_vel, 0.0)
+            # "Velocity stays bounded": v = 0 observed with density D (m/s sqrt(s)), variance D^2 / dt.
+            w_vzero = sample_durations(imu.t) / weights.velocity_bound_m_sqrt_s**2
+        else:
+            w_vel, w_vzero = np.zeros(0), np.zeros(0)
         return cls(
-            dt=dt, gyr=rate, valid=valid, acc=acc,
-            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0), huber_c=huber_c,
+            dt=dt, gyr=rate, valid=valid, acc=acc, w_vel=w_vel, w_vzero=w_vzero,
+            w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0),
+            loss=weights.loss if np.isfinite(weights.loss_scale_g) else "none", loss_c=float(weights.loss_scale_g),
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
             w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
         )
@@ -192,6 +277,23 @@ class SmootherProblem:
     @property
     def n_theta(self) -> int:
         return len(self.bias_idx) + len(self.scale_idx)
+
+    @property
+    def n_vel(self) -> int:
+        """Velocity variables per sample: 2 (horizontal, world frame, m/s) with the velocity model, else 0."""
+        return 2 if len(self.w_vel) else 0
+
+    def zero_velocity(self) -> np.ndarray:
+        """(T, V) the velocity variables' starting point."""
+        return np.zeros((len(self.acc), self.n_vel))
+
+    def velocity_residual(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T-1, 2) r_v,t = v_{t+1} - v_t - G P (R_t a_t + R_{t+1} a_{t+1}) dt_t / 2, m/s, and (T, 3)
+        the world-frame accelerometer R_t a_t, g. P keeps world x and y: gravity (world z) drops out,
+        and a tilt error delta turns 1 g into a horizontal acceleration g delta."""
+        f_world = np.einsum("tij,tj->ti", rotation_matrix(q), self.acc)
+        mean = 0.5 * (f_world[:-1, :2] + f_world[1:, :2])
+        return v[1:] - v[:-1] - GRAVITY_M_S2 * mean * self.dt[:, None], f_world
 
     def split_theta(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """theta -> (bias (3,) rad/s, scale error (3,))."""
@@ -221,36 +323,45 @@ class SmootherProblem:
         """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3). Seed: motion residual."""
         return quat.to_rotvec(quat.multiply(quat.multiply(quat.conjugate(q_b), q_a), u))
 
-    def residuals(self, q: np.ndarray, theta: np.ndarray) -> dict[str, np.ndarray]:
-        """All residuals at (q (T, 4), theta (P,))."""
+    def residuals(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """All residuals at (q (T, 4), theta (P,), v (T, V) m/s; None: zero)."""
         u = self.step_quat(theta)
-        return {
+        out = {
             "motion": self.motion_residual(q[:-1], q[1:], u),
             "acc": self.acc - quat.gravity_in_body(q),
             "prior": quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0])),
             "theta": np.asarray(theta, float),
         }
+        if self.n_vel:
+            v = self.zero_velocity() if v is None else v
+            out["velocity"], _ = self.velocity_residual(q, v)
+            out["vzero"] = v
+        return out
 
-    def huber(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """rho(s) and rho'(s) for squared Mahalanobis norms s."""
-        c = self.huber_c
-        if not np.isfinite(c):
-            return s, np.ones_like(s)
-        root = np.sqrt(s)
-        inside = root <= c
-        return np.where(inside, s, 2.0 * c * root - c * c), np.where(inside, 1.0, c / np.maximum(root, 1e-300))
+    def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) accelerometer cost terms `1/2 w_t c^2 rho(|r_t|^2 / c^2)` and (T,) IRLS weights
+        `w_t rho'` (d term / d r = w_t rho' r) for residuals r_a (T, 3), g."""
+        sq = np.sum(r_a**2, axis=1)
+        if self.loss == "none":
+            return 0.5 * self.w_acc * sq, self.w_acc
+        c2 = self.loss_c**2
+        rho, drho = robust_loss(self.loss, sq / c2)
+        return 0.5 * self.w_acc * c2 * rho, self.w_acc * drho
 
-    def cost(self, q: np.ndarray, theta: np.ndarray | None = None) -> float:
-        """Total cost at q (T, 4), theta (P,)."""
+    def cost(self, q: np.ndarray, theta: np.ndarray | None = None, v: np.ndarray | None = None) -> float:
+        """Total cost at q (T, 4), theta (P,), v (T, V) m/s (None: zero)."""
         theta = np.zeros(self.n_theta) if theta is None else theta
-        r = self.residuals(q, theta)
-        rho, _ = self.huber(self.w_acc * np.sum(r["acc"] ** 2, axis=1))
-        return 0.5 * float(
+        r = self.residuals(q, theta, v)
+        acc_cost, _ = self.acc_terms(r["acc"])
+        total = float(np.sum(acc_cost)) + 0.5 * float(
             np.sum(self.w_motion * np.sum(r["motion"] ** 2, axis=1))
-            + np.sum(rho)
             + self.w_prior * r["prior"] @ r["prior"]
             + np.sum(self.w_theta * r["theta"] ** 2)
         )
+        if self.n_vel:
+            total += 0.5 * float(np.sum(self.w_vel * np.sum(r["velocity"] ** 2, axis=1))
+                                 + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
+        return total
 
     def local_costs(self, q_new: np.ndarray, q_old: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """(T,) the cost terms touching q_t when q_t = q_new[t] and its neighbours keep q_old.
@@ -264,30 +375,33 @@ class SmootherProblem:
         r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
         out[:-1] += 0.5 * self.w_motion * np.sum(r_fwd**2, axis=1)
         out[1:] += 0.5 * self.w_motion * np.sum(r_bwd**2, axis=1)
-        rho, _ = self.huber(self.w_acc * np.sum((self.acc - quat.gravity_in_body(q_new)) ** 2, axis=1))
-        out += 0.5 * rho
+        acc_cost, _ = self.acc_terms(self.acc - quat.gravity_in_body(q_new))
+        out += acc_cost
         r0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q_new[0]))
         out[0] += 0.5 * self.w_prior * r0 @ r0
         return out
 
     # -------------------------------------------------------------- linearisation
-    def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True) -> Linearization:
-        """Cost, exact gradient and the Gauss-Newton blocks at (q, theta).
+    def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True,
+                  v: np.ndarray | None = None) -> Linearization:
+        """Cost, exact gradient and the Gauss-Newton blocks at (q, theta, v).
 
-        The Huber term uses the IRLS weight rho'(s) in both gradient (exact) and Hessian
-        (Gauss-Newton approximation, Triggs' second-order correction omitted).
+        The robust accelerometer term uses the IRLS weight w rho' in both gradient (exact) and
+        Hessian (Gauss-Newton approximation; the second-order term of the loss is omitted, as in
+        Triggs et al. 2000, "Bundle adjustment - a modern synthesis", sec. 3.3).
         """
         theta = np.zeros(self.n_theta) if theta is None else np.asarray(theta, float)
-        T, P = len(q), self.n_theta
+        T, P, V = len(q), self.n_theta, self.n_vel
+        B = 3 + V
         phi = self.step_rotvec(theta)
         u = quat.from_rotvec(phi)
         r_m = self.motion_residual(q[:-1], q[1:], u)
         h = quat.gravity_in_body(q)
         r_a = self.acc - h
         r_0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0]))
-        rho, drho = self.huber(self.w_acc * np.sum(r_a**2, axis=1))
-        cost = 0.5 * float(
-            np.sum(self.w_motion * np.sum(r_m**2, axis=1)) + np.sum(rho) + self.w_prior * r_0 @ r_0
+        acc_cost, wa = self.acc_terms(r_a)
+        cost = float(np.sum(acc_cost)) + 0.5 * float(
+            np.sum(self.w_motion * np.sum(r_m**2, axis=1)) + self.w_prior * r_0 @ r_0
             + np.sum(self.w_theta * theta**2)
         )
 
@@ -298,16 +412,30 @@ class SmootherProblem:
         J0 = Jr_inv @ np.swapaxes(rotation_matrix(u), -1, -2)
         J1 = -right_jacobian_inv(-r_m)
         Wr = self.w_motion[:, None] * r_m
-        grad = np.zeros((T, 3))
-        grad[:-1] += np.einsum("tji,tj->ti", J0, Wr)
-        grad[1:] += np.einsum("tji,tj->ti", J1, Wr)
+        grad = np.zeros((T, B))
+        grad[:-1, :3] += np.einsum("tji,tj->ti", J0, Wr)
+        grad[1:, :3] += np.einsum("tji,tj->ti", J1, Wr)
         # Accelerometer: h(q Exp(d)) ~ h + [h]x d, so d r_a / d delta = -[h]x.
         Ja = -skew(h)
-        wa = self.w_acc * drho
-        grad += np.einsum("tji,tj->ti", Ja, wa[:, None] * r_a)
+        grad[:, :3] += np.einsum("tji,tj->ti", Ja, wa[:, None] * r_a)
         # Anchor: d r_0 / d delta_0 = Jr^-1(r_0).
         J_0 = right_jacobian_inv(r_0)
-        grad[0] += self.w_prior * J_0.T @ r_0
+        grad[0, :3] += self.w_prior * J_0.T @ r_0
+
+        if V:
+            # Velocity increments: R(q Exp(d)) a ~ R a - R [a]x d, so
+            #   d r_v,t / d delta_t = G dt_t P R_t [a_t]x / 2 (same form for t+1), d r_v,t / d v_t = -I, / d v_{t+1} = I.
+            v = self.zero_velocity() if v is None else v
+            r_v, _ = self.velocity_residual(q, v)
+            Ra = (rotation_matrix(q) @ skew(self.acc))[:, :2, :]  # (T, 2, 3) P R_t [a_t]x
+            half = 0.5 * GRAVITY_M_S2 * self.dt[:, None, None]
+            Jv0 = np.concatenate([half * Ra[:-1], np.broadcast_to(-np.eye(2), (T - 1, 2, 2))], axis=2)  # (T-1, 2, B)
+            Jv1 = np.concatenate([half * Ra[1:], np.broadcast_to(np.eye(2), (T - 1, 2, 2))], axis=2)
+            Wv = self.w_vel[:, None] * r_v
+            grad[:-1] += np.einsum("tji,tj->ti", Jv0, Wv)
+            grad[1:] += np.einsum("tji,tj->ti", Jv1, Wv)
+            grad[:, 3:] += self.w_vzero[:, None] * v
+            cost += 0.5 * float(np.sum(self.w_vel * np.sum(r_v**2, axis=1)) + np.sum(self.w_vzero * np.sum(v**2, axis=1)))
 
         # Calibration variables: d r_m,t / d phi_t = Jr^-1(r) Jr(phi); d phi / d b = -dt, d phi / d k_i = dt g_i.
         grad_theta = self.w_theta * theta
@@ -325,39 +453,47 @@ class SmootherProblem:
             grad_theta = grad_theta + np.einsum("tjp,tj->p", Jth, Wr)
 
         if not hessian:
-            return Linearization(cost, grad, grad_theta, np.empty((0, 3, 3)), np.empty((0, 3, 3)), np.empty((0, 3, P)), np.empty((P, P)))
+            return Linearization(cost, grad, grad_theta, np.empty((0, B, B)), np.empty((0, B, B)), np.empty((0, B, P)), np.empty((P, P)))
 
         wm = self.w_motion[:, None, None]
-        diag = np.zeros((T, 3, 3))
-        diag[:-1] += wm * np.swapaxes(J0, -1, -2) @ J0
-        diag[1:] += wm * np.swapaxes(J1, -1, -2) @ J1
-        diag += wa[:, None, None] * np.swapaxes(Ja, -1, -2) @ Ja
-        diag[0] += self.w_prior * J_0.T @ J_0
-        off = wm * np.swapaxes(J0, -1, -2) @ J1
-        cross = np.zeros((T, 3, P))
+        diag = np.zeros((T, B, B))
+        diag[:-1, :3, :3] += wm * np.swapaxes(J0, -1, -2) @ J0
+        diag[1:, :3, :3] += wm * np.swapaxes(J1, -1, -2) @ J1
+        diag[:, :3, :3] += wa[:, None, None] * np.swapaxes(Ja, -1, -2) @ Ja
+        diag[0, :3, :3] += self.w_prior * J_0.T @ J_0
+        off = np.zeros((T - 1, B, B))
+        off[:, :3, :3] = wm * np.swapaxes(J0, -1, -2) @ J1
+        if V:
+            wv = self.w_vel[:, None, None]
+            diag[:-1] += wv * np.swapaxes(Jv0, -1, -2) @ Jv0
+            diag[1:] += wv * np.swapaxes(Jv1, -1, -2) @ Jv1
+            idx = np.arange(3, B)
+            diag[:, idx, idx] += self.w_vzero[:, None]
+            off += wv * np.swapaxes(Jv0, -1, -2) @ Jv1
+        cross = np.zeros((T, B, P))
         theta_block = np.diag(self.w_theta).astype(float)
         if P:
-            cross[:-1] += wm * np.swapaxes(J0, -1, -2) @ Jth
-            cross[1:] += wm * np.swapaxes(J1, -1, -2) @ Jth
+            cross[:-1, :3] += wm * np.swapaxes(J0, -1, -2) @ Jth
+            cross[1:, :3] += wm * np.swapaxes(J1, -1, -2) @ Jth
             theta_block = theta_block + np.einsum("tjp,tjr->pr", wm * Jth, Jth)
         return Linearization(cost, grad, grad_theta, diag, off, cross, theta_block)
 
 
 def banded_lower(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """Block-tridiagonal symmetric matrix -> LAPACK lower band storage (6, 3T) for solveh_banded.
+    """Block-tridiagonal symmetric matrix -> LAPACK lower band storage (2B, B T) for solveh_banded.
 
-    diag: (T, 3, 3) blocks H[t, t]; off: (T-1, 3, 3) blocks H[t, t+1] (so H[t+1, t] = off^T).
+    diag: (T, B, B) blocks H[t, t]; off: (T-1, B, B) blocks H[t, t+1] (so H[t+1, t] = off^T).
     Entry H[r, c] (r >= c) goes to ab[r - c, c].
     """
-    T = len(diag)
-    ab = np.zeros((6, 3 * T))
-    cols = 3 * np.arange(T)
-    for i in range(3):
+    T, B = diag.shape[0], diag.shape[1]
+    ab = np.zeros((2 * B, B * T))
+    cols = B * np.arange(T)
+    for i in range(B):
         for j in range(i + 1):
             ab[i - j, cols + j] = diag[:, i, j]
     cols = cols[:-1]
-    for i in range(3):
-        for j in range(3):
-            # H[3(t+1) + i, 3t + j] = H[t+1, t][i, j] = off[t][j, i]
-            ab[3 + i - j, cols + j] = off[:, j, i]
+    for i in range(B):
+        for j in range(B):
+            # H[B(t+1) + i, B t + j] = H[t+1, t][i, j] = off[t][j, i]
+            ab[B + i - j, cols + j] = off[:, j, i]
     return ab
