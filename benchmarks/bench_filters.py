@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators import build  # noqa: E402
+from fusion.estimators import build  # noqa: E402
 from fusion import datasets  # noqa: E402
 
 SPECS = ("dr", "ukf", "ukf-bias", "ekf", "ukf:sigma=julier", "ukf:impl=filterpy", "ukf-bias:impl=filterpy,hf=false")

@@ -7,7 +7,7 @@ of one hour at 100 Hz (360,000 samples), and whether memory grows linearly (10, 
 
 Each (estimator, duration) runs in a fresh subprocess, so estimators do not share a peak:
 the worker simulates the recording (`fusion.sim`), calibrates it, runs the estimator, scores
-it (`evaluation.metrics.score`) and reports the wall time of each phase and its peak resident
+it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase and its peak resident
 memory (`VmHWM` from /proc/self/status, or `ru_maxrss`). The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
 
@@ -50,8 +50,8 @@ def worker(name: str, duration_s: float) -> dict:
     """One pipeline run in this (fresh) process; returns the figures as a dict."""
     import numpy as np
 
-    import estimators
-    from evaluation.metrics import score
+    from fusion import estimators
+    from fusion.evaluation.metrics import score
     from fusion.calibration import calibrate
     from fusion.sim import SimSettings, simulate
 
@@ -116,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(worker(args.worker, args.duration_s)))
         return 0
 
-    import estimators
-
+    from fusion import estimators
     names = list(estimators.ESTIMATORS) if args.estimators == "all" else args.estimators.split(",")
     minutes = [float(m) for m in args.minutes.split(",")]
     print(f"one-hour benchmark: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} (noisy if high)")

@@ -14,8 +14,8 @@ import time
 import tracemalloc
 
 
-from evaluation import camsim
-from evaluation.panorama import Stitcher
+from fusion.evaluation import camsim
+from fusion.evaluation.panorama import Stitcher
 from fusion import datasets
 
 

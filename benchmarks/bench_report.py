@@ -50,8 +50,8 @@ def main() -> None:
 
 def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t0 = time.perf_counter()
-    from evaluation import report, runner, series as series_io
-    from evaluation.compare import _as_specs, expand_all, results_json
+    from fusion.evaluation import report, runner, series as series_io
+    from fusion.evaluation.compare import _as_specs, expand_all, results_json
     from fusion import datasets
     t_import = time.perf_counter() - t0
 
@@ -70,7 +70,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
         estimate[r.estimator] += r.seconds
 
     # scoring, serially in this process (it also runs inside each job)
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     recordings = {s.id: datasets.load_source(s) for s in sources}
     t = time.perf_counter()
     for r in results:

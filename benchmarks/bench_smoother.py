@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout, not an installed copy
 
-from estimators import build
+from fusion.estimators import build
 from fusion import datasets
 from fusion.calibration import calibrate
 from fusion.sim import SimSettings, simulate

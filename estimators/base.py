@@ -6,7 +6,7 @@ recording; recursive filters derive from `RecursiveEstimator` and only write `re
 `step`, which the base class loops over the samples.
 
 Parameters are a frozen dataclass per estimator (`Params`), with units in the field names
-(VQF). `estimators.params` builds them from command-line text and rejects unknown names.
+(VQF). `fusion.estimators.params` builds them from command-line text and rejects unknown names.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """`gd`: the seeds' projected gradient descent on the batch smoother's cost.
 
-Same cost as `gn` (`estimators.smoother_cost`), minimised the way two seed reports did:
+Same cost as `gn` (`fusion.estimators.smoother_cost`), minimised the way two seed reports did:
 each iteration moves every quaternion along its normalised tangent-space gradient,
 
     q_t' = cos(alpha_t) q_t + sin(alpha_t) p_t,   p_t = -G_t / ||G_t||          (seed step 4)

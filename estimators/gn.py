@@ -1,6 +1,6 @@
 """`gn`: the batch smoother solved on the manifold by Gauss-Newton / Levenberg-Marquardt.
 
-Minimises the cost of `estimators.smoother_cost` (motion + robust accelerometer terms
+Minimises the cost of `fusion.estimators.smoother_cost` (motion + robust accelerometer terms
 weighted by the sensor noise) over all orientations at once. Updates are on the manifold,
 `q_t <- q_t * exp([0, delta_t / 2])`; each motion residual touches two neighbours, so the
 normal equations are block-tridiagonal (3x3 blocks), stored in LAPACK band form and solved
@@ -47,7 +47,7 @@ class SmootherParams:
     """Parameters shared by `gn` and `gd` (the cost), plus the initialisation.
 
     All noise levels are densities of continuous-time white noise, so one value means the
-    same at any sampling rate (see `estimators.smoother_cost.Weights`):
+    same at any sampling rate (see `fusion.estimators.smoother_cost.Weights`):
     gyro_noise_rad_sqrt_s (sg): gyro noise density, rad/sqrt(s); a step of dt s has angle
         variance sg^2 dt.
     acc_noise_g_sqrt_s (sa): accelerometer noise density, g sqrt(s); a sample standing for dt s
@@ -65,7 +65,7 @@ class SmootherParams:
         below this fraction of its prior std (`released_scales`); the others stay zero.
         Stage 1 ends at `tol` or after half of `max_iter`, so stage 2 always gets its turn.
     velocity_acc_noise_g_sqrt_s (sv), velocity_bound_m_sqrt_s (vb): the horizontal velocity
-        model (see `estimators.smoother_cost`); inf (the default) switches it off. On the BROAD
+        model (see `fusion.estimators.smoother_cost`); inf (the default) switches it off. On the BROAD
         trials `bias=xyz,sa=0.05,sv=0.01,vb=0.5,tol=1e-5` gives 0.55 deg mean inclination.
     weighting: "noise" (information matrices from the noise stds above) or "seed" (the seeds'
         scalar weights: motion `seed_motion_weight`, accelerometer 1, no Huber loss).

@@ -7,7 +7,7 @@ An ablation is a comparison whose estimator list is generated: `grid_specs` turn
 `--param` lists into the Cartesian product of specs (the first parameter varies slowest),
 each labelled exactly as `fusion compare --estimators` would label it, so an ablation with
 one value gives the same rows as `compare` with that parameter. The report then reads the
-parameter values back from the labels (`evaluation.plots.label_params`).
+parameter values back from the labels (`fusion.evaluation.plots.label_params`).
 
 `PRESETS` holds the seed reports' questions as spec lists (data only; edit freely).
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 import itertools
 from typing import Sequence
 
-from estimators.params import EstimatorSpec, parse_specs
+from fusion.estimators.params import EstimatorSpec, parse_specs
 
 # The seed reports' questions. Each is a list of spec texts as `--estimators` takes them.
 PRESETS: dict[str, list[str]] = {
@@ -37,8 +37,7 @@ PRESETS: dict[str, list[str]] = {
 def preset_specs(name: str) -> list[EstimatorSpec]:
     """The specs of a preset, checked against the registry (a clear error for a preset
     naming an estimator this installation does not have)."""
-    import estimators
-
+    from fusion import estimators
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}")
     specs = [spec for text in PRESETS[name] for spec in parse_specs(text)]

@@ -2,7 +2,7 @@
 
 None of the course recordings' camera files are available, so frames are rendered with the
 ground-truth (VICON) orientation at each frame time from a scene image, then stitched back
-with estimated orientations (`evaluation.panorama`). Scenes use the panorama's layout
+with estimated orientations (`fusion.evaluation.panorama`). Scenes use the panorama's layout
 (`PanoramaGrid`: longitude across, decreasing to the right, latitude down).
 
 Scenes: the real photograph `<data_dir>/scenes/room_equirect.jpg`, or a procedural one the

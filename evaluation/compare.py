@@ -1,6 +1,6 @@
 """Run estimators over recordings and score them: the library behind `fusion compare`.
 
-    from evaluation.compare import compare
+    from fusion.evaluation.compare import compare
     results = compare(["dr", "ukf:R=1e-3"], [fusion.datasets.load("ece276a/1")])
 
 Every (recording, estimator) pair is one job: build the estimator from its spec, time
@@ -18,8 +18,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-import estimators
-from estimators.params import EstimatorSpec, parse_specs
+from fusion import estimators
+from fusion.estimators.params import EstimatorSpec, parse_specs
 from fusion.datasets import initial_orientation
 from fusion.types import Recording, Trajectory
 
@@ -32,7 +32,7 @@ class Result:
     """One recording x estimator. `rmse_deg`/`max_deg` are None without ground truth.
 
     scored_samples, coverage: how many samples were scored and their fraction of what the
-    protocol scores (`evaluation.metrics.Score.coverage`); None without ground truth (or
+    protocol scores (`fusion.evaluation.metrics.Score.coverage`); None without ground truth (or
     from an older results.json). Below `MIN_COVERAGE` the row is flagged and left out of means.
     """
 
@@ -44,8 +44,8 @@ class Result:
     max_deg: dict[str, float] | None
     trajectory: Trajectory | None = None
     score: Score | None = None
-    panorama: dict[str, float] | None = None  # with --panorama: `evaluation.panorama.panorama_scores`
-    alignment: dict[str, Any] | None = None  # with --align: the recording's `evaluation.align.Alignment.to_json`
+    panorama: dict[str, float] | None = None  # with --panorama: `fusion.evaluation.panorama.panorama_scores`
+    alignment: dict[str, Any] | None = None  # with --align: the recording's `fusion.evaluation.align.Alignment.to_json`
     scored_samples: int | None = None
     coverage: float | None = None
 
@@ -119,7 +119,7 @@ def default_protocol(recording: Recording) -> str:
 
 
 def recording_alignment(recording: Recording) -> Alignment | None:
-    """The recording's alignment (`evaluation.align.fit_alignment`), None without truth; errors
+    """The recording's alignment (`fusion.evaluation.align.fit_alignment`), None without truth; errors
     name the recording."""
     if recording.truth is None:
         return None
@@ -140,7 +140,7 @@ def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, 
             align: bool | Alignment | None = False) -> Result:
     """One job: estimate, time, score (`protocol` None: the recording's default).
 
-    align: score against the truth mapped into our frames (`evaluation.align`): True fits the
+    align: score against the truth mapped into our frames (`fusion.evaluation.align`): True fits the
         recording's alignment here; an `Alignment` (fitted once per recording by the caller)
         is used as given. The initial orientation then comes from the aligned truth
         (`init` None or "truth"), so every estimator starts in our frames.
@@ -193,12 +193,12 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
     recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
-    protocol: scoring protocol, "full" or "broad" (`evaluation.metrics`), or None for each
+    protocol: scoring protocol, "full" or "broad" (`fusion.evaluation.metrics`), or None for each
         recording's default (`default_protocol`).
     jobs: worker processes (None or 0: all cores); the results do not depend on it
-        (see `evaluation.runner`).
+        (see `fusion.evaluation.runner`).
     align: score against the truth mapped into our frames by constant world and body rotations
-        fitted once per recording from its IMU and truth (`evaluation.align`), the same for
+        fitted once per recording from its IMU and truth (`fusion.evaluation.align`), the same for
         every estimator; each result's `alignment` holds them.
     """
     from .runner import run

@@ -14,7 +14,7 @@ Protocol:
    estimator starts from the same initial orientation (see `fusion.datasets.initial_orientation`).
    With `--align` the caller first maps the truth into our frames, `A R_truth B`, with
    constant world and body rotations A, B fitted once per recording from the IMU and the
-   truth alone (`evaluation.align`); every estimator is then scored against the same truth.
+   truth alone (`fusion.evaluation.align`); every estimator is then scored against the same truth.
 3. Summaries: RMSE and maximum of each over the scored samples, and the coverage: the scored
    samples as a fraction of the samples the protocol would score (all the estimate's samples;
    with "broad", those inside `movement`). A score on little of the recording (truth that

@@ -5,7 +5,7 @@ frame with the frame's orientation, unwrap longitude/latitude into an image), do
 other way round: for every panorama pixel we ask where it falls in the frame and sample
 it there with `cv2.remap` (inverse mapping: no holes, no per-pixel Python).
 
-Panorama layout (`PanoramaGrid`, the same for the scenes in `evaluation.camsim`):
+Panorama layout (`PanoramaGrid`, the same for the scenes in `fusion.evaluation.camsim`):
 longitude across, decreasing to the right so that the image is not mirrored when seen
 from inside (column centre j at lon = pi - 2 pi (j + 0.5) / W; lon 0 = world +x in the
 middle), latitude down (row centre i at lat = pi/2 - pi (i + 0.5) / H; +z at the top).
@@ -18,7 +18,7 @@ at 8 px the interpolation error is well under 0.05 px).
 
 Memory: the accumulators (`(H, W, 4)` float32 for `average`/`feather`, `(H, W, 3)` uint8
 plus a coverage mask for `last`), one frame and one warped region, whatever the number of
-frames. OpenCV is imported here and in `evaluation.camsim` only.
+frames. OpenCV is imported here and in `fusion.evaluation.camsim` only.
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 def check_options(out: Any, rate_hz: float) -> None:
     """The `fusion panorama` options checked before any work: an image name OpenCV writes
-    (`IMAGE_SUFFIXES`) and a rendering frame rate within `evaluation.camsim.check_rate`."""
+    (`IMAGE_SUFFIXES`) and a rendering frame rate within `fusion.evaluation.camsim.check_rate`."""
     from pathlib import Path
 
     from .camsim import check_rate
@@ -424,7 +424,7 @@ def panorama_scores(recording: Any, estimate: Trajectory, *, data_dir: Any = Non
     """The numbers `fusion compare --panorama` reports for one recording and estimator.
 
     Frames: the recording's camera if it has one, else frames rendered at `rate_hz` from a
-    scene with the ground-truth orientations (`evaluation.camsim`). Stitches the frames with
+    scene with the ground-truth orientations (`fusion.evaluation.camsim`). Stitches the frames with
     the ground truth (reference, cached for the last recording) and with `estimate`, and
     returns `psnr_db`, `ssim`, `covered_fraction` (estimate vs truth panorama, over pixels
     both cover, solid-angle weighted), `scene_psnr_db`, `scene_ssim` (estimate vs the scene,
@@ -496,7 +496,7 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
                        progress: bool = False) -> Reference:
     """The frames of a recording (its camera, or rendered from a scene with the ground truth)
     and the ground-truth panorama. Cached for the last recording (bounded memory)."""
-    from evaluation import camsim
+    from fusion.evaluation import camsim
 
     grid = grid or PanoramaGrid()
     key = (id(recording), id(scene) if scene is not None else None, str(data_dir), model, grid, blend, rate_hz)

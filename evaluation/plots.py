@@ -25,7 +25,7 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from estimators.params import parse_specs  # noqa: E402
+from fusion.estimators.params import parse_specs  # noqa: E402
 
 from .metrics import KINDS  # noqa: E402
 from .series import RecordingSeries  # noqa: E402

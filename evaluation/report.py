@@ -3,7 +3,7 @@
     DIR/results.json     the document `--json` writes (results, settings, versions)
     DIR/table.txt        the table the command printed
     DIR/command.txt      the exact command, and how to re-render
-    DIR/series/NNN.npz   per recording, the time series the figures need (`evaluation.series`)
+    DIR/series/NNN.npz   per recording, the time series the figures need (`fusion.evaluation.series`)
     DIR/figures/*.png    per recording: Euler angles over VICON, errors, smoother cost;
                          summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter
     DIR/report.html      one self-contained page (images embedded as base64 PNG), readable offline
@@ -62,9 +62,9 @@ def write_run(out_dir: "str | Path | OutputFolder", doc: dict[str, Any], results
 
     out_dir: the folder, or an `OutputFolder` already held (`fusion compare --out` takes it
         before computing, so that a second run on the same folder is refused at once).
-    doc: the results.json document (`evaluation.compare.results_json`).
+    doc: the results.json document (`fusion.evaluation.compare.results_json`).
     results: the run's results with trajectories, recording-major.
-    infos: one `evaluation.runner.RecordingInfo` per recording (needed when per_recording).
+    infos: one `fusion.evaluation.runner.RecordingInfo` per recording (needed when per_recording).
 
     Everything is written into a staging folder first and moved in at the end (`OutputFolder`),
     results.json last; files the toolkit did not write are never removed.
@@ -352,7 +352,7 @@ def series_files(out: Path) -> list[Path]:
 
 
 def check_series(path: Path) -> None:
-    """A series file that `evaluation.series.load` reads and whose arrays agree in shape; else
+    """A series file that `fusion.evaluation.series.load` reads and whose arrays agree in shape; else
     one line naming it."""
     try:
         s = series_io.load(path)

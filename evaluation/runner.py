@@ -3,7 +3,7 @@
     results, infos = run(["dr", "ukf:R=1e-3"], datasets.select("all"), jobs=2)
 
 A job is one (recording, estimator spec) pair: build, estimate, time, score
-(`evaluation.compare.run_one`). With `jobs > 1` the jobs run in a `ProcessPoolExecutor`
+(`fusion.evaluation.compare.run_one`). With `jobs > 1` the jobs run in a `ProcessPoolExecutor`
 (the 'fork' context where the platform has it, else 'spawn'). The recordings are handed to
 each worker once, when it starts (as dataset `Source`s, which the worker loads the first
 time a job needs them and keeps, or as loaded `Recording`s); a job itself only carries two
@@ -11,7 +11,7 @@ indices. Results come back in the serial order (recording-major, specs as given)
 order the jobs finish in, and hold the same numbers as a serial run: each job is the same
 deterministic computation on the same inputs. Only `seconds` (wall time) differs.
 
-With `align`, a recording's alignment (`evaluation.align`) is fitted from the recording alone
+With `align`, a recording's alignment (`fusion.evaluation.align`) is fitted from the recording alone
 the first time a process needs it and kept with the loaded recording, so every job of that
 recording uses it, not a fit of its own (each worker that touches the recording fits it once;
 the fit is deterministic, so they agree bit for bit).
@@ -28,8 +28,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-import estimators
-from estimators.params import EstimatorSpec
+from fusion import estimators
+from fusion.estimators.params import EstimatorSpec
 from fusion.datasets import LoadOptions, Source
 from fusion.types import Recording, Trajectory
 
@@ -149,12 +149,12 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     items: dataset `Source`s (loaded lazily, once per process) or loaded `Recording`s.
     jobs: worker processes; None or 0 means all cores; 1 runs in this process.
     with_info: also return one `RecordingInfo` per recording (for plots).
-    protocol: scoring protocol (`evaluation.compare.run_one`), None for each recording's default.
+    protocol: scoring protocol (`fusion.evaluation.compare.run_one`), None for each recording's default.
     load: how `Source`s are loaded (calibration file, dropout switch).
     panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
-        up there; see `evaluation.panorama.panorama_scores`).
+        up there; see `fusion.evaluation.panorama.panorama_scores`).
     align: score against the truth mapped into our frames by constant rotations fitted once
-        per recording (module docstring, `evaluation.align`), the same for every spec.
+        per recording (module docstring, `fusion.evaluation.align`), the same for every spec.
     """
     specs = list(specs)
     items = list(items)

@@ -115,11 +115,11 @@ def calibration_settings(args: argparse.Namespace) -> dict | None:
 def cmd_panorama(args: argparse.Namespace) -> int:
     import cv2
 
-    from estimators.params import parse_specs
-    from evaluation.compare import run_one
-    from evaluation.panorama import PanoramaGrid, comparison_image, estimate_panorama, reference_panorama
+    from fusion.estimators.params import parse_specs
+    from fusion.evaluation.compare import run_one
+    from fusion.evaluation.panorama import PanoramaGrid, comparison_image, estimate_panorama, reference_panorama
 
-    from evaluation.panorama import check_options
+    from fusion.evaluation.panorama import check_options
 
     check_options(args.out, args.rate)  # before any work: the image format and the frame rate
     recordings = load_selected(args)
@@ -165,7 +165,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         doc = {"command": shlex.join(["fusion", *args.argv]), "recordings": [c.to_json() for c in checks]}
         Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     if args.out:
-        from evaluation.inspect_plots import plot_check
+        from fusion.evaluation.inspect_plots import plot_check
 
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -181,8 +181,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     recordings = load_selected(args)
     if args.leave_one_out:
-        from evaluation.compare import format_table
-        from evaluation.loo import format_folds, leave_one_out
+        from fusion.evaluation.compare import format_table
+        from fusion.evaluation.loo import format_folds, leave_one_out
 
         folds = leave_one_out([args.estimators], recordings, init=args.init, progress=not args.no_progress,
                               align=args.align)
@@ -213,18 +213,18 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool = True) -> int:
     """Run `specs` on the selected recordings; print the table; write --json and --out (the
-    --out folder is taken, locked, before computing: see `evaluation.report.OutputFolder`)."""
+    --out folder is taken, locked, before computing: see `fusion.evaluation.report.OutputFolder`)."""
     if not getattr(args, "out", None):
         return _run_in(args, specs, settings, per_recording, None)
-    from evaluation.report import OutputFolder
+    from fusion.evaluation.report import OutputFolder
 
     with OutputFolder(args.out) as folder:
         return _run_in(args, specs, settings, per_recording, folder)
 
 
 def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool, folder) -> int:
-    from evaluation.compare import format_table, results_json
-    from evaluation.runner import describe_specs, run
+    from fusion.evaluation.compare import format_table, results_json
+    from fusion.evaluation.runner import describe_specs, run
 
     sources = select_sources(args)
     out = getattr(args, "out", None)
@@ -234,7 +234,7 @@ def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording
     print(format_table(results, align=args.align))
     if not (args.json or out):
         return 0
-    from evaluation.report import git_commit
+    from fusion.evaluation.report import git_commit
 
     settings = {"command": shlex.join(["fusion", *args.argv]), **settings, "dataset": args.dataset,
                 "data_dir": str(datasets.data_dir_from(args.data_dir).resolve()),
@@ -251,7 +251,7 @@ def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     if out:
-        from evaluation.report import write_run
+        from fusion.evaluation.report import write_run
 
         report = write_run(folder, doc, results, infos, jobs=args.jobs, progress=not args.no_progress,
                            per_recording=per_recording)
@@ -260,14 +260,14 @@ def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from evaluation.compare import _as_specs, expand_all
+    from fusion.evaluation.compare import _as_specs, expand_all
 
     specs = expand_all(_as_specs([args.estimators]))
     return _run(args, specs, {"kind": "compare", "estimators": args.estimators})
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from evaluation import ablate
+    from fusion.evaluation import ablate
 
     if bool(args.preset) == bool(args.estimator):
         raise ValueError("ablate: give either --preset NAME or --estimator NAME with --param NAME=V1,V2,...")
@@ -287,7 +287,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from evaluation.report import render
+    from fusion.evaluation.report import render
 
     print(render(args.folder, jobs=args.jobs, progress=not args.no_progress))
     return 0
@@ -324,7 +324,7 @@ def _add_align_arg(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from evaluation.ablate import PRESETS
+    from fusion.evaluation.ablate import PRESETS
 
     parser = argparse.ArgumentParser(prog="fusion", description="Orientation estimation from gyro + accelerometer, scored against VICON.")
     sub = parser.add_subparsers(dest="command")

@@ -212,7 +212,7 @@ class Recording:
     camera: a camera source (see `fusion.camera`), or None.
     movement: (N,) bool over the IMU samples, the movement phases a benchmark scores
         (BROAD's `movement`, a CSV `movement` column), or None. A recording that has one is
-        scored with the BROAD protocol by default (`evaluation.metrics.score`).
+        scored with the BROAD protocol by default (`fusion.evaluation.metrics.score`).
     """
 
     id: str

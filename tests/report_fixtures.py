@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.base import Estimator
-from estimators.dr import DeadReckoning
+from fusion.estimators.base import Estimator
+from fusion.estimators.dr import DeadReckoning
 from fusion.types import ImuSamples, Recording, Trajectory
 
 
@@ -94,8 +94,7 @@ class ToySmoother(Estimator):
 
 
 def register(monkeypatch) -> None:
-    import estimators
-
+    from fusion import estimators
     monkeypatch.setitem(estimators.ESTIMATORS, "toy", Toy)
     monkeypatch.setitem(estimators.ESTIMATORS, "toysmooth", ToySmoother)
 

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from estimators.params import EstimatorSpec
-from evaluation import ablate, plots
+from fusion.estimators.params import EstimatorSpec
+from fusion.evaluation import ablate, plots
 from fusion.cli import main
 
 from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
@@ -94,8 +94,8 @@ def test_preset_runs_and_unregistered_estimator_is_a_clear_error(toy, data, tmp_
 
 
 def test_shipped_presets_are_well_formed():
-    import estimators
-    from estimators.params import parse_specs
+    from fusion import estimators
+    from fusion.estimators.params import parse_specs
 
     assert {"ukf-vs-dr", "sigma", "accel-update", "smoother-solvers", "motion-weight"} <= set(ablate.PRESETS)
     for name, texts in ablate.PRESETS.items():

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from evaluation.align import fit_alignment
-from evaluation.compare import Result, aligned, compare, format_table, recording_alignment, run_one
-from evaluation.metrics import score
-from estimators.params import EstimatorSpec
+from fusion.evaluation.align import fit_alignment
+from fusion.evaluation.compare import Result, aligned, compare, format_table, recording_alignment, run_one
+from fusion.evaluation.metrics import score
+from fusion.estimators.params import EstimatorSpec
 from fusion import datasets
 from fusion.cli import main
 from fusion.types import ImuSamples, Recording, Trajectory
@@ -277,7 +277,7 @@ def test_cli_degenerate_truth_is_one_line_error_or_a_row_without_scores(tmp_path
 
 
 def test_report_rerender_keeps_the_alignment(tmp_path, capsys):
-    from evaluation.report import render
+    from fusion.evaluation.report import render
 
     rec = sim()
     write_csv(tmp_path / "theirs.csv", rec, rotated(rec.truth))

@@ -13,8 +13,8 @@ import pytest
 import scipy.io
 from scipy.spatial.transform import Rotation
 
-from evaluation.compare import compare, default_protocol
-from evaluation.metrics import mean_heading_offset, score
+from fusion.evaluation.compare import compare, default_protocol
+from fusion.evaluation.metrics import mean_heading_offset, score
 from fusion import datasets, quaternion as quat
 from fusion.broad import load_broad
 from fusion.cli import main

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimators import build
-from evaluation.metrics import score
+from fusion.estimators import build
+from fusion.evaluation.metrics import score
 from fusion import datasets
 from fusion.broad import load_broad
 from fusion.cli import main

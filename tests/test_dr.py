@@ -2,7 +2,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators import build
+from fusion.estimators import build
 from fusion.types import ImuSamples
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import ESTIMATORS, build
-from estimators.dr import DeadReckoning
-from estimators.ekf import EKF, EKFParams, _right_jacobian
+from fusion.estimators import ESTIMATORS, build
+from fusion.estimators.dr import DeadReckoning
+from fusion.estimators.ekf import EKF, EKFParams, _right_jacobian
 from fusion import quaternion as quat
 
 from test_ukf import inclination_deg, synthetic

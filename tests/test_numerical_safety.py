@@ -17,8 +17,8 @@ import functools
 import numpy as np
 import pytest
 
-import estimators
-from evaluation.metrics import score
+from fusion import estimators
+from fusion.evaluation.metrics import score
 from fusion import quaternion as quat
 from fusion.calibration import calibrate
 from fusion.sim import SimSettings, simulate

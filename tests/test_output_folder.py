@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation import report
+from fusion.evaluation import report
 from fusion.cli import main
 
 REPO = Path(__file__).resolve().parents[1]

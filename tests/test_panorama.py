@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from fusion.camera import ArrayCamera, CameraModel, find_camera_file, load_camera
 from fusion.types import Recording, Trajectory
-from evaluation import camsim
-from evaluation.panorama import (BLENDS, PanoramaGrid, Stitcher, panorama_scores, psnr_db, score_panorama, ssim,
+from fusion.evaluation import camsim
+from fusion.evaluation.panorama import (BLENDS, PanoramaGrid, Stitcher, panorama_scores, psnr_db, score_panorama, ssim,
                                  stitch)
 
 GRID = PanoramaGrid()  # 1920 x 960: 0.1875 deg per px, the camera's own resolution

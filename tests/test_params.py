@@ -4,7 +4,7 @@ from typing import Literal
 
 import pytest
 
-from estimators.params import make_params, parse_specs
+from fusion.estimators.params import make_params, parse_specs
 
 
 @dataclass(frozen=True)

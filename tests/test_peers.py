@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import estimators
-from estimators import build
-from estimators.peers import PeerUnavailable, align_heading
-from evaluation.metrics import error_angles
+from fusion import estimators
+from fusion.estimators import build
+from fusion.estimators.peers import PeerUnavailable, align_heading
+from fusion.evaluation.metrics import error_angles
 from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
@@ -178,8 +178,7 @@ def test_parameters_reach_the_library():
 
 
 def test_missing_library_says_what_to_install(monkeypatch):
-    import estimators.peers as peers
-
+    import fusion.estimators.peers as peers
     def refuse(name, *args, **kwargs):
         raise ModuleNotFoundError(f"No module named {name!r}")
 
@@ -225,7 +224,7 @@ def test_reference_figures_on_the_course_recordings(data_dir):
     """The adapters reproduce the published figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
     for lib in ("vqf", "ahrs", "imufusion"):
         pytest.importorskip(lib)
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     from fusion import datasets
     from fusion.calibration import BoardModel
 
@@ -242,7 +241,7 @@ def test_reference_figures_on_the_course_recordings(data_dir):
 
 
 def test_cli_names_the_missing_extra(monkeypatch, capsys):
-    import estimators.peers as peers
+    import fusion.estimators.peers as peers
     from fusion.cli import main
 
     def refuse(name, *args, **kwargs):

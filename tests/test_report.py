@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation import plots, runner, series
-from evaluation.compare import _as_specs
+from fusion.evaluation import plots, runner, series
+from fusion.evaluation.compare import _as_specs
 from fusion.cli import main
 
 from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
@@ -38,7 +38,7 @@ def run_dir(toy, tmp_path_factory):
 
 
 def _series(specs=SPECS, **kwargs) -> series.RecordingSeries:
-    from evaluation.compare import _as_specs
+    from fusion.evaluation.compare import _as_specs
 
     rec = recording(**kwargs)
     spec_list = _as_specs(specs)
@@ -148,7 +148,7 @@ def test_report_rerenders_from_the_folder_alone(run_dir, tmp_path, monkeypatch):
     out = tmp_path / "copy"
     shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("figures", "report.html", "check.html"))
     monkeypatch.setattr(runner, "run", None)  # no estimator run is needed ...
-    import estimators
+    from fusion import estimators
     monkeypatch.setattr(estimators, "ESTIMATORS", {})  # ... nor any estimator installed
     assert main(["report", str(out), "--jobs", "1", "--no-progress"]) == 0
     assert (out / "report.md").read_text() == (run_dir / "report.md").read_text()
@@ -182,7 +182,7 @@ def test_parallel_equals_serial(toy, tmp_path, capsys):
 
 
 def test_library_compare_jobs_keeps_order(toy):
-    from evaluation.compare import compare
+    from fusion.evaluation.compare import compare
 
     recs = [recording(seed=k, rid=f"toy/{k}") for k in range(3)]
     serial = compare(["toy:g=1.1", "dr", "toysmooth"], recs, jobs=1)
@@ -328,7 +328,7 @@ def test_speed_figure_labels_do_not_overlap():
 
 
 def test_loss_figure_gives_each_smoother_its_own_axis():
-    from evaluation.series import RecordingSeries
+    from fusion.evaluation.series import RecordingSeries
 
     s = _series()
     losses = {1: np.geomspace(20, 5, 150), 2: np.array([8000.0, 2000, 1990, 1990])}

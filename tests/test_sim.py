@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators import build
+from fusion.estimators import build
 from fusion import datasets
 from fusion.calibration import calibrate
 from fusion.sim import T0_S, SimSettings, _Motion, simulate
@@ -37,8 +37,8 @@ def test_dead_reckoning_on_exact_rates_tracks_the_truth():
     discretisation, quantisation and the bias estimated from the first rest."""
     raw, truth = simulate(SimSettings(duration_s=30, gyro_sensitivity_ratio=(1, 1, 1)))
     from fusion.calibration import calibrate
-    from estimators import build
-    from evaluation.metrics import score
+    from fusion.estimators import build
+    from fusion.evaluation.metrics import score
 
     imu = calibrate(raw).apply(raw)
     q0, _ = truth.interpolate(imu.t[:1])

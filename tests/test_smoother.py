@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import ESTIMATORS, build
-from estimators.gd import GDParams, GradientDescentSmoother
-from estimators.gn import GaussNewtonSmoother, SmootherParams, solve_normal_equations
-from estimators.smoother_cost import SmootherProblem, Weights, banded_lower, retract
+from fusion.estimators import ESTIMATORS, build
+from fusion.estimators.gd import GDParams, GradientDescentSmoother
+from fusion.estimators.gn import GaussNewtonSmoother, SmootherParams, solve_normal_equations
+from fusion.estimators.smoother_cost import SmootherProblem, Weights, banded_lower, retract
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
 
@@ -170,7 +170,7 @@ def test_unit_norm_after_every_iteration(spec):
 
 
 def test_smoother_beats_every_filter_on_the_simulated_recording():
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
 
     imu, truth, q0 = _sim_imu(60.0)
     gn = score(truth, build("gn:progress=false").estimate(imu, q0)).rmse_deg
@@ -225,7 +225,7 @@ def test_bad_parameters_raise(text):
 
 
 def test_real_recording_regression(data_dir):
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     from fusion import datasets
 
     rec = datasets.load("ece276a/1", data_dir / "ece276a")

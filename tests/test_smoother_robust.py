@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import build
-from estimators.smoother_cost import GRAVITY_M_S2, SmootherProblem, Weights, retract, robust_loss, sample_durations
+from fusion.estimators import build
+from fusion.estimators.smoother_cost import GRAVITY_M_S2, SmootherProblem, Weights, retract, robust_loss, sample_durations
 from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
@@ -59,7 +59,7 @@ def simulated_imu(rate_hz: float, duration_s: float = 30.0, translation_m: float
 
 
 def _rotation_matrices(q: np.ndarray) -> np.ndarray:
-    from estimators.smoother_cost import rotation_matrix
+    from fusion.estimators.smoother_cost import rotation_matrix
 
     return rotation_matrix(q)
 
@@ -238,7 +238,7 @@ def test_broad_fast_translation_regression(data_dir):
     """BROAD trial 15 (fast translation: 45 % of accelerometer samples > 0.2 g off 1 g),
     BROAD protocol. Measured: gn with bias and velocity model 0.578 deg inclination; without
     the velocity model 4.85; gyro integration about 20."""
-    from evaluation.compare import run_one
+    from fusion.evaluation.compare import run_one
     from fusion import datasets
 
     if not (data_dir / "broad" / "15_undisturbed_fast_translation_A.hdf5").is_file():
@@ -250,7 +250,7 @@ def test_broad_fast_translation_regression(data_dir):
 
 
 def parse(text: str):
-    from estimators.params import parse_specs
+    from fusion.estimators.params import parse_specs
 
     (spec,) = parse_specs(text)
     return spec
@@ -279,7 +279,7 @@ def test_scale_errors_without_information_are_not_released():
 
 
 def test_release_ratio_must_be_a_fraction():
-    from estimators.gn import SmootherParams
+    from fusion.estimators.gn import SmootherParams
 
     with pytest.raises(ValueError, match="scale_release_ratio"):
         SmootherParams(scale_release_ratio=0.0)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators import ESTIMATORS, build
-from estimators._attitude import exp_batch, gravity_batch, left_matrix, log_batch, right_matrix, sqrt_psd
-from estimators.dr import DeadReckoning
-from estimators.ukf import (
+from fusion.estimators import ESTIMATORS, build
+from fusion.estimators._attitude import exp_batch, gravity_batch, left_matrix, log_batch, right_matrix, sqrt_psd
+from fusion.estimators.dr import DeadReckoning
+from fusion.estimators.ukf import (
     UKF,
     QuaternionSigmaPoints,
     UKFBias,
@@ -254,7 +254,7 @@ FILTERS = ("ukf", "ukf-bias", "ekf")
 @pytest.fixture(scope="module")
 def real_runs(data_dir):
     """Every filter (defaults) and dr on ece276a 1-9 from the truth: {(spec, n): (Trajectory, Score)}."""
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     from fusion import datasets
 
     out = {}
@@ -304,7 +304,7 @@ def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
     [("ukf", 3.0, 65.0), ("ukf:hf=true", 3.0, 16.0), ("ukf-bias", 4.0, 10.0), ("ekf", 4.0, 10.0)],
 )
 def test_bounds_on_the_simulated_recording(spec, inclination, total):
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     from fusion import datasets
 
     rec = datasets.load("sim")
