@@ -123,7 +123,10 @@ def test_zero_accelerometer_weight_gives_dead_reckoning():
     imu = random_imu(T=200, dropout=False)
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
     dr = build("dr").estimate(imu, q0).quat_wxyz
-    gn = GaussNewtonSmoother(SmootherParams(acc_noise_g_sqrt_s=np.inf, progress=False))
+    # the motion term alone: no accelerometer (nor the velocity model built on it), no calibration
+    gn = GaussNewtonSmoother(SmootherParams(acc_noise_g_sqrt_s=np.inf, bias_axes="", scale_axes="",
+                                            velocity_acc_noise_g_sqrt_s=np.inf, velocity_bound_m_sqrt_s=np.inf,
+                                            progress=False))
     problem = gn.problem(imu, q0)
     assert problem.cost(dr) < 1e-20  # dead reckoning is an exact zero of the cost
     rng = np.random.default_rng(3)
@@ -211,7 +214,8 @@ def test_self_calibration_recovers_the_observable_scales():
     (1 + k) is 1/1.09, 1/1.04. gn estimates it from gyro + accelerometer alone
     (-0.0875, -0.0410 measured vs -0.0826, -0.0385)."""
     imu, _, q0 = _sim_imu(60.0)
-    est = build("gn:scale=xy,progress=false").estimate(imu, q0)
+    # the cost as it was measured: accelerometer density 0.005 g sqrt(s), no bias or velocity model
+    est = build("gn:scale=xy,bias=none,sv=inf,vb=inf,sa=0.005,scale_prior=0.2,tol=1e-7,progress=false").estimate(imu, q0)
     k = est.diagnostics["gyro_scale_error"]
     np.testing.assert_allclose(k[:2], [1 / 1.09 - 1, 1 / 1.04 - 1], atol=0.01)
     assert np.all(est.diagnostics["theta_std"] < 0.1 * est.diagnostics["theta_prior_std"])
