@@ -169,3 +169,118 @@ def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
         return math.inf if dev > gate_g else 1.0
     r = dev / gate_g
     return 1.0 + r * r
+
+
+class AccDisturbance:
+    """Running estimate of the external (non-gravitational) acceleration, for adaptive R.
+
+    The accelerometer measures `R^T (e_z + a_ext)` (g). The filters treat the gravity
+    direction as the measurement and `a_ext` as noise, but `a_ext` of a moving hand is neither
+    white nor small. This tracks, per step, its power `d` (g^2) from two attitude-free signals:
+
+    * the variance of the accelerometer rotated into the (almost inertial) world frame by the
+      predicted attitude, an exponential window of time constant `window_s`
+      (gravity is constant there, while linear, centripetal and tapping accelerations are
+      not; the same frame in which Laidig & Seel 2023, VQF, Sec. 3.2 low-pass filter the
+      accelerometer): `m <- m + alpha (a_w - m)`, `v <- v + alpha (|a_w - m_prev|^2 - v)`,
+      `alpha = 1 - exp(-dt / window_s)`, so the window means the same at any rate;
+    * the norm test `(|a| - 1)^2` of the current sample (Sabatini 2006's |a|-g criterion),
+      which reacts in the first sample of a tap.
+
+    `d = max(v, |a_w - m_prev|^2, (|a| - 1)^2)`. The filters model `a_ext` as a first-order
+    Gauss-Markov process of variance `d` and correlation time `corr_s`, whose low-frequency
+    spectral density is `2 corr_s d` (g^2 s); it adds to the accelerometer noise density, so
+    the step's measurement variance is `(r + 2 corr_s d) / dt` (see `acc_step_variance`).
+    A recording without disturbances keeps the fast correction of the plain density `r`; a
+    disturbed stretch lengthens the correction time constant `sqrt(R_density / Q)` at once.
+    """
+
+    __slots__ = ("window_s", "m", "v")
+
+    def __init__(self, window_s: float) -> None:
+        self.window_s = window_s
+        self.m: tuple[float, float, float] | None = None
+        self.v = 0.0
+
+    def update(self, q: tuple, acc_g: np.ndarray, dt_s: float) -> float:
+        """Feed the sample `acc_g` (3,), g, body, with the predicted attitude q (4 floats); -> d, g^2."""
+        ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
+        w, x, y, z = q
+        # a_w = R(q) a (body -> world)
+        wx = (1 - 2 * (y * y + z * z)) * ax + 2 * (x * y - w * z) * ay + 2 * (x * z + w * y) * az
+        wy = 2 * (x * y + w * z) * ax + (1 - 2 * (x * x + z * z)) * ay + 2 * (y * z - w * x) * az
+        wz = 2 * (x * z - w * y) * ax + 2 * (y * z + w * x) * ay + (1 - 2 * (x * x + y * y)) * az
+        norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
+        if self.m is None:
+            self.m = (wx, wy, wz)
+        mx, my, mz = self.m
+        ex, ey, ez = wx - mx, wy - my, wz - mz
+        inst = ex * ex + ey * ey + ez * ez
+        alpha = -math.expm1(-dt_s / self.window_s) if self.window_s > 0.0 else 1.0
+        self.m = (mx + alpha * ex, my + alpha * ey, mz + alpha * ez)
+        self.v += alpha * (inst - self.v)
+        return max(self.v, inst, norm_dev * norm_dev)
+
+
+class RestDetector:
+    """Rest detection for gyro-bias estimation (after Laidig & Seel 2023, VQF, Sec. 3.4).
+
+    At rest the gyro reads its bias. A sample counts as still when the gyro reading is below
+    `gyr_th_rad_s` in norm and the accelerometer is within `acc_th_g` of its low-pass value
+    (time constant `window_s`) and within `acc_th_g` of 1 g; the recording is at rest once
+    that has held for `min_time_s` without interruption.
+    """
+
+    __slots__ = ("gyr_th", "acc_th", "min_time", "window_s", "lp", "time_still")
+
+    def __init__(self, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float, window_s: float = 0.5) -> None:
+        self.gyr_th, self.acc_th, self.min_time, self.window_s = gyr_th_rad_s, acc_th_g, min_time_s, window_s
+        self.lp: np.ndarray | None = None
+        self.time_still = 0.0
+
+    def update(self, gyr_rad_s: np.ndarray, acc_g: np.ndarray, dt_s: float) -> bool:
+        """Feed one step (gyro (3,) rad/s, accelerometer (3,) g, body); -> at rest now."""
+        if not (math.isfinite(float(acc_g.sum())) and math.isfinite(float(gyr_rad_s.sum()))):
+            self.time_still = 0.0
+            return False
+        if self.lp is None:
+            self.lp = np.array(acc_g, dtype=float)
+        alpha = -math.expm1(-dt_s / self.window_s)
+        dev = acc_g - self.lp
+        self.lp = self.lp + alpha * dev
+        g = float(gyr_rad_s @ gyr_rad_s)
+        a = float(acc_g @ acc_g)
+        still = (
+            g < self.gyr_th * self.gyr_th
+            and float(dev @ dev) < self.acc_th * self.acc_th
+            and abs(math.sqrt(a) - 1.0) < self.acc_th
+        )
+        self.time_still = self.time_still + dt_s if still else 0.0
+        return self.time_still >= self.min_time
+
+
+def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r_rad2_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with the rest pseudo-measurement `gyr = b + noise` (true rate zero).
+
+    x_bias: (3,) bias estimate, rad/s; P: (6, 6) error covariance `[attitude, bias]`;
+    gyr_rad_s: (3,) the reading at rest; r_rad2_s2: its variance per axis, (rad/s)^2.
+    H = [0, I] is linear, so the standard update is exact for the EKF and the UKF alike
+    (the attitude rows move through the cross-covariance). Returns `(dx (6,), P)`, with P
+    in Joseph form.
+    """
+    S = P[3:, 3:] + np.eye(3) * r_rad2_s2
+    K = P[:, 3:] @ np.linalg.inv(S)
+    dx = K @ (gyr_rad_s - x_bias)
+    IKH = np.eye(6)
+    IKH[:, 3:] -= K
+    return dx, IKH @ P @ IKH.T + (K * r_rad2_s2) @ K.T
+
+
+def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float, dt_s: float) -> float:
+    """Per-step accelerometer variance per axis, g^2: `(r + 2 corr_s d) / dt`.
+
+    A white noise of spectral density r (g^2 s) sampled over dt has variance r / dt; the
+    external acceleration, a Gauss-Markov process of variance d (g^2) and correlation time
+    corr_s, adds its low-frequency density 2 corr_s d (see `AccDisturbance`).
+    """
+    return (density_g2_s + 2.0 * corr_s * disturbance_g2) / dt_s

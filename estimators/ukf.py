@@ -91,7 +91,11 @@ from filterpy.kalman import UnscentedKalmanFilter
 from fusion.types import ImuSamples
 
 from ._attitude import (
+    AccDisturbance,
+    RestDetector,
+    acc_step_variance,
     acc_variance_scale,
+    bias_rest_update,
     exp_batch,
     exp_quat,
     gravity_batch,
@@ -123,16 +127,32 @@ def check_filter_params(p: Any, owner: str) -> None:
     _check_nonneg(
         owner,
         process_noise_rad2_s=p.process_noise_rad2_s,
-        acc_noise_g2=p.acc_noise_g2,
+        acc_noise_g2_s=p.acc_noise_g2_s,
+        scale_noise_s=p.scale_noise_s,
         init_var_rad2=p.init_var_rad2,
         invalid_gyr_std_rad_s=p.invalid_gyr_std_rad_s,
     )
-    if p.use_acc and p.acc_noise_g2 <= 0.0:
-        raise ValueError(f"{owner}: acc_noise_g2 (R) must be > 0 when the accelerometer is used, got {p.acc_noise_g2}")
+    if p.use_acc and p.acc_noise_g2_s <= 0.0:
+        raise ValueError(f"{owner}: acc_noise_g2_s (R) must be > 0 when the accelerometer is used, got {p.acc_noise_g2_s}")
+    _check_nonneg(owner, disturbance_corr_s=p.disturbance_corr_s)
+    if not (math.isfinite(p.disturbance_window_s) and p.disturbance_window_s > 0.0):
+        raise ValueError(f"{owner}: disturbance_window_s must be > 0 s, got {p.disturbance_window_s!r}")
     if p.gate not in ("off", "skip", "inflate"):
         raise ValueError(f"{owner}: gate must be off, skip or inflate, got {p.gate!r}")
     if not (math.isfinite(p.gate_g) and p.gate_g > 0.0):
         raise ValueError(f"{owner}: gate_g must be > 0 g, got {p.gate_g!r}")
+
+
+def check_bias_params(p: Any, owner: str) -> None:
+    """The checks of the bias-estimating filters (ukf-bias, ekf): bias bound and rest detection."""
+    _check_nonneg(owner, rest_gyr_rad_s=p.rest_gyr_rad_s, rest_acc_g=p.rest_acc_g,
+                  rest_noise_rad2_s=p.rest_noise_rad2_s)
+    if not (p.bias_max_rad_s > 0.0):
+        raise ValueError(f"{owner}: bias_max_rad_s must be > 0 rad/s, got {p.bias_max_rad_s!r}")
+    if not (p.rest_time_s > 0.0):
+        raise ValueError(f"{owner}: rest_time_s must be > 0 s (inf: no rest detection), got {p.rest_time_s!r}")
+    if p.rest_noise_rad2_s <= 0.0 and math.isfinite(p.rest_time_s):
+        raise ValueError(f"{owner}: rest_noise_rad2_s must be > 0 when rest detection is on")
 
 
 def _check_common(p: Any, owner: str) -> None:
@@ -181,8 +201,11 @@ class UKFParams:
     """
 
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=1e-2, metadata={"alias": "R"})
+    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
+    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    disturbance_corr_s: float = field(default=0.5, metadata={"alias": "tauc"})
+    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
     sigma: Sigma = "kraft"
     kappa: float = 1.0
     alpha: float = 1.0
@@ -202,7 +225,8 @@ class UKFParams:
     @classmethod
     def seed(cls, **changes: Any) -> "UKFParams":
         """The seed report's values: P0 = Q = R = 1e-4 (Q per 100 Hz sample)."""
-        values = dict(process_noise_rad2_s=1e-2, acc_noise_g2=1e-4, init_var_rad2=1e-4)
+        values = dict(process_noise_rad2_s=1e-2, acc_noise_g2_s=1e-6, init_var_rad2=1e-4, scale_noise_s=0.0,
+                      disturbance_corr_s=0.0)
         values.update(changes)
         return cls(**values)
 
@@ -229,16 +253,24 @@ class UKFBiasParams:
     """
 
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
+    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
+    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
     init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
+    bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
+    disturbance_corr_s: float = field(default=0.5, metadata={"alias": "tauc"})
+    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
+    rest_gyr_rad_s: float = 0.035
+    rest_acc_g: float = 0.05
+    rest_time_s: float = 1.5
+    rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
     sigma: Sigma = "kraft"
     kappa: float = 1.0
     alpha: float = 1.0
     beta: float = 2.0
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
-    gate: Gate = "inflate"
+    gate: Gate = "off"
     gate_g: float = 0.2
     heading_free: bool = field(default=True, metadata={"alias": "hf"})
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
@@ -249,6 +281,7 @@ class UKFBiasParams:
     def __post_init__(self) -> None:
         _check_nonneg("ukf-bias", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
         _check_common(self, "ukf-bias")
+        check_bias_params(self, "ukf-bias")
 
 
 # --------------------------------------------------------------------------- sigma points
@@ -562,7 +595,11 @@ class UKF(RecursiveEstimator):
             self._Qrate[3:, 3:] = np.eye(3) * p.bias_walk_rad2_s3
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
-        self._R = np.eye(3) * p.acc_noise_g2
+        self._eye3 = np.eye(3)
+        self._dist = AccDisturbance(p.disturbance_window_s)
+        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
+        self._acc_var = np.full(N := len(imu), np.nan)
+        self._at_rest = np.zeros(N, bool)
         self._zero = np.zeros(3)
         self._predict = kf.predict if p.impl == "lean" else kf.predict_reference
         self._update = kf.update if p.impl == "lean" else kf.update_reference
@@ -579,15 +616,36 @@ class UKF(RecursiveEstimator):
         if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
             gyr_rad_s = self._zero  # no rate integration; inflate the attitude noise instead
             Q = Q + self._Qbad * (dt_s * dt_s)
+            gyr_valid = False
+        elif p.scale_noise_s > 0.0:
+            # Gyro scale-factor uncertainty: rate noise density Qs w_i^2 per axis (see params).
+            Q = Q.copy()
+            Q[0, 0] += p.scale_noise_s * gyr_rad_s[0] * gyr_rad_s[0] * dt_s
+            Q[1, 1] += p.scale_noise_s * gyr_rad_s[1] * gyr_rad_s[1] * dt_s
+            Q[2, 2] += p.scale_noise_s * gyr_rad_s[2] * gyr_rad_s[2] * dt_s
         self._predict(dt_s, gyr_rad_s, Q)
         self.n_sqrt_recovered += kf.sqrt_recovered
         self.n_mean_capped += kf.mean_iterations >= p.mean_max_iter
         self._iters[k + 1] = kf.mean_iterations
+        if self._rest is not None and gyr_valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
+            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias; H = [0, I] is
+            # linear, so this is the exact Kalman update, the same for both implementations.
+            x = kf.x
+            dx, kf.P = bias_rest_update(x[4:], kf.P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
+            qn = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))
+            kf.x = np.concatenate([qn, x[4:] + dx[3:]])
+            self._at_rest[k + 1] = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
-            self._update(acc_g, self._R * scale)
+            d = self._dist.update(kf.x[:4].tolist(), acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
+            r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, d, dt_s) * scale
+            self._acc_var[k + 1] = r
+            self._update(acc_g, self._eye3 * r)
         else:
             self.n_skipped += 1
+        if self.with_bias:
+            x = kf.x
+            np.clip(x[4:], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:])
         kf.P, repaired = repair_covariance(kf.P)
         self.n_cov_repaired += repaired
         self._cov[k + 1] = kf.P
@@ -604,9 +662,11 @@ class UKF(RecursiveEstimator):
             "sqrt_recoveries": self.n_sqrt_recovered,
             "cov_repairs": self.n_cov_repaired,
             "mean_iteration_cap_hits": self.n_mean_capped,
+            "acc_var_g2": self._acc_var,
         }
         if self.with_bias:
             out["gyr_bias_rad_s"] = self._bias
+            out["at_rest"] = self._at_rest
         return out
 
 

@@ -155,8 +155,8 @@ def test_bad_parameters_raise(spec):
 def test_registry_and_aliases():
     assert ESTIMATORS["ukf"] is UKF and ESTIMATORS["ukf-bias"] is UKFBias
     est = build("ukf:R=1e-3,Q=1e-2,sigma=julier,kappa=2")
-    assert est.params == UKFParams(acc_noise_g2=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
-    assert UKFParams.seed().acc_noise_g2 == 1e-4
+    assert est.params == UKFParams(acc_noise_g2_s=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
+    assert UKFParams.seed().acc_noise_g2_s == 1e-6  # 1e-4 g^2 per 100 Hz sample
 
 
 def test_filterpy_impl_refuses_heading_free():
@@ -228,7 +228,8 @@ def test_tracks_synthetic_motion(spec):
 def test_ukf_bias_learns_a_gyro_bias():
     bias = np.array([0.03, -0.02, 0.01])
     imu, truth = synthetic(3000, noise=0.005, bias=bias, seed=6)
-    est = UKFBias(UKFBiasParams(bias_walk_rad2_s3=1e-5)).estimate(imu, truth[0])
+    # The synthetic gyro has an exact scale factor: no scale-factor process noise (Qs).
+    est = UKFBias(UKFBiasParams(bias_walk_rad2_s3=1e-5, scale_noise_s=0.0)).estimate(imu, truth[0])
     b = est.diagnostics["gyr_bias_rad_s"][-500:].mean(axis=0)
     # Gravity makes the two horizontal-in-world components observable; check the norm part.
     assert np.linalg.norm(b - bias) < 0.5 * np.linalg.norm(bias)
