@@ -23,7 +23,7 @@ class Fold:
 
 
 def leave_one_out(specs: Iterable, recordings: list[Recording], init: str | None = None,
-                  progress: bool = False) -> list[Fold]:
+                  progress: bool = False, align: bool = False) -> list[Fold]:
     specs = list(specs)
     by_id = {r.id: r for r in recordings}
     folds = []
@@ -31,7 +31,7 @@ def leave_one_out(specs: Iterable, recordings: list[Recording], init: str | None
         if held in fitted.fitted_on:  # the whole point: never fit on the scored recording
             raise RuntimeError(f"leave-one-out fold for {held} was fitted on it")
         rec = gyro_fit.with_gyro_scale(by_id[held], fitted.gyro_scale_factor)
-        folds.append(Fold(held, fitted, compare(specs, [rec], init=init, progress=progress)))
+        folds.append(Fold(held, fitted, compare(specs, [rec], init=init, progress=progress, align=align)))
     return folds
 
 

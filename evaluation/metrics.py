@@ -10,8 +10,11 @@ Protocol:
      frame, `angle(R_gt^-1 e_z, R_est^-1 e_z)`; what a 6-axis IMU can observe;
    - heading: the twist about world z of the world-frame error `R_est R_gt^-1`
      (swing-twist split), wrapped to [0, pi].
-   All three are invariant under q -> -q. No alignment is applied: every estimator starts
-   from the same initial orientation (see `fusion.datasets.initial_orientation`).
+   All three are invariant under q -> -q. By default no alignment is applied: every
+   estimator starts from the same initial orientation (see `fusion.datasets.initial_orientation`).
+   With `--align` the caller first maps the truth into our frames, `A R_truth B`, with
+   constant world and body rotations A, B fitted once per recording from the IMU and the
+   truth alone (`evaluation.align`); every estimator is then scored against the same truth.
 3. Summaries: RMSE and maximum of each over the scored samples.
 
 `protocol="broad"` scores as the BROAD benchmark does for 6-D estimates (Laidig et al.
@@ -78,7 +81,7 @@ def mean_heading_offset(r_true: Rotation, r_est: Rotation) -> float:
 def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None) -> Score:
     """Score `estimate` against `truth` (see the module docstring for the protocols).
 
-    protocol: "full" (every sample with truth, no alignment) or "broad".
+    protocol: "full" (every sample with truth) or "broad".
     movement: (N,) bool over the estimate's samples, the samples "broad" scores (None: all).
     """
     if protocol not in PROTOCOLS:

@@ -142,9 +142,9 @@ def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) ->
     except (json.JSONDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"{doc_path}: not a results document ({exc})") from None
     doc.setdefault("settings", {})
-    results = [Result(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"])
-               for r in rows]
-    table = format_table(results)
+    results = [Result(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
+                      alignment=r.get("alignment")) for r in rows]
+    table = format_table(results, align=bool(doc["settings"].get("align", False)))
     (out / "table.txt").write_text(table + "\n")
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
@@ -218,6 +218,44 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
     return header, body, mean_header, means
 
 
+ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg", "|B| deg",
+                    "rate pairs", "rate residual deg/s", "|g| g"]
+
+
+def _alignment_text(doc: dict[str, Any]) -> str:
+    if doc.get("settings", {}).get("align"):
+        return ("Aligned (--align): the truth was mapped into our frames as A R_truth B, with A = R_ourworld_truthworld "
+                "(a tilt only) and B = R_truthbody_imubody fitted once per recording from its gyro, accelerometer and "
+                "truth, the same for every estimator; this hides a constant IMU-to-marker mounting rotation and a "
+                "tilted truth world, not an estimator's errors.")
+    return "No alignment applied; every estimator starts from the same initial orientation."
+
+
+def _alignment_rows(doc: dict[str, Any]) -> list[list[str]]:
+    out = []
+    for a in recording_alignments_of(doc):
+        out.append([a["dataset"], ", ".join(f"{x:+.2f}" for x in a["world_deg"]), f"{np.linalg.norm(a['world_deg']):.2f}",
+                    ", ".join(f"{x:+.2f}" for x in a["body_deg"]), f"{np.linalg.norm(a['body_deg']):.2f}",
+                    str(a.get("rate_pairs", "-")), _fmt_opt(a.get("rate_residual_deg_s"), ".2f"),
+                    _fmt_opt(a.get("gravity_g"), ".3f")])
+    return out
+
+
+def recording_alignments_of(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """A results document's per-recording alignments (`alignments`, else the rows' first)."""
+    if doc.get("alignments"):
+        return doc["alignments"]
+    out: dict[str, dict[str, Any]] = {}
+    for r in doc["results"]:
+        if r.get("alignment") and r["dataset"] not in out:
+            out[r["dataset"]] = {"dataset": r["dataset"], **r["alignment"]}
+    return list(out.values())
+
+
+def _fmt_opt(value: Any, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
 def _settings_items(doc: dict[str, Any]) -> list[tuple[str, str]]:
     items = []
     for key, value in doc.get("settings", {}).items():
@@ -257,7 +295,9 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
              "Re-render without recomputing: `fusion report <this folder>`.", "", "## Results (RMSE and maximum, deg)", ""]
     lines += md_table(header, body) + ["", "## Means per estimator", ""] + md_table(mean_header, means)
     lines += ["", "Errors: total = geodesic angle between estimate and VICON; inclination = angle between the true and "
-              "estimated gravity direction; heading = twist about world z of the error. No alignment applied.", ""]
+              "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
+    if _alignment_rows(doc):
+        lines += ["## Alignment (--align)", ""] + md_table(ALIGNMENT_HEADER, _alignment_rows(doc)) + [""]
     lines += ["## Figures", ""] + [f"![{c}](figures/{n})" for c, n in summary] + [""]
     if per_recording:
         lines += ["## Per recording", ""] + [f"![{c}](figures/{n})" for c, n in per_recording] + [""]
@@ -307,9 +347,11 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         f"<pre>{html.escape(settings.get('command', '(unknown)'))}</pre>",
         "<h2>Results</h2><p>RMSE and maximum error in degrees. total = geodesic angle between estimate and VICON; "
         "inclination = angle between the true and estimated gravity direction; heading = twist about world z of "
-        "the error. No alignment applied; every estimator starts from the same initial orientation.</p>",
+        f"the error. {html.escape(_alignment_text(doc))}</p>",
         _html_table(header, body, "results", 2),
         "<h2>Means per estimator</h2>", _html_table(mean_header, means, "means", 1),
+        *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
+          if _alignment_rows(doc) else []),
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
     ]
     if per_recording:

@@ -10,6 +10,11 @@ time a job needs them and keeps, or as loaded `Recording`s); a job itself only c
 indices. Results come back in the serial order (recording-major, specs as given) whatever
 order the jobs finish in, and hold the same numbers as a serial run: each job is the same
 deterministic computation on the same inputs. Only `seconds` (wall time) differs.
+
+With `align`, a recording's alignment (`evaluation.align`) is fitted from the recording alone
+the first time a process needs it and kept with the loaded recording, so every job of that
+recording uses it, not a fit of its own (each worker that touches the recording fits it once;
+the fit is deterministic, so they agree bit for bit).
 """
 from __future__ import annotations
 
@@ -27,7 +32,8 @@ from estimators.params import EstimatorSpec
 from fusion.datasets import LoadOptions, Source
 from fusion.types import Recording, Trajectory
 
-from .compare import Result, run_one
+from .align import Alignment
+from .compare import Result, aligned, recording_alignment, run_one
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,7 +42,8 @@ class RecordingInfo:
 
     imu_t: (N,) s, the IMU time stamps every trajectory lives on.
     gyr_valid: (N,) bool, False where the gyro was marked unusable.
-    truth: VICON orientations on their own clock (NaN rows in tracking gaps), or None.
+    truth: VICON orientations on their own clock (NaN rows in tracking gaps), or None; with
+        `--align`, mapped into our frames (`A R_truth B`).
     """
 
     id: str
@@ -48,6 +55,7 @@ class RecordingInfo:
 # Per process: the recordings of the current run and the ones loaded so far.
 _ITEMS: list[Source | Recording] = []
 _CACHE: dict[int, Recording] = {}
+_ALIGNMENTS: dict[int, Alignment | None] = {}
 _LOAD = LoadOptions()
 
 
@@ -56,6 +64,7 @@ def _init_worker(items: Sequence[Source | Recording], registry: dict[str, type] 
     _ITEMS = list(items)
     _LOAD = load
     _CACHE.clear()
+    _ALIGNMENTS.clear()
     if registry is not None:  # under 'spawn' the child starts from the default registry
         estimators.ESTIMATORS.clear()
         estimators.ESTIMATORS.update(registry)
@@ -70,10 +79,18 @@ def _recording(index: int) -> Recording:
     return rec
 
 
+def _alignment(index: int) -> Alignment | None:
+    if index not in _ALIGNMENTS:
+        _ALIGNMENTS[index] = recording_alignment(_recording(index))
+    return _ALIGNMENTS[index]
+
+
 def _job(index: int, spec: EstimatorSpec, init: str | None, protocol: str | None, with_info: bool,
-         panorama_data_dir: str | None = None) -> tuple[Result, RecordingInfo | None]:
+         panorama_data_dir: str | None = None, align: bool = False) -> tuple[Result, RecordingInfo | None]:
     rec = _recording(index)
-    result = run_one(rec, spec, init, protocol)
+    alignment = _alignment(index) if align else None
+    result = run_one(rec, spec, init, protocol, alignment)
+    rec = aligned(rec, alignment)
     if panorama_data_dir is not None:
         from .panorama import panorama_scores
 
@@ -98,7 +115,7 @@ def pool_context() -> multiprocessing.context.BaseContext:
 
 def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], init: str | None = None,
         jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None,
-        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None
+        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None, align: bool = False
         ) -> tuple[list[Result], list[RecordingInfo]]:
     """Every spec on every recording; results in recording-major order.
 
@@ -111,12 +128,14 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     load: how `Source`s are loaded (calibration file, dropout switch).
     panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
         up there; see `evaluation.panorama.panorama_scores`).
+    align: score against the truth mapped into our frames by constant rotations fitted once
+        per recording (module docstring, `evaluation.align`), the same for every spec.
     """
     specs = list(specs)
     items = list(items)
     for spec in specs:
         estimators.build(spec)
-    tasks = [(i, s, init, protocol, with_info and j == 0, panorama_data_dir)
+    tasks = [(i, s, init, protocol, with_info and j == 0, panorama_data_dir, align)
              for i in range(len(items)) for j, s in enumerate(specs)]
     jobs = default_jobs() if not jobs else int(jobs)
     if jobs < 1:
@@ -136,6 +155,7 @@ def run(specs: Sequence[EstimatorSpec], items: Sequence[Source | Recording], ini
     finally:
         bar.close()
         _CACHE.clear()
+        _ALIGNMENTS.clear()
     results = [r for r, _ in outputs]
     infos = [info for _, info in outputs if info is not None]
     return results, infos

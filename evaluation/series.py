@@ -7,7 +7,9 @@ that `fusion report DIR` can draw the figures again without running any estimato
     imu_t         (N,)     float64 s, the IMU time stamps every estimate lives on
     gyr_valid     (N,)     bool, False where the gyro was marked unusable
     truth_t       (K,)     float64 s, VICON time stamps (K = 0 without ground truth)
-    truth_quat    (K, 4)   float64 quat_wxyz R_world_body, NaN rows in tracking gaps
+    truth_quat    (K, 4)   float64 quat_wxyz R_world_body, NaN rows in tracking gaps; with
+                            `--align`, the truth mapped into our frames (`A R_truth B`,
+                            `evaluation.align`), what the estimates were scored against
     labels        (E,)     str, estimator specs as in results.json
     causal        (E,)     bool, False for smoothers
     quat          (E, N, 4) float32 quat_wxyz R_world_body of each estimator

@@ -9,7 +9,8 @@ BROAD (Berlin Robust Orientation estimation Assessment Dataset; Laidig, Caruso, 
     opt_quat       (N, 4) w, x, y, z ground truth `R_world_imu`, world z up; NaN rows where
                    the optical tracking was lost
     movement       (N,) bool/0-1: the movement phases, the only samples BROAD scores
-    sampling_rate  scalar, Hz (IMU and ground truth share one clock)
+    sampling_rate  scalar, Hz (IMU and ground truth share one clock); a file attribute in
+                   the published .hdf5 files, a variable in the .mat files
 
 `load_broad` turns one trial into `ImuSamples` (accelerometer in g), a truth `Trajectory`
 on the same time stamps `t = k / sampling_rate`, and the movement mask. `.hdf5` needs
@@ -112,7 +113,8 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     """One BROAD trial: `(imu, truth, movement)`.
 
     imu: `ImuSamples` on `t = k / sampling_rate` s (k = 0..N-1), gyro rad/s, accelerometer
-        in g (`imu_acc / 9.80665`), body = IMU frame.
+        in g (`imu_acc / 9.80665`), body = IMU frame; `gyr_timing` "end" (gyro sample k is the
+        rate over (t[k-1], t[k]], as VQF, which BROAD's authors wrote, integrates it).
     truth: `Trajectory` of `opt_quat` (wxyz, `R_world_imu`, z up) on the same stamps, NaN
         rows kept (tracking lost), other rows normalised.
     movement: (N,) bool, the samples BROAD scores (all True if the file has no mask).
@@ -124,7 +126,7 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     acc = _columns(data, "imu_acc", 3, n, path)
     quat = _columns(data, "opt_quat", 4, n, path)
     if "sampling_rate" not in data:
-        raise ValueError(f"{path}: no 'sampling_rate'")
+        raise ValueError(f"{path}: no 'sampling_rate' (neither an array nor a file attribute): the time stamps are unknown")
     rate = _real(data["sampling_rate"], "sampling_rate", path).ravel()
     if rate.size != 1 or not np.isfinite(rate[0]) or rate[0] <= 0:
         raise ValueError(f"{path}: 'sampling_rate' must be one positive number, got {rate}")

@@ -347,8 +347,9 @@ def clock_offset(imu: ImuSamples, truth: Trajectory, max_lag_s: float = 0.2, gri
                  smooth_s: float = 0.03) -> ClockOffset | None:
     """IMU-VICON clock offset from the cross-correlation of angular speeds.
 
-    Both speeds (|gyro| at the IMU stamps, invalid gyro samples excluded; |VICON rate| at the
-    step midpoints, gaps excluded) are resampled on a common `grid_hz` grid over the overlap and
+    Both speeds (|gyro| of each IMU interval's reading, `ImuSamples.interval_rates`, at the
+    interval's midpoint, invalid gyro samples excluded; |VICON rate| at the step midpoints,
+    gaps excluded) are resampled on a common `grid_hz` grid over the overlap and
     smoothed alike (a moving average of `smooth_s`); the Pearson correlation is computed for
     every lag within +-`max_lag_s` over the samples valid in both, and the peak is refined by a
     parabola through the best lag and its neighbours (sub-sample resolution).
@@ -356,14 +357,16 @@ def clock_offset(imu: ImuSamples, truth: Trajectory, max_lag_s: float = 0.2, gri
     """
     t_mid, omega_v = vicon_body_rate(truth)
     speed_v = np.linalg.norm(omega_v, axis=1)
-    speed_i = np.linalg.norm(imu.gyr_rad_s, axis=1).astype(float)
-    speed_i[~imu.gyr_valid] = np.nan
+    rate, valid = imu.interval_rates()  # the mean rate over [t[k], t[k+1]], as the recording's gyr_timing says
+    t_imu = 0.5 * (imu.t[1:] + imu.t[:-1])
+    speed_i = np.linalg.norm(rate, axis=1).astype(float)
+    speed_i[~valid] = np.nan
     h = 1.0 / grid_hz
-    lo, hi = max(imu.t[0], t_mid[0]), min(imu.t[-1], t_mid[-1])
+    lo, hi = max(t_imu[0], t_mid[0]), min(t_imu[-1], t_mid[-1])
     if hi - lo < 4 * max_lag_s + 1.0:
         return None
     grid = np.arange(lo, hi, h)
-    a = _interp_valid(grid, imu.t, speed_i)
+    a = _interp_valid(grid, t_imu, speed_i)
     b = _interp_valid(grid, t_mid, speed_v)
     k = max(1, int(round(smooth_s / h)))
     a, b = _moving_average(a, k), _moving_average(b, k)

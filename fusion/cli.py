@@ -27,7 +27,8 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", default=None,
                         help="folder with recordings (default: $FUSION_DATA, else ./data)")
     parser.add_argument("--init", choices=datasets.INIT_MODES, default=None,
-                        help="initial orientation: truth (default with ground truth), accel (default without), identity")
+                        help="initial orientation: truth (default with ground truth; with --align the aligned truth), "
+                             "accel (default without), identity")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
                         help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
@@ -140,10 +141,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from evaluation.compare import format_table
         from evaluation.loo import format_folds, leave_one_out
 
-        folds = leave_one_out([args.estimators], recordings, init=args.init, progress=not args.no_progress)
+        folds = leave_one_out([args.estimators], recordings, init=args.init, progress=not args.no_progress,
+                              align=args.align)
         print(format_folds(folds))
         print()
-        print(format_table([r for f in folds for r in f.results]))
+        print(format_table([r for f in folds for r in f.results], align=args.align))
+    elif args.align:
+        raise ValueError("calibrate: --align applies to the scores of --leave-one-out (the fit itself assumes "
+                         "the truth's frames are the IMU's)")
     result = gyro_fit.fit_recordings(recordings)
     print(f"fit on {len(result.fitted_on)} recordings ({result.samples} samples): gyro_scale_factor "
           + ", ".join(f"{x:.4f}" for x in result.gyro_scale_factor)
@@ -168,13 +173,15 @@ def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: b
     out = getattr(args, "out", None)
     results, infos = run(specs, sources, args.init, jobs=args.jobs, progress=not args.no_progress, load=load_options(args),
                          panorama_data_dir=str(datasets.data_dir_from(args.data_dir)) if getattr(args, "panorama", False) else None,
-                         with_info=bool(out) and per_recording, protocol=args.protocol)
-    print(format_table(results))
+                         with_info=bool(out) and per_recording, protocol=args.protocol, align=args.align)
+    print(format_table(results, align=args.align))
     if not (args.json or out):
         return 0
     settings = {"command": shlex.join(["fusion", *args.argv]), **settings, "dataset": args.dataset,
                 "data_dir": str(datasets.data_dir_from(args.data_dir).resolve()),
-                "init": args.init or "default (truth where available, else accel)",
+                "init": args.init or ("default (the aligned truth where available, else accel)" if args.align
+                                      else "default (truth where available, else accel)"),
+                "align": bool(args.align),
                 "protocol": args.protocol or "default (broad for recordings with a movement mask, else full)",
                 "estimator_details": describe_specs(specs)}
     doc = results_json(results, settings)
@@ -243,6 +250,15 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
                         "report.md to DIR (re-render later with `fusion report DIR`)")
     parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                         help="worker processes; 0 = all cores (default); results do not depend on it")
+    _add_align_arg(parser)
+
+
+def _add_align_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--align", action="store_true",
+                        help="for ground truth given in other frames: fit a constant world tilt and a constant "
+                             "body rotation once per recording from its gyro, accelerometer and truth (never from "
+                             "an estimate), print them, and score every estimator against the same aligned truth; "
+                             "--init truth then starts from the aligned truth (see README)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -306,6 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--leave-one-out", action="store_true",
                    help="score each recording with the scales fitted on the others, and print the fitted scales per fold")
     p.add_argument("--estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
+    _add_align_arg(p)
     p.set_defaults(func=cmd_calibrate)
     return parser
 

@@ -7,8 +7,9 @@ Model, per axis i (body frame; the IMU axes coincide with VICON's, see the data 
 `omega_nominal` is the gyro calibrated with the board's current scale factors (the nominal
 datasheet scale unless a calibration is already applied), `omega_vicon` the body rate from
 consecutive VICON rotations (`fusion.checks.vicon_body_rate`, on the regular VICON time base),
-moved onto the IMU clock by the recording's measured clock offset and interpolated to the IMU
-stamps. Both are smoothed alike (a short moving average) so that the VICON differentiation noise
+moved onto the IMU clock by the recording's measured clock offset and interpolated to the
+midpoints of the IMU intervals (each gyro reading is the rate over one interval,
+`ImuSamples.interval_rates`). Both are smoothed alike (a short moving average) so that the VICON differentiation noise
 and the 10 ms difference quotient see the same bandwidth. Samples used: gyro valid (no freeze,
 no saturation), VICON valid on both sides. The fit pools all samples of the given recordings
 (ordinary least squares with an intercept per axis, which absorbs a residual bias); the fitted
@@ -74,9 +75,9 @@ def fit_data(recording: Recording, smooth_s: float = 0.03, offset_s: float | Non
             raise ValueError(f"{recording.id}: IMU and VICON overlap too little to measure the clock offset")
         offset_s = clock.offset_s
     t_mid, omega_v = vicon_body_rate(recording.truth)
-    vic = _interp_valid(imu.t, t_mid - offset_s, omega_v)  # onto the IMU clock
-    gyr = np.array(imu.gyr_rad_s, dtype=float)
-    gyr[~imu.gyr_valid] = np.nan
+    gyr, valid = imu.interval_rates()  # each interval's reading, paired with VICON at the interval's midpoint
+    vic = _interp_valid(0.5 * (imu.t[1:] + imu.t[:-1]), t_mid - offset_s, omega_v)  # onto the IMU clock
+    gyr[~valid] = np.nan
     k = max(1, int(round(smooth_s / np.median(imu.dt))))
     gyr = np.column_stack([_moving_average(gyr[:, i], k) for i in range(3)])
     vic = np.column_stack([_moving_average(vic[:, i], k) for i in range(3)])

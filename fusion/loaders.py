@@ -12,7 +12,22 @@ Formats (see `../shared/data/README.md`):
 - ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy, not negated), `ts` 1 x T.
 - VICON `viconRotN.p` / `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
 - Generic CSV (`load_csv`): a header line and columns `t` (s), `gx gy gz` (rad/s),
-  `ax ay az` (m/s^2), optionally `qw qx qy qz` (ground truth `R_world_body`).
+  `ax ay az` (m/s^2), optionally `qw qx qy qz` (ground truth `R_world_body`). Gyro timing
+  "end": the gyro values on row k are the rate over (t[k-1], t[k]], as VQF, Madgwick, Mahony,
+  Fusion and BROAD take them.
+
+Gyro timing of the course files (`ImuSamples.gyr_timing`): "start", gyro sample k is the rate
+over [t[k], t[k+1]) (gyro k, then accelerometer k + 1). Evidence on ece276a 1-9
+(`python benchmarks/timing_evidence.py`), ambiguous at the level of the scores:
+- Gyro against accelerometer on the IMU's own clock (gravity in the body frame turns as
+  `-w x a`): gyro sample k matches the accelerometer's turn rate at t[k] + 9.2 ms (pooled;
+  +2 to +14 ms, all nine positive). A mean over [t[k], t[k+1]] predicts +5 ms, over
+  (t[k-1], t[k]] -5 ms (the method gives +5.6 / -4.4 ms on `fusion.sim`): "start" fits.
+- Against VICON the pairing is not identifiable by itself: a one-sample gyro shift equals a
+  VICON clock shift. With each pairing's own measured clock offset (VICON lags by -5..+21 ms
+  with "start", +5..+31 ms with "end"), mean RMSEs differ by at most 0.16 deg: dr 11.68 vs
+  11.67 total, gn inclination 1.47 vs 1.49, ekf 1.91 vs 1.86, vqf 4.41 vs 4.34 ("start" vs
+  "end"). The filters lean slightly to "end", by less than their recording-to-recording spread.
 
 Pickles can run code when loaded: only open pickle files you trust. As a guard, pickles are
 read with a restricted unpickler that only builds numpy arrays and plain containers and
@@ -269,14 +284,18 @@ def _gaps(dt: np.ndarray) -> np.ndarray:
 
 
 def invalidate_gaps(imu: ImuSamples) -> ImuSamples:
-    """`imu` with `gyr_valid` False for every sample followed by a gap (see `check_sampling`).
+    """`imu` with `gyr_valid` False for the gyro sample standing for each gap's interval
+    (the sample before the gap for `gyr_timing` "start", after it for "end"; see `check_sampling`).
 
-    Step k integrates gyro sample k over `dt[k]`; across a gap that would extrapolate one
-    stale rate over seconds. Marked invalid, estimators hold the orientation instead.
-    Returns `imu` itself when there is no gap (nothing is copied or modified).
+    Step k integrates the reading for [t[k], t[k+1]] over `dt[k]`; across a gap that would
+    extrapolate one stale rate over seconds. Marked invalid, estimators hold the orientation
+    instead. Returns `imu` itself when there is no gap (nothing is copied or modified).
     """
     gap = np.zeros(len(imu), bool)
-    gap[:-1] = _gaps(imu.dt)
+    if imu.gyr_timing == "start":
+        gap[:-1] = _gaps(imu.dt)
+    else:
+        gap[1:] = _gaps(imu.dt)
     if not np.any(gap & imu.gyr_valid):
         return imu
     return imu.replace(gyr_valid=imu.gyr_valid & ~gap)
@@ -292,7 +311,7 @@ def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
     if np.abs(counts).max() > ADC_LIMIT_COUNTS:
         raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
     t, counts = repair_time(t, path, counts)
-    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the course boards' pairing
+    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the evidence: see the module docstring
 
 
 def load_imu_pickle(path: str | Path) -> RawImu:
@@ -368,7 +387,11 @@ CSV_TRUTH = ("qw", "qx", "qy", "qz")
 def load_csv(path: str | Path, with_movement: bool = False):
     """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
 
-    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; the
+    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; gyro
+    row k is the angular rate over (t[k-1], t[k]] (`ImuSamples.gyr_timing` "end", the common
+    convention of IMU drivers and of VQF, Madgwick, Mahony and Fusion; a file whose gyro
+    rows cover [t[k], t[k+1]) instead can be loaded and then declared with
+    `imu.replace(gyr_timing="start")`); the
     optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
     the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
     Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None

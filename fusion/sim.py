@@ -3,7 +3,10 @@
 The orientation is an analytic function of time, `R(t) = Rz(yaw) Ry(pitch) Rx(roll)` with
 each angle a sum of sinusoids under a smooth envelope (rests at the start and the end), so
 the true body rate is exact (the Euler-rate relation, not a numerical derivative) and the
-truth needs no integration. A small sinusoidal translation adds the linear accelerations of
+truth needs no integration. Each gyro sample is the exact mean rate over the interval it
+stands for (`SimSettings.gyr_timing`, see `fusion.types.ImuSamples`): the rotation vector of
+`R(t_a)^-1 R(t_b)` divided by `t_b - t_a`, so integrating the samples over their intervals
+reproduces the truth at the stamps exactly (up to the simulated sensor errors). A small sinusoidal translation adds the linear accelerations of
 a hand-held motion. The ideal signals are then turned into what this board would record:
 raw 10-bit counts with the board's biases, sensitivity errors, axis signs, noise,
 quantisation and saturation, on jittery time stamps, and optionally a gyro freeze or a
@@ -18,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .calibration import BoardModel
-from .types import RawImu, Trajectory
+from .types import GyrTiming, RawImu, Trajectory, _check_timing
 
 T0_S = 1_700_000_000.0  # a unix-like start time, as in the real files
 
@@ -47,7 +50,14 @@ class SimSettings:
     freezes_s: tuple[tuple[float, float], ...] = ()
     freeze_counts: tuple[float, float, float] = (382.0, 383.0, 382.0)
     truth_clock_offset_s: float = 0.0  # truth time stamps = true time + offset (VICON lag)
+    # Which interval gyro sample k covers: "start" [t[k], t[k+1]) as the course boards,
+    # "end" (t[k-1], t[k]] as most IMUs (see `fusion.types.ImuSamples`).
+    gyr_timing: GyrTiming = "start"
+    quantise: bool = True  # round to whole ADC counts and clip to the ADC range (False: exact values)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check_timing(self.gyr_timing, "SimSettings")
 
 
 # Angle components: (amplitude deg, frequency Hz); phases and small frequency changes are seeded.
@@ -124,9 +134,16 @@ def simulate(settings: SimSettings = SimSettings(), board: BoardModel = BoardMod
     n = int(round(s.duration_s * s.imu_rate_hz))
     t_true = np.arange(n) / s.imu_rate_hz + rng.uniform(-s.stamp_jitter_s, s.stamp_jitter_s, n)
     t_true[0] = 0.0
+    stamps = T0_S + t_true
+    t_true = stamps - T0_S  # exact (Sterbenz): the rates below are for the stamps the estimators see
 
     rot = motion.rotation(t_true)
-    gyr = motion.body_rate(t_true)
+    # Interval edges: the stamps plus one nominal step before and after (at rest).
+    step = 1.0 / s.imu_rate_hz
+    edges = np.concatenate([[t_true[0] - step], t_true, [t_true[-1] + step]])
+    r_edges = motion.rotation(edges)
+    mean_rate = (r_edges[:-1].inv() * r_edges[1:]).as_rotvec() / np.diff(edges)[:, None]  # row j: [edges[j], edges[j+1]]
+    gyr = mean_rate[1:] if s.gyr_timing == "start" else mean_rate[:-1]
     acc = rot.inv().apply(motion.linear_acc_g(t_true) + [0.0, 0.0, 1.0])  # specific force, g
 
     gain = board.scale / np.concatenate([s.acc_sensitivity_ratio, s.gyro_sensitivity_ratio])  # true units per count
@@ -136,9 +153,10 @@ def simulate(settings: SimSettings = SimSettings(), board: BoardModel = BoardMod
     for start, stop in s.freezes_s:
         frozen = (t_true >= start) & (t_true < stop)
         counts[frozen, 3:] = np.asarray(s.freeze_counts) + rng.integers(-1, 2, (frozen.sum(), 3))
-    counts = np.clip(np.round(counts), 0, board.adc_full_scale_counts)
+    if s.quantise:
+        counts = np.clip(np.round(counts), 0, board.adc_full_scale_counts)
 
     m = int(round(s.duration_s * s.truth_rate_hz))
     t_truth = np.arange(m) / s.truth_rate_hz
     truth = Trajectory.from_rotation(T0_S + t_truth + s.truth_clock_offset_s, motion.rotation(t_truth))
-    return RawImu(T0_S + t_true, counts, source="sim", gyr_timing="start"), truth
+    return RawImu(stamps, counts, source="sim", gyr_timing=s.gyr_timing), truth

@@ -9,7 +9,7 @@ import pytest
 
 from fusion.cli import main
 
-KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg"}
+KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "alignment"}
 
 
 def run(capsys, *argv):
@@ -29,6 +29,7 @@ def test_compare_on_sim_without_data(tmp_path, capsys, monkeypatch):
     (result,) = doc["results"]
     assert set(result) == KEYS
     assert result["dataset"] == "sim" and result["samples"] == 18000
+    assert result["alignment"] is None  # --align is off by default
     assert set(result["rmse_deg"]) == {"total", "inclination", "heading"}
     # the table prints the same numbers as the JSON
     assert float(row[0][2]) == pytest.approx(result["rmse_deg"]["total"], abs=0.006)

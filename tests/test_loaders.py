@@ -159,3 +159,29 @@ def test_vicon_without_overlap(tmp_path):
     write_pickle(vicon_dir / "viconRot1.p", {"rots": np.tile(np.eye(3)[..., None], (1, 1, 10)), "ts": (arr[0, -1] + 100 + np.arange(10.0))[None]})
     with pytest.raises(ValueError, match="does not overlap"):
         datasets.load("lab/1", tmp_path)
+
+
+@pytest.mark.parametrize("timing, marked", [("start", 99), ("end", 100)])
+def test_gap_invalidates_the_gyro_sample_standing_for_it(timing, marked):
+    """The sample whose interval spans the gap: the one before it ("start"), after it ("end")."""
+    from fusion.types import ImuSamples
+
+    t = np.arange(200) * 0.01
+    t[100:] += 2.0  # a 2 s gap between samples 99 and 100
+    imu = ImuSamples(t, np.ones((200, 3)), np.tile([0.0, 0.0, 1.0], (200, 1)), gyr_timing=timing)
+    out = loaders.invalidate_gaps(imu)
+    assert np.flatnonzero(~out.gyr_valid).tolist() == [marked]
+    rate, valid = out.interval_rates()
+    assert not valid[99] and valid.sum() == 198  # interval 99 is the gap
+
+
+def test_csv_gyro_rows_cover_the_interval_ending_at_their_stamp(tmp_path):
+    """Generic CSV: gyro row k is the rate over (t[k-1], t[k]] (the common convention)."""
+    path = tmp_path / "w.csv"
+    t = np.arange(5) * 0.1
+    gyr = np.column_stack([np.arange(5.0), np.zeros(5), np.zeros(5)])
+    np.savetxt(path, np.column_stack([t, gyr, np.tile([0, 0, 9.80665], (5, 1))]), delimiter=",",
+               header="t,gx,gy,gz,ax,ay,az", comments="")
+    imu, _ = loaders.load_csv(path)
+    assert imu.gyr_timing == "end"
+    np.testing.assert_array_equal(imu.interval_rates()[0][:, 0], [1.0, 2.0, 3.0, 4.0])

@@ -1,9 +1,12 @@
 """The built-in simulated recording: exact truth, deterministic, through the real path."""
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
+from estimators import build
 from fusion import datasets
-from fusion.sim import SimSettings, _Motion, simulate
+from fusion.calibration import calibrate
+from fusion.sim import T0_S, SimSettings, _Motion, simulate
 
 
 def test_body_rate_is_the_derivative_of_the_truth():
@@ -41,3 +44,46 @@ def test_dead_reckoning_on_exact_rates_tracks_the_truth():
     q0, _ = truth.interpolate(imu.t[:1])
     est = build("dr").estimate(imu, q0.as_quat(scalar_first=True)[0])
     assert score(truth, est).rmse_deg["total"] < 1.5  # 0.7 deg measured
+
+
+def _exact(timing: str, duration_s: float = 30.0) -> SimSettings:
+    """A noiseless, error-free board: no noise, no quantisation, datasheet sensitivities."""
+    return SimSettings(duration_s=duration_s, gyr_timing=timing, gyro_sensitivity_ratio=(1, 1, 1),
+                       acc_noise_counts=0.0, gyro_noise_counts=0.0, quantise=False)
+
+
+@pytest.mark.parametrize("timing", ["start", "end"])
+def test_gyro_sample_is_the_mean_rate_over_its_interval(timing):
+    """Sample k is rotvec(R(t_a)^-1 R(t_b)) / (t_b - t_a) over [t_k, t_k+1] ("start") or
+    [t_k-1, t_k] ("end"), and the recording says which."""
+    s = _exact(timing, 20.0)
+    raw, _ = simulate(s)
+    assert raw.gyr_timing == timing
+    imu = calibrate(raw).apply(raw)
+    assert imu.gyr_timing == timing
+    t = imu.t - T0_S
+    r = _Motion(s).rotation(t)
+    between = (r[:-1].inv() * r[1:]).as_rotvec() / np.diff(t)[:, None]
+    rate, _ = imu.interval_rates()
+    np.testing.assert_allclose(rate, between, atol=1e-12)
+    # close to, but not, the instantaneous rate at the interval's midpoint
+    mid = _Motion(s).body_rate(0.5 * (t[1:] + t[:-1]))
+    assert 1e-6 < np.abs(rate - mid).max() < 1e-2  # rad/s; 1.3e-3 measured
+
+
+@pytest.mark.parametrize("timing", ["start", "end"])
+def test_dead_reckoning_is_exact_when_the_declared_timing_matches(timing):
+    raw, _ = simulate(_exact(timing))
+    imu = calibrate(raw).apply(raw)
+    truth = _Motion(_exact(timing)).rotation(imu.t - T0_S)
+    q0 = truth[0].as_quat(scalar_first=True)
+    est = build("dr").estimate(imu, q0)
+    assert (truth.inv() * est.rotation()).magnitude().max() < 1e-9  # 1e-12 measured
+    other = {"start": "end", "end": "start"}[timing]
+    wrong = build("dr").estimate(imu.replace(gyr_timing=other), q0)
+    assert np.degrees((truth.inv() * wrong.rotation()).magnitude().max()) > 1.0  # 1.9 deg measured
+
+
+def test_unknown_timing_is_an_error():
+    with pytest.raises(ValueError, match="gyr_timing"):
+        SimSettings(gyr_timing="middle")
