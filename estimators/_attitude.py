@@ -169,3 +169,155 @@ def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
         return math.inf if dev > gate_g else 1.0
     r = dev / gate_g
     return 1.0 + r * r
+
+
+class AccDisturbance:
+    """Running estimate of the external (non-gravitational) acceleration power, for adaptive R.
+
+    The accelerometer measures `R^T (e_z + a_ext)` (g). The filters treat the gravity
+    direction as the measurement and `a_ext` as noise, but `a_ext` of a moving hand is neither
+    white nor small. This tracks, per step, its power `d` (g^2) from signals that do not
+    depend on the filter's attitude estimate (so an attitude error, e.g. after a gyro
+    freeze, is never mistaken for a disturbance and cannot lock the accelerometer out):
+
+    * the variance of the accelerometer rotated into a gyro-only (strapdown) frame `I`, the
+      frame of Laidig & Seel 2023 (VQF), Sec. 3.2, in which gravity is constant over a few
+      seconds while linear, centripetal and tapping accelerations are not. `I` is propagated
+      with the filter's rate increments (bias and scale corrected) and never corrected by the
+      accelerometer. Exponential window of time constant `window_s`:
+      `m <- m + alpha (a_I - m)`, `v <- v + alpha (|a_I - m_prev|^2 - v)`,
+      `alpha = 1 - exp(-dt / window_s)`, so the window means the same at any rate;
+    * the norm test `(|a| - 1)^2` of the current sample (Sabatini 2006's |a|-g criterion),
+      which reacts in the first sample of a tap.
+
+    `d = max(v / (1 - exp(-age / window_s)), |a_I - m_prev|^2, (|a| - 1)^2)`, where the
+    divisor corrects the window's start at v = 0 (age: time since the start). On a gyro sample
+    that cannot be integrated the frame `I` is lost and the window restarts.
+
+    The filters model `a_ext` as a first-order Gauss-Markov process of variance `d` and
+    correlation time `corr_s`, whose low-frequency spectral density is `2 corr_s d` (g^2 s);
+    it adds to the accelerometer noise density (see `acc_step_variance`).
+    """
+
+    __slots__ = ("window_s", "m", "v", "qi", "age")
+
+    def __init__(self, window_s: float) -> None:
+        self.window_s = window_s
+        self.m: tuple[float, float, float] | None = None
+        self.v = 0.0
+        self.qi = (1.0, 0.0, 0.0, 0.0)
+        self.age = 0.0
+
+    def lose_frame(self) -> None:
+        """The gyro sample could not be integrated: restart the window."""
+        self.m = None
+        self.v = 0.0
+        self.age = 0.0
+
+    def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
+        """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
+        ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
+        w, x, y, z = self.qi = _normalised(mul_floats(self.qi, dq))
+        # a_I = R(q_I) a (body -> strapdown frame)
+        wx = (1 - 2 * (y * y + z * z)) * ax + 2 * (x * y - w * z) * ay + 2 * (x * z + w * y) * az
+        wy = 2 * (x * y + w * z) * ax + (1 - 2 * (x * x + z * z)) * ay + 2 * (y * z - w * x) * az
+        wz = 2 * (x * z - w * y) * ax + 2 * (y * z + w * x) * ay + (1 - 2 * (x * x + y * y)) * az
+        norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
+        nd2 = norm_dev * norm_dev
+        if self.m is None:
+            self.m = (wx, wy, wz)
+        mx, my, mz = self.m
+        ex, ey, ez = wx - mx, wy - my, wz - mz
+        inst = ex * ex + ey * ey + ez * ez
+        alpha = -math.expm1(-dt_s / self.window_s)
+        self.m = (mx + alpha * ex, my + alpha * ey, mz + alpha * ez)
+        self.v += alpha * (inst - self.v)
+        self.age += dt_s
+        # Weight of the samples seen since the (re)start, 1 - exp(-age / window_s): dividing by
+        # it makes v the mean over the samples available so far instead of starting at 0.
+        seen = -math.expm1(-self.age / self.window_s)
+        return max(self.v / seen, inst, nd2)
+
+
+def _normalised(q: tuple) -> tuple[float, float, float, float]:
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+class RestDetector:
+    """Rest detection for gyro-bias estimation (after Laidig & Seel 2023, VQF, Sec. 3.4).
+
+    At rest the gyro reads its bias. A sample counts as still when the gyro reading is below
+    `gyr_th_rad_s` in norm and the accelerometer is within `acc_th_g` of its low-pass value
+    (time constant `window_s`) and within `acc_th_g` of 1 g; the recording is at rest once
+    that has held for `min_time_s` without interruption.
+    """
+
+    __slots__ = ("gyr_th", "acc_th", "min_time", "window_s", "lp", "time_still")
+
+    def __init__(self, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float, window_s: float = 0.5) -> None:
+        self.gyr_th, self.acc_th, self.min_time, self.window_s = gyr_th_rad_s, acc_th_g, min_time_s, window_s
+        self.lp: np.ndarray | None = None
+        self.time_still = 0.0
+
+    def update(self, gyr_rad_s: np.ndarray, acc_g: np.ndarray, dt_s: float) -> bool:
+        """Feed one step (gyro (3,) rad/s, accelerometer (3,) g, body); -> at rest now."""
+        if not (math.isfinite(float(acc_g.sum())) and math.isfinite(float(gyr_rad_s.sum()))):
+            self.time_still = 0.0
+            return False
+        if self.lp is None:
+            self.lp = np.array(acc_g, dtype=float)
+        alpha = -math.expm1(-dt_s / self.window_s)
+        dev = acc_g - self.lp
+        self.lp = self.lp + alpha * dev
+        g = float(gyr_rad_s @ gyr_rad_s)
+        a = float(acc_g @ acc_g)
+        still = (
+            g < self.gyr_th * self.gyr_th
+            and float(dev @ dev) < self.acc_th * self.acc_th
+            and abs(math.sqrt(a) - 1.0) < self.acc_th
+        )
+        self.time_still = self.time_still + dt_s if still else 0.0
+        return self.time_still >= self.min_time
+
+
+def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r_rad2_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with the rest pseudo-measurement `gyr = b + noise` (true rate zero).
+
+    x_bias: (3,) bias estimate, rad/s; P: (n, n) error covariance `[attitude, bias, ...]`
+    (the bias in rows 3-5); gyr_rad_s: (3,) the reading at rest; r_rad2_s2: its variance per
+    axis, (rad/s)^2. At zero rate the scale factor does not enter the model, so
+    H = [0, I, 0] is linear and the standard update is exact for the EKF and the UKF alike
+    (the attitude and scale rows move through the cross-covariances). Returns
+    `(dx (n,), P)`, with P in Joseph form.
+    """
+    n = len(P)
+    S = P[3:6, 3:6] + np.eye(3) * r_rad2_s2
+    K = P[:, 3:6] @ np.linalg.inv(S)
+    dx = K @ (gyr_rad_s - x_bias)
+    IKH = np.eye(n)
+    IKH[:, 3:6] -= K
+    return dx, IKH @ P @ IKH.T + (K * r_rad2_s2) @ K.T
+
+
+def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float, dt_s: float) -> float:
+    """Per-step accelerometer variance per axis, g^2: `(r + 2 corr_s d) / dt`.
+
+    A white noise of spectral density r (g^2 s) sampled over dt has variance r / dt; the
+    external acceleration, a Gauss-Markov process of variance d (g^2) and correlation time
+    corr_s, adds its low-frequency density 2 corr_s d (see `AccDisturbance`).
+    """
+    return (density_g2_s + 2.0 * corr_s * disturbance_g2) / dt_s
+
+
+# Variance standing for "not estimated" in a filter's state: small enough that the state stays
+# at its initial value, large enough to keep the covariance positive definite.
+UNESTIMATED_VAR = 1e-12
+
+
+def scale_axes_mask(axes: str) -> np.ndarray:
+    """(3,) bool: which body axes' gyro scale factors a filter estimates ("xy", "xyz", ...)."""
+    if any(a not in "xyz" for a in axes) or len(set(axes)) != len(axes):
+        raise ValueError(f"scale_axes={axes!r}: expected distinct letters from 'xyz'")
+    return np.array([a in axes for a in "xyz"])

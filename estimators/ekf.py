@@ -1,20 +1,42 @@
-"""`ekf`: a multiplicative (error-state) EKF with the UKF's process and measurement models.
+"""`ekf`: a multiplicative (error-state) EKF with gyro bias and scale factors in the state.
 
-Nominal state `q = R_world_body` (wxyz) and gyro bias `b` (rad/s, body); error state
-`dx = [e, db]` with the body-frame rotation error `q_true = q exp(e / 2)` (the same
-convention as `ukf`), covariance P (6x6; 3x3 with `estimate_bias=False`).
+Nominal state: `q = R_world_body` (wxyz), gyro bias `b` (rad/s, body) and gyro scale-factor
+corrections `s` (dimensionless, per body axis). Error state `dx = [e, db, ds]` (9) with the
+body-frame rotation error `q_true = q exp(e / 2)` (the convention of `ukf`), covariance P
+(9x9; 6x6 with `estimate_scale=False`, 3x3 with neither bias nor scale).
 
-Predict (gyro as control input, as in `ukf` step 1):
-    theta = (w - b) dt,  q <- q exp(theta / 2)
-    F = [[R(theta)^T, -J_r(theta) dt], [0, I]]          (Sola 2017, error-state kinematics; analytic)
-    P <- F P F^T + diag(Q dt I, Qb dt I)
-Update (accelerometer = gravity in the body frame, as in `ukf` steps 6-7):
-    h(q) = R(q)^T e_z,  H = [[h]x, 0]                    (exp(e)^T h ~ h + h x e)
-    S = H P H^T + R,  K = P H^T S^-1,  dx = K (a - h)
+Gyro model (bias, scale-factor error and white noise per axis, the standard gyro error model
+of Titterton & Weston, "Strapdown Inertial Navigation Technology", 2nd ed. 2004, Ch. 4;
+Farrell, "Aided Navigation", 2008): `w_true = diag(1 + s) (w_meas - b - n)`, n white with
+density Q. `s` is the *correction*: a gyro that reads 9 % high has s = 1/1.09 - 1 = -0.083.
+
+Predict (gyro as control input; error-state kinematics in discrete time, Sola 2017,
+"Quaternion kinematics for the error-state Kalman filter", Secs. 5.3-5.4, with the exact
+rotation of the step instead of its first-order approximation):
+    u = w_meas - b,  theta = diag(1 + s) u dt,  q <- q exp(theta / 2)
+    F = [[R(theta)^T, -J_r(theta) diag(1 + s) dt, J_r(theta) diag(u) dt],
+         [0,          I,                            0                   ],
+         [0,          0,                            I                   ]]
+        (J_r the SO(3) right Jacobian: a rate error dw over the step moves the end
+        attitude by J_r(theta) dw dt in the body frame)
+    P <- F P F^T + diag(Q dt, Qb dt, Qsw dt)   (noise as random impulses whose variance
+        grows with dt, Sola 2017, Sec. 5.4)
+Rest (bias rows): after `rest_time_s` still, the zero-rate pseudo-measurement
+    gyr = b + n, H = [0, I, 0] (Laidig & Seel 2023, VQF, Sec. 3.4: bias estimation at rest);
+    the bias estimate is clipped to `bias_max_rad_s`, the scale to `scale_max`.
+Update (accelerometer = gravity in the body frame; Sola 2017, Sec. 6.1-6.3: correction,
+injection, reset with the reset Jacobian taken as I):
+    h(q) = R(q)^T e_z (g),  H = [[h]x, 0, 0]          (exp(e)^T h ~ h + h x e)
+    R_k = (R + 2 tauc d_k) / dt I   adaptive: d_k the external-acceleration power of
+                  `_attitude.AccDisturbance`, measured without the filter's attitude
+                  (Suh 2010, IEEE TIM 59(12), adapts R to the external acceleration)
+    S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
     heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
                   predicted vertical; the Joseph form below is exact for any gain)
-    q <- q exp(dx_e / 2),  b <- b + dx_b                 (error injection, reset not modelled)
-    P <- (I - K H) P (I - K H)^T + K R K^T               (Joseph form)
+    q <- q exp(dx_e / 2),  b <- b + dx_b,  s <- s + dx_s
+    P <- (I - K H) P (I - K H)^T + K R_k K^T             (Joseph form)
+The scale factors become observable through the accelerometer whenever the board turns
+about a body axis that is not vertical (the z scale needs the z axis tilted while turning).
 
 FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it.
 FilterPy's EKF sizes x and P together (dim_x), adds the correction (`x + K y`) and
@@ -24,9 +46,10 @@ FilterPy's per-call cost (column-vector bookkeeping, `deepcopy(z)`). The update 
 Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
 
 Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate,
-attitude noise inflated by `invalid_gyr_std_rad_s^2 dt^2`), non-finite accelerometer samples
-skip the update, gating (`gate`, `gate_g`) inflates R or skips the update when `| |a| - 1 g |`
-is large, and the covariance is symmetrised (eigenvalues clipped if needed) every step.
+no bias or scale coupling, attitude noise inflated by `invalid_gyr_std_rad_s^2 dt^2`),
+non-finite accelerometer samples skip the update, the optional fixed gating (`gate`,
+`gate_g`; off by default) inflates R or skips the update when `| |a| - 1 g |` is large, and
+the covariance is symmetrised (eigenvalues clipped if needed) every step.
 """
 from __future__ import annotations
 
@@ -38,41 +61,107 @@ import numpy as np
 
 from fusion.types import ImuSamples
 
-from ._attitude import acc_variance_scale, exp_quat, inv_sym3, mul_floats, repair_covariance, unit_array
+from ._attitude import (
+    UNESTIMATED_VAR,
+    AccDisturbance,
+    RestDetector,
+    acc_step_variance,
+    acc_variance_scale,
+    bias_rest_update,
+    exp_quat,
+    inv_sym3,
+    mul_floats,
+    repair_covariance,
+    scale_axes_mask,
+    unit_array,
+)
 from .base import RecursiveEstimator
-from .ukf import Gate, _check_nonneg, check_filter_params
+from .ukf import Gate, _check_nonneg, check_bias_params, check_filter_params, check_scale_params
 
 
 @dataclass(frozen=True)
 class EKFParams:
     """Parameters of `ekf` (units in the names; aliases in brackets).
 
-    process_noise_rad2_s (Q): attitude process noise, rad^2/s (step: Q dt I).
-    acc_noise_g2 (R): accelerometer variance per axis, g^2.
+    Noise is given as continuous-time densities, so one set means the same at 100 Hz and at
+    286 Hz (Sola 2017, Sec. 5.4: a density sigma^2 over a step dt gives the variance
+    sigma^2 dt for a rate noise integrated into an angle, and sigma^2 / dt for a white
+    measurement noise sampled once per step):
+
+    process_noise_rad2_s (Q): gyro (attitude process) noise density, rad^2/s; step
+        variance `Q dt` per axis.
+    acc_noise_g2_s (R): accelerometer noise density, g^2 s; step variance `R / dt` per axis
+        (a per-sample variance R_k at rate f is the density R_k / f). Without disturbance
+        the attitude correction has the time constant `sqrt(R / Q)`, independent of the rate.
     init_var_rad2 (P0): initial attitude variance per axis, rad^2.
-    bias_walk_rad2_s3 (Qb), init_bias_var_rad2_s2 (Pb0): gyro-bias random walk and initial
-        variance; estimate_bias (bias) False drops the bias from the state.
-    use_acc (acc), gate, gate_g, invalid_gyr_std_rad_s (Qbad): as for `ukf`.
+    bias_walk_rad2_s3 (Qb): gyro-bias random-walk density, rad^2/s^3 (step variance Qb dt).
+    init_bias_var_rad2_s2 (Pb0): initial bias variance per axis, (rad/s)^2.
+    estimate_bias (bias): False drops the bias from the state (and needs scale=false).
+    bias_max_rad_s (bmax): the bias estimate is clipped to this per axis, rad/s (the
+        calibration removed the rest bias; a larger one means a wrong update).
+    estimate_scale (scale): gyro scale-factor corrections `s` in the state.
+    init_scale_var (Ps0): initial scale-factor variance per axis, dimensionless (1e-2: a
+        10 % standard deviation, the tolerance of a low-cost MEMS gyro read with its
+        datasheet sensitivity).
+    scale_walk_1_s (Qsw): scale-factor random-walk density, 1/s (step variance Qsw dt).
+    scale_max (smax): the scale correction is clipped to this per axis.
+    scale_axes (saxes): the body axes whose scale factor is estimated ("xy" by default; the
+        others stay at their calibration). With the body z axis near vertical, as a hand-held
+        or worn IMU mostly is, z's scale acts on heading alone, which a gyro and an
+        accelerometer cannot observe; estimating it lets the accelerometer's corrections after a
+        long gyro outage drive a wrong z scale and with it the heading.
+    disturbance_corr_s (tauc): correlation time of the external acceleration, s (adaptive R,
+        see `_attitude.AccDisturbance`); 0 turns the adaptation off.
+    disturbance_window_s (tauw): time constant of its running variance, s.
+    rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (gyro norm, accelerometer
+        deviation, minimum duration) for the zero-rate bias update; rest_time_s = inf
+        turns it off.
+    rest_noise_rad2_s (Rrest): density of the gyro reading at rest, rad^2/s (step variance
+        Rrest / dt).
+    use_acc (acc), gate, gate_g, invalid_gyr_std_rad_s (Qbad): as for `ukf` (the fixed
+        gate is off by default: the adaptive R replaces it).
     heading_free (hf): see the module docstring and `ukf`.
-    Defaults: the same values as `ukf-bias` (one parameter set for all recordings; the
-    sweep is in `UKFBiasParams`): 2.10 deg inclination, 17.2 deg total on ece276a 1-9.
+
+    The defaults are one set for every recording and rate.
     """
 
-    process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2: float = field(default=3e-3, metadata={"alias": "R"})
+    process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
+    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
     init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
+    bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
+    estimate_scale: bool = field(default=True, metadata={"alias": "scale"})
+    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
+    scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
+    scale_max: float = field(default=0.2, metadata={"alias": "smax"})
+    scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
     heading_free: bool = field(default=True, metadata={"alias": "hf"})
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
-    gate: Gate = "inflate"
+    disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
+    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
+    rest_gyr_rad_s: float = 0.035
+    rest_acc_g: float = 0.05
+    rest_time_s: float = 1.5
+    rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
+    gate: Gate = "off"
     gate_g: float = 0.2
     invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
 
     def __post_init__(self) -> None:
         _check_nonneg("ekf", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
         check_filter_params(self, "ekf")
+        check_bias_params(self, "ekf")
+        check_scale_params(self, "ekf")
+        if self.estimate_scale and not self.estimate_bias:
+            raise ValueError("ekf: estimate_scale needs estimate_bias (the error state is [attitude, bias, scale])")
+
+
+# Normalised innovation squared above which the bias and scale are not corrected: the 99.9 %
+# point of chi-square with 3 degrees of freedom (the innovation consistency test, Bar-Shalom,
+# Li & Kirubarajan 2001, Sec. 5.4).
+_CHI2_3DOF = 16.27
 
 
 def _rotation_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
@@ -106,20 +195,26 @@ class EKF(RecursiveEstimator):
         q0 = np.asarray(init_quat_wxyz, dtype=float)
         if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
             raise ValueError(f"ekf: init_quat_wxyz must be a finite non-zero (4,) quaternion, got {q0!r}")
-        n = 6 if p.estimate_bias else 3
+        n = 3 + 3 * p.estimate_bias + 3 * p.estimate_scale
         self.n = n
         self.q = q0 / np.linalg.norm(q0)
         self.b = np.zeros(3)
+        self.s = np.zeros(3)
         self.P = np.zeros((n, n))
         self.P[:3, :3] = np.eye(3) * p.init_var_rad2
         self._Qrate = np.zeros((n, n))
         self._Qrate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
         if p.estimate_bias:
-            self.P[3:, 3:] = np.eye(3) * p.init_bias_var_rad2_s2
-            self._Qrate[3:, 3:] = np.eye(3) * p.bias_walk_rad2_s3
+            self.P[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
+            self._Qrate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3
+        if p.estimate_scale:
+            on = scale_axes_mask(p.scale_axes)
+            self.P[6:, 6:] = np.diag(np.where(on, p.init_scale_var, UNESTIMATED_VAR))
+            self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
-        self._R = np.eye(3) * p.acc_noise_g2
+        self._dist = AccDisturbance(p.disturbance_window_s)
+        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
@@ -127,61 +222,110 @@ class EKF(RecursiveEstimator):
         self._cov = np.full((N, n, n), np.nan)
         self._cov[0] = self.P
         self._bias = np.zeros((N, 3))
+        self._scale = np.zeros((N, 3))
+        self._acc_var = np.full(N, np.nan)
+        self._at_rest = np.zeros(N, bool)
         self.n_skipped = self.n_cov_repaired = 0
 
     def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p = self.params
+        n = self.n
         Q = self._Qrate * dt_s
         F = self._F
-        q, b = self.q.tolist(), self.b
-        if gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2]):
-            tx, ty, tz = (gyr_rad_s - b) * dt_s if p.estimate_bias else gyr_rad_s * dt_s
+        q = self.q.tolist()
+        valid = gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])
+        if valid:
+            u = gyr_rad_s - self.b if n > 3 else gyr_rad_s
+            g = 1.0 + self.s if n > 6 else None
+            tx, ty, tz = (u * g * dt_s) if n > 6 else u * dt_s  # w_true = diag(1 + s) (w_meas - b)
         else:  # no rate integration; inflate the attitude noise instead
             tx = ty = tz = 0.0
             Q = Q + self._Qbad * (dt_s * dt_s)
+            self._dist.lose_frame()
         d = exp_quat(tx, ty, tz)
         q = mul_floats(q, d)  # q exp(theta / 2), as 4 floats
-        F[:3, :3] = _rotation_matrix(*d).T  # Sola 2017: error transition R(theta)^T
-        if self.n == 6:
-            F[:3, 3:] = -dt_s * _right_jacobian(tx, ty, tz)
+        F[:3, :3] = _rotation_matrix(*d).T  # error transition R(theta)^T
+        if n > 3:
+            Jdt = _right_jacobian(tx, ty, tz) * dt_s
+            if n > 6:
+                if valid:
+                    F[:3, 3:6] = -Jdt * g  # d theta / d b = -J_r diag(1 + s) dt
+                    F[:3, 6:] = Jdt * u  # d theta / d s = J_r diag(w - b) dt
+                else:
+                    F[:3, 3:6] = 0.0  # the rate was not integrated: no bias or scale enters
+                    F[:3, 6:] = 0.0
+            else:
+                F[:3, 3:6] = -Jdt if valid else 0.0
         P = F @ self.P @ F.T + Q
+        if n > 3 and valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
+            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
+            dx, P = bias_rest_update(self.b, P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
+            q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
+            self.b = self.b + dx[3:6]
+            if n > 6:
+                self.s = self.s + dx[6:]
+            self._at_rest[k + 1] = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
+            dist = self._dist.update(d, acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
+            r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, dist, dt_s) * scale
+            self._acc_var[k + 1] = r
             w, x, y, z = q
             h = np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z])
             H = self._H
             H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
             H[1, 0], H[1, 2] = h[2], -h[0]
             H[2, 0], H[2, 1] = -h[1], h[0]
-            R = self._R * scale
             PHt = P @ H.T
-            S = H @ PHt + R
-            K = PHt @ inv_sym3(S)
+            S = H @ PHt
+            S[0, 0] += r
+            S[1, 1] += r
+            S[2, 2] += r
+            Sinv = inv_sym3(S)
+            K = PHt @ Sinv
             if p.heading_free:
-                # Remove the attitude correction about the predicted vertical h (|h| = 1):
-                # K <- (I - h h^T) K on the attitude rows; the Joseph form stays exact.
+                # Remove the correction about the predicted vertical h (|h| = 1) from the
+                # attitude and bias rows: K <- (I - h h^T) K; the Joseph form stays exact.
                 K[:3] -= np.outer(h, h @ K[:3])
-                if self.n == 6:
-                    K[3:] -= np.outer(h, h @ K[3:])
-            dx = K @ (acc_g - h)
+                if n > 3:
+                    K[3:6] -= np.outer(h, h @ K[3:6])
+            y = acc_g - h
+            if n > 3 and float(y @ Sinv @ y) > _CHI2_3DOF:
+                # The innovation is inconsistent with the predicted covariance (a gyro freeze
+                # or a large error): correct the attitude only, not the bias and scale through
+                # their linearised correlations. Any gain is exact in the Joseph form.
+                K[3:] = 0.0
+            dx = K @ y
             q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
-            if self.n == 6:
-                self.b = b + dx[3:]
+            if n > 3:
+                self.b = self.b + dx[3:6]
+            if n > 6:
+                self.s = self.s + dx[6:]
             IKH = self._I - K @ H
-            P = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
+            P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
         else:
             self.n_skipped += 1
+            if not valid:
+                pass
+        if n > 3:
+            self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
+        if n > 6:
+            self.s = np.clip(self.s, -p.scale_max, p.scale_max)
         self.q = unit_array(q)
         self.P, repaired = repair_covariance(P)
         self.n_cov_repaired += repaired
         self._cov[k + 1] = self.P
         self._bias[k + 1] = self.b
+        self._scale[k + 1] = self.s
         return self.q
 
     def diagnostics(self) -> dict[str, Any]:
         return {
             "cov": self._cov,
             "gyr_bias_rad_s": self._bias,
+            "gyr_scale": self._scale,
+            "acc_var_g2": self._acc_var,
+            "at_rest": self._at_rest,
             "updates_skipped": self.n_skipped,
             "cov_repairs": self.n_cov_repaired,
         }

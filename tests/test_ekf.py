@@ -23,7 +23,8 @@ def test_without_accelerometer_and_noise_equals_dead_reckoning(bias):
     valid[100:130] = False
     imu = imu.replace(gyr_valid=valid)
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
-    params = EKFParams(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, estimate_bias=bias)
+    params = EKFParams(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, estimate_bias=bias,
+                       estimate_scale=bias)
     est = EKF(params).estimate(imu, q0)
     ref = DeadReckoning().estimate(imu, q0)
     assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9
@@ -52,7 +53,7 @@ def test_measurement_jacobian_matches_finite_differences():
     assert np.allclose(H, num, atol=1e-6)
 
 
-@pytest.mark.parametrize("spec", ["ekf", "ekf:bias=false", "ekf:gate=skip", "ekf:gate=off"])
+@pytest.mark.parametrize("spec", ["ekf", "ekf:bias=false,scale=false", "ekf:gate=skip", "ekf:gate=off"])
 def test_tracks_synthetic_motion(spec):
     imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
     est = build(spec).estimate(imu, truth[0])

@@ -155,8 +155,8 @@ def test_bad_parameters_raise(spec):
 def test_registry_and_aliases():
     assert ESTIMATORS["ukf"] is UKF and ESTIMATORS["ukf-bias"] is UKFBias
     est = build("ukf:R=1e-3,Q=1e-2,sigma=julier,kappa=2")
-    assert est.params == UKFParams(acc_noise_g2=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
-    assert UKFParams.seed().acc_noise_g2 == 1e-4
+    assert est.params == UKFParams(acc_noise_g2_s=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
+    assert UKFParams.seed().acc_noise_g2_s == 1e-6  # 1e-4 g^2 per 100 Hz sample
 
 
 def test_filterpy_impl_refuses_heading_free():
@@ -190,7 +190,8 @@ def test_bad_initial_quaternion_raises():
 # ---------------------------------------------------------------- exact cases
 @pytest.mark.parametrize("cls,kw", [
     (UKF, {}), (UKF, {"sigma": "julier"}), (UKF, {"sigma": "merwe", "kappa": 1.0}), (UKF, {"impl": "filterpy"}),
-    (UKFBias, {"bias_walk_rad2_s3": 0.0, "init_bias_var_rad2_s2": 0.0}),
+    (UKFBias, {"bias_walk_rad2_s3": 0.0, "init_bias_var_rad2_s2": 0.0, "init_scale_var": 0.0,
+               "scale_walk_1_s": 0.0}),
 ])
 def test_without_accelerometer_and_noise_equals_dead_reckoning(cls, kw):
     imu, _ = synthetic(400)
@@ -280,14 +281,46 @@ def test_covariance_stays_spd_on_every_real_recording(real_runs, spec):
         assert est.diagnostics.get("sqrt_recoveries", 0) == 0, n
 
 
-# Regression on the real recordings (issue 3 targets; measured 2.11 / 17.4 for ukf,
-# 2.10 / 17.2 for ukf-bias and ekf, with the spine's calibration at merge time).
+# Regression on the real recordings with the gyro freezes integrated as if valid (dropout
+# detection off). The filters' first defaults measured 2.11 / 17.4 (ukf) and 2.10 / 17.2
+# (ukf-bias, ekf) here. The disturbance-robust defaults measure 4.20 / 3.65 / 3.65 deg
+# inclination: an undetected freeze (the gyro reads zero while the board turns) looks to
+# them like a long linear acceleration, so they distrust the accelerometer that would repair
+# the tilt. A known regression, kept visible: with dropout detection on (the default, next
+# test) the freezes are masked and the filters are better than before.
+@pytest.mark.xfail(strict=True, reason="undetected gyro freezes look like linear acceleration to the "
+                                       "disturbance model (dropouts off: 3.6-4.2 deg inclination)")
 @pytest.mark.parametrize("spec,inclination,total", [("ukf", 3.0, 18.0), ("ukf-bias", 2.2, 18.0), ("ekf", 2.2, 18.0)])
 def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
     inc = [real_runs[spec, n][1].rmse_deg["inclination"] for n in range(1, 10)]
     tot = [real_runs[spec, n][1].rmse_deg["total"] for n in range(1, 10)]
     assert np.mean(inc) <= inclination
     assert np.mean(tot) <= total
+
+
+@pytest.fixture(scope="module")
+def default_runs(data_dir):
+    """Every filter with its defaults on ece276a 1-9, loaded as `fusion compare` does (gyro
+    freezes detected and masked): {(spec, n): Score}."""
+    from evaluation.metrics import score
+    from fusion import datasets
+
+    out = {}
+    for n in range(1, 10):
+        rec = datasets.load(f"ece276a/{n}", data_dir)
+        q0 = datasets.initial_orientation(rec, "truth")
+        for spec in FILTERS:
+            out[spec, n] = score(rec.truth, build(spec).estimate(rec.imu, q0))
+    return out
+
+
+# The course targets for filters whose defaults must also hold on BROAD: no worse than the
+# course-tuned filters were (ekf 1.95 / 6.86). Measured: ekf and ukf-bias 1.61 / 5.33,
+# ukf 1.92 / 6.78 (inclination / total, deg).
+@pytest.mark.parametrize("spec,inclination,total", [("ukf", 2.0, 7.0), ("ukf-bias", 1.95, 6.86), ("ekf", 1.95, 6.86)])
+def test_mean_rmse_on_real_recordings_with_default_loading(default_runs, spec, inclination, total):
+    assert np.mean([default_runs[spec, n].rmse_deg["inclination"] for n in range(1, 10)]) <= inclination
+    assert np.mean([default_runs[spec, n].rmse_deg["total"] for n in range(1, 10)]) <= total
 
 
 def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
