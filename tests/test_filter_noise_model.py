@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators import build
-from estimators.params import EstimatorSpec
+from fusion.estimators import build
+from fusion.estimators.params import EstimatorSpec
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
 
@@ -66,7 +66,7 @@ def test_large_linear_acceleration_stays_below_gyro_integration(spec):
                                          ("15_undisturbed_fast_translation_A", 3.5),
                                          ("21_undisturbed_fast_combined", 6.2)])
 def test_ekf_on_broad_trials_beats_gyro_integration(data_dir, trial, bound):
-    from evaluation.compare import run_one
+    from fusion.evaluation.compare import run_one
     from fusion import datasets
 
     path = data_dir / "broad"

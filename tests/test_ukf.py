@@ -302,7 +302,7 @@ def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
 def default_runs(data_dir):
     """Every filter with its defaults on ece276a 1-9, loaded as `fusion compare` does (gyro
     freezes detected and masked): {(spec, n): Score}."""
-    from evaluation.metrics import score
+    from fusion.evaluation.metrics import score
     from fusion import datasets
 
     out = {}
