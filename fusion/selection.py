@@ -2,7 +2,7 @@
 `--calibration` and `--dropouts` mean, for every command and for Python callers alike.
 
     from fusion.selection import load_selected
-    recordings = load_selected("ece276a/*", "/path/to/data")
+    recordings = load_selected("sim")  # or ("ece276a/*", "/path/to/data")
 
 Notes (neither errors nor warnings: the simulated recording stands in, identical recordings
 were merged) are one line `fusion: note: ...` on stderr.
