@@ -23,7 +23,7 @@ import numpy as np
 from fusion.camera import CameraModel, CameraSource
 from fusion.types import Trajectory
 
-from .panorama import PanoramaGrid
+from .equirect import PanoramaGrid
 
 SCENE_FILE = Path("scenes") / "room_equirect.jpg"
 

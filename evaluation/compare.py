@@ -1,187 +1,33 @@
 """Run estimators over recordings and score them: the library behind `fusion compare`.
 
+    from fusion import datasets
     from fusion.evaluation.compare import compare
-    results = compare(["dr", "ukf:R=1e-3"], [fusion.datasets.load("ece276a/1")])
+    results = compare(["dr", "ukf:R=1e-3"], [datasets.load("sim")])
 
-Every (recording, estimator) pair is one job: build the estimator from its spec, time
-`estimate` on the recording's calibrated samples from the shared initial orientation, score
-it against the truth when there is one. Results come back in a stable order: recordings as
-given, estimators as given within each recording.
+Every (recording, estimator) pair is one job (`fusion.evaluation.job.run_one`: build the
+estimator from its spec, time `estimate` on the recording's calibrated samples from the shared
+initial orientation, score it against the truth when there is one), scheduled by
+`fusion.evaluation.runner`. Results come back in a stable order: recordings as given,
+estimators as given within each recording. This module also formats them (the table,
+the `--json` document).
 """
 from __future__ import annotations
 
 import platform
-import time
-import warnings
-from dataclasses import dataclass, replace
 from typing import Any, Iterable
 
 import numpy as np
 
-from fusion import estimators
-from fusion.estimators.params import EstimatorSpec, parse_specs
-from fusion.datasets import initial_orientation
-from fusion.types import Recording, Trajectory
+from fusion.estimators.params import EstimatorSpec
+from fusion.types import Recording
 
-from .align import Alignment, fit_alignment
-from .metrics import KINDS, MIN_COVERAGE, Score, score
+from .job import (  # noqa: F401  (the job layer, re-exported: `from fusion.evaluation.compare import run_one`)
+    Result, aligned, as_specs, default_protocol, expand_all, recording_alignment, run_one, warn_low_coverage,
+)
+from .metrics import KINDS, MIN_COVERAGE
+from .runner import run
 
-
-@dataclass(frozen=True, eq=False)
-class Result:
-    """One recording x estimator. `rmse_deg`/`max_deg` are None without ground truth.
-
-    scored_samples, coverage: how many samples were scored and their fraction of what the
-    protocol scores (`fusion.evaluation.metrics.Score.coverage`); None without ground truth (or
-    from an older results.json). Below `MIN_COVERAGE` the row is flagged and left out of means.
-    """
-
-    dataset: str
-    estimator: str
-    samples: int
-    seconds: float
-    rmse_deg: dict[str, float] | None
-    max_deg: dict[str, float] | None
-    trajectory: Trajectory | None = None
-    score: Score | None = None
-    panorama: dict[str, float] | None = None  # with --panorama: `fusion.evaluation.panorama.panorama_scores`
-    alignment: dict[str, Any] | None = None  # with --align: the recording's `fusion.evaluation.align.Alignment.to_json`
-    scored_samples: int | None = None
-    coverage: float | None = None
-
-    @property
-    def us_per_sample(self) -> float:
-        return 1e6 * self.seconds / max(self.samples, 1)
-
-    @property
-    def low_coverage(self) -> bool:
-        """Scored on less than `MIN_COVERAGE` of the recording (flagged, left out of means)."""
-        return self.coverage is not None and self.coverage < MIN_COVERAGE
-
-    @property
-    def in_means(self) -> bool:
-        return bool(self.rmse_deg) and not self.low_coverage
-
-    def to_json(self) -> dict[str, Any]:
-        """The row of `results.json` (the keys are a documented format: see README; `panorama`
-        only with `--panorama`; `alignment` null unless the row was scored with `--align`)."""
-        row = {
-            "dataset": self.dataset,
-            "estimator": self.estimator,
-            "samples": self.samples,
-            "seconds": self.seconds,
-            "rmse_deg": self.rmse_deg,
-            "max_deg": self.max_deg,
-            "scored_samples": self.scored_samples,
-            "coverage": self.coverage,
-            "alignment": self.alignment,
-        }
-        if self.panorama is not None:
-            row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
-        return row
-
-
-def _as_specs(specs: Iterable[EstimatorSpec | str]) -> list[EstimatorSpec]:
-    out: list[EstimatorSpec] = []
-    for spec in specs:
-        out.extend(parse_specs(spec) if isinstance(spec, str) else [spec])
-    return out
-
-
-def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
-    """Replace the name `all` with every registered estimator (registry order).
-
-    `all` leaves out peers whose optional library is not installed (with a warning);
-    naming such a peer explicitly is an error that says what to install.
-    """
-    out: list[EstimatorSpec] = []
-    for spec in specs:
-        if spec.name != "all":
-            out.append(spec)
-            continue
-        missing = []
-        for name in estimators.ESTIMATORS:
-            try:
-                estimators.build(EstimatorSpec(name))
-            except ImportError:
-                missing.append(name)
-                continue
-            out.append(EstimatorSpec(name, spec.overrides))
-        if missing:
-            warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
-                          f"(pip install -e '.[peers]')", stacklevel=2)
-    return out
-
-
-def default_protocol(recording: Recording) -> str:
-    """"broad" for recordings that carry a movement mask (BROAD trials), else "full"."""
-    return "broad" if recording.movement is not None else "full"
-
-
-def recording_alignment(recording: Recording) -> Alignment | None:
-    """The recording's alignment (`fusion.evaluation.align.fit_alignment`), None without truth; errors
-    name the recording."""
-    if recording.truth is None:
-        return None
-    try:
-        return fit_alignment(recording.imu, recording.truth)
-    except ValueError as exc:
-        raise ValueError(f"{recording.id}: {exc}") from None
-
-
-def aligned(recording: Recording, alignment: Alignment | None) -> Recording:
-    """The recording with its truth mapped into our frames, `A R_truth B` (a new `Recording`)."""
-    if alignment is None or recording.truth is None:
-        return recording
-    return replace(recording, truth=alignment.apply(recording.truth))
-
-
-def run_one(recording: Recording, spec: EstimatorSpec, init: str | None = None, protocol: str | None = None,
-            align: bool | Alignment | None = False) -> Result:
-    """One job: estimate, time, score (`protocol` None: the recording's default).
-
-    align: score against the truth mapped into our frames (`fusion.evaluation.align`): True fits the
-        recording's alignment here; an `Alignment` (fitted once per recording by the caller)
-        is used as given. The initial orientation then comes from the aligned truth
-        (`init` None or "truth"), so every estimator starts in our frames.
-    """
-    alignment = None
-    if isinstance(align, Alignment):
-        alignment = align
-    elif align:
-        alignment = recording_alignment(recording)
-    recording = aligned(recording, alignment)
-    estimator = estimators.build(spec)
-    q0 = initial_orientation(recording, init)
-    start = time.perf_counter()
-    # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
-    # numpy's floating-point warnings are silenced here and the result judged by its finiteness,
-    # and a numerical exception becomes one line naming the estimator and the recording.
-    try:
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
-            trajectory = estimator.estimate(recording.imu, q0)
-    except (ArithmeticError, np.linalg.LinAlgError) as exc:
-        raise ValueError(f"{recording.id}: estimator {spec.label!r} failed numerically ({type(exc).__name__}: "
-                         f"{' '.join(str(exc).split())[:200]}); check its parameter values") from None
-    seconds = time.perf_counter() - start
-    if not np.all(np.isfinite(trajectory.quat_wxyz)):
-        raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations "
-                         "(diverged or overflowed; check its parameter values)")
-    protocol = protocol or default_protocol(recording)
-    result_score = None
-    if recording.truth is not None:
-        try:
-            result_score = score(recording.truth, trajectory, protocol, recording.movement)
-        except ValueError as exc:
-            raise ValueError(f"{recording.id}, {spec.label}: {exc}") from None
-    return Result(
-        recording.id, spec.label, len(recording.imu), seconds,
-        result_score.rmse_deg if result_score else None,
-        result_score.max_deg if result_score else None,
-        trajectory, result_score, alignment=alignment.to_json() if alignment else None,
-        scored_samples=result_score.samples if result_score else None,
-        coverage=result_score.coverage if result_score else None,
-    )
+_as_specs = as_specs  # the former private name, kept for scripts that used it
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
@@ -201,9 +47,7 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
         fitted once per recording from its IMU and truth (`fusion.evaluation.align`), the same for
         every estimator; each result's `alignment` holds them.
     """
-    from .runner import run
-
-    results, _ = run(expand_all(_as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
+    results, _ = run(expand_all(as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
                      protocol=protocol, align=align)
     return results
 
@@ -328,15 +172,6 @@ def format_coverage(r: Result) -> str:
     if r.coverage is None:
         return "-"
     return f"{100 * r.coverage:.1f}%" + (" LOW" if r.low_coverage else "")
-
-
-def warn_low_coverage(results: list[Result]) -> None:
-    """One warning per row scored on less than `MIN_COVERAGE` of its recording."""
-    for r in results:
-        if r.low_coverage:
-            warnings.warn(f"{r.dataset}, {r.estimator}: scored on {r.scored_samples} of the recording's samples "
-                          f"({100 * r.coverage:.2g}% < {MIN_COVERAGE:.0%}: the truth covers too little of it); "
-                          "flagged and left out of the means", stacklevel=2)
 
 
 def format_alignments(results: list[Result]) -> str:

@@ -5,7 +5,7 @@ frame with the frame's orientation, unwrap longitude/latitude into an image), do
 other way round: for every panorama pixel we ask where it falls in the frame and sample
 it there with `cv2.remap` (inverse mapping: no holes, no per-pixel Python).
 
-Panorama layout (`PanoramaGrid`, the same for the scenes in `fusion.evaluation.camsim`):
+Panorama layout (`fusion.evaluation.equirect.PanoramaGrid`, the same for the scenes in `fusion.evaluation.camsim`):
 longitude across, decreasing to the right so that the image is not mirrored when seen
 from inside (column centre j at lon = pi - 2 pi (j + 0.5) / W; lon 0 = world +x in the
 middle), latitude down (row centre i at lat = pi/2 - pi (i + 0.5) / H; +z at the top).
@@ -33,73 +33,29 @@ import cv2
 import numpy as np
 
 from fusion.camera import CameraModel, CameraSource, load_camera
+from fusion.datasets import DROPOUTS_DEFAULT, data_dir_from
 from fusion.types import Trajectory
+
+from . import camsim
+from .camsim import check_rate
+from .equirect import MAX_HEIGHT_PX, MAX_WIDTH_PX, PanoramaGrid  # noqa: F401  (PanoramaGrid: part of this module's API)
 
 Blend = Literal["last", "average", "feather"]
 BLENDS = ("last", "average", "feather")
 
 
 # --------------------------------------------------------------------------- geometry
-# Largest panorama: 8K equirectangular, 33.5 Mpx; the stitcher's float32 accumulators take
-# ~16 bytes per pixel (0.5 GB here); 100000 x 100000 would take 160 GB.
-MAX_WIDTH_PX, MAX_HEIGHT_PX = 8192, 4096
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def check_options(out: Any, rate_hz: float) -> None:
     """The `fusion panorama` options checked before any work: an image name OpenCV writes
     (`IMAGE_SUFFIXES`) and a rendering frame rate within `fusion.evaluation.camsim.check_rate`."""
-    from pathlib import Path
-
-    from .camsim import check_rate
-
     suffix = Path(out).suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise ValueError(f"--out {out}: unsupported image extension {suffix or '(none)'!r}; use "
                          f"{', '.join(IMAGE_SUFFIXES)}")
     check_rate(rate_hz, "--rate")
-
-@dataclass(frozen=True)
-class PanoramaGrid:
-    """Equirectangular pixel grid: width_px columns of longitude, height_px rows of latitude."""
-
-    width_px: int = 1920
-    height_px: int = 960
-
-    def __post_init__(self) -> None:
-        if self.width_px < 4 or self.height_px < 2:
-            raise ValueError(f"panorama: size must be at least 4 x 2 px, got {self.width_px} x {self.height_px}")
-        if self.width_px > MAX_WIDTH_PX or self.height_px > MAX_HEIGHT_PX:
-            raise ValueError(f"panorama: size {self.width_px} x {self.height_px} px exceeds {MAX_WIDTH_PX} x {MAX_HEIGHT_PX} "
-                             "(8K equirectangular; the stitcher keeps several float buffers of this size)")
-
-    def lon(self, col: np.ndarray | float) -> np.ndarray:
-        """Longitude (rad) of column coordinate(s) (pixel centres at integers)."""
-        return math.pi - 2.0 * math.pi * (np.asarray(col, dtype=float) + 0.5) / self.width_px
-
-    def lat(self, row: np.ndarray | float) -> np.ndarray:
-        """Latitude (rad) of row coordinate(s)."""
-        return 0.5 * math.pi - math.pi * (np.asarray(row, dtype=float) + 0.5) / self.height_px
-
-    def col(self, lon: np.ndarray | float) -> np.ndarray:
-        """Column coordinate of longitude(s), rad (not wrapped: lon outside (-pi, pi] gives
-        columns outside [−0.5, W − 0.5))."""
-        return (math.pi - np.asarray(lon, dtype=float)) * self.width_px / (2.0 * math.pi) - 0.5
-
-    def row(self, lat: np.ndarray | float) -> np.ndarray:
-        """Row coordinate of latitude(s), rad."""
-        return (0.5 * math.pi - np.asarray(lat, dtype=float)) * self.height_px / math.pi - 0.5
-
-    def pixel(self, direction_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(col, row) coordinates of world directions `(..., 3)` (any length)."""
-        d = np.asarray(direction_world, dtype=float)
-        lon = np.arctan2(d[..., 1], d[..., 0])
-        lat = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
-        return self.col(lon), self.row(lat)
-
-    def area_weights(self) -> np.ndarray:
-        """(H,) relative solid angle of a pixel in each row (cos latitude)."""
-        return np.cos(self.lat(np.arange(self.height_px)))
 
 
 @dataclass
@@ -496,8 +452,6 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
                        progress: bool = False) -> Reference:
     """The frames of a recording (its camera, or rendered from a scene with the ground truth)
     and the ground-truth panorama. Cached for the last recording (bounded memory)."""
-    from fusion.evaluation import camsim
-
     grid = grid or PanoramaGrid()
     key = (id(recording), id(scene) if scene is not None else None, str(data_dir), model, grid, blend, rate_hz)
     if key in _REFERENCES:
@@ -520,3 +474,72 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
     ref = Reference(camera, ref_pano, scene_grid, grid)
     _REFERENCES[key] = (recording, scene, ref)
     return ref
+
+
+# --------------------------------------------------------------------------- the command
+@dataclass(frozen=True, eq=False)
+class PanoramaRun:
+    """A finished `stitch_recording`: the recording and estimator, the estimate's panorama, its
+    scores (`panorama_scores`), the image written, and `text`, what `fusion panorama` prints."""
+
+    recording_id: str
+    estimator: str
+    panorama: Panorama
+    scores: dict[str, float]
+    out: Path
+
+    @property
+    def text(self) -> str:
+        s = self.scores
+        lines = [f"{self.recording_id} {self.estimator}: {self.panorama.frames_used} frames "
+                 f"({self.panorama.frames_skipped} skipped) -> {self.out}",
+                 f"PSNR {s['psnr_db']:.2f} dB, SSIM {s['ssim']:.4f} against the ground-truth panorama; "
+                 f"covered {s['covered_fraction']:.3f} of the sphere"]
+        if np.isfinite(s["scene_psnr_db"]):
+            lines.append(f"PSNR {s['scene_psnr_db']:.2f} dB, SSIM {s['scene_ssim']:.4f} against the scene")
+        return "\n".join(lines)
+
+
+def stitch_recording(dataset: str, estimator: str, out: Any, *, data_dir: Any = None, init: str | None = None,
+                     size: str = "1920x960", rate_hz: float = 10.0, scene: Any = None, blend: Blend = "feather",
+                     reference: bool = False, calibration: Any = None, dropouts: bool = DROPOUTS_DEFAULT,
+                     progress: bool = False) -> PanoramaRun:
+    """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
+    frames (its camera's, or frames rendered from a scene with the truth: `reference_panorama`)
+    into a panorama, score it and write the image to `out` (.png/.jpg).
+
+    dataset: names exactly one recording (`fusion.selection.load_selected`); estimator: one spec text.
+    size: the panorama's "WIDTHxHEIGHT" in px; rate_hz: the rendered frames' rate.
+    reference: write the estimate, the ground truth's panorama and their difference, stacked.
+    """
+    from fusion.estimators.params import parse_specs
+    from fusion.selection import load_selected
+
+    from .job import run_one
+
+    check_options(out, rate_hz)  # before any work: the image format and the frame rate
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
+    if len(recordings) != 1:
+        raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
+    (recording,) = recordings
+    specs = parse_specs(estimator)
+    if len(specs) != 1:
+        raise ValueError(f"--estimator {estimator!r}: give exactly one estimator")
+    if reference and recording.truth is None:
+        raise ValueError(f"{recording.id}: --reference needs ground truth, and this recording has none")
+    width, _, height = size.partition("x")
+    try:
+        grid = PanoramaGrid(int(width), int(height))
+    except ValueError as exc:
+        raise ValueError(f"--size {size!r}: expected WIDTHxHEIGHT in px, e.g. 1920x960 ({exc})") from exc
+    trajectory = run_one(recording, specs[0], init).trajectory
+    options = dict(data_dir=data_dir_from(data_dir), scene=scene, grid=grid, blend=blend, rate_hz=rate_hz)
+    pano, scores = estimate_panorama(recording, trajectory, progress=progress, **options)
+    image = pano.bgr()
+    if reference:
+        image = comparison_image(pano, reference_panorama(recording, **options).truth)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), image):
+        raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
+    return PanoramaRun(recording.id, specs[0].label, pano, scores, out)

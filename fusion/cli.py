@@ -2,24 +2,22 @@
 
     fusion compare --estimators dr,ukf --dataset all --data-dir ../shared/data/ece276a
 
-Everything a command does is a couple of library calls (see each `cmd_*`). Bad input gives
-one line `fusion: error: ...` and exit code 1, never a traceback.
+Each `cmd_*` makes one library call with the parsed arguments and prints what it
+returns (`fusion.evaluation.runs.run_compare`, `run_ablate`, `run_inspect`, `run_calibrate`,
+`fusion.evaluation.panorama.stitch_recording`, `fusion.evaluation.report.render`). Bad input gives
+one line `fusion: error: ...` and exit code 1, never a traceback; SIGTERM stops a run as Ctrl-C does.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import os
 import shlex
 import signal
 import sys
 import warnings
-from pathlib import Path
-
-import numpy as np
 
 from . import datasets
+from .selection import note
 
 
 def _add_data_args(parser: argparse.ArgumentParser) -> None:
@@ -41,255 +39,72 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
                              "and per-recording clock offsets if it holds them)")
 
 
-def note(text: str) -> None:
-    """One line on stderr that is neither an error nor a warning."""
-    print(f"fusion: note: {text}", file=sys.stderr)
+def _data(args: argparse.Namespace) -> dict:
+    """The options every command shares, as the library's keyword arguments."""
+    return dict(data_dir=args.data_dir, calibration=args.calibration, dropouts=args.dropouts == "on",
+                progress=not args.no_progress)
 
 
-def select_sources(args: argparse.Namespace) -> list:
-    """The dataset `Source`s `--dataset` names (not loaded yet), identical recordings merged
-    (a note says which; `merged_settings` records them)."""
-    user_dir = args.data_dir or os.environ.get("FUSION_DATA")
-    root = datasets.data_dir_from(args.data_dir)
-    if user_dir and root.is_file():
-        raise ValueError(f"{root}: data directory is a file; give the folder holding the recordings "
-                         f"(or the file itself to --dataset)")
-    if user_dir and not root.is_dir():
-        raise FileNotFoundError(f"{root}: data directory does not exist")
-    if datasets.course_root(root) != root:
-        note(f"{root} is a course's {root.name}/ folder; reading recordings from its parent {root.parent}")
-    sources = datasets.select(args.dataset, args.data_dir)
-    if getattr(args, "calibration", None):
-        from .gyro_fit import warn_not_applied
-
-        warn_not_applied(args.calibration, sources)
-    if args.dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
-        if user_dir:
-            raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
-        note(f"no recordings found in {root.resolve()}; running on the built-in simulated recording `sim` "
-             "(--data-dir or $FUSION_DATA points at recordings)")
-    merged = datasets.describe_merged(sources)
-    if merged:
-        note(f"identical recordings counted once: {merged}")
-    return sources
+def _command(args: argparse.Namespace) -> str:
+    return shlex.join(["fusion", *args.argv])
 
 
-def merged_settings(sources: list) -> dict[str, list[str]]:
-    """{kept id: [ids of identical recordings merged into it]} for results.json `settings`."""
-    return datasets.merged_ids(sources)
+def _run_options(args: argparse.Namespace) -> dict:
+    """The options of `compare` and `ablate`."""
+    return dict(init=args.init, protocol=args.protocol, align=args.align, jobs=args.jobs, json_path=args.json,
+                out=args.out, command=_command(args), **_data(args))
 
 
-def load_selected(args: argparse.Namespace) -> list:
-    """The recordings `--dataset` names, loaded and calibrated (a progress bar per recording)."""
-    from tqdm import tqdm
-
-    options = load_options(args)
-    recordings = []
-    for source in tqdm(select_sources(args), desc="loading", disable=args.no_progress, file=sys.stderr, leave=False):
-        recordings.append(options.load(source))
-    return recordings
-
-
-def load_options(args: argparse.Namespace) -> datasets.LoadOptions:
-    """`--calibration` and `--dropouts` as the loading options every command uses."""
-    dropouts = getattr(args, "dropouts", "on") == "on"
-    if not getattr(args, "calibration", None):
-        return datasets.LoadOptions(dropouts=dropouts)
-    from . import gyro_fit
-
-    calib_file = gyro_fit.read(args.calibration)
-    return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())))
-
-
-def calibration_settings(args: argparse.Namespace) -> dict | None:
-    """What `--calibration` applied (for results.json `settings`), None without it."""
-    if not getattr(args, "calibration", None):
-        return None
-    from . import gyro_fit
-
-    calib_file = gyro_fit.read(args.calibration)
-    return {"file": str(Path(args.calibration).resolve()), "gyro_scale_factor": list(calib_file.gyro_scale_factor),
-            "clock_offset_s": calib_file.clock_offset_s}
-
-
-def cmd_panorama(args: argparse.Namespace) -> int:
-    import cv2
-
-    from fusion.estimators.params import parse_specs
-    from fusion.evaluation.compare import run_one
-    from fusion.evaluation.panorama import PanoramaGrid, comparison_image, estimate_panorama, reference_panorama
-
-    from fusion.evaluation.panorama import check_options
-
-    check_options(args.out, args.rate)  # before any work: the image format and the frame rate
-    recordings = load_selected(args)
-    if len(recordings) != 1:
-        raise ValueError(f"--dataset {args.dataset!r} names {len(recordings)} recordings; panorama takes one")
-    (recording,) = recordings
-    specs = parse_specs(args.estimator)
-    if len(specs) != 1:
-        raise ValueError(f"--estimator {args.estimator!r}: give exactly one estimator")
-    if args.reference and recording.truth is None:
-        raise ValueError(f"{recording.id}: --reference needs ground truth, and this recording has none")
-    width, _, height = args.size.partition("x")
-    try:
-        grid = PanoramaGrid(int(width), int(height))
-    except ValueError as exc:
-        raise ValueError(f"--size {args.size!r}: expected WIDTHxHEIGHT in px, e.g. 1920x960 ({exc})") from exc
-    trajectory = run_one(recording, specs[0], args.init).trajectory
-    data_dir = datasets.data_dir_from(args.data_dir)
-    options = dict(data_dir=data_dir, scene=args.scene, grid=grid, blend=args.blend, rate_hz=args.rate)
-    pano, scores = estimate_panorama(recording, trajectory, progress=not args.no_progress, **options)
-    image = pano.bgr()
-    if args.reference:
-        image = comparison_image(pano, reference_panorama(recording, **options).truth)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), image):
-        raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
-    print(f"{recording.id} {specs[0].label}: {pano.frames_used} frames ({pano.frames_skipped} skipped) -> {out}")
-    print(f"PSNR {scores['psnr_db']:.2f} dB, SSIM {scores['ssim']:.4f} against the ground-truth panorama; "
-          f"covered {scores['covered_fraction']:.3f} of the sphere")
-    if np.isfinite(scores["scene_psnr_db"]):
-        print(f"PSNR {scores['scene_psnr_db']:.2f} dB, SSIM {scores['scene_ssim']:.4f} against the scene")
-    return 0
-
-
-def cmd_inspect(args: argparse.Namespace) -> int:
-    from .checks import check_recording, format_check
-
-    recordings = load_selected(args)
-    checks = [check_recording(rec) for rec in recordings]
-    print("\n\n".join(format_check(c) for c in checks))
-    if args.json:
-        doc = {"command": shlex.join(["fusion", *args.argv]), "recordings": [c.to_json() for c in checks]}
-        Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
-    if args.out:
-        from fusion.evaluation.inspect_plots import plot_check
-
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        for rec, check in zip(recordings, checks):
-            path = out / f"inspect_{rec.id.replace('/', '_')}.png"
-            plot_check(rec, check, path)
-            print(f"wrote {path}")
-    return 0
-
-
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    from . import gyro_fit
-
-    recordings = load_selected(args)
-    if args.leave_one_out:
-        from fusion.evaluation.compare import format_table
-        from fusion.evaluation.loo import format_folds, leave_one_out
-
-        folds = leave_one_out([args.estimators], recordings, init=args.init, progress=not args.no_progress,
-                              align=args.align)
-        print(format_folds(folds))
-        print()
-        print(format_table([r for f in folds for r in f.results], align=args.align))
-    elif args.align:
-        raise ValueError("calibrate: --align applies to the scores of --leave-one-out (the fit itself assumes "
-                         "the truth's frames are the IMU's)")
-    result = gyro_fit.fit_recordings(recordings)
-    print(f"fit on {len(result.fitted_on)} recordings ({result.samples} samples): gyro_scale_factor "
-          + ", ".join(f"{x:.4f}" for x in result.gyro_scale_factor)
-          + " (sensitivity vs nominal " + ", ".join(f"{100 * (x - 1):+.1f} %" for x in result.sensitivity_ratio)
-          + f"); misalignment {', '.join(f'{x:+.2f}' for x in result.misalignment_deg)} deg; "
-          f"residual {result.residual_rms_deg_s:.2f} deg/s")
-    if args.clock_offset:
-        for rid, off in result.clock_offset_s.items():
-            print(f"  clock offset {rid}: VICON lags by {off * 1e3:+.1f} ms")
-    if args.out:
-        gyro_fit.write(args.out, result, with_clock_offset=args.clock_offset, command=shlex.join(["fusion", *args.argv]))
-        print(f"wrote {args.out}")
-    else:
-        print(gyro_fit.to_json_text(result, with_clock_offset=args.clock_offset,
-                                    command=shlex.join(["fusion", *args.argv])), end="")
-        note("not saved: --out FILE writes this calibration file (then use it with --calibration FILE)")
-    return 0
-
-
-def _run(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool = True) -> int:
-    """Run `specs` on the selected recordings; print the table; write --json and --out (the
-    --out folder is taken, locked, before computing: see `fusion.evaluation.report.OutputFolder`)."""
-    if not getattr(args, "out", None):
-        return _run_in(args, specs, settings, per_recording, None)
-    from fusion.evaluation.report import OutputFolder
-
-    with OutputFolder(args.out) as folder:
-        return _run_in(args, specs, settings, per_recording, folder)
-
-
-def _run_in(args: argparse.Namespace, specs: list, settings: dict, per_recording: bool, folder) -> int:
-    from fusion.evaluation.compare import format_table, results_json
-    from fusion.evaluation.runner import describe_specs, run
-
-    sources = select_sources(args)
-    out = getattr(args, "out", None)
-    results, infos = run(specs, sources, args.init, jobs=args.jobs, progress=not args.no_progress, load=load_options(args),
-                         panorama_data_dir=str(datasets.data_dir_from(args.data_dir)) if getattr(args, "panorama", False) else None,
-                         with_info=bool(out) and per_recording, protocol=args.protocol, align=args.align)
-    print(format_table(results, align=args.align))
-    if not (args.json or out):
-        return 0
-    from fusion.evaluation.report import git_commit
-
-    settings = {"command": shlex.join(["fusion", *args.argv]), **settings, "dataset": args.dataset,
-                "data_dir": str(datasets.data_dir_from(args.data_dir).resolve()),
-                "merged": merged_settings(sources),
-                "dropouts": getattr(args, "dropouts", "on"),
-                "calibration": calibration_settings(args),
-                "init": args.init or ("default (the aligned truth where available, else accel)" if args.align
-                                      else "default (truth where available, else accel)"),
-                "align": bool(args.align),
-                "protocol": args.protocol or "default (broad for recordings with a movement mask, else full)",
-                "estimator_details": describe_specs(specs),
-                "git_commit": git_commit()}
-    doc = results_json(results, settings)
-    if args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
-    if out:
-        from fusion.evaluation.report import write_run
-
-        report = write_run(folder, doc, results, infos, jobs=args.jobs, progress=not args.no_progress,
-                           per_recording=per_recording)
-        print(f"report: {report}", file=sys.stderr)
+def _print_run(run) -> int:
+    print(run.table)
+    if run.report is not None:
+        print(f"report: {run.report}", file=sys.stderr)
     return 0
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from fusion.evaluation.compare import _as_specs, expand_all
+    from fusion.evaluation.runs import run_compare
 
-    specs = expand_all(_as_specs([args.estimators]))
-    return _run(args, specs, {"kind": "compare", "estimators": args.estimators})
+    return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, **_run_options(args)))
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from fusion.evaluation import ablate
+    from fusion.evaluation.runs import run_ablate
 
-    if bool(args.preset) == bool(args.estimator):
-        raise ValueError("ablate: give either --preset NAME or --estimator NAME with --param NAME=V1,V2,...")
-    if args.preset:
-        if args.param:
-            raise ValueError("ablate: --param applies to --estimator, not to --preset")
-        specs = ablate.preset_specs(args.preset)
-        settings = {"kind": "ablate", "preset": args.preset, "estimators": ",".join(s.label for s in specs)}
-    else:
-        if not args.param:
-            raise ValueError("ablate: --estimator needs at least one --param NAME=V1,V2,...")
-        params = [ablate.parse_param(p) for p in args.param]
-        specs = ablate.grid_specs(args.estimator, params)
-        settings = {"kind": "ablate", "estimator": args.estimator, "params": dict(params),
-                    "estimators": ",".join(s.label for s in specs)}
-    return _run(args, specs, settings, per_recording=args.per_recording)
+    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset,
+                                 per_recording=args.per_recording, **_run_options(args)))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from fusion.evaluation.report import render
 
     print(render(args.folder, jobs=args.jobs, progress=not args.no_progress))
+    return 0
+
+
+def cmd_panorama(args: argparse.Namespace) -> int:
+    from fusion.evaluation.panorama import stitch_recording
+
+    print(stitch_recording(args.dataset, args.estimator, args.out, init=args.init, size=args.size, rate_hz=args.rate,
+                           scene=args.scene, blend=args.blend, reference=args.reference, **_data(args)).text)
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from fusion.evaluation.runs import run_inspect
+
+    print(run_inspect(args.dataset, json_path=args.json, out=args.out, command=_command(args), **_data(args)).text)
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from fusion.evaluation.runs import run_calibrate
+
+    print(run_calibrate(args.dataset, out=args.out, clock_offset=args.clock_offset, leave_one_out=args.leave_one_out,
+                        estimators=args.estimators, init=args.init, align=args.align, command=_command(args),
+                        **_data(args)).text)
+    if not args.out:
+        note("not saved: --out FILE writes this calibration file (then use it with --calibration FILE)")
     return 0
 
 

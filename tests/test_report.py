@@ -195,6 +195,25 @@ def test_library_compare_jobs_keeps_order(toy):
     np.testing.assert_array_equal(serial[2].trajectory.diagnostics["loss"], parallel[2].trajectory.diagnostics["loss"])
 
 
+def test_spawned_workers_run_what_the_parent_registered(toy, monkeypatch):
+    """Under 'spawn' a worker starts from the default registry, which has no `toy`: jobs carry
+    their estimator class, so the results are those of a serial run, and the registry is never
+    rewritten (`fusion.evaluation.runner`)."""
+    import multiprocessing
+
+    from fusion import estimators
+
+    recs = [recording(seed=k, rid=f"toy/{k}") for k in range(2)]
+    before = dict(estimators.ESTIMATORS)
+    serial, _ = runner.run(["toy:g=1.1", "dr"], recs, jobs=1)
+    monkeypatch.setattr(runner, "pool_context", lambda: multiprocessing.get_context("spawn"))
+    spawned, _ = runner.run(["toy:g=1.1", "dr"], recs, jobs=2)
+    assert [(r.dataset, r.estimator) for r in spawned] == [(r.dataset, r.estimator) for r in serial]
+    for a, b in zip(serial, spawned):
+        np.testing.assert_array_equal(a.trajectory.quat_wxyz, b.trajectory.quat_wxyz)
+    assert estimators.ESTIMATORS == before and runner._WORKER is None  # the parent's state untouched
+
+
 def test_worker_error_is_one_line(tmp_path, capsys):
     (tmp_path / "lab" / "imu").mkdir(parents=True)
     (tmp_path / "lab" / "imu" / "imuRaw1.p").write_bytes(b"\x80\x04garbage")
