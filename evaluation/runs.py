@@ -135,6 +135,9 @@ def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], setting
                          with_info=folder is not None and per_recording, protocol=protocol, align=align,
                          scheduler=scheduler, scatter=scatter)
     table = format_table(results, align=align)
+    sweep = ablate.sweep_summary([r.to_json() for r in results]) if settings.get("kind") == "ablate" else None
+    if sweep:
+        table += "\n\n" + ablate.format_sweep(sweep)
     if not (json_path or folder):
         return Run(results, table)
     settings = {"command": command, **settings, "dataset": dataset,
@@ -149,6 +152,8 @@ def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], setting
                 "estimator_details": describe_specs(specs),
                 "git_commit": git_commit()}
     doc = results_json(results, settings)
+    if sweep:
+        doc["sweep"] = sweep  # README, "`--json` format"
     if json_path:
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
