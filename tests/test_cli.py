@@ -70,7 +70,7 @@ def test_recording_without_truth_still_runs(data_dir, capsys):
     (["--estimators", "dr:x=1", "--dataset", "sim"], "unknown parameter 'x'"),
     (["--estimators", "dr", "--dataset", "nothing/9"], "dataset 'nothing/9' not found"),
     (["--estimators", "dr", "--dataset", "sim", "--init", "truth", "--data-dir", "/no/such/dir"], "/no/such/dir: data directory does not exist"),
-    (["--estimators", "ukf:R=-1", "--dataset", "sim"], "parameter 'R' (acc_noise_g2)"),
+    (["--estimators", "ukf:R=-1", "--dataset", "sim"], "parameter 'R' (acc_noise_g2_s)"),
     (["--estimators", "dr", "--dataset", "sim", "--data-dir", __file__], "data directory is a file"),
 ])
 def test_bad_input_is_one_line_and_exit_1(capsys, argv, message):
