@@ -9,12 +9,18 @@ each labelled exactly as `fusion compare --estimators` would label it, so an abl
 one value gives the same rows as `compare` with that parameter. The report then reads the
 parameter values back from the labels (`fusion.evaluation.plots.label_params`).
 
-`PRESETS` holds the seed reports' questions as spec lists (data only; edit freely).
+`PRESETS` holds the seed reports' questions as spec lists (data only; edit freely), and
+`broad-sweep`, BROAD's parameter study (Laidig et al. 2021, "BROAD - a benchmark for robust
+inertial orientation estimation", Data 6(7): 72): a grid over a filter's main parameters, run on
+every trial. `sweep_summary` reads any ablation's rows as BROAD does: the best common setting
+("TAGP", trial-agnostic good parameters: the one setting with the lowest mean error over all
+recordings) and each recording's own best setting (the per-trial minimum).
 """
 from __future__ import annotations
 
 import itertools
-from typing import Sequence
+import math
+from typing import Any, Sequence
 
 from fusion.estimators.params import EstimatorSpec, parse_specs
 
@@ -32,6 +38,17 @@ PRESETS: dict[str, list[str]] = {
     "motion-weight": ["gn:weighting=seed,wm=1", "gn:weighting=seed,wm=3", "gn:weighting=seed,wm=10",
                       "gn:weighting=seed,wm=30"],
 }
+
+# BROAD's sweep for `ekf` (`EKFParams`): Q, the gyro noise density in rad^2/s; R, the
+# accelerometer noise density in g^2 s; tauc, the correlation time of the external acceleration
+# in s. 3 x 5 x 2 = 30 settings; the defaults (Q=3e-4, R=3e-5, tauc=0.1) are among them.
+BROAD_SWEEP: dict[str, list[str]] = {
+    "Q": ["1e-4", "3e-4", "1e-3"],
+    "R": ["1e-5", "3e-5", "1e-4", "3e-4", "1e-3"],
+    "tauc": ["0.1", "0.5"],
+}
+PRESETS["broad-sweep"] = ["ekf:" + ",".join(f"{k}={v}" for k, v in zip(BROAD_SWEEP, combo))
+                          for combo in itertools.product(*BROAD_SWEEP.values())]
 
 
 def preset_specs(name: str) -> list[EstimatorSpec]:
@@ -83,3 +100,56 @@ def _one_spec(text: str) -> list[EstimatorSpec]:
     if len(specs) != 1:
         raise ValueError(f"--estimator {text!r}: name one estimator (use --preset or compare for several)")
     return specs
+
+
+def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total") -> dict[str, Any] | None:
+    """BROAD's reading of an ablation (rows as in results.json; rows without truth or with low
+    coverage left out, as in the means): the best common setting, the one with the lowest mean
+    `kind` RMSE over the recordings (over those every setting was scored on), and per recording
+    its own best setting. None with fewer than two settings or no scored recording.
+
+    Returns {"kind", "settings", "recordings", "best_common": {"estimator", "mean_rmse_deg"},
+    "per_recording": [{"dataset", "best_estimator", "best_rmse_deg", "common_rmse_deg"}],
+    "mean_best_per_recording_deg"}: the last is the mean of the per-recording minima, the
+    bound a setting tuned per trial would reach.
+    """
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    err: dict[tuple[str, str], float] = {}
+    for r in rows:
+        coverage = r.get("coverage")
+        if r.get("rmse_deg") and (coverage is None or coverage >= _min_coverage()):
+            err[(r["dataset"], r["estimator"])] = float(r["rmse_deg"][kind])
+    datasets = [d for d in dict.fromkeys(r["dataset"] for r in rows) if all((d, lab) in err for lab in labels)]
+    if len(labels) < 2 or not datasets:
+        return None
+    means = {lab: math.fsum(err[(d, lab)] for d in datasets) / len(datasets) for lab in labels}
+    best = min(labels, key=lambda lab: means[lab])  # ties: the first listed
+    per = []
+    for d in datasets:
+        own = min(labels, key=lambda lab: err[(d, lab)])
+        per.append({"dataset": d, "best_estimator": own, "best_rmse_deg": err[(d, own)],
+                    "common_rmse_deg": err[(d, best)]})
+    return {"kind": kind, "settings": len(labels), "recordings": len(datasets),
+            "best_common": {"estimator": best, "mean_rmse_deg": means[best]},
+            "per_recording": per,
+            "mean_best_per_recording_deg": math.fsum(p["best_rmse_deg"] for p in per) / len(per)}
+
+
+def _min_coverage() -> float:
+    from .metrics import MIN_COVERAGE
+    return MIN_COVERAGE
+
+
+def format_sweep(summary: dict[str, Any]) -> str:
+    """The lines `fusion ablate` prints under its table."""
+    best = summary["best_common"]
+    lines = [f"Sweep ({summary['settings']} settings x {summary['recordings']} recordings, {summary['kind']} RMSE in degrees)",
+             f"best common setting (lowest mean over all recordings): {best['estimator']}  "
+             f"mean {best['mean_rmse_deg']:.2f}",
+             f"each recording's own best setting: mean {summary['mean_best_per_recording_deg']:.2f}"]
+    width = max(len("dataset"), *(len(p["dataset"]) for p in summary["per_recording"]))
+    head = f"{'dataset':<{width}}  {'own best':>8}  {'common':>6}  own best setting"
+    lines += [head, "-" * len(head)]
+    lines += [f"{p['dataset']:<{width}}  {p['best_rmse_deg']:8.2f}  {p['common_rmse_deg']:6.2f}  {p['best_estimator']}"
+              for p in summary["per_recording"]]
+    return "\n".join(lines)

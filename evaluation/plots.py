@@ -436,6 +436,43 @@ def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:
     return fig
 
 
+def sweep_figure(rows: list[dict], kind: str = "total") -> Figure | None:
+    """A sweep at a glance: mean RMSE against each varied parameter, one panel per parameter,
+    each point the minimum over the other parameters' values (BROAD's figures); the best common
+    setting is marked. None unless at least two parameters vary (one is `param_figure`)."""
+    labels = list(dict.fromkeys(r["estimator"] for r in rows))
+    name, table = label_params(labels)
+    if len(table) < 2:
+        return None
+    means = np.array([_mean_rmse(rows, label, kind) for label in labels])
+    if not np.any(np.isfinite(means)):
+        return None
+    best = int(np.nanargmin(means))
+    keys = list(table)
+    fig = _new_figure(max(6.5, 4.2 * len(keys)), 4.2)
+    axes = np.atleast_1d(fig.subplots(1, len(keys), sharey=True))
+    for ax, key in zip(axes, keys):
+        values = table[key]
+        order = list(dict.fromkeys(values))
+        numbers = _as_numbers(order)
+        xs = numbers if numbers is not None else np.arange(len(order))
+        ys = [np.nanmin(np.where([v == value for v in values], means, np.nan)) for value in order]
+        ax.plot(xs, ys, marker="o", color=color(0), label="minimum over the others")
+        ax.plot(xs[order.index(values[best])], means[best], marker="*", markersize=14, color=color(1),
+                linestyle="none", label="best common setting")
+        if numbers is not None and np.all(numbers > 0) and numbers.max() / numbers.min() >= 10:
+            ax.set_xscale("log")
+        ax.set_xticks(xs, order)
+        ax.set_xlabel(f"{name} {key}")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(f"mean {kind} RMSE [deg]")
+    axes[0].set_ylim(bottom=0)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{name}: mean {kind} RMSE against each parameter (minimum over the others)\n"
+                 f"best common setting: {labels[best]}, {means[best]:.2f} deg", fontsize=10)
+    return fig
+
+
 def grid_figure(rows: list[dict], kind: str = "total") -> Figure | None:
     """Heat map of the mean RMSE over a two-parameter grid; None unless exactly two vary."""
     labels = list(dict.fromkeys(r["estimator"] for r in rows))

@@ -297,6 +297,8 @@ def _render_summary(doc: dict[str, Any], fig_dir: str) -> list[tuple[str, str]]:
     if doc["settings"].get("kind") == "ablate":
         figures = [
             ("mean RMSE per setting", "ablation-bars.png", lambda: plots.bars_figure(rows)),
+            ("sweep: mean total RMSE against each parameter, the minimum over the other parameters",
+             "ablation-sweep.png", lambda: plots.sweep_figure(rows)),
             ("mean total RMSE against each parameter", "ablation-params.png", lambda: plots.param_figure(rows)),
             ("mean total RMSE over the parameter grid", "ablation-grid.png", lambda: plots.grid_figure(rows)),
         ] + figures
@@ -328,7 +330,8 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     doc = read_results(source / RESULTS)
     results = [_result(r) for r in doc["results"]]
     table = format_table(results, align=bool(doc["settings"].get("align", False)))
-    (dest / "table.txt").write_text(table + "\n")
+    sweep = _sweep_text(doc)
+    (dest / "table.txt").write_text(table + (f"\n\n{sweep}" if sweep else "") + "\n")
     fig_dir = dest / "figures"
     fig_dir.mkdir(exist_ok=True)
     series_paths = series_files(source)
@@ -340,6 +343,17 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     summary, per_recording = outputs[0], [fig for figs in outputs[1:] for fig in figs]
     (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording))
     (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir))
+
+
+def _sweep_text(doc: dict[str, Any]) -> str:
+    """An ablation's best common and per-recording best settings (`fusion.evaluation.ablate.sweep_summary`,
+    from the rows, so a re-render agrees with them), '' for a comparison."""
+    if doc["settings"].get("kind") != "ablate":
+        return ""
+    from .ablate import format_sweep, sweep_summary
+
+    summary = sweep_summary(doc["results"])
+    return format_sweep(summary) if summary else ""
 
 
 def series_files(out: Path) -> list[Path]:
@@ -593,6 +607,9 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
               "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
     if _alignment_rows(doc):
         lines += ["## Alignment (--align)", ""] + md_table(ALIGNMENT_HEADER, _alignment_rows(doc)) + [""]
+    if _sweep_text(doc):
+        lines += ["## Sweep: best common and per-recording best settings", ""] + [
+            "    " + line for line in _sweep_text(doc).splitlines()] + [""]
     lines += ["## Figures", ""] + [f"![{c}](figures/{n})" for c, n in summary] + [""]
     if per_recording:
         lines += ["## Per recording", ""] + [f"![{c}](figures/{n})" for c, n in per_recording] + [""]
@@ -649,6 +666,8 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         *([f"<p>{html.escape(_coverage_text(doc))}</p>"] if _coverage_text(doc) else []),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
+        *(["<h2>Sweep: best common and per-recording best settings</h2>", f"<pre>{html.escape(_sweep_text(doc))}</pre>"]
+          if _sweep_text(doc) else []),
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
     ]
     if per_recording:

@@ -24,6 +24,16 @@ With `align`, a recording's alignment (`fusion.evaluation.align`) is fitted from
 the first time a process needs it and kept with the loaded recording, so every job of that
 recording uses it, not a fit of its own (each worker that touches the recording fits it once;
 the fit is deterministic, so they agree bit for bit).
+
+Dask: with `scheduler` (the address of a running dask.distributed scheduler) the same jobs run
+on that cluster's workers (`_run_dask`), submitted with `pure=False` and `retries`, collected as
+they finish; results and their order are again those of a serial run. The workers get the
+recordings either as `Source`s, loaded by a task on a worker once per recording (cheap to send;
+every worker needs the files at the same absolute path), or loaded here and scattered to every
+worker (no shared file system needed; `scatter`). By default the client asks each worker
+whether it sees every file (`client.run`) and scatters only if one does not. Jobs, the
+recordings and their alignments are tasks of the cluster, so nothing of the run is kept in
+module state on a worker.
 """
 from __future__ import annotations
 
@@ -31,8 +41,9 @@ import multiprocessing
 import os
 import signal
 import sys
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -106,16 +117,20 @@ class WorkerState:
 
     def run(self, job: Job) -> tuple[Result, RecordingInfo | None]:
         """The job's `Result` (and its recording's `RecordingInfo` if asked)."""
-        rec = self.recording(job.index)
-        alignment = self.alignment(job.index) if job.align else None
-        result = run_one(rec, job.spec, job.init, job.protocol, alignment, estimator_class=job.estimator_class)
-        rec = aligned(rec, alignment)
-        if job.panorama_data_dir is not None:
-            from .panorama import panorama_scores
+        return run_job(job, self.recording(job.index), self.alignment(job.index) if job.align else None)
 
-            result = replace(result, panorama=panorama_scores(rec, result.trajectory, data_dir=job.panorama_data_dir))
-        info = RecordingInfo(rec.id, rec.imu.t, rec.imu.gyr_valid, rec.truth) if job.with_info else None
-        return result, info
+
+def run_job(job: Job, rec: Recording, alignment: Alignment | None) -> tuple[Result, RecordingInfo | None]:
+    """One job on its (loaded) recording and the recording's alignment (None without `align`):
+    the `Result`, and the recording's `RecordingInfo` if the job asks for it."""
+    result = run_one(rec, job.spec, job.init, job.protocol, alignment, estimator_class=job.estimator_class)
+    rec = aligned(rec, alignment)
+    if job.panorama_data_dir is not None:
+        from .panorama import panorama_scores
+
+        result = replace(result, panorama=panorama_scores(rec, result.trajectory, data_dir=job.panorama_data_dir))
+    info = RecordingInfo(rec.id, rec.imu.t, rec.imu.gyr_valid, rec.truth) if job.with_info else None
+    return result, info
 
 
 _WORKER: WorkerState | None = None  # in a pool worker: its state, set once by `_start_worker`
@@ -172,8 +187,8 @@ def pool_context() -> multiprocessing.context.BaseContext:
 
 def run(specs: Iterable[EstimatorSpec | str] | str, items: Sequence[Source | Recording], init: str | None = None,
         jobs: int | None = 1, progress: bool = False, with_info: bool = False, protocol: str | None = None,
-        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None, align: bool = False
-        ) -> tuple[list[Result], list[RecordingInfo]]:
+        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None, align: bool = False,
+        scheduler: str | None = None, scatter: bool | None = None) -> tuple[list[Result], list[RecordingInfo]]:
     """Every spec on every recording; results in recording-major order.
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`; `all` expands to the registry,
@@ -188,7 +203,15 @@ def run(specs: Iterable[EstimatorSpec | str] | str, items: Sequence[Source | Rec
         up there; see `fusion.evaluation.panorama.panorama_scores`).
     align: score against the truth mapped into our frames by constant rotations fitted once
         per recording (module docstring, `fusion.evaluation.align`), the same for every spec.
+    scheduler: the address of a running dask.distributed scheduler (`tcp://10.0.0.5:8786`): the
+        jobs run on its workers instead (`jobs` is then not used; see "Dask" in the module
+        docstring); None runs locally.
+    scatter: with `scheduler`, how workers get the recordings: False ships `Source`s (each
+        worker needs the files at the same path), True loads them here and sends the loaded
+        recordings, None (default) ships `Source`s if every worker sees every file, else scatters.
     """
+    if scatter and not scheduler:
+        raise ValueError("--scatter applies to runs on a Dask cluster (--scheduler ADDRESS)")
     specs = expand_all(as_specs(specs))
     items = list(items)
     classes = [resolve(spec) for spec in specs]
@@ -201,7 +224,9 @@ def run(specs: Iterable[EstimatorSpec | str] | str, items: Sequence[Source | Rec
     bar = _progress(len(tasks), progress)
     outputs: list[Any] = [None] * len(tasks)
     try:
-        if jobs == 1:
+        if scheduler:
+            outputs = _run_dask(tasks, items, scheduler, bar, load, scatter)
+        elif jobs == 1:
             state = WorkerState(items, load)
             for n, task in enumerate(tasks):
                 bar.set_postfix_str(_label(items, task))
@@ -222,19 +247,127 @@ def _run_pool(tasks: list[Job], items: list, jobs: int, bar: Any, load: LoadOpti
     with ProcessPoolExecutor(max_workers=jobs, mp_context=pool_context(), initializer=_start_worker,
                              initargs=(items, load)) as pool:
         futures = {pool.submit(_run_in_worker, task): n for n, task in enumerate(tasks)}
-        pending = set(futures)
         try:
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                for future in done:
-                    n = futures[future]
-                    outputs[n] = future.result()  # re-raises a worker's error here
-                    bar.set_postfix_str(_label(items, tasks[n]))
-                    bar.update()
+            for future in as_completed(futures):  # one step of the bar per finished job
+                n = futures[future]
+                outputs[n] = future.result()  # re-raises a worker's error here
+                bar.set_postfix_str(_label(items, tasks[n]))
+                bar.update()
         except BaseException:  # a job's error, Ctrl-C, SIGTERM (see `fusion.cli`): no orphaned workers
             stop_pool(pool)
             raise
     return outputs
+
+
+# --- Dask ---
+
+RETRIES = 2  # extra attempts of a task that raised (a worker's death is counted by the scheduler, see below)
+WORKER_WAIT_S = 30.0  # how long to wait for the scheduler's first worker
+CONNECT_TIMEOUT_S = 20.0  # how long to try to reach the scheduler
+
+
+def _run_dask(tasks: list[Job], items: list, scheduler: str, bar: Any, load: LoadOptions,
+              scatter: bool | None) -> list[Any]:
+    """The jobs on a dask.distributed cluster; outputs in the jobs' order, the bar advanced as
+    each job finishes. Every recording becomes one future (a load task on a worker, or the
+    loaded recording scattered from here) and, with `align`, one alignment task; each job is a
+    task taking them, so a recording is loaded (and aligned) once per run, and a worker that
+    needs it fetches it from the worker that has it. A worker that dies mid-job costs a retry:
+    the scheduler reruns its tasks elsewhere (up to `distributed.scheduler.allowed-failures`
+    deaths per task, 3 by default), recomputing lost recordings from their load task."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ImportError("--scheduler needs dask.distributed: pip install 'dask[distributed]'") from None
+    try:
+        client = Client(scheduler, set_as_default=False, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        raise ValueError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())[:200]})") from None
+    futures: dict[Any, int] = {}
+    shared: list[Any] = []
+    try:
+        try:
+            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+        except TimeoutError:
+            raise ValueError(f"--scheduler {scheduler}: no worker connected within {WORKER_WAIT_S:.0f} s") from None
+        shared = _recordings_on(client, items, load, scatter, {t.index for t in tasks})
+        alignments = {i: client.submit(recording_alignment, shared[i], pure=False, retries=RETRIES)
+                      for i in sorted({t.index for t in tasks if t.align})}
+        shared += list(alignments.values())
+        futures = {client.submit(run_job, task, shared[task.index], alignments.get(task.index), pure=False,
+                                 retries=RETRIES): n for n, task in enumerate(tasks)}
+        return _collect(client, futures, tasks, items, bar)
+    except BaseException:  # a job's error, Ctrl-C, SIGTERM: nothing left running on the cluster
+        client.cancel(list(futures) + shared, force=True)
+        raise
+    finally:
+        client.close()
+
+
+def _collect(client: Any, futures: dict[Any, int], tasks: list[Job], items: list, bar: Any) -> list[Any]:
+    from distributed import as_completed as dask_as_completed
+
+    outputs: list[Any] = [None] * len(tasks)
+    for future in dask_as_completed(list(futures), loop=client.loop):
+        n = futures[future]
+        outputs[n] = future.result()  # re-raises a job's error here
+        future.release()
+        bar.set_postfix_str(_label(items, tasks[n]))
+        bar.update()
+    return outputs
+
+
+def _recordings_on(client: Any, items: list, load: LoadOptions, scatter: bool | None, needed: set[int]) -> list[Any]:
+    """One future per item: a load task on a worker for a `Source` whose files every worker
+    sees (or all of them, `scatter=False`), else the recording loaded here and scattered to every
+    worker (so that losing one worker loses no copy)."""
+    sources = [_absolute(item) if isinstance(item, Source) else item for item in items]
+    if scatter is None:
+        missing = _missing_on_workers(client, [s for s in sources if isinstance(s, Source)])
+        scatter = bool(missing)
+        if missing:
+            from fusion.selection import note
+
+            note(f"sending loaded recordings to the workers (--scatter): {missing}")
+    out: list[Any] = []
+    for i, item in enumerate(sources):
+        if i not in needed:
+            out.append(None)
+        elif isinstance(item, Source) and not scatter:
+            out.append(client.submit(load.load, item, pure=False, retries=RETRIES))
+        else:
+            rec = item if isinstance(item, Recording) else load.load(item)
+            out.append(client.scatter(rec, broadcast=True, hash=False))
+    return out
+
+
+def _absolute(source: Source) -> Source:
+    """The source with absolute file paths (a worker's working folder is not ours)."""
+    return replace(source, **{name: Path(path).absolute() for name in ("imu", "vicon", "cam")
+                              if (path := getattr(source, name)) is not None})
+
+
+def _source_paths(sources: list[Source]) -> list[str]:
+    return [str(p) for s in sources for p in (s.imu, s.vicon, s.cam) if p is not None]
+
+
+def _missing_paths(paths: list[str]) -> list[str]:
+    """On a worker: the paths it cannot see."""
+    return [p for p in paths if not os.path.exists(p)]
+
+
+def _missing_on_workers(client: Any, sources: list[Source]) -> str:
+    """'' when every worker sees every file of `sources`, else which worker misses which file."""
+    paths = _source_paths(sources)
+    if not paths:
+        return ""
+    per_worker = client.run(_missing_paths, paths)
+    bad = {w: m for w, m in per_worker.items() if m}
+    if not bad:
+        return ""
+    worker, files = next(iter(bad.items()))
+    return f"{len(bad)} of {len(per_worker)} workers miss recording files (e.g. {worker}: {files[0]})"
 
 
 def _label(items: list, job: Job) -> str:

@@ -52,12 +52,16 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec] = "all", dataset
                 data_dir: PathLike | None = None, *, init: str | None = None, protocol: str | None = None,
                 align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
-                json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None) -> Run:
+                json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
+                scheduler: str | None = None, scatter: bool | None = None) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
     init, protocol, align: as `fusion.evaluation.compare.compare`.
     jobs: worker processes (None or 0: all cores); results do not depend on it.
+    scheduler: run the jobs on the dask.distributed cluster at this address instead
+        (`tcp://10.0.0.5:8786`); scatter: how its workers get the recordings
+        (`fusion.evaluation.runner.run`: False ships paths, True loaded recordings, None decides).
     panorama: also stitch and score a panorama per row (`fusion.evaluation.panorama.panorama_scores`).
     json_path: write the results document there; out: write the report folder there (locked before
         any computation, written through a staging folder: `fusion.evaluation.report.OutputFolder`).
@@ -70,7 +74,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec] = "all", dataset
     command = command or f"run_compare({text!r}, {dataset!r})"
     return _execute(specs, settings, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=panorama,
-                    json_path=json_path, out=out, per_recording=True)
+                    json_path=json_path, out=out, per_recording=True, scheduler=scheduler, scatter=scatter)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -78,7 +82,8 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                per_recording: bool = False, init: str | None = None, protocol: str | None = None,
                align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
-               out: PathLike | None = None, command: str | None = None) -> Run:
+               out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
+               scatter: bool | None = None) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
@@ -105,7 +110,8 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
     return _execute(specs, settings, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
-                    json_path=json_path, out=out, per_recording=per_recording)
+                    json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
+                    scatter=scatter)
 
 
 def _execute(specs: list[EstimatorSpec], settings: dict[str, Any], dataset: str, data_dir: PathLike | None,
@@ -120,13 +126,18 @@ def _execute(specs: list[EstimatorSpec], settings: dict[str, Any], dataset: str,
 def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], settings: dict[str, Any], dataset: str,
                 data_dir: PathLike | None, command: str, *, init: str | None, protocol: str | None, align: bool,
                 dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
-                json_path: PathLike | None, per_recording: bool) -> Run:
+                json_path: PathLike | None, per_recording: bool, scheduler: str | None,
+                scatter: bool | None) -> Run:
     sources = select_sources(dataset, data_dir, calibration)
     root = datasets.data_dir_from(data_dir)
     results, infos = run(specs, sources, init, jobs=jobs, progress=progress, load=load_options(calibration, dropouts),
                          panorama_data_dir=str(root) if panorama else None,
-                         with_info=folder is not None and per_recording, protocol=protocol, align=align)
+                         with_info=folder is not None and per_recording, protocol=protocol, align=align,
+                         scheduler=scheduler, scatter=scatter)
     table = format_table(results, align=align)
+    sweep = ablate.sweep_summary([r.to_json() for r in results]) if settings.get("kind") == "ablate" else None
+    if sweep:
+        table += "\n\n" + ablate.format_sweep(sweep)
     if not (json_path or folder):
         return Run(results, table)
     settings = {"command": command, **settings, "dataset": dataset,
@@ -141,6 +152,8 @@ def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], setting
                 "estimator_details": describe_specs(specs),
                 "git_commit": git_commit()}
     doc = results_json(results, settings)
+    if sweep:
+        doc["sweep"] = sweep  # README, "`--json` format"
     if json_path:
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None

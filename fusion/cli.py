@@ -52,7 +52,8 @@ def _command(args: argparse.Namespace) -> str:
 def _run_options(args: argparse.Namespace) -> dict:
     """The options of `compare` and `ablate`."""
     return dict(init=args.init, protocol=args.protocol, align=args.align, jobs=args.jobs, json_path=args.json,
-                out=args.out, command=_command(args), **_data(args))
+                out=args.out, command=_command(args), scheduler=args.scheduler,
+                scatter=True if args.scatter else None, **_data(args))
 
 
 def _print_run(run) -> int:
@@ -127,6 +128,13 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
                         "report.md to DIR (re-render later with `fusion report DIR`)")
     parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                         help="worker processes; 0 = all cores (default); results do not depend on it")
+    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                        help="run the jobs on a running dask.distributed scheduler's workers instead of local "
+                             "processes, e.g. tcp://10.0.0.5:8786 (see README, 'Running on a Dask cluster')")
+    parser.add_argument("--scatter", action="store_true",
+                        help="with --scheduler: load the recordings here and send them to the workers (no shared "
+                             "file system needed); default: workers read the files themselves when every worker "
+                             "sees them at the same path, else scatter")
     _add_align_arg(parser)
 
 

@@ -57,8 +57,8 @@ def test_grid_ablation_writes_parameter_plots(toy, data, tmp_path, capsys):
     assert labels == [f"toy:g={g},mode={m}" for g in ("0.9", "1", "1.1") for m in ("plain", "rough")]
     assert len(doc["results"]) == 12
     names = sorted(p.name for p in (out / "figures").glob("*.png"))
-    assert names == ["ablation-bars.png", "ablation-grid.png", "ablation-params.png", "summary-rmse.png",
-                     "summary-speed.png"]  # no per-recording figures without --per-recording
+    assert names == ["ablation-bars.png", "ablation-grid.png", "ablation-params.png", "ablation-sweep.png",
+                     "summary-rmse.png", "summary-speed.png"]  # no per-recording figures without --per-recording
     # RMSE vs each parameter: one panel per parameter, one line per value of the other
     fig = plots.param_figure(doc["results"])
     panels = [ax for ax in fig.axes if ax.get_lines()]
