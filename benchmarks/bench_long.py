@@ -11,7 +11,7 @@ it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase a
 memory (`VmHWM` from /proc/self/status, or `ru_maxrss`). The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
 
-Targets (issue 9): peak < 2 GB for every estimator; a smoother (`causal = False`) under 60 s
+Targets: peak < 2 GB for every estimator; a smoother (`causal = False`) under 60 s
 on the one-hour recording. "linear" compares the memory slope 30 -> 60 min with 10 -> 30 min
 (MB per 100k samples); a ratio near 1 is linear, well above 1 superlinear. Timing on a shared
 machine is noisy: rerun on a quiet one before quoting.

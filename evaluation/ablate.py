@@ -9,7 +9,7 @@ each labelled exactly as `fusion compare --estimators` would label it, so an abl
 one value gives the same rows as `compare` with that parameter. The report then reads the
 parameter values back from the labels (`fusion.evaluation.plots.label_params`).
 
-`PRESETS` holds the seed reports' questions as spec lists (data only; edit freely), and
+`PRESETS` holds the course reports' questions as spec lists (data only; edit freely), and
 `broad-sweep`, BROAD's parameter study (Laidig et al. 2021, "BROAD - a benchmark for robust
 inertial orientation estimation", Data 6(7): 72): a grid over a filter's main parameters, run on
 every trial. `sweep_summary` reads any ablation's rows as BROAD does: the best common setting
@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 from fusion.estimators.params import EstimatorSpec, parse_specs
 
-# The seed reports' questions. Each is a list of spec texts as `--estimators` takes them.
+# The course reports' questions. Each is a list of spec texts as `--estimators` takes them.
 PRESETS: dict[str, list[str]] = {
     # UKF vs plain integration of the gyro
     "ukf-vs-dr": ["dr", "ukf"],

@@ -1,6 +1,6 @@
 """Panoramas from orientations: stitch camera frames into an equirectangular image.
 
-The seeds' pipeline (project each pixel onto the unit sphere, rotate it into the world
+The course reports' pipeline (project each pixel onto the unit sphere, rotate it into the world
 frame with the frame's orientation, unwrap longitude/latitude into an image), done the
 other way round: for every panorama pixel we ask where it falls in the frame and sample
 it there with `cv2.remap` (inverse mapping: no holes, no per-pixel Python).
@@ -90,7 +90,7 @@ class Stitcher:
 
     camera: the camera model (frame size and field of view).
     grid: panorama size.
-    blend: "last" (each pixel shows the last frame that covered it: the seeds'), "average"
+    blend: "last" (each pixel shows the last frame that covered it: the course reports'), "average"
         (mean of all frames covering it) or "feather" (weighted mean, weight = 1 + distance
         in px to the nearest frame border, so seams fade).
     map_step_px: spacing of the exactly computed remap coordinates (1 = every pixel).
@@ -281,7 +281,7 @@ def stitch(camera: CameraSource, trajectory: Trajectory, *, model: CameraModel |
            progress: bool = False, desc: str = "frames") -> Panorama:
     """Stitch every frame of `camera` with its orientation slerped from `trajectory`.
 
-    model: camera model (default: the seeds' 60 x 45 deg for the frames' size).
+    model: camera model (default: the course reports' 60 x 45 deg for the frames' size).
     Frames whose time falls outside the trajectory (or in a gap of it) are skipped with a
     warning. `progress` shows a tqdm bar on stderr.
     """

@@ -29,9 +29,9 @@ import numpy as np
 class CameraModel:
     """Where body-frame directions land in a frame, and back.
 
-    width_px, height_px: frame size (the seeds' 320 x 240).
+    width_px, height_px: frame size (the course's 320 x 240).
     hfov_rad, vfov_rad: horizontal and vertical field of view (seeds: 60 and 45 deg).
-    projection: "spherical" (the seeds': pixel columns/rows are equal steps of azimuth and
+    projection: "spherical" (the course reports': pixel columns/rows are equal steps of azimuth and
         elevation about the optical axis; 60/320 = 45/240 deg, square pixels) or "pinhole"
         (rectilinear, focal lengths from the two fields of view).
 

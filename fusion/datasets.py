@@ -349,7 +349,7 @@ def initial_orientation(recording: Recording, mode: str | None = None) -> np.nda
 
     - `truth`: the ground truth at the first IMU sample inside its span (the default with truth);
     - `accel`: tilt from the accelerometer averaged over the first rest, zero yaw (the default without);
-    - `identity`: what the seed reports did.
+    - `identity`: what the course reports did.
     """
     from scipy.spatial.transform import Rotation
 
