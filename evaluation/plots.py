@@ -243,14 +243,19 @@ def rmse_matrix(rows: list[dict], kind: str) -> tuple[list[str], list[str], np.n
     return labels, datasets, m
 
 
+def _short(label: str, limit: int = 32) -> str:
+    """A tick label that cannot squeeze the axes away: long ids (file paths) keep their end."""
+    return label if len(label) <= limit else "..." + label[-(limit - 3):]
+
+
 def _heatmap(ax, m: np.ndarray, rows: list[str], cols: list[str], title: str, cbar_label: str, fig: Figure) -> None:
     cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.85")
     finite = m[np.isfinite(m)]
     vmax = float(finite.max()) if finite.size else 1.0
     image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=vmax or 1.0, aspect="auto")
-    ax.set_xticks(range(len(cols)), cols, rotation=45 if max(map(len, cols), default=0) > 4 else 0, ha="right",
-                  fontsize=8)
-    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    ax.set_xticks(range(len(cols)), [_short(c) for c in cols],
+                  rotation=45 if max(map(len, cols), default=0) > 4 else 0, ha="right", fontsize=8)
+    ax.set_yticks(range(len(rows)), [_short(r) for r in rows], fontsize=8)
     if m.size <= 400:
         for (i, j), v in np.ndenumerate(m):
             text = "-" if not np.isfinite(v) else f"{v:.1f}"
