@@ -335,7 +335,7 @@ class MahonyPeer(RecursiveEstimator):
         return self._q
 
     def diagnostics(self) -> dict[str, Any]:
-        return {"gyro_bias_rad_s": np.array(self._filter.b)}
+        return {"gyr_bias_rad_s": np.array(self._filter.b)}
 
 
 @dataclass(frozen=True)

@@ -90,6 +90,9 @@ from filterpy.kalman import UnscentedKalmanFilter
 
 from fusion.types import ImuSamples
 
+from fusion import quaternion as quat
+from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
+
 from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
@@ -97,18 +100,10 @@ from ._attitude import (
     acc_step_variance,
     acc_variance_scale,
     bias_rest_update,
-    exp_batch,
-    exp_quat,
-    gravity_batch,
     inv_sym3,
-    left_matrix,
-    mul_floats,
-    log_batch,
     repair_covariance,
     scale_axes_mask,
-    right_matrix,
     sqrt_psd,
-    unit_array,
 )
 from .base import RecursiveEstimator
 
@@ -379,7 +374,7 @@ class QuaternionSigmaPoints:
             raise ValueError(f"sigma points: expected x ({self.n + 1},) and P ({self.n}, {self.n}), got {x.shape} and {P.shape}")
         off = self.offsets(P)
         out = np.empty((len(off), self.n + 1))
-        out[:, :4] = exp_batch(off[:, :3]) @ left_matrix(*x[:4]).T  # seed step 3: q * exp(W_i)
+        out[:, :4] = quat.from_rotvec(off[:, :3]) @ left_matrix(*x[:4]).T  # seed step 3: q * exp(W_i)
         out[:, 4:] = x[4:] + off[:, 3:]
         return out
 
@@ -398,17 +393,9 @@ def quaternion_mean(
     """
     qw, qx, qy, qz = start.tolist()
     for it in range(1, max_iter + 1):
-        err = log_batch(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
+        err = quat.to_rotvec(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
         e = weights @ err
-        dw, dx, dy, dz = exp_quat(e[0], e[1], e[2])
-        qw, qx, qy, qz = (
-            qw * dw - qx * dx - qy * dy - qz * dz,
-            qw * dx + qx * dw + qy * dz - qz * dy,
-            qw * dy - qx * dz + qy * dw + qz * dx,
-            qw * dz + qx * dy - qy * dx + qz * dw,
-        )
-        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        qw, qx, qy, qz = quat.normalize_floats(multiply_floats((qw, qx, qy, qz), exp_floats(e[0], e[1], e[2])))
         if math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) < tol:
             break
     # Residuals about the final mean, to first order (the last step was below tol).
@@ -418,13 +405,13 @@ def quaternion_mean(
 def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """FilterPy `residual_x`: error-state difference a - b, `[log(b_q^-1 a_q), a_b - b_b]`."""
     dq = left_matrix(b[0], -b[1], -b[2], -b[3]) @ a[:4]
-    rot = log_batch(dq[None, :])[0]
+    rot = quat.to_rotvec(dq)
     return np.concatenate([rot, a[4:] - b[4:]])
 
 
 def state_add(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """FilterPy `state_add`: `[q exp(dx_rot / 2), b + dx_b]` (seed step 9), renormalised."""
-    q = left_matrix(*x[:4]) @ np.array(exp_quat(dx[0], dx[1], dx[2]))
+    q = left_matrix(*x[:4]) @ np.array(exp_floats(dx[0], dx[1], dx[2]))
     return np.concatenate([q / np.linalg.norm(q), x[4:] + dx[3:]])
 
 
@@ -493,13 +480,13 @@ class QuaternionUKF(UnscentedKalmanFilter):
         w = gyr_rad_s - x[4:7] if self.has_bias else gyr_rad_s
         if self.has_scale:
             w = w * (1.0 + x[7:10])
-        q = right_matrix(*exp_quat(*(w * dt))) @ x[:4]
+        q = right_matrix(*exp_floats(*(w * dt))) @ x[:4]
         return np.concatenate([q, x[4:]])
 
     @staticmethod
     def hx_gravity(x: np.ndarray) -> np.ndarray:
         """Measurement model: gravity in the body frame, g (seed step 6)."""
-        return gravity_batch(x[None, :4])[0]
+        return quat.gravity_in_body(x[:4])
 
     def state_mean(self, sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
         """FilterPy `x_mean_fn`: iterative quaternion mean, weighted bias mean (step 5)."""
@@ -521,7 +508,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         x = self.x
         off = pts.offsets(self.P + Q, self._offsets)  # step 2
         self.sqrt_recovered = pts.last_sqrt_recovered
-        X = exp_batch(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
+        X = quat.from_rotvec(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
         sig = self.sigmas_f
         if gyr_rad_s is None:
             sig[:, :4] = X
@@ -534,18 +521,12 @@ class QuaternionUKF(UnscentedKalmanFilter):
                 rv *= 1.0 + s
                 sig[:, 7:10] = s
             rv *= dt  # step 1, per point
-            d = exp_batch(rv)
-            # step 4: Y_i = X_i * q_delta_i (Hamilton product, row-wise)
-            w1, x1, y1, z1 = X[:, 0], X[:, 1], X[:, 2], X[:, 3]
-            w2, x2, y2, z2 = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
-            sig[:, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
-            sig[:, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
-            sig[:, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
-            sig[:, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+            d = quat.from_rotvec(rv)
+            sig[:, :4] = quat.multiply(X, d)  # step 4: Y_i = X_i * q_delta_i, row-wise
             sig[:, 4:7] = b
         else:
             w = gyr_rad_s * dt
-            sig[:, :4] = X @ right_matrix(*exp_quat(w[0], w[1], w[2])).T  # steps 1, 4
+            sig[:, :4] = X @ right_matrix(*exp_floats(w[0], w[1], w[2])).T  # steps 1, 4
         Y = sig[:, :4]
         q, err, self.mean_iterations = quaternion_mean(Y, self.Wm, Y[0], self.mean_tol, self.mean_max_iter)  # step 5
         res = self._residuals
@@ -562,7 +543,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
     def update(self, z: np.ndarray, R: np.ndarray) -> None:  # type: ignore[override]
         """Seed steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
-        Z = gravity_batch(self.sigmas_f)  # step 6 (reads columns 0-3)
+        Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
         zp = self.Wm @ Z  # step 7
         dZ = Z - zp
         WdZ = self._Wc_col * dZ
@@ -583,7 +564,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         y = z - zp
         dx = (K @ y).tolist()
         x = self.x
-        q = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
+        q = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
         if self.has_bias:
             self.x = np.concatenate([q, x[4:] + dx[3:]])
         else:
@@ -670,7 +651,7 @@ class UKF(RecursiveEstimator):
             w = gyr_rad_s - x[4:7] if n > 3 else gyr_rad_s
             if n > 6:
                 w = w * (1.0 + x[7:10])
-            dq = exp_quat(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s)
+            dq = exp_floats(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s)
             if self._scale_noise > 0.0:
                 # ukf only: gyro scale-factor uncertainty as rate noise density Qs w_i^2 per axis.
                 Q = Q.copy()
@@ -686,7 +667,7 @@ class UKF(RecursiveEstimator):
             # linear, so this is the exact Kalman update, the same for both implementations.
             x = kf.x
             dx, kf.P = bias_rest_update(x[4:7], kf.P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
-            qn = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))
+            qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
             kf.x = np.concatenate([qn, x[4:] + dx[3:]])
             self._at_rest[k + 1] = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf

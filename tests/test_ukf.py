@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion.estimators import ESTIMATORS, build
-from fusion.estimators._attitude import exp_batch, gravity_batch, left_matrix, log_batch, right_matrix, sqrt_psd
+from fusion.estimators._attitude import sqrt_psd
 from fusion.estimators.dr import DeadReckoning
 from fusion.estimators.ukf import (
     UKF,
@@ -41,21 +41,7 @@ def inclination_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
-# ---------------------------------------------------------------- helpers cross-checked
-def test_lean_helpers_match_fusion_quaternion():
-    rng = np.random.default_rng(1)
-    p, q = quat.normalize(rng.normal(size=(2, 4)))
-    assert np.allclose(right_matrix(*q) @ p, quat.multiply(p, q), atol=1e-15)
-    assert np.allclose(left_matrix(*p) @ q, quat.multiply(p, q), atol=1e-15)
-    v = rng.normal(size=(7, 3))
-    v[0] = 0.0
-    assert np.allclose(exp_batch(v), quat.from_rotvec(v), atol=1e-15)
-    qs = quat.from_rotvec(v)
-    assert np.allclose(log_batch(qs), quat.to_rotvec(qs), atol=1e-12)
-    assert np.allclose(log_batch(-qs), quat.to_rotvec(qs), atol=1e-12)  # q and -q
-    assert np.allclose(gravity_batch(qs), quat.gravity_in_body(qs), atol=1e-15)
-
-
+# ---------------------------------------------------------------- helpers
 def test_sqrt_psd_recovers_singular_matrix():
     a = np.diag([1e-3, 0.0, 2e-3])
     L, recovered = sqrt_psd(a)
