@@ -1,4 +1,4 @@
-"""Microseconds per sample of each recursive filter on recording ece276a/1 (issue 3).
+"""Microseconds per sample of each recursive filter on recording ece276a/1.
 
     python benchmarks/bench_filters.py [--data-dir DIR] [--repeat 3] [--profile ukf]
 

@@ -60,7 +60,6 @@ from typing import Any
 import numpy as np
 
 from fusion.quaternion import exp_floats, gravity_in_body_floats, multiply_floats, right_jacobian_floats, rotation_matrix_floats, unit_array
-from fusion.types import ImuSamples
 
 from ._attitude import (
     UNESTIMATED_VAR,
@@ -167,7 +166,7 @@ class EKF(RecursiveEstimator):
 
     Params = EKFParams
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         q0 = np.asarray(init_quat_wxyz, dtype=float)
         if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
@@ -195,18 +194,14 @@ class EKF(RecursiveEstimator):
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
-        N = len(imu)
-        self._cov = np.full((N, n, n), np.nan)
-        self._cov[0] = self.P
-        self._bias = np.zeros((N, 3))
-        self._scale = np.zeros((N, 3))
-        self._acc_var = np.full(N, np.nan)
-        self._at_rest = np.zeros(N, bool)
+        self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
+        self.at_rest = False  # whether the last step made the rest bias update
         self.n_skipped = self.n_cov_repaired = 0
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p = self.params
         n = self.n
+        self.acc_var, self.at_rest = math.nan, False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -241,12 +236,12 @@ class EKF(RecursiveEstimator):
             self.b = self.b + dx[3:6]
             if n > 6:
                 self.s = self.s + dx[6:]
-            self._at_rest[k + 1] = True
+            self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
             dist = self._dist.update(d, acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
             r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, dist, dt_s) * scale
-            self._acc_var[k + 1] = r
+            self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
             H = self._H
@@ -282,8 +277,6 @@ class EKF(RecursiveEstimator):
             P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
         else:
             self.n_skipped += 1
-            if not valid:
-                pass
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -291,18 +284,11 @@ class EKF(RecursiveEstimator):
         self.q = unit_array(q)
         self.P, repaired = repair_covariance(P)
         self.n_cov_repaired += repaired
-        self._cov[k + 1] = self.P
-        self._bias[k + 1] = self.b
-        self._scale[k + 1] = self.s
         return self.q
 
+    def current(self) -> dict[str, Any]:
+        return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "acc_var_g2": self.acc_var,
+                "at_rest": self.at_rest}
+
     def diagnostics(self) -> dict[str, Any]:
-        return {
-            "cov": self._cov,
-            "gyr_bias_rad_s": self._bias,
-            "gyr_scale": self._scale,
-            "acc_var_g2": self._acc_var,
-            "at_rest": self._at_rest,
-            "updates_skipped": self.n_skipped,
-            "cov_repairs": self.n_cov_repaired,
-        }
+        return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}

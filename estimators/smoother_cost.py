@@ -268,7 +268,7 @@ class SmootherProblem:
         return self._u
 
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3). Seed: motion residual."""
+        """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3): the motion residual."""
         return quat.to_rotvec(quat.multiply(quat.multiply(quat.conjugate(q_b), q_a), u))
 
     def residuals(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray | None = None) -> dict[str, np.ndarray]:

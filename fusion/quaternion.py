@@ -22,9 +22,10 @@ Small-angle rules (one each, shared by both paths):
 
 * exp: `sin(a / 2) / a` is taken as exactly 1/2 for `a <= SMALL_ANGLE` (1e-12 rad); the next
   Taylor term, a^2 / 48, is then below 1e-25, far under the rounding of 1/2.
-* log: `2 atan2(s, |w|) / s` (s = |vector part|) is taken as `2 / |w|` for `s <= SMALL_ANGLE`,
-  its limit (atan2(s, |w|) = s / |w| to rounding there). The sign of w is folded in, so
-  q and -q give the same rotation vector, of angle in [0, pi].
+* log: `2 atan2(s, |w|) / s` (s = |vector part|) with no special case: for small s,
+  atan2(s, |w|) = s / |w| in floating point, so the quotient is its limit 2 / |w| to rounding;
+  s is floored at 1e-300 only so that s = 0 (where the vector part is 0) gives 0, not 0/0.
+  The sign of w is folded in, so q and -q give the same rotation vector, of angle in [0, pi].
 * SO(3) Jacobians: the closed forms above `JACOBIAN_SERIES_RAD` (1e-3 rad), their Taylor series
   (three terms, error below 1e-19) below it, where the closed forms lose digits to cancellation.
 
@@ -38,7 +39,7 @@ import math
 import numpy as np
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-SMALL_ANGLE = 1e-12  # rad: below it exp and log use their limits (see the module docstring)
+SMALL_ANGLE = 1e-12  # rad: below it exp uses its limit (see the module docstring)
 JACOBIAN_SERIES_RAD = 1e-3  # rad: below it the SO(3) Jacobians use their Taylor series
 
 
@@ -100,9 +101,8 @@ def to_rotvec(q: np.ndarray) -> np.ndarray:
     vec = flat[:, 1:]
     s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
     w = flat[:, 0]
-    aw = np.abs(w)
-    scale = np.divide(2.0 * np.arctan2(s, aw), s, out=2.0 / np.maximum(aw, 1e-300), where=s > SMALL_ANGLE)
-    return (vec * np.where(w < 0.0, -scale, scale)[:, None]).reshape(q.shape[:-1] + (3,))
+    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
+    return (vec * np.copysign(scale, w)[:, None]).reshape(q.shape[:-1] + (3,))
 
 
 def relative_rotvec(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of the multiplicative error-state EKF (`ekf`, issue 3)."""
+"""Tests of the multiplicative error-state EKF (`ekf`)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""The batch smoothers `gd` and `gn` (issue 4) and the smoother side of issue 7 (dropouts, self-calibration)."""
+"""The batch smoothers `gd` and `gn`, with dropouts and self-calibration."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Tests of the seed quaternion UKF (`ukf`) and `ukf-bias` (issue 3)."""
+"""Tests of the quaternion UKF (`ukf`) and `ukf-bias`."""
 from __future__ import annotations
 
 import numpy as np
@@ -142,7 +142,7 @@ def test_registry_and_aliases():
     assert ESTIMATORS["ukf"] is UKF and ESTIMATORS["ukf-bias"] is UKFBias
     est = build("ukf:R=1e-3,Q=1e-2,sigma=julier,kappa=2")
     assert est.params == UKFParams(acc_noise_g2_s=1e-3, process_noise_rad2_s=1e-2, sigma="julier", kappa=2.0)
-    assert UKFParams.seed().acc_noise_g2_s == 1e-6  # 1e-4 g^2 per 100 Hz sample
+    assert UKFParams.equal_variances().acc_noise_g2_s == 1e-6  # 1e-4 g^2 per 100 Hz sample
 
 
 def test_filterpy_impl_refuses_heading_free():
@@ -333,3 +333,18 @@ def test_bounds_on_the_simulated_recording(spec, inclination, total):
     assert s.rmse_deg["total"] <= total
     cov = est.diagnostics["cov"]
     assert np.linalg.eigvalsh(cov[1:]).min() > 0.0
+
+
+@pytest.mark.parametrize("spec", ["ukf", "ukf-bias", "ekf"])
+def test_streaming_reset_and_step_equal_estimate(spec):
+    """A streaming user resets from the initial orientation alone and steps; same numbers as `estimate`."""
+    imu, truth = synthetic(300, noise=0.01, seed=3)
+    batch = build(spec).estimate(imu, truth[0])
+    est = build(spec)
+    est.reset(truth[0])
+    (gyr, valid), dt = imu.interval_rates(), imu.dt
+    out = [est.step(gyr[k], dt[k], imu.acc_g[k + 1], valid[k]).copy() for k in range(len(imu) - 1)]
+    np.testing.assert_array_equal(np.array(out), batch.quat_wxyz[1:])
+    cov = batch.diagnostics["cov"]
+    assert cov.shape == (len(imu),) + est.current()["cov"].shape
+    np.testing.assert_array_equal(cov[-1], est.current()["cov"])
