@@ -43,7 +43,7 @@ def main() -> None:
     q0 = datasets.initial_orientation(rec, "truth")
     print(f"{args.dataset}: {len(rec.imu)} samples")
     print(f"{'spec':42s} {'seconds':>8s} {'iters':>6s} {'final cost':>14s} {'gd: s / iters to 1 % of gn':>28s}")
-    for weighting in ("noise", "seed"):
+    for weighting in ("noise", "scalar"):
         secs, gn = run(f"gn:weighting={weighting},progress=false", rec.imu, q0)
         target = gn["loss"][-1] * 1.01
         print(f"{'gn:weighting=' + weighting:42s} {secs:8.3f} {gn['iterations']:6d} {gn['loss'][-1]:14.6g}")

@@ -1,9 +1,9 @@
-"""Small helpers shared by the recursive attitude filters (`ukf`, `ukf-bias`, `ekf`).
+"""Filter-specific helpers shared by the recursive attitude filters (`ukf`, `ukf-bias`, `ekf`):
+covariance square root and repair, a 3x3 inverse, accelerometer gating and disturbance
+measure, rest detection and the rest bias update.
 
 Everything here works on one filter step's tiny arrays, so it is written for low per-call
-overhead (scalar `math` where a single quaternion is involved, one matmul instead of a
-stacked Hamilton product for a batch times one quaternion). The batch functions of
-`fusion.quaternion` remain the reference; `tests/test_ukf.py` cross-checks these against them.
+overhead. Quaternion and SO(3) algebra lives in `fusion.quaternion` (its scalar path).
 
 Conventions: quaternions scalar-first `[w, x, y, z]`, `R_world_body`; error rotation vectors
 are body-frame (right) perturbations, `q_true = q * exp(e / 2)`, as in
@@ -16,36 +16,9 @@ import math
 import numpy as np
 from scipy.linalg.lapack import dpotrf
 
+from fusion import quaternion as quat
+
 _SQRT_FLOOR = 0.0
-
-
-def exp_quat(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
-    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats. Exact at v = 0."""
-    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if angle < 1e-12:
-        # sin(a/2)/a = 1/2 - a^2/48 + ...; a < 1e-12 makes the correction far below eps.
-        return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
-    s = math.sin(0.5 * angle) / angle
-    return math.cos(0.5 * angle), vx * s, vy * s, vz * s
-
-
-def mul_floats(a: tuple, b: tuple) -> tuple[float, float, float, float]:
-    """Hamilton product of two quaternions given as 4 floats each (no array overhead)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def unit_array(q: tuple) -> np.ndarray:
-    """(4,) array of a quaternion given as floats, renormalised."""
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return np.array((w / n, x / n, y / n, z / n))
 
 
 def inv_sym3(s: np.ndarray) -> np.ndarray:
@@ -58,60 +31,6 @@ def inv_sym3(s: np.ndarray) -> np.ndarray:
     det = a * A + b * B + c * C
     D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
     return np.array(((A, B, C), (B, D, E), (C, E, F))) / det
-
-
-def right_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """4x4 matrix `M` with `p * q = M @ p` for q = [w, x, y, z] (right multiplication)."""
-    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
-
-
-def left_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """4x4 matrix `M` with `q * p = M @ p` for q = [w, x, y, z] (left multiplication)."""
-    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
-
-
-def exp_batch(v: np.ndarray) -> np.ndarray:
-    """`exp([0, v / 2])` of (m, 3) rotation vectors -> (m, 4) quaternions. Exact at 0."""
-    angle = np.sqrt(np.einsum("ij,ij->i", v, v))
-    half = 0.5 * angle
-    out = np.empty((len(v), 4))
-    out[:, 0] = np.cos(half)
-    # sin(a/2)/a, which is 1/2 at a = 0: divide only where a > 0 (no division by zero).
-    ratio = np.divide(np.sin(half), angle, out=np.full(len(v), 0.5), where=angle > 0.0)
-    out[:, 1:] = v * ratio[:, None]
-    return out
-
-
-def log_batch(q: np.ndarray) -> np.ndarray:
-    """Rotation vectors (m, 3) of (m, 4) unit quaternions, `2 log q`, shortest path.
-
-    q and -q give the same vector (the sign of w is folded in), so the angle lies in
-    [0, pi]: every error is wrapped to the representative nearest the identity (seed step 5).
-    """
-    vec = q[:, 1:]
-    s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
-    w = q[:, 0]
-    # angle / s = 2 atan2(s, |w|) / s; for s -> 0 atan2(s, |w|) = s / |w| in floating point,
-    # so the floor on s only matters at s == 0, where vec is 0 anyway (no division by zero).
-    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
-    return vec * np.copysign(scale, w)[:, None]
-
-
-# g_j(q) = q^T G_j q for the three components of R(q)^T e_z (one matmul + one einsum).
-_GRAVITY_FORMS = np.zeros((4, 3, 4))
-_GRAVITY_FORMS[[3, 1, 2, 0], 0, [1, 3, 0, 2]] = [1.0, 1.0, -1.0, -1.0]  # 2 (xz - wy)
-_GRAVITY_FORMS[[3, 2, 1, 0], 1, [2, 3, 0, 1]] = 1.0  # 2 (yz + wx)
-_GRAVITY_FORMS[[0, 1, 2, 3], 2, [0, 1, 2, 3]] = [1.0, -1.0, -1.0, 1.0]  # w^2 - x^2 - y^2 + z^2
-_GRAVITY_FORMS = _GRAVITY_FORMS.reshape(4, 12)
-
-
-def gravity_batch(q: np.ndarray) -> np.ndarray:
-    """World up in the body frame, `R(q)^T e_z`, for (m, 4+) quaternions -> (m, 3), g.
-
-    Only columns 0-3 (wxyz) are read, so a state array `[q, b]` can be passed directly.
-    """
-    q = q[:, :4]
-    return np.einsum("mjk,mk->mj", (q @ _GRAVITY_FORMS).reshape(len(q), 3, 4), q)
 
 
 def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -143,11 +62,6 @@ def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, 
         return p, False
     lam, vec = np.linalg.eigh(p)
     return (vec * np.maximum(lam, floor)) @ vec.T, True
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, the 3x3 cross-product matrix: `skew(a) @ b = a x b`."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
@@ -217,11 +131,8 @@ class AccDisturbance:
     def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
         """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
         ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
-        w, x, y, z = self.qi = _normalised(mul_floats(self.qi, dq))
-        # a_I = R(q_I) a (body -> strapdown frame)
-        wx = (1 - 2 * (y * y + z * z)) * ax + 2 * (x * y - w * z) * ay + 2 * (x * z + w * y) * az
-        wy = 2 * (x * y + w * z) * ax + (1 - 2 * (x * x + z * z)) * ay + 2 * (y * z - w * x) * az
-        wz = 2 * (x * z - w * y) * ax + 2 * (y * z + w * x) * ay + (1 - 2 * (x * x + y * y)) * az
+        self.qi = quat.normalize_floats(quat.multiply_floats(self.qi, dq))
+        wx, wy, wz = quat.rotate_floats(self.qi, (ax, ay, az))  # a_I = R(q_I) a (body -> strapdown frame)
         norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
         nd2 = norm_dev * norm_dev
         if self.m is None:
@@ -237,12 +148,6 @@ class AccDisturbance:
         # it makes v the mean over the samples available so far instead of starting at 0.
         seen = -math.expm1(-self.age / self.window_s)
         return max(self.v / seen, inst, nd2)
-
-
-def _normalised(q: tuple) -> tuple[float, float, float, float]:
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / n, x / n, y / n, z / n
 
 
 class RestDetector:

@@ -2,8 +2,9 @@
 
 Batch-first outside, streaming inside (VQF's `offlineVQF` + `update`, FilterPy's
 `batch_filter`): `Estimator.estimate(imu, init_quat_wxyz) -> Trajectory` sees the whole
-recording; recursive filters derive from `RecursiveEstimator` and only write `reset` and
-`step`, which the base class loops over the samples.
+recording; recursive filters derive from `RecursiveEstimator` and only write `reset` (from the
+initial orientation alone) and `step`, which the base class loops over the samples; a
+streaming user calls them directly.
 
 Parameters are a frozen dataclass per estimator (`Params`), with units in the field names
 (VQF). `fusion.estimators.params` builds them from command-line text and rejects unknown names.
@@ -53,38 +54,63 @@ class Estimator(ABC):
 
 
 class RecursiveEstimator(Estimator):
-    """A filter: `reset` once, then one `step` per sample interval.
+    """A streaming filter: `reset(init_quat_wxyz)` once, then `step(...)` per sample interval, forever.
 
-    `estimate` calls `step(k)` for k = 0 .. N-2; step k propagates with the gyro reading for
-    the interval [t[k], t[k+1]] (`ImuSamples.interval_rates`: gyro sample k + 1 or k, as the
+    Neither needs the recording: `reset` takes the initial orientation only, and a step takes
+    one gyro reading, its interval and one accelerometer sample. `estimate` (the batch
+    interface) loops `step` over a recording: step k propagates with the gyro reading for the
+    interval [t[k], t[k+1]] (`ImuSamples.interval_rates`: gyro sample k + 1 or k, as the
     recording's `gyr_timing` says) over `dt[k] = t[k+1] - t[k]`, corrects with the
-    accelerometer sample k + 1, and returns the orientation at `t[k+1]`. Subclasses keep the step lean: state in
-    preallocated arrays, no per-step object construction.
+    accelerometer sample k + 1, and returns the orientation at `t[k+1]`. After the reset and
+    after every step it records `current()` (e.g. the covariance), so the trajectory's
+    diagnostics hold one row per sample; the filter itself keeps no history.
     """
 
     @abstractmethod
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
-        """Set the initial state (and precompute whatever the steps share)."""
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
+        """Set the initial state. init_quat_wxyz: (4,) orientation, `R_world_body`."""
 
     @abstractmethod
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
-        """Advance from t[k] to t[k+1]; return the (4,) quaternion at t[k+1].
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+        """Advance by one sample interval; return the (4,) quaternion at its end.
 
-        gyr_rad_s: (3,) gyro reading for [t[k], t[k+1]], rad/s. dt_s: t[k+1] - t[k].
-        acc_g: (3,) accelerometer sample k + 1, g. gyr_valid: whether that gyro reading is usable.
+        gyr_rad_s: (3,) gyro reading for the interval, rad/s, body. dt_s: its length, s.
+        acc_g: (3,) accelerometer sample at its end, g, body. gyr_valid: whether that gyro
+        reading is usable.
         """
 
+    def reset_for(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        """The reset `estimate` makes: `reset(init_quat_wxyz)`. A filter that needs a per-recording
+        constant (e.g. a nominal sample rate) overrides this to pass it to its `reset` explicitly."""
+        self.reset(init_quat_wxyz)
+
+    def current(self) -> dict[str, Any]:
+        """Per-sample quantities of the current state (e.g. `{"cov": P}`), recorded by `estimate`
+        after the reset and after every step into (N, ...) diagnostics arrays."""
+        return {}
+
     def diagnostics(self) -> dict[str, Any]:
-        """Extras for the trajectory (e.g. covariance traces), collected after the loop."""
+        """Extras for the trajectory that are not per sample (e.g. counts), after the loop."""
         return {}
 
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         n = len(imu)
         out = np.empty((n, 4))
         out[0] = init_quat_wxyz
-        self.reset(imu, np.asarray(init_quat_wxyz, dtype=float))
+        self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
+        history = {}
+        for key, value in self.current().items():
+            value = np.asarray(value)
+            history[key] = np.empty((n,) + value.shape, value.dtype)
+            history[key][0] = value
         (gyr, valid), acc, dt = imu.interval_rates(), imu.acc_g, imu.dt
-        step = self.step
-        for k in range(n - 1):
-            out[k + 1] = step(k, gyr[k], dt[k], acc[k + 1], valid[k])
-        return Trajectory(imu.t, out, diagnostics=self.diagnostics())
+        step, current = self.step, self.current
+        if history:
+            for k in range(n - 1):
+                out[k + 1] = step(gyr[k], dt[k], acc[k + 1], valid[k])
+                for key, value in current().items():
+                    history[key][k + 1] = value
+        else:
+            for k in range(n - 1):
+                out[k + 1] = step(gyr[k], dt[k], acc[k + 1], valid[k])
+        return Trajectory(imu.t, out, diagnostics={**history, **self.diagnostics()})

@@ -1,6 +1,6 @@
 """Dead reckoning: integrate the gyro, ignore the accelerometer.
 
-The seeds' quaternion kinematics, `q_{k+1} = q_k * exp([0, w_k dt_k / 2])` with the real
+Quaternion kinematics, `q_{k+1} = q_k * exp([0, w_k dt_k / 2])` with the real
 per-sample `dt_k` and `w_k` the gyro reading for [t_k, t_{k+1}] (`ImuSamples.interval_rates`), evaluated for the whole recording at once: the increments are one
 vectorised `from_rotvec`, their running product a parallel scan
 (`fusion.quaternion.cumulative_product`). Gyro samples marked invalid contribute no rotation.

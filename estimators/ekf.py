@@ -59,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from fusion.types import ImuSamples
+from fusion.quaternion import exp_floats, gravity_in_body_floats, multiply_floats, right_jacobian_floats, rotation_matrix_floats, unit_array
 
 from ._attitude import (
     UNESTIMATED_VAR,
@@ -68,12 +68,9 @@ from ._attitude import (
     acc_step_variance,
     acc_variance_scale,
     bias_rest_update,
-    exp_quat,
     inv_sym3,
-    mul_floats,
     repair_covariance,
     scale_axes_mask,
-    unit_array,
 )
 from .base import RecursiveEstimator
 from .ukf import Gate, _check_nonneg, check_bias_params, check_filter_params, check_scale_params
@@ -164,33 +161,12 @@ class EKFParams:
 _CHI2_3DOF = 16.27
 
 
-def _rotation_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """R(q) for a unit quaternion (body -> world)."""
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _right_jacobian(tx: float, ty: float, tz: float) -> np.ndarray:
-    """SO(3) right Jacobian J_r(theta) (Sola 2017, the SO(3) right Jacobian); I - [theta]x / 2 near 0."""
-    a2 = tx * tx + ty * ty + tz * tz
-    S = np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])
-    if a2 < 1e-12:
-        return np.eye(3) - 0.5 * S
-    a = math.sqrt(a2)
-    return np.eye(3) - (1.0 - math.cos(a)) / a2 * S + (a - math.sin(a)) / (a2 * a) * (S @ S)
-
-
 class EKF(RecursiveEstimator):
     """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
 
     Params = EKFParams
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         q0 = np.asarray(init_quat_wxyz, dtype=float)
         if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
@@ -218,18 +194,14 @@ class EKF(RecursiveEstimator):
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
-        N = len(imu)
-        self._cov = np.full((N, n, n), np.nan)
-        self._cov[0] = self.P
-        self._bias = np.zeros((N, 3))
-        self._scale = np.zeros((N, 3))
-        self._acc_var = np.full(N, np.nan)
-        self._at_rest = np.zeros(N, bool)
+        self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
+        self.at_rest = False  # whether the last step made the rest bias update
         self.n_skipped = self.n_cov_repaired = 0
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p = self.params
         n = self.n
+        self.acc_var, self.at_rest = math.nan, False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -242,11 +214,11 @@ class EKF(RecursiveEstimator):
             tx = ty = tz = 0.0
             Q = Q + self._Qbad * (dt_s * dt_s)
             self._dist.lose_frame()
-        d = exp_quat(tx, ty, tz)
-        q = mul_floats(q, d)  # q exp(theta / 2), as 4 floats
-        F[:3, :3] = _rotation_matrix(*d).T  # error transition R(theta)^T
+        d = exp_floats(tx, ty, tz)
+        q = multiply_floats(q, d)  # q exp(theta / 2), as 4 floats
+        F[:3, :3] = rotation_matrix_floats(*d).T  # error transition R(theta)^T
         if n > 3:
-            Jdt = _right_jacobian(tx, ty, tz) * dt_s
+            Jdt = right_jacobian_floats(tx, ty, tz) * dt_s
             if n > 6:
                 if valid:
                     F[:3, 3:6] = -Jdt * g  # d theta / d b = -J_r diag(1 + s) dt
@@ -260,18 +232,18 @@ class EKF(RecursiveEstimator):
         if n > 3 and valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
             # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
             dx, P = bias_rest_update(self.b, P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
-            q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
+            q = multiply_floats(q, exp_floats(dx[0], dx[1], dx[2]))
             self.b = self.b + dx[3:6]
             if n > 6:
                 self.s = self.s + dx[6:]
-            self._at_rest[k + 1] = True
+            self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
             dist = self._dist.update(d, acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
             r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, dist, dt_s) * scale
-            self._acc_var[k + 1] = r
+            self.acc_var = r
             w, x, y, z = q
-            h = np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z])
+            h = gravity_in_body_floats(w, x, y, z)
             H = self._H
             H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
             H[1, 0], H[1, 2] = h[2], -h[0]
@@ -296,7 +268,7 @@ class EKF(RecursiveEstimator):
                 # their linearised correlations. Any gain is exact in the Joseph form.
                 K[3:] = 0.0
             dx = K @ y
-            q = mul_floats(q, exp_quat(dx[0], dx[1], dx[2]))
+            q = multiply_floats(q, exp_floats(dx[0], dx[1], dx[2]))
             if n > 3:
                 self.b = self.b + dx[3:6]
             if n > 6:
@@ -305,8 +277,6 @@ class EKF(RecursiveEstimator):
             P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
         else:
             self.n_skipped += 1
-            if not valid:
-                pass
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -314,18 +284,11 @@ class EKF(RecursiveEstimator):
         self.q = unit_array(q)
         self.P, repaired = repair_covariance(P)
         self.n_cov_repaired += repaired
-        self._cov[k + 1] = self.P
-        self._bias[k + 1] = self.b
-        self._scale[k + 1] = self.s
         return self.q
 
+    def current(self) -> dict[str, Any]:
+        return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "acc_var_g2": self.acc_var,
+                "at_rest": self.at_rest}
+
     def diagnostics(self) -> dict[str, Any]:
-        return {
-            "cov": self._cov,
-            "gyr_bias_rad_s": self._bias,
-            "gyr_scale": self._scale,
-            "acc_var_g2": self._acc_var,
-            "at_rest": self._at_rest,
-            "updates_skipped": self.n_skipped,
-            "cov_repairs": self.n_cov_repaired,
-        }
+        return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}

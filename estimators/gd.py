@@ -1,26 +1,30 @@
-"""`gd`: the seeds' projected gradient descent on the batch smoother's cost.
+"""`gd`: projected gradient descent on the batch smoother's cost.
 
-Same cost as `gn` (`fusion.estimators.smoother_cost`), minimised the way two seed reports did:
-each iteration moves every quaternion along its normalised tangent-space gradient,
+The cost family of `gn` (`fusion.estimators.smoother_cost`) but not, by default, the same
+weighting: `gd` defaults to weighting="scalar" (motion weight `wm` = 10, accelerometer 1, no
+robust loss) without calibration variables or velocity model, because the noise model's
+weights make the problem too ill-conditioned for gradient descent; `gd:weighting=noise` and
+`gn:weighting=scalar` put the two solvers on one cost (`tests/test_smoother.py` compares them).
+Each iteration moves every quaternion along its normalised tangent-space gradient,
 
-    q_t' = cos(alpha_t) q_t + sin(alpha_t) p_t,   p_t = -G_t / ||G_t||          (seed step 4)
+    q_t' = cos(alpha_t) q_t + sin(alpha_t) p_t,   p_t = -G_t / ||G_t||
 
 with G_t the Riemannian gradient in R^4 (the Euclidean gradient projected onto the
 tangent space of the unit sphere at q_t; for right perturbations delta_t it is
 `q_t * [0, 2 dc/ddelta_t]`). q_t' stays on the sphere exactly since q_t is orthogonal to p_t.
-Step sizes: one alpha per quaternion, found by a halving schedule (seed step 5): start from
+Step sizes: one alpha per quaternion, found by a halving schedule: start from
 twice the previous accepted alpha (capped at `step_rad`), halve every alpha whose quaternion's
 local cost (the terms touching it, neighbours held) does not decrease, up to `halvings`
 times; quaternions without a decreasing step stay put. If the joint update raises the total
 cost (neighbours moved together), all alphas are halved until it does not.
 
-`update="normalise"` is the other seed's variant: step along the *Euclidean* gradient
+`update="normalise"` is the common alternative: step along the *Euclidean* gradient
 (which has a radial part from the accelerometer term) and renormalise,
 q_t' = normalize(q_t - alpha_t G_euc,t / ||G_euc,t||).
 
-`weighting="seed"` (a cost option shared with `gn`) replaces the noise model by the seeds'
-scalar weights (motion `wm`, default 10, accelerometer 1, no Huber loss): the "weight of the
-motion term" ablation.
+`weighting="scalar"` (a cost option shared with `gn`; "seed" is its deprecated alias) replaces
+the noise model by scalar weights (motion `wm`, default 10, accelerometer 1, no robust loss):
+the "weight of the motion term" ablation.
 
 Analytic gradients only (no autodiff). Cost per iteration -> diagnostics["loss"].
 """
@@ -35,7 +39,7 @@ import numpy as np
 
 from fusion import quaternion as quat
 
-from .gn import BatchSmoother, SmootherParams, progress_bar
+from .smoother import BatchSmoother, SmootherParams, progress_bar
 from .smoother_cost import SmootherProblem
 
 ARMIJO = 0.5
@@ -45,9 +49,10 @@ ARMIJO = 0.5
 class GDParams(SmootherParams):
     """`SmootherParams` (the cost) plus the descent's own settings.
 
-    Defaults differ from `gn` in two places: the seeds' weighting (motion 10, accelerometer 1;
+    Defaults differ from `gn`: the scalar weighting (motion 10, accelerometer 1;
     with the noise model's weights the problem is too ill-conditioned for gradient descent:
-    see benchmarks/bench_smoother.py) and a looser tolerance.
+    see benchmarks/bench_smoother.py), no calibration variables or velocity model, and a longer
+    run (500 iterations, tol 1e-6: a gradient step gains less than a Gauss-Newton step).
 
     update: "geodesic" (cos/sin step on the sphere) or "normalise" (step, then normalise).
     step_rad (alpha): largest per-quaternion step, rad of quaternion arc (rotation 2 alpha).
@@ -61,7 +66,7 @@ class GDParams(SmootherParams):
     scale_axes: str = field(default="", metadata={"alias": "scale"})
     velocity_acc_noise_g_sqrt_s: float = field(default=np.inf, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=np.inf, metadata={"alias": "vb"})
-    weighting: Literal["noise", "seed"] = "seed"
+    weighting: Literal["noise", "scalar", "seed"] = "scalar"
     update: Literal["geodesic", "normalise"] = "geodesic"
     step_rad: float = field(default=0.05, metadata={"alias": "alpha"})
     halvings: int = 12
@@ -79,7 +84,7 @@ class GDParams(SmootherParams):
 
 
 class GradientDescentSmoother(BatchSmoother):
-    """Whole-trajectory smoother by projected gradient descent (the seeds' method, analytic gradients)."""
+    """Whole-trajectory smoother by projected gradient descent (analytic gradients)."""
 
     Params = GDParams
     name = "gd"
@@ -87,7 +92,7 @@ class GradientDescentSmoother(BatchSmoother):
     def _candidate(self, q: np.ndarray, direction: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         a = alpha[:, None]
         if self.params.update == "geodesic":
-            out = np.cos(a) * q + np.sin(a) * direction  # seed step 4: stays on the sphere
+            out = np.cos(a) * q + np.sin(a) * direction  # stays on the sphere
         else:
             out = q + a * direction
         return quat.normalize(out)  # exact no-op up to rounding for "geodesic"
@@ -120,7 +125,7 @@ class GradientDescentSmoother(BatchSmoother):
                     G = G + (-2.0 * wa * np.sum(r_a * h, axis=1))[:, None] * q
                 norm = np.linalg.norm(G, axis=1, keepdims=True)
                 direction = -G / np.where(norm > 0, norm, 1.0)
-                # Seed step 5: per-quaternion step search with a halving schedule.
+                # Per-quaternion step search with a halving schedule.
                 alpha = np.minimum(2.0 * alpha, p.step_rad)
                 alpha[norm[:, 0] == 0] = 0.0
                 local_old = problem.local_costs(q, q, theta)

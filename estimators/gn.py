@@ -1,11 +1,12 @@
 """`gn`: the batch smoother solved on the manifold by Gauss-Newton / Levenberg-Marquardt.
 
-Minimises the cost of `fusion.estimators.smoother_cost` (motion + robust accelerometer terms
+Minimises the cost of `fusion.estimators.smoother_cost`, with the weighting and defaults of
+`fusion.estimators.smoother.SmootherParams` (motion + robust accelerometer terms
 weighted by the sensor noise) over all orientations at once. Updates are on the manifold,
 `q_t <- q_t * exp([0, delta_t / 2])`; each motion residual touches two neighbours, so the
 normal equations are block-tridiagonal (3x3 blocks), stored in LAPACK band form and solved
 by `scipy.linalg.solveh_banded` in O(T) time and memory. Optional calibration variables
-(a constant gyro bias per axis, per-axis scale errors; issue 7 item 4) add a dense border
+(a constant gyro bias per axis, per-axis scale errors) add a dense border
 to the matrix, eliminated by a Schur complement (the banded solve takes P + 1 right-hand sides).
 
 Levenberg-Marquardt (Marquardt 1963): solve (H + lambda diag(H)) delta = -g, accept the
@@ -23,141 +24,15 @@ its prior std. A variable the data cannot see keeps a posterior std near the pri
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
-from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from scipy.linalg import solveh_banded
 
-from fusion.types import ImuSamples, Trajectory
+from fusion.quaternion import retract
 
-from .base import Estimator
-from .smoother_cost import AXES, SmootherProblem, Weights, banded_lower, retract
-
-
-def _check_axes(name: str, value: str) -> None:
-    if any(a not in AXES for a in value) or len(set(value)) != len(value):
-        raise ValueError(f"{name}={value!r}: expected distinct letters from 'xyz' (or 'none')")
-
-
-@dataclass(frozen=True)
-class SmootherParams:
-    """Parameters shared by `gn` and `gd` (the cost), plus the initialisation.
-
-    All noise levels are densities of continuous-time white noise, so one value means the
-    same at any sampling rate (see `fusion.estimators.smoother_cost.Weights`):
-    gyro_noise_rad_sqrt_s (sg): gyro noise density, rad/sqrt(s); a step of dt s has angle
-        variance sg^2 dt.
-    acc_noise_g_sqrt_s (sa): accelerometer noise density, g sqrt(s); a sample standing for dt s
-        has variance sa^2 / dt.
-    loss: robust loss on the accelerometer residual: "huber", "cauchy", "geman-mcclure", "none".
-    loss_scale_g (huber, the alias it had when the loss was always Huber): the loss's scale on
-        the accelerometer residual norm, g (inf: plain least squares).
-    prior_std_rad (p0): std of the anchor of the first orientation at the initial one, rad.
-    dropout_noise_rad_sqrt_s (sdrop): angle random walk density where `gyr_valid` is False.
-    use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
-    bias_axes (bias): gyro bias variables, e.g. "xy" ("" or "none": none). scale_axes (scale):
-        scale errors, likewise.
-    bias_prior_rad_s, scale_prior: prior std of those variables around zero.
-    scale_release_ratio (release): a requested scale error is estimated only if the recording
-        determines it: its posterior std at the stage-1 solution (scales held at zero) is
-        below this fraction of its prior std (`released_scales`); the others stay zero.
-        Stage 1 ends at `tol` or after half of `max_iter`, so stage 2 always gets its turn.
-    velocity_acc_noise_g_sqrt_s (sv), velocity_bound_m_sqrt_s (vb): the horizontal velocity
-        model (see `fusion.estimators.smoother_cost`); inf switches it off.
-
-    Defaults, one set for every IMU: the accelerometer is trusted as a gravity sensor only on
-    average (sa = 0.2 g sqrt(s): a hand-held or body-worn motion's linear accelerations are
-    tenths of a g, correlated over fractions of a second), while the velocity model keeps the
-    world-frame linear acceleration's integral bounded (the fact VQF's inertial-frame low-pass
-    rests on: Laidig & Seel 2023); the x and y gyro biases and scale errors are estimated
-    (prior std 0.05 rad/s and 10 %, a consumer MEMS gyro's tolerances); z's are not: with the
-    body z axis near vertical they act on heading only, which a gyro and an accelerometer cannot
-    observe, and estimating them spoils the heading. Measured with these defaults: course
-    recordings 1-9 1.27 deg inclination / 4.58 total; the nine BROAD trials 0.73 mean inclination
-    (offlineVQF 0.54; without scale estimation 0.55 on BROAD but 2.1 / 22 on the course).
-    weighting: "noise" (information matrices from the noise stds above) or "seed" (the seeds'
-        scalar weights: motion `seed_motion_weight`, accelerometer 1, no Huber loss).
-    seed_motion_weight (wm): the seeds' motion weight (10 in one report).
-    init: estimator whose output starts the optimisation ("dr", "ukf", ...).
-    max_iter (iters), tol: stopping rule (relative cost decrease below tol).
-    progress: tqdm bar over iterations on stderr (shown only on a terminal).
-    """
-
-    gyro_noise_rad_sqrt_s: float = field(default=0.02, metadata={"alias": "sg"})
-    acc_noise_g_sqrt_s: float = field(default=0.2, metadata={"alias": "sa"})
-    loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
-    loss_scale_g: float = field(default=0.1, metadata={"alias": "huber"})
-    prior_std_rad: float = field(default=0.01, metadata={"alias": "p0"})
-    dropout_noise_rad_sqrt_s: float = field(default=0.3, metadata={"alias": "sdrop"})
-    use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
-    bias_axes: str = field(default="xy", metadata={"alias": "bias"})
-    scale_axes: str = field(default="xy", metadata={"alias": "scale"})
-    bias_prior_rad_s: float = 0.05
-    scale_prior: float = 0.1
-    scale_release_ratio: float = field(default=1.0, metadata={"alias": "release"})
-    velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
-    velocity_bound_m_sqrt_s: float = field(default=0.5, metadata={"alias": "vb"})
-    weighting: Literal["noise", "seed"] = "noise"
-    seed_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
-    init: str = "dr"
-    max_iter: int = field(default=50, metadata={"alias": "iters"})
-    tol: float = 1e-5
-    progress: bool = True
-
-    def __post_init__(self) -> None:
-        for name in ("gyro_noise_rad_sqrt_s", "acc_noise_g_sqrt_s", "loss_scale_g", "prior_std_rad", "dropout_noise_rad_sqrt_s",
-                     "bias_prior_rad_s", "scale_prior", "seed_motion_weight", "velocity_acc_noise_g_sqrt_s",
-                     "velocity_bound_m_sqrt_s"):
-            value = getattr(self, name)
-            if not value > 0:
-                raise ValueError(f"{name}={value!r}: must be positive")
-        for name in ("bias_axes", "scale_axes"):  # "none" (as typed on a command line) is ""
-            if getattr(self, name) == "none":
-                object.__setattr__(self, name, "")
-            _check_axes(name, getattr(self, name))
-        if not 0 < self.scale_release_ratio <= 1:
-            raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
-        if self.max_iter < 1:
-            raise ValueError(f"max_iter={self.max_iter}: must be at least 1")
-        if not self.tol >= 0:
-            raise ValueError(f"tol={self.tol!r}: must be >= 0")
-
-    def weights(self) -> Weights:
-        """The cost's `Weights` (the seeds' scalar weights when weighting="seed")."""
-        seed = self.weighting == "seed"
-        return Weights(
-            gyro_noise_rad_sqrt_s=self.gyro_noise_rad_sqrt_s, acc_noise_g_sqrt_s=self.acc_noise_g_sqrt_s,
-            loss="none" if seed else self.loss, loss_scale_g=np.inf if seed else self.loss_scale_g,
-            prior_std_rad=self.prior_std_rad, dropout_noise_rad_sqrt_s=self.dropout_noise_rad_sqrt_s,
-            motion_weight=self.seed_motion_weight if seed else None, acc_weight=1.0 if seed else None,
-            bias_axes=self.bias_axes, scale_axes=self.scale_axes, bias_prior_rad_s=self.bias_prior_rad_s,
-            scale_prior=self.scale_prior,
-            velocity_acc_noise_g_sqrt_s=np.inf if seed else self.velocity_acc_noise_g_sqrt_s,
-            velocity_bound_m_sqrt_s=np.inf if seed else self.velocity_bound_m_sqrt_s,
-        )
-
-
-def initial_trajectory(init: str, owner: str, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
-    """(T, 4) starting point: the output of the registered estimator `init` (e.g. "dr", "ukf:R=1e-3")."""
-    from . import build  # the registry imports this module
-
-    if init.split(":")[0] == owner:
-        raise ValueError(f"{owner}: init={init!r} would initialise the smoother with itself")
-    est = build(init)
-    quat_wxyz = np.array(est.estimate(imu, init_quat_wxyz).quat_wxyz, dtype=float)
-    if not np.all(np.isfinite(quat_wxyz)):
-        raise ValueError(f"{owner}: initial estimator {init!r} returned non-finite orientations")
-    return quat_wxyz / np.linalg.norm(quat_wxyz, axis=1, keepdims=True)
-
-
-def progress_bar(enabled: bool, total: int, desc: str):
-    """A tqdm bar on stderr, shown only on a terminal (disable=None), or a no-op."""
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, file=sys.stderr, disable=None if enabled else True, leave=False)
+from .smoother import BatchSmoother, SmootherParams, progress_bar
+from .smoother_cost import SmootherProblem, banded_lower
 
 
 def solve_normal_equations(lin, damping: float) -> tuple[np.ndarray, np.ndarray]:
@@ -209,30 +84,6 @@ def released_scales(lin, n_bias: int, prior_std: np.ndarray, ratio: float) -> np
     """
     std = theta_posterior_std(lin)[n_bias:]
     return std < ratio * prior_std
-
-
-class BatchSmoother(Estimator):
-    """What `gn` and `gd` share: the problem set-up, the start trajectory and `estimate`;
-    each supplies `solve(problem, q) -> (q, diagnostics)`."""
-
-    Params = SmootherParams
-    causal = False
-    name = ""
-
-    def problem(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> SmootherProblem:
-        return SmootherProblem.from_imu(imu, init_quat_wxyz, self.params.weights(), use_valid=self.params.use_gyr_valid)
-
-    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        p = self.params
-        if len(imu) < 2:
-            raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
-        problem = self.problem(imu, init_quat_wxyz)
-        q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
-        q, diagnostics = self.solve(problem, q)
-        return Trajectory(imu.t, q, diagnostics=diagnostics)
-
-    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
-        raise NotImplementedError
 
 
 class GaussNewtonSmoother(BatchSmoother):
@@ -311,8 +162,8 @@ class GaussNewtonSmoother(BatchSmoother):
             "norm_error": np.array(norm_error),
             "iterations": iterations,
             "converged": converged,
-            "gyro_bias_rad_s": bias,
-            "gyro_scale_error": scale,
+            "gyr_bias_rad_s": bias,
+            "gyr_scale_error": scale,
             "theta_names": [f"bias_{a}" for a in p.bias_axes] + [f"scale_{a}" for a in p.scale_axes],
             "theta": theta,
             "theta_std": theta_posterior_std(lin),
@@ -321,8 +172,3 @@ class GaussNewtonSmoother(BatchSmoother):
             "velocity_m_s": v,
         }
         return q, diagnostics
-
-
-def problem_valid(imu: ImuSamples, p: SmootherParams) -> np.ndarray:
-    """The validity mask the initialisation uses (all True when dropouts are switched off)."""
-    return imu.gyr_valid if p.use_gyr_valid else np.ones(len(imu), bool)

@@ -105,7 +105,3 @@ def make_params(params_cls: type, overrides: tuple[tuple[str, str], ...] | dict[
         named = named or [f"{key!r}" for key in typed.values()]
         raise ValueError(f"estimator {owner!r} parameter {', '.join(named)}: {message}") from None
 
-
-def describe(params_cls: type) -> list[tuple[str, str, Any]]:
-    """(name, alias, default) for each parameter, for `--help` texts and reports."""
-    return [(f.name, f.metadata.get("alias", ""), f.default) for f in dataclasses.fields(params_cls)]

@@ -197,7 +197,7 @@ class _SeededVQF(Estimator):
     `accQuat` (inclination correction) to identity, so `quat6D = accQuat * gyrQuat` starts
     at the initial orientation. VQF then corrects towards its low-passed accelerometer,
     which it initialises with the mean of the first samples, so the inclination settles
-    on the accelerometer's within a few samples (VQF's design); the heading is the seed's.
+    on the accelerometer's within a few samples (VQF's design); the heading is the initial orientation's.
     Constant sample time: see `_rate_for_constant_ts`. Invalid gyro samples: zero rate.
     """
 
@@ -290,11 +290,11 @@ class MadgwickPeer(RecursiveEstimator):
         super().__init__(params)
         self._ahrs = _require("ahrs.filters", "ahrs", "madgwick")
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         self._filter = self._ahrs.Madgwick(gain=self.params.gain)
         self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
         self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Madgwick 2010, eqs. 12-13, 33-34
         return self._q
@@ -325,17 +325,17 @@ class MahonyPeer(RecursiveEstimator):
         super().__init__(params)
         self._ahrs = _require("ahrs.filters", "ahrs", "mahony")
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         self._filter = self._ahrs.Mahony(k_P=self.params.k_p, k_I=self.params.k_i, b0=np.zeros(3))
         self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else _TINY_RATE_RAD_S
         self._q = self._filter.updateIMU(self._q, rate, _acc_m_s2(acc_g), dt=dt_s)  # Mahony 2008, eq. 48
         return self._q
 
     def diagnostics(self) -> dict[str, Any]:
-        return {"gyro_bias_rad_s": np.array(self._filter.b)}
+        return {"gyr_bias_rad_s": np.array(self._filter.b)}
 
 
 @dataclass(frozen=True)
@@ -372,14 +372,14 @@ class AhrsEKFPeer(RecursiveEstimator):
         super().__init__(params)
         self._ahrs = _require("ahrs.filters", "ahrs", "ahrs-ekf")
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         # magnetic_ref given so the library does not evaluate its geomagnetic model (unused in 6-D).
         self._filter = self._ahrs.EKF(frame="NED", magnetic_ref=0.0, var_gyr=p.gyr_var_rad2_s2, var_acc=p.acc_var,
                                       P=p.init_cov * np.identity(4))
         self._q = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         rate = gyr_rad_s if gyr_valid else np.zeros(3)
         if np.all(np.isfinite(acc_g)):
             self._q = self._filter.update(self._q, rate, acc_g * STANDARD_GRAVITY_M_S2, dt=dt_s)
@@ -434,7 +434,12 @@ class FusionPeer(RecursiveEstimator):
         super().__init__(params)
         self._fusion = _require("imufusion", "imufusion", "fusion-ahrs")
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset_for(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+        rate_hz = float((len(imu) - 1) / (imu.t[-1] - imu.t[0])) if len(imu) > 1 else None
+        self.reset(init_quat_wxyz, sample_rate_hz=rate_hz)
+
+    def reset(self, init_quat_wxyz: np.ndarray, sample_rate_hz: float | None = None) -> None:
+        """sample_rate_hz: the nominal rate Fusion's settings take (None: the library's default)."""
         f, p = self._fusion, self.params
         ahrs = f.Ahrs()
         settings = f.AhrsSettings()
@@ -444,15 +449,15 @@ class FusionPeer(RecursiveEstimator):
         settings.gyroscope_range = p.gyroscope_range_deg_s
         settings.acceleration_rejection = p.acceleration_rejection_deg
         settings.rejection_timeout = p.rejection_timeout
-        if len(imu) > 1:
-            settings.sample_rate = float((len(imu) - 1) / (imu.t[-1] - imu.t[0]))
+        if sample_rate_hz is not None:
+            settings.sample_rate = sample_rate_hz
         ahrs.set_settings(settings)
         ahrs.set_quaternion(np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz))
         if not p.startup:
             ahrs.skip_startup()
         self._ahrs = ahrs
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         self._ahrs.set_sample_period(dt_s)
         rate_deg_s = np.degrees(gyr_rad_s) if gyr_valid else np.zeros(3)  # Fusion wants deg/s
         self._ahrs.update_no_magnetometer(rate_deg_s, _acc_m_s2(acc_g) / STANDARD_GRAVITY_M_S2)

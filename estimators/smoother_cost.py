@@ -36,8 +36,8 @@ The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the 
 trajectory about world z, so without it the normal equations are singular in heading.
 
 Perturbations are on the right, `q_t <- q_t * exp([0, delta_t / 2])` (delta_t in R^3, body
-frame). The Jacobians below are exact (SO(3) left/right Jacobians, Sola et al. 2018,
-"A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` and
+frame). The Jacobians below are exact (SO(3) left/right Jacobians of `fusion.quaternion`, Sola
+et al. 2018, "A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` and
 `tests/test_smoother_robust.py` check them against finite differences. Everything is
 vectorised over samples.
 """
@@ -48,63 +48,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion import quaternion as quat
+from fusion.quaternion import retract, right_jacobian, right_jacobian_inv, rotation_matrix, skew
 from fusion.types import ImuSamples
 
 AXES = "xyz"
 GRAVITY_M_S2 = 9.80665  # standard gravity: 1 g of the accelerometer, m/s^2
-
-
-# ----------------------------------------------------------------------------- SO(3) helpers
-def skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices `[v]x`."""
-    x, y, z = np.moveaxis(v, -1, 0)
-    o = np.zeros_like(x)
-    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
-
-
-def _series(theta: np.ndarray, exact, coeffs: tuple[float, ...], small: float = 1e-3) -> np.ndarray:
-    """exact(theta) where theta > small, else the Taylor series sum c_i theta^(2i)."""
-    t2 = theta * theta
-    approx = np.zeros_like(theta)
-    for c in reversed(coeffs):
-        approx = approx * t2 + c
-    safe = np.where(theta > small, theta, 1.0)
-    return np.where(theta > small, exact(safe), approx)
-
-
-def right_jacobian(phi: np.ndarray) -> np.ndarray:
-    """Jr(phi), (..., 3) -> (..., 3, 3): Exp(phi + d) ~ Exp(phi) Exp(Jr(phi) d). Sola eq. 143."""
-    th = np.linalg.norm(phi, axis=-1)
-    a = _series(th, lambda t: (1.0 - np.cos(t)) / t**2, (1 / 2, -1 / 24, 1 / 720))
-    b = _series(th, lambda t: (t - np.sin(t)) / t**3, (1 / 6, -1 / 120, 1 / 5040))
-    S = skew(phi)
-    return np.eye(3) - a[..., None, None] * S + b[..., None, None] * (S @ S)
-
-
-def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
-    """Jr^-1(phi): Log(Exp(phi) Exp(d)) ~ phi + Jr^-1(phi) d. Sola eq. 144. Jl^-1(phi) = Jr^-1(-phi)."""
-    th = np.linalg.norm(phi, axis=-1)
-    c = _series(th, lambda t: 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)), (1 / 12, 1 / 720, 1 / 30240))
-    S = skew(phi)
-    return np.eye(3) + 0.5 * S + c[..., None, None] * (S @ S)
-
-
-def rotation_matrix(q: np.ndarray) -> np.ndarray:
-    """R(q), (..., 4) unit wxyz -> (..., 3, 3) (maps body to world)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def retract(q: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """q * exp([0, delta / 2]), renormalised. q: (T, 4), delta: (T, 3) rad."""
-    return quat.normalize(quat.multiply(q, quat.from_rotvec(delta)))
 
 
 # ----------------------------------------------------------------------------- the problem
@@ -161,7 +109,7 @@ class Weights:
     prior_std_rad: std of the anchor of q_0 at the initial orientation.
     dropout_noise_rad_sqrt_s: density of the angle random walk where the gyro is invalid.
     motion_weight / acc_weight: fixed scalar information per term instead of the noise model
-        (the seeds' weighting: motion 10, accelerometer 1); None uses the noise model.
+        (scalar weighting: motion 10, accelerometer 1); None uses the noise model.
     bias_axes / scale_axes: which gyro biases / scale errors are variables ("", "xy", "xyz").
     bias_prior_rad_s / scale_prior: priors (std) of those variables around zero.
     velocity_acc_noise_g_sqrt_s: density of the accelerometer noise in the horizontal velocity
@@ -320,7 +268,7 @@ class SmootherProblem:
         return self._u
 
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3). Seed: motion residual."""
+        """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3): the motion residual."""
         return quat.to_rotvec(quat.multiply(quat.multiply(quat.conjugate(q_b), q_a), u))
 
     def residuals(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray | None = None) -> dict[str, np.ndarray]:

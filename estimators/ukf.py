@@ -1,8 +1,13 @@
-"""The seed's quaternion UKF (Kraft 2003 style) on FilterPy's scaffolding, and `ukf-bias`.
+"""`ukf`: a quaternion UKF after Kraft 2003, and `ukf-bias`, the same with gyro bias and scale.
+
+Kraft 2003: E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking",
+Proc. 6th Int. Conf. Information Fusion. Equation numbers of that paper are not cited (they
+could not be checked here); the numbered steps below are this module's and the code refers
+to them.
 
 State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, rad/s, for
 `ukf-bias`); covariance `P` on the body-frame rotation-vector error `e`, `q_true = q exp(e/2)`
-(3x3, or 6x6 with the bias error). Per IMU sample, following the seed report's steps:
+(3x3, or 6x6 with the bias error). Per IMU sample:
 
 1. control input: the gyro, `q_delta = exp(w dt / 2)` (with `w - b_i` per sigma point for
    `ukf-bias`);
@@ -20,7 +25,6 @@ State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, ra
 8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R`, `P_xz = sum Wc e_i (Z_i - z)^T`;
 9. gain `K = P_xz P_zz^-1`, update through the exponential map `q <- q exp(K (a - z) / 2)`,
    `P <- P_pred - K P_zz K^T`.
-Kraft's equation numbers are not cited: the code follows the seed report's step numbers.
 
 What FilterPy (2.0.0) provides and what is replaced
 ----------------------------------------------------
@@ -64,15 +68,15 @@ from Cholesky to a clipped eigen-decomposition and the covariance is symmetrised
 eigenvalue-clipped if needed) after every update; counts of these recoveries are in the
 trajectory diagnostics. Quaternions are renormalised every step.
 
-Defaults. The seed report used P0 = Q = R = 1e-4 I (Q per sample at 100 Hz, i.e.
-`process_noise_rad2_s = 1e-2`; R in g^2). Those apply nearly the whole accelerometer
+Defaults. Equal variances P0 = Q = R = 1e-4 I (Q per sample at 100 Hz, i.e.
+`process_noise_rad2_s = 1e-2`; R in g^2; `UKFParams.equal_variances()`) are a common start. Those apply nearly the whole accelerometer
 innovation every sample (Q/R = 1 per sample), so hand-motion accelerations become attitude
 noise and, through the correlations of the unobservable heading with the tilt, a heading
 random walk: 2.98 deg inclination but 56 deg total RMSE (mean over ece276a 1-9, --init truth).
 A sweep (`UKFParams` docstring) shows inclination depends mainly on Q/R; `ukf` defaults to
 Q = 1e-3 rad^2/s, R = 1e-2 g^2 (Q/R = 0.1 /s): 2.11 deg inclination, 17.4 deg total.
 
-Beyond the seed (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
+Beyond Kraft 2003 (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
 the tilt, yet the optimal gain also turns the estimate about the vertical through the
 tilt-heading correlations of P; with unmodelled hand accelerations that is what drives the
 heading random walk. `heading_free` removes the gain's component about the predicted
@@ -88,7 +92,8 @@ from typing import Any, Literal
 import numpy as np
 from filterpy.kalman import UnscentedKalmanFilter
 
-from fusion.types import ImuSamples
+from fusion import quaternion as quat
+from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
 
 from ._attitude import (
     UNESTIMATED_VAR,
@@ -97,18 +102,10 @@ from ._attitude import (
     acc_step_variance,
     acc_variance_scale,
     bias_rest_update,
-    exp_batch,
-    exp_quat,
-    gravity_batch,
     inv_sym3,
-    left_matrix,
-    mul_floats,
-    log_batch,
     repair_covariance,
     scale_axes_mask,
-    right_matrix,
     sqrt_psd,
-    unit_array,
 )
 from .base import RecursiveEstimator
 
@@ -193,29 +190,29 @@ def error_dim(p: Any) -> int:
 
 @dataclass(frozen=True)
 class UKFParams:
-    """Parameters of `ukf`, the seed's quaternion UKF.
+    """Parameters of `ukf`, the quaternion UKF after Kraft 2003.
 
     process_noise_rad2_s (Q): attitude process noise, variance per second of the rotation
-        error, rad^2/s; the step uses `Q dt I`. Seed: 1e-4 per 100 Hz sample = 1e-2 rad^2/s.
-    acc_noise_g2 (R): accelerometer measurement variance per axis, g^2. Seed: 1e-4.
-    init_var_rad2 (P0): initial attitude variance per axis, rad^2. Seed: 1e-4.
-    sigma: sigma-point scheme, kraft (seed) | julier | merwe; kappa, alpha, beta their
+        error, rad^2/s; the step uses `Q dt I`.
+    acc_noise_g2_s (R): accelerometer noise density, g^2 s; step variance `R / dt` per axis.
+    init_var_rad2 (P0): initial attitude variance per axis, rad^2.
+    sigma: sigma-point scheme, kraft (Kraft 2003) | julier | merwe; kappa, alpha, beta their
         parameters (kappa for julier and merwe, alpha and beta for merwe).
     use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
-    gate, gate_g: accelerometer gating (see `_attitude.acc_variance_scale`); off for the seed.
+    gate, gate_g: accelerometer gating (see `_attitude.acc_variance_scale`); off by default.
     invalid_gyr_std_rad_s (Qbad): assumed rate uncertainty on invalid gyro samples, rad/s.
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: lean (vectorised) | filterpy (per-point hooks + FilterPy's update), same numbers.
 
-    heading_free (hf): not in the seed (default off); see the module docstring.
+    heading_free (hf): not in Kraft 2003 (default off); see the module docstring.
 
-    Defaults: Q = 1e-3 rad^2/s, R = 1e-2 g^2. Sweep over ece276a 1-9 with the spine's
+    Defaults: Q = 1e-3 rad^2/s, R = 1e-2 g^2. Sweep over ece276a 1-9 with the package's
     calibration, --init truth, mean RMSE inclination / total (deg):
         Q = 1e-4: R = 1e-3 2.11/17.4, R = 1e-2 3.14/17.1
         Q = 1e-3: R = 1e-4 2.70/38.2 (*), 1e-3 2.26/22.7, 3e-3 2.09/18.4, 1e-2 2.11/17.4 (default),
                   3e-2 2.42/16.7, 1e-1 3.14/17.1
-        Q = 1e-2: R = 1e-4 2.98/56.2 (the seed), 1e-2 2.27/22.7, 3e-2 2.10/18.5, 1e-1 2.10/17.6
-    (* measured with a provisional calibration before the spine landed.) Equal Q/R give equal scores;
+        Q = 1e-2: R = 1e-4 2.98/56.2 (equal variances), 1e-2 2.27/22.7, 3e-2 2.10/18.5, 1e-1 2.10/17.6
+    (* measured with an earlier, provisional calibration.) Equal Q/R give equal scores;
     Q/R = 0.1-0.3 /s is the plateau of inclination, 0.1 /s keeps the total under 18 deg.
     """
 
@@ -243,8 +240,8 @@ class UKFParams:
         _check_common(self, "ukf")
 
     @classmethod
-    def seed(cls, **changes: Any) -> "UKFParams":
-        """The seed report's values: P0 = Q = R = 1e-4 (Q per 100 Hz sample)."""
+    def equal_variances(cls, **changes: Any) -> "UKFParams":
+        """P0 = Q = R = 1e-4 (Q and R per 100 Hz sample), no disturbance model or scale noise."""
         values = dict(process_noise_rad2_s=1e-2, acc_noise_g2_s=1e-6, init_var_rad2=1e-4, scale_noise_s=0.0,
                       disturbance_corr_s=0.0)
         values.update(changes)
@@ -322,7 +319,7 @@ class QuaternionSigmaPoints:
         self.n, self.scheme = n, scheme
         self.kappa, self.alpha, self.beta = float(kappa), float(alpha), float(beta)
         m = 2 * n + 1
-        if scheme == "kraft":  # seed step 2: +-sqrt(n P), 2n points, equal weights
+        if scheme == "kraft":  # step 2: +-sqrt(n P), 2n points, equal weights
             c = float(n)
             wm0 = wc0 = 0.0  # the centre only starts the iterative mean
         elif scheme == "julier":  # Julier & Uhlmann 1997
@@ -361,7 +358,7 @@ class QuaternionSigmaPoints:
         return 2 * self.n + 1
 
     def offsets(self, P: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """(2n + 1, n) error-state offsets: 0, then +- the columns of sqrt(c P) (seed step 2)."""
+        """(2n + 1, n) error-state offsets: 0, then +- the columns of sqrt(c P) (step 2)."""
         n = self.n
         L, self.last_sqrt_recovered = sqrt_psd(P)
         L = L * self.sqrt_c
@@ -372,14 +369,14 @@ class QuaternionSigmaPoints:
         return out
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """(2n + 1, n + 1) state sigma points `[q exp(W_i / 2), b + W_i^b]` (seed steps 2-3)."""
+        """(2n + 1, n + 1) state sigma points `[q exp(W_i / 2), b + W_i^b]` (steps 2-3)."""
         x = np.asarray(x, dtype=float)
         P = np.asarray(P, dtype=float)
         if x.shape != (self.n + 1,) or P.shape != (self.n, self.n):
             raise ValueError(f"sigma points: expected x ({self.n + 1},) and P ({self.n}, {self.n}), got {x.shape} and {P.shape}")
         off = self.offsets(P)
         out = np.empty((len(off), self.n + 1))
-        out[:, :4] = exp_batch(off[:, :3]) @ left_matrix(*x[:4]).T  # seed step 3: q * exp(W_i)
+        out[:, :4] = quat.from_rotvec(off[:, :3]) @ left_matrix(*x[:4]).T  # step 3: q * exp(W_i)
         out[:, 4:] = x[4:] + off[:, 3:]
         return out
 
@@ -388,7 +385,7 @@ class QuaternionSigmaPoints:
 def quaternion_mean(
     quats: np.ndarray, weights: np.ndarray, start: np.ndarray, tol: float = 1e-9, max_iter: int = 20
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Iterative weighted mean of unit quaternions (seed step 5; Kraft 2003).
+    """Iterative weighted mean of unit quaternions (step 5; Kraft 2003).
 
     quats: (m, 4) wxyz; weights: (m,) summing to 1, >= 0; start: (4,) first guess.
     Repeats `e_i = log(q_t^-1 q_i)` (wrapped: q_i and -q_i give the same e_i),
@@ -398,17 +395,9 @@ def quaternion_mean(
     """
     qw, qx, qy, qz = start.tolist()
     for it in range(1, max_iter + 1):
-        err = log_batch(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
+        err = quat.to_rotvec(quats @ left_matrix(qw, -qx, -qy, -qz).T)  # q_t^-1 * q_i
         e = weights @ err
-        dw, dx, dy, dz = exp_quat(e[0], e[1], e[2])
-        qw, qx, qy, qz = (
-            qw * dw - qx * dx - qy * dy - qz * dz,
-            qw * dx + qx * dw + qy * dz - qz * dy,
-            qw * dy - qx * dz + qy * dw + qz * dx,
-            qw * dz + qx * dy - qy * dx + qz * dw,
-        )
-        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        qw, qx, qy, qz = quat.normalize_floats(multiply_floats((qw, qx, qy, qz), exp_floats(e[0], e[1], e[2])))
         if math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) < tol:
             break
     # Residuals about the final mean, to first order (the last step was below tol).
@@ -418,18 +407,18 @@ def quaternion_mean(
 def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """FilterPy `residual_x`: error-state difference a - b, `[log(b_q^-1 a_q), a_b - b_b]`."""
     dq = left_matrix(b[0], -b[1], -b[2], -b[3]) @ a[:4]
-    rot = log_batch(dq[None, :])[0]
+    rot = quat.to_rotvec(dq)
     return np.concatenate([rot, a[4:] - b[4:]])
 
 
 def state_add(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
-    """FilterPy `state_add`: `[q exp(dx_rot / 2), b + dx_b]` (seed step 9), renormalised."""
-    q = left_matrix(*x[:4]) @ np.array(exp_quat(dx[0], dx[1], dx[2]))
+    """FilterPy `state_add`: `[q exp(dx_rot / 2), b + dx_b]` (step 9), renormalised."""
+    q = left_matrix(*x[:4]) @ np.array(exp_floats(dx[0], dx[1], dx[2]))
     return np.concatenate([q / np.linalg.norm(q), x[4:] + dx[3:]])
 
 
 def unscented_transform_state(sigmas, Wm, Wc, noise_cov=None, mean_fn=None, residual_fn=None):
-    """FilterPy-signature UT for the quaternion state (passed as `UT=`; seed step 5).
+    """FilterPy-signature UT for the quaternion state (passed as `UT=`; step 5).
 
     sigmas: (m, n + 1) state points; the covariance is sized from the residuals (n, n),
     which FilterPy's `unscented_transform` cannot do for a 4-vector with a 3x3 P.
@@ -447,7 +436,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
     """FilterPy's `UnscentedKalmanFilter` with a quaternion (+ bias) state.
 
     x: (4,) or (7,) `[q_wxyz, b_rad_s]`; P: (n, n) error covariance, n = 3 or 6.
-    `predict(dt, gyr_rad_s, Q)` / `update(z, R)` are the lean vectorised seed steps;
+    `predict(dt, gyr_rad_s, Q)` / `update(z, R)` are the lean vectorised steps;
     `predict_reference` / `update_reference` run the same steps through the per-point hooks
     and FilterPy's own `update`.
     """
@@ -484,7 +473,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
     # -- models (per point, used by the reference path) --
     def fx_rotate(self, x: np.ndarray, dt: float, gyr_rad_s: np.ndarray | None) -> np.ndarray:
-        """Process model for one state point: `q exp(diag(1 + s) (w - b) dt / 2)` (seed steps 1, 4).
+        """Process model for one state point: `q exp(diag(1 + s) (w - b) dt / 2)` (steps 1, 4).
 
         gyr_rad_s None: an invalid gyro sample, nothing is integrated.
         """
@@ -493,13 +482,13 @@ class QuaternionUKF(UnscentedKalmanFilter):
         w = gyr_rad_s - x[4:7] if self.has_bias else gyr_rad_s
         if self.has_scale:
             w = w * (1.0 + x[7:10])
-        q = right_matrix(*exp_quat(*(w * dt))) @ x[:4]
+        q = right_matrix(*exp_floats(*(w * dt))) @ x[:4]
         return np.concatenate([q, x[4:]])
 
     @staticmethod
     def hx_gravity(x: np.ndarray) -> np.ndarray:
-        """Measurement model: gravity in the body frame, g (seed step 6)."""
-        return gravity_batch(x[None, :4])[0]
+        """Measurement model: gravity in the body frame, g (step 6)."""
+        return quat.gravity_in_body(x[:4])
 
     def state_mean(self, sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
         """FilterPy `x_mean_fn`: iterative quaternion mean, weighted bias mean (step 5)."""
@@ -507,7 +496,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         return np.concatenate([q, Wm @ sigmas[:, 4:]])
 
     def cross_variance(self, x, z, sigmas_f, sigmas_h):
-        """P_xz sized (n, dim_z) from the residuals (FilterPy sizes it from x). Seed step 8."""
+        """P_xz sized (n, dim_z) from the residuals (FilterPy sizes it from x). Step 8."""
         Pxz = np.zeros((self.n_err, sigmas_h.shape[1]))
         for i in range(sigmas_f.shape[0]):
             Pxz += self.Wc[i] * np.outer(self.residual_x(sigmas_f[i], x), self.residual_z(sigmas_h[i], z))
@@ -515,13 +504,13 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
     # -- lean path --
     def predict(self, dt: float, gyr_rad_s: np.ndarray | None, Q: np.ndarray) -> None:  # type: ignore[override]
-        """Seed steps 1-5 for all sigma points at once. gyr_rad_s: (3,) rad/s, body, or None
+        """Steps 1-5 for all sigma points at once. gyr_rad_s: (3,) rad/s, body, or None
         (invalid sample: nothing integrated); Q: (n, n)."""
         pts: QuaternionSigmaPoints = self.points_fn
         x = self.x
         off = pts.offsets(self.P + Q, self._offsets)  # step 2
         self.sqrt_recovered = pts.last_sqrt_recovered
-        X = exp_batch(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
+        X = quat.from_rotvec(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
         sig = self.sigmas_f
         if gyr_rad_s is None:
             sig[:, :4] = X
@@ -534,18 +523,12 @@ class QuaternionUKF(UnscentedKalmanFilter):
                 rv *= 1.0 + s
                 sig[:, 7:10] = s
             rv *= dt  # step 1, per point
-            d = exp_batch(rv)
-            # step 4: Y_i = X_i * q_delta_i (Hamilton product, row-wise)
-            w1, x1, y1, z1 = X[:, 0], X[:, 1], X[:, 2], X[:, 3]
-            w2, x2, y2, z2 = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
-            sig[:, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
-            sig[:, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
-            sig[:, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
-            sig[:, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+            d = quat.from_rotvec(rv)
+            sig[:, :4] = quat.multiply(X, d)  # step 4: Y_i = X_i * q_delta_i, row-wise
             sig[:, 4:7] = b
         else:
             w = gyr_rad_s * dt
-            sig[:, :4] = X @ right_matrix(*exp_quat(w[0], w[1], w[2])).T  # steps 1, 4
+            sig[:, :4] = X @ right_matrix(*exp_floats(w[0], w[1], w[2])).T  # steps 1, 4
         Y = sig[:, :4]
         q, err, self.mean_iterations = quaternion_mean(Y, self.Wm, Y[0], self.mean_tol, self.mean_max_iter)  # step 5
         res = self._residuals
@@ -561,8 +544,8 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self.P_prior = self.P
 
     def update(self, z: np.ndarray, R: np.ndarray) -> None:  # type: ignore[override]
-        """Seed steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
-        Z = gravity_batch(self.sigmas_f)  # step 6 (reads columns 0-3)
+        """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
+        Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
         zp = self.Wm @ Z  # step 7
         dZ = Z - zp
         WdZ = self._Wc_col * dZ
@@ -570,7 +553,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         Pxz = self._residuals.T @ WdZ  # step 8: P_xz
         K = Pxz @ inv_sym3(S)  # step 9
         if self.heading_free:
-            # Not in the seed: drop the correction about the predicted vertical (see UKFBiasParams).
+            # Not in Kraft 2003: drop the correction about the predicted vertical (see UKFBiasParams).
             h = zp / math.sqrt(zp @ zp)
             K[:3] -= np.outer(h, h @ K[:3])
             if self.has_bias:
@@ -583,7 +566,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         y = z - zp
         dx = (K @ y).tolist()
         x = self.x
-        q = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
+        q = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
         if self.has_bias:
             self.x = np.concatenate([q, x[4:] + dx[3:]])
         else:
@@ -607,12 +590,12 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
 # --------------------------------------------------------------------------- estimators
 class UKF(RecursiveEstimator):
-    """`ukf`: the seed's quaternion UKF (see the module docstring for the steps)."""
+    """`ukf`: the quaternion UKF after Kraft 2003 (see the module docstring for the steps)."""
 
     Params = UKFParams
     with_bias = False
 
-    def reset(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> None:
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         q0 = np.asarray(init_quat_wxyz, dtype=float)
         if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
@@ -642,20 +625,15 @@ class UKF(RecursiveEstimator):
         self._eye3 = np.eye(3)
         self._dist = AccDisturbance(p.disturbance_window_s)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
-        N = len(imu)
-        self._acc_var = np.full(N, np.nan)
-        self._at_rest = np.zeros(N, bool)
+        self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
+        self.at_rest = False  # whether the last step made the rest bias update
         self._predict = kf.predict if p.impl == "lean" else kf.predict_reference
         self._update = kf.update if p.impl == "lean" else kf.update_reference
-        self._cov = np.full((N, n, n), np.nan)
-        self._cov[0] = P0
-        self._iters = np.zeros(N, np.int16)
-        self._bias = np.zeros((N, 3))
-        self._scale = np.zeros((N, 3))
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
-    def step(self, k: int, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p, kf, n = self.params, self.kf, self.n
+        self.acc_var, self.at_rest = math.nan, False
         Q = self._Qrate * dt_s
         x = kf.x
         if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
@@ -670,7 +648,7 @@ class UKF(RecursiveEstimator):
             w = gyr_rad_s - x[4:7] if n > 3 else gyr_rad_s
             if n > 6:
                 w = w * (1.0 + x[7:10])
-            dq = exp_quat(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s)
+            dq = exp_floats(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s)
             if self._scale_noise > 0.0:
                 # ukf only: gyro scale-factor uncertainty as rate noise density Qs w_i^2 per axis.
                 Q = Q.copy()
@@ -680,55 +658,52 @@ class UKF(RecursiveEstimator):
         self._predict(dt_s, gyr, Q)
         self.n_sqrt_recovered += kf.sqrt_recovered
         self.n_mean_capped += kf.mean_iterations >= p.mean_max_iter
-        self._iters[k + 1] = kf.mean_iterations
         if self._rest is not None and gyr_valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
             # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias; H = [0, I, 0] is
             # linear, so this is the exact Kalman update, the same for both implementations.
             x = kf.x
             dx, kf.P = bias_rest_update(x[4:7], kf.P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
-            qn = unit_array(mul_floats(x[:4].tolist(), exp_quat(dx[0], dx[1], dx[2])))
+            qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
             kf.x = np.concatenate([qn, x[4:] + dx[3:]])
-            self._at_rest[k + 1] = True
+            self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
             d = self._dist.update(dq, acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
             r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, d, dt_s) * scale
-            self._acc_var[k + 1] = r
+            self.acc_var = r
             self._update(acc_g, self._eye3 * r)
         else:
             self.n_skipped += 1
         x = kf.x
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
-            self._bias[k + 1] = x[4:7]
         if n > 6:
             np.clip(x[7:10], -p.scale_max, p.scale_max, out=x[7:10])
-            self._scale[k + 1] = x[7:10]
         kf.P, repaired = repair_covariance(kf.P)
         self.n_cov_repaired += repaired
-        self._cov[k + 1] = kf.P
         return x[:4]
 
+    def current(self) -> dict[str, Any]:
+        kf = self.kf
+        out = {"cov": kf.P, "mean_iterations": kf.mean_iterations, "acc_var_g2": self.acc_var}
+        if self.with_bias:
+            out["gyr_bias_rad_s"] = kf.x[4:7]
+            out["at_rest"] = self.at_rest
+            if self.n > 6:
+                out["gyr_scale"] = kf.x[7:10]
+        return out
+
     def diagnostics(self) -> dict[str, Any]:
-        out = {
-            "cov": self._cov,
-            "mean_iterations": self._iters,
+        return {
             "updates_skipped": self.n_skipped,
             "sqrt_recoveries": self.n_sqrt_recovered,
             "cov_repairs": self.n_cov_repaired,
             "mean_iteration_cap_hits": self.n_mean_capped,
-            "acc_var_g2": self._acc_var,
         }
-        if self.with_bias:
-            out["gyr_bias_rad_s"] = self._bias
-            out["at_rest"] = self._at_rest
-            if self.n > 6:
-                out["gyr_scale"] = self._scale
-        return out
 
 
 class UKFBias(UKF):
-    """`ukf-bias`: the seed UKF with the gyro bias in the state (6-dof error) and gating."""
+    """`ukf-bias`: the UKF with the gyro bias (and scale factors) in the state, 6 or 9-dof error."""
 
     Params = UKFBiasParams
     with_bias = True

@@ -1,34 +1,61 @@
-"""Batch quaternion algebra on raw scalar-first arrays.
+"""The rotation module: quaternion and SO(3) algebra on raw scalar-first arrays.
 
-Quaternions are `(..., 4)` arrays `[w, x, y, z]` (Hamilton product, `R_world_body`
-convention of STYLE.md). Everything here broadcasts over leading axes, so a whole
-recording is one call.
+Quaternions are `[w, x, y, z]` (Hamilton product, `R_world_body` convention of STYLE.md);
+rotation vectors are axis * angle in rad; perturbations are on the right (body frame),
+`q_true = q * exp(e / 2)`. Product, exponential and logarithm as in Sola 2017 ("Quaternion
+kinematics for the error-state Kalman filter", arXiv:1711.02508, Secs. 1.2.2, 1.3.4 and 1.3.6);
+the SO(3) Jacobians as in Sola, Deray & Atchuthan 2018 ("A micro Lie theory for state
+estimation in robotics", arXiv:1812.01537, eqs. 143-146).
 
-Why not SciPy's `Rotation` everywhere? Conversions, slerp and scoring do use it. These
-few functions exist for the inner loops of the filters and the smoother, where building a
-`Rotation` object per call costs more than the arithmetic; `tests/test_quaternion.py`
-cross-checks each one against SciPy.
+Two paths, one definition of each operation:
+
+* **batch path** (`multiply`, `from_rotvec`, `to_rotvec`, `gravity_in_body`,
+  `rotation_matrix`, `skew`, `right_jacobian`, `right_jacobian_inv`, ...): `(..., 4)` /
+  `(..., 3)` arrays, broadcasting over leading axes, so a whole recording is one call. Used by
+  the smoothers, dead reckoning, the UKF's sigma points and the scoring.
+* **scalar path** (`*_floats`, `left_matrix`, `right_matrix`): one quaternion as plain Python
+  floats, for the recursive filters' inner loops, where building an array per call costs more
+  than the arithmetic. `left_matrix(q) @ p == q * p` turns "one quaternion times a batch" into
+  one matmul.
+
+Small-angle rules (one each, shared by both paths):
+
+* exp: `sin(a / 2) / a` is taken as exactly 1/2 for `a <= SMALL_ANGLE` (1e-12 rad); the next
+  Taylor term, a^2 / 48, is then below 1e-25, far under the rounding of 1/2.
+* log: `2 atan2(s, |w|) / s` (s = |vector part|) with no special case: for small s,
+  atan2(s, |w|) = s / |w| in floating point, so the quotient is its limit 2 / |w| to rounding;
+  s is floored at 1e-300 only so that s = 0 (where the vector part is 0) gives 0, not 0/0.
+  The sign of w is folded in, so q and -q give the same rotation vector, of angle in [0, pi].
+* SO(3) Jacobians: the closed forms above `JACOBIAN_SERIES_RAD` (1e-3 rad), their Taylor series
+  (three terms, error below 1e-19) below it, where the closed forms lose digits to cancellation.
+
+Conversions, slerp and scoring use SciPy's `Rotation`; `tests/test_quaternion.py` cross-checks
+every function here against SciPy and the scalar path against the batch path.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+SMALL_ANGLE = 1e-12  # rad: below it exp uses its limit (see the module docstring)
+JACOBIAN_SERIES_RAD = 1e-3  # rad: below it the SO(3) Jacobians use their Taylor series
 
 
+# ============================================================================ batch path
 def multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product `p * q`. p, q: (..., 4) wxyz, broadcast."""
-    pw, px, py, pz = np.moveaxis(np.asarray(p, dtype=float), -1, 0)
-    qw, qx, qy, qz = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(np.broadcast_shapes(p.shape, q.shape))
+    out[..., 0] = pw * qw - px * qx - py * qy - pz * qz
+    out[..., 1] = pw * qx + px * qw + py * qz - pz * qy
+    out[..., 2] = pw * qy - px * qz + py * qw + pz * qx
+    out[..., 3] = pw * qz + px * qy - py * qx + pz * qw
+    return out
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
@@ -49,29 +76,33 @@ def canonical(q: np.ndarray) -> np.ndarray:
 
 
 def from_rotvec(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternion of a rotation vector: `exp([0, v / 2])`.
+    """exp: unit quaternion `exp([0, v / 2])` of rotation vectors. (..., 3) rad -> (..., 4).
 
-    rotvec: (..., 3) axis * angle, rad. Exact at zero angle (no division by |v|).
+    Exact at zero angle (the exp rule of the module docstring: no division by |v|).
     """
     v = np.asarray(rotvec, dtype=float)
-    angle = np.linalg.norm(v, axis=-1, keepdims=True)
-    # sin(angle / 2) / angle, written with np.sinc (sin(pi x) / (pi x)) so it is 1/2 at 0.
-    half_sinc = 0.5 * np.sinc(angle / (2.0 * np.pi))
-    return np.concatenate([np.cos(0.5 * angle), v * half_sinc], axis=-1)
+    flat = v.reshape(-1, 3)
+    angle = np.sqrt(np.einsum("ij,ij->i", flat, flat))
+    half = 0.5 * angle
+    ratio = np.divide(np.sin(half), angle, out=np.full(len(flat), 0.5), where=angle > SMALL_ANGLE)
+    out = np.empty((len(flat), 4))
+    out[:, 0] = np.cos(half)
+    out[:, 1:] = flat * ratio[:, None]
+    return out.reshape(v.shape[:-1] + (4,))
 
 
 def to_rotvec(q: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of a unit quaternion: `2 log(q)`, shortest path, angle in [0, pi].
+    """log: rotation vectors `2 log(q)` of unit quaternions, shortest path. (..., 4) -> (..., 3) rad.
 
-    q: (..., 4) wxyz; q and -q give the same result.
+    Angle in [0, pi]; q and -q give the same result (the log rule of the module docstring).
     """
-    q = canonical(q)
-    vec = q[..., 1:]
-    s = np.linalg.norm(vec, axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., :1])
-    # angle / s -> 2 / w as s -> 0; w >= 1/sqrt(2) there, so no division by zero.
-    scale = np.divide(angle, s, out=2.0 / np.maximum(q[..., :1], 1e-300), where=s > 1e-12)
-    return vec * scale
+    q = np.asarray(q, dtype=float)
+    flat = q.reshape(-1, 4)
+    vec = flat[:, 1:]
+    s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
+    w = flat[:, 0]
+    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
+    return (vec * np.copysign(scale, w)[:, None]).reshape(q.shape[:-1] + (3,))
 
 
 def relative_rotvec(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
@@ -79,15 +110,94 @@ def relative_rotvec(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
     return to_rotvec(multiply(conjugate(q_from), q_to))
 
 
+# g_j(q) = q^T G_j q for the three components of R(q)^T e_z: one matmul and one einsum.
+_GRAVITY_FORMS = np.zeros((4, 3, 4))
+_GRAVITY_FORMS[[3, 1, 2, 0], 0, [1, 3, 0, 2]] = [1.0, 1.0, -1.0, -1.0]  # 2 (xz - wy)
+_GRAVITY_FORMS[[3, 2, 1, 0], 1, [2, 3, 0, 1]] = 1.0  # 2 (yz + wx)
+_GRAVITY_FORMS[[0, 1, 2, 3], 2, [0, 1, 2, 3]] = [1.0, -1.0, -1.0, 1.0]  # w^2 - x^2 - y^2 + z^2
+_GRAVITY_FORMS = _GRAVITY_FORMS.reshape(4, 12)
+
+
 def gravity_in_body(q: np.ndarray) -> np.ndarray:
-    """World up `[0, 0, 1]` expressed in the body frame: `R(q)^T e_z`. q: (..., 4) -> (..., 3).
+    """World up `[0, 0, 1]` in the body frame, `R(q)^T e_z`. q: (..., 4) unit -> (..., 3).
 
     This is what a resting accelerometer reads, in g.
     """
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
-    return np.stack(
-        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z], axis=-1
-    )
+    q = np.asarray(q, dtype=float)
+    forms = (q @ _GRAVITY_FORMS).reshape(q.shape[:-1] + (3, 4))
+    return np.einsum("...jk,...k->...j", forms, q)
+
+
+def rotation_matrix(q: np.ndarray) -> np.ndarray:
+    """R(q), (..., 4) unit wxyz -> (..., 3, 3) (maps body to world)."""
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - w * z)
+    out[..., 0, 2] = 2 * (x * z + w * y)
+    out[..., 1, 0] = 2 * (x * y + w * z)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - w * x)
+    out[..., 2, 0] = 2 * (x * z - w * y)
+    out[..., 2, 1] = 2 * (y * z + w * x)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices `[v]x`: `skew(a) @ b = a x b`."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _series(theta: np.ndarray, exact, coeffs: tuple[float, ...]) -> np.ndarray:
+    """exact(theta) where theta > JACOBIAN_SERIES_RAD, else the Taylor series sum c_i theta^(2i)."""
+    t2 = theta * theta
+    approx = np.zeros_like(theta)
+    for c in reversed(coeffs):
+        approx = approx * t2 + c
+    big = theta > JACOBIAN_SERIES_RAD
+    return np.where(big, exact(np.where(big, theta, 1.0)), approx)
+
+
+# Coefficients of J_r = I - A [phi]x + B [phi]x^2 and J_r^-1 = I + [phi]x / 2 + C [phi]x^2, as
+# series in theta^2 (Sola et al. 2018, eqs. 143-146).
+_A = (lambda t: (1.0 - np.cos(t)) / t**2, (1 / 2, -1 / 24, 1 / 720))
+_B = (lambda t: (t - np.sin(t)) / t**3, (1 / 6, -1 / 120, 1 / 5040))
+_C = (lambda t: 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)), (1 / 12, 1 / 720, 1 / 30240))
+
+
+def right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3) right Jacobian, (..., 3) -> (..., 3, 3): Exp(phi + d) ~ Exp(phi) Exp(J_r(phi) d).
+
+    Sola et al. 2018, eq. 143. A rate error dw over a step moves its end attitude by
+    J_r(w dt) dw dt in the body frame.
+    """
+    phi = np.asarray(phi, dtype=float)
+    th = np.linalg.norm(phi, axis=-1)
+    S = skew(phi)
+    return np.eye(3) - _series(th, *_A)[..., None, None] * S + _series(th, *_B)[..., None, None] * (S @ S)
+
+
+def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """J_r^-1(phi): Log(Exp(phi) Exp(d)) ~ phi + J_r^-1(phi) d. Sola et al. 2018, eq. 144.
+
+    The left one is J_l^-1(phi) = J_r^-1(-phi).
+    """
+    phi = np.asarray(phi, dtype=float)
+    th = np.linalg.norm(phi, axis=-1)
+    S = skew(phi)
+    return np.eye(3) + 0.5 * S + _series(th, *_C)[..., None, None] * (S @ S)
+
+
+def retract(q: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """`q * exp([0, delta / 2])`, renormalised. q: (..., 4), delta: (..., 3) rad, body frame."""
+    return normalize(multiply(q, from_rotvec(delta)))
 
 
 def cumulative_product(q: np.ndarray) -> np.ndarray:
@@ -103,3 +213,103 @@ def cumulative_product(q: np.ndarray) -> np.ndarray:
         out[shift:] = normalize(multiply(out[:-shift], out[shift:]))
         shift *= 2
     return out
+
+
+# ============================================================================ scalar path
+Floats4 = tuple[float, float, float, float]
+
+
+def multiply_floats(a: tuple, b: tuple) -> Floats4:
+    """Hamilton product `a * b` of two quaternions given as 4 floats each."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def exp_floats(vx: float, vy: float, vz: float) -> Floats4:
+    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats (the exp rule)."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle <= SMALL_ANGLE:
+        return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
+    s = math.sin(0.5 * angle) / angle
+    return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+
+
+def normalize_floats(q: tuple) -> Floats4:
+    """A quaternion given as 4 floats, scaled to unit norm."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+def unit_array(q: tuple) -> np.ndarray:
+    """(4,) array of a quaternion given as floats, renormalised."""
+    return np.array(normalize_floats(q))
+
+
+def rotate_floats(q: tuple, v: tuple) -> tuple[float, float, float]:
+    """`R(q) v` for a unit quaternion q (4 floats) and a vector v (3 floats): body -> world."""
+    w, x, y, z = q
+    a, b, c = v
+    return (
+        (1 - 2 * (y * y + z * z)) * a + 2 * (x * y - w * z) * b + 2 * (x * z + w * y) * c,
+        2 * (x * y + w * z) * a + (1 - 2 * (x * x + z * z)) * b + 2 * (y * z - w * x) * c,
+        2 * (x * z - w * y) * a + 2 * (y * z + w * x) * b + (1 - 2 * (x * x + y * y)) * c,
+    )
+
+
+def gravity_in_body_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """(3,) `R(q)^T e_z` of one unit quaternion, g (the scalar path of `gravity_in_body`)."""
+    return np.array((2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z))
+
+
+def rotation_matrix_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """(3, 3) R(q) of one unit quaternion (the scalar path of `rotation_matrix`)."""
+    return np.array(
+        (
+            (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+        )
+    )
+
+
+def skew_floats(x: float, y: float, z: float) -> np.ndarray:
+    """(3, 3) `[v]x` of one vector (the scalar path of `skew`)."""
+    return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
+
+
+def _series_float(t: float, exact, coeffs: tuple[float, ...]) -> float:
+    if t > JACOBIAN_SERIES_RAD:
+        return float(exact(t))
+    t2, acc = t * t, 0.0
+    for c in reversed(coeffs):
+        acc = acc * t2 + c
+    return acc
+
+
+def right_jacobian_floats(tx: float, ty: float, tz: float) -> np.ndarray:
+    """(3, 3) SO(3) right Jacobian of one rotation vector (the scalar path of `right_jacobian`)."""
+    t = math.sqrt(tx * tx + ty * ty + tz * tz)
+    S = skew_floats(tx, ty, tz)
+    a = _series_float(t, lambda u: (1.0 - math.cos(u)) / (u * u), _A[1])
+    b = _series_float(t, lambda u: (u - math.sin(u)) / (u * u * u), _B[1])
+    return np.eye(3) - a * S + b * (S @ S)
+
+
+def left_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `q * p = M @ p` for q = [w, x, y, z] (left multiplication).
+
+    `batch @ left_matrix(*q).T` is `q * batch` row-wise, one matmul.
+    """
+    return np.array(((w, -x, -y, -z), (x, w, -z, y), (y, z, w, -x), (z, -y, x, w)))
+
+
+def right_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """4x4 matrix `M` with `p * q = M @ p` for q = [w, x, y, z] (right multiplication)."""
+    return np.array(((w, -x, -y, -z), (x, w, z, -y), (y, -z, w, x), (z, y, -x, w)))

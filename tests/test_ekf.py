@@ -1,4 +1,4 @@
-"""Tests of the multiplicative error-state EKF (`ekf`, issue 3)."""
+"""Tests of the multiplicative error-state EKF (`ekf`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 from fusion.estimators import ESTIMATORS, build
 from fusion.estimators.dr import DeadReckoning
-from fusion.estimators.ekf import EKF, EKFParams, _right_jacobian
+from fusion.estimators.ekf import EKF, EKFParams
 from fusion import quaternion as quat
 
 from test_ukf import inclination_deg, synthetic
@@ -28,19 +28,6 @@ def test_without_accelerometer_and_noise_equals_dead_reckoning(bias):
     est = EKF(params).estimate(imu, q0)
     ref = DeadReckoning().estimate(imu, q0)
     assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9
-
-
-def test_right_jacobian_matches_finite_differences():
-    # exp(theta + d) ~ exp(theta) exp(J_r(theta) d)  (Sola 2017, eq. 143)
-    theta = np.array([0.3, -0.5, 0.2])
-    J = _right_jacobian(*theta)
-    eps = 1e-6
-    num = np.empty((3, 3))
-    for i in range(3):
-        d = np.zeros(3)
-        d[i] = eps
-        num[:, i] = quat.relative_rotvec(quat.from_rotvec(theta), quat.from_rotvec(theta + d)) / eps
-    assert np.allclose(J, num, atol=1e-6)
 
 
 def test_measurement_jacobian_matches_finite_differences():

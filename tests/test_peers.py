@@ -211,7 +211,7 @@ def test_ahrs_ekf_enu_frame_would_be_upside_down():
     assert np.degrees(final.magnitude()) > 170.0
 
 
-REFERENCE_INCLINATION_RMSE_DEG = {  # issue 8: mean over ece276a 1-9, --init truth, defaults
+REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defaults
     "vqf": 6.7,
     "vqf-offline": 3.5,
     "madgwick": 6.2,
