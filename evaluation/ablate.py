@@ -33,10 +33,10 @@ PRESETS: dict[str, list[str]] = {
     # with and without the accelerometer update
     "accel-update": ["ukf:acc=false", "ukf:acc=true"],
     # projected gradient vs normalisation vs Gauss-Newton, on the same (seed) cost
-    "smoother-solvers": ["gd", "gd:update=normalise", "gn:weighting=seed"],
+    "smoother-solvers": ["gd", "gd:update=normalise", "gn:weighting=scalar"],
     # the weight of the motion term (seed weighting: accelerometer term weight 1)
-    "motion-weight": ["gn:weighting=seed,wm=1", "gn:weighting=seed,wm=3", "gn:weighting=seed,wm=10",
-                      "gn:weighting=seed,wm=30"],
+    "motion-weight": ["gn:weighting=scalar,wm=1", "gn:weighting=scalar,wm=3", "gn:weighting=scalar,wm=10",
+                      "gn:weighting=scalar,wm=30"],
 }
 
 # BROAD's sweep for `ekf` (`EKFParams`): Q, the gyro noise density in rad^2/s; R, the
