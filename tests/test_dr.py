@@ -1,4 +1,4 @@
-"""Dead reckoning: the seeds' quaternion kinematics, exactly."""
+"""Dead reckoning: quaternion kinematics integrated exactly."""
 import numpy as np
 from scipy.spatial.transform import Rotation
 
