@@ -96,6 +96,12 @@ class EKFParams(BiasFilterParams):
         if self.estimate_scale and not self.estimate_bias:
             raise ValueError("ekf: estimate_scale needs estimate_bias (the error state is [attitude, bias, scale])")
 
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        bias = ("estimate_bias", (True,))
+        names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
+                 "rest_time_s", "rest_noise_rad2_s")
+        return {**super()._only_with(), **{name: bias for name in names}}
+
 
 # Normalised innovation squared above which the bias and scale are not corrected: the 99.9 %
 # point of chi-square with 3 degrees of freedom (the innovation consistency test, Bar-Shalom,

@@ -6,16 +6,20 @@ accelerometer disturbance model, gating, invalid-gyro noise, heading_free);
 bias-estimating filters. Each filter's class derives from one of them, adds only its own
 fields and, where its defaults differ, redeclares the field with the same alias.
 
-Validation lives here once: `_check`, extended by subclasses through `super()._check()`.
+Validation lives here once: `_check` (extended by subclasses through `super()`) checks
+values, `_only_with` names the parameters that one option ignores. A parameter set away
+from its default while the option it needs is off is an error (`ukf:alpha=0.1` with the
+default `sigma=kraft` would otherwise be silently ignored).
 
 Field order: dataclass inheritance puts base fields first; params are built by keyword
 (`estimators.params.make_params`), so the order changes nothing but the listing order.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 from ._attitude import scale_axes_mask
 
@@ -27,6 +31,10 @@ def check_nonneg(owner: str, **values: float) -> None:
     for name, value in values.items():
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
             raise ValueError(f"{owner}: {name} must be a finite number >= 0, got {value!r}")
+
+
+def _text(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 @dataclass(frozen=True)
@@ -71,6 +79,7 @@ class FilterParams:
 
     def __post_init__(self) -> None:
         self._check()
+        self._check_applicable()
 
     def _check(self) -> None:
         """Value checks; subclasses extend them through `super()._check()`."""
@@ -91,6 +100,22 @@ class FilterParams:
             raise ValueError(f"{owner}: gate must be off, skip or inflate, got {self.gate!r}")
         if not (math.isfinite(self.gate_g) and self.gate_g > 0.0):
             raise ValueError(f"{owner}: gate_g must be > 0 g, got {self.gate_g!r}")
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        """Parameter -> (the option it needs, the option values it applies with)."""
+        return {"gate_g": ("gate", ("skip", "inflate"))}
+
+    def _check_applicable(self) -> None:
+        """A parameter away from its default is an error where its option ignores it."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for name, (option, values) in self._only_with().items():
+            current = getattr(self, option)
+            if current not in values and getattr(self, name) != defaults[name]:
+                raise ValueError(
+                    f"{self.owner}: {name} applies only with {option}={' or '.join(map(_text, values))}; "
+                    f"it is ignored with {option}={_text(current)}"
+                )
+
 
 @dataclass(frozen=True)
 class BiasFilterParams(FilterParams):
@@ -152,3 +177,8 @@ class BiasFilterParams(FilterParams):
             scale_axes_mask(self.scale_axes)
         except ValueError as exc:
             raise ValueError(f"{owner}: {exc}") from None
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        scale = ("estimate_scale", (True,))
+        return {**super()._only_with(), "init_scale_var": scale, "scale_walk_1_s": scale, "scale_max": scale,
+                "scale_axes": scale}

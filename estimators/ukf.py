@@ -127,7 +127,8 @@ class UKFOptions(FilterParams):
     """The unscented-transform fields of `ukf` and `ukf-bias` (on top of `FilterParams`).
 
     sigma: sigma-point scheme, kraft (Kraft 2003) | julier | merwe; kappa, alpha, beta their
-        parameters (kappa for julier and merwe, alpha and beta for merwe only).
+        parameters (kappa for julier and merwe, alpha and beta for merwe only; setting one
+        for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: lean (vectorised) | filterpy (per-point hooks + FilterPy's update), same numbers.
     """
@@ -156,6 +157,11 @@ class UKFOptions(FilterParams):
             )
         # Builds the sigma-point weights once, so an impossible scheme fails here, not mid-run.
         QuaternionSigmaPoints(error_dim(self), self.sigma, self.kappa, self.alpha, self.beta)
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        return {**super()._only_with(), "kappa": ("sigma", ("julier", "merwe")),
+                "alpha": ("sigma", ("merwe",)), "beta": ("sigma", ("merwe",))}
+
 
 @dataclass(frozen=True)
 class UKFParams(UKFOptions):
