@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -73,86 +73,34 @@ from ._attitude import (
     scale_axes_mask,
 )
 from .base import RecursiveEstimator
-from .ukf import Gate, _check_nonneg, check_bias_params, check_filter_params, check_scale_params
+from .filter_params import BiasFilterParams
 
 
 @dataclass(frozen=True)
-class EKFParams:
-    """Parameters of `ekf` (units in the names; aliases in brackets).
+class EKFParams(BiasFilterParams):
+    """Parameters of `ekf`: the fields of `BiasFilterParams` (and through it `FilterParams`,
+    where every field, its unit and alias is documented) with their defaults, plus
 
-    Noise is given as continuous-time densities, so one set means the same at 100 Hz and at
-    286 Hz (Sola 2017, Sec. 5.4: a density sigma^2 over a step dt gives the variance
-    sigma^2 dt for a rate noise integrated into an angle, and sigma^2 / dt for a white
-    measurement noise sampled once per step):
-
-    process_noise_rad2_s (Q): gyro (attitude process) noise density, rad^2/s; step
-        variance `Q dt` per axis.
-    acc_noise_g2_s (R): accelerometer noise density, g^2 s; step variance `R / dt` per axis
-        (a per-sample variance R_k at rate f is the density R_k / f). Without disturbance
-        the attitude correction has the time constant `sqrt(R / Q)`, independent of the rate.
-    init_var_rad2 (P0): initial attitude variance per axis, rad^2.
-    bias_walk_rad2_s3 (Qb): gyro-bias random-walk density, rad^2/s^3 (step variance Qb dt).
-    init_bias_var_rad2_s2 (Pb0): initial bias variance per axis, (rad/s)^2.
-    estimate_bias (bias): False drops the bias from the state (and needs scale=false).
-    bias_max_rad_s (bmax): the bias estimate is clipped to this per axis, rad/s (the
-        calibration removed the rest bias; a larger one means a wrong update).
-    estimate_scale (scale): gyro scale-factor corrections `s` in the state.
-    init_scale_var (Ps0): initial scale-factor variance per axis, dimensionless (1e-2: a
-        10 % standard deviation, the tolerance of a low-cost MEMS gyro read with its
-        datasheet sensitivity).
-    scale_walk_1_s (Qsw): scale-factor random-walk density, 1/s (step variance Qsw dt).
-    scale_max (smax): the scale correction is clipped to this per axis.
-    scale_axes (saxes): the body axes whose scale factor is estimated ("xy" by default; the
-        others stay at their calibration). With the body z axis near vertical, as a hand-held
-        or worn IMU mostly is, z's scale acts on heading alone, which a gyro and an
-        accelerometer cannot observe; estimating it lets the accelerometer's corrections after a
-        long gyro outage drive a wrong z scale and with it the heading.
-    disturbance_corr_s (tauc): correlation time of the external acceleration, s (adaptive R,
-        see `_attitude.AccDisturbance`); 0 turns the adaptation off.
-    disturbance_window_s (tauw): time constant of its running variance, s.
-    rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (gyro norm, accelerometer
-        deviation, minimum duration) for the zero-rate bias update; rest_time_s = inf
-        turns it off.
-    rest_noise_rad2_s (Rrest): density of the gyro reading at rest, rad^2/s (step variance
-        Rrest / dt).
-    use_acc (acc), gate, gate_g, invalid_gyr_std_rad_s (Qbad): as for `ukf` (the fixed
-        gate is off by default: the adaptive R replaces it).
-    heading_free (hf): see the module docstring and `ukf`.
+    estimate_bias (bias): False drops the bias from the state (and needs scale=false); the
+        bias and rest-detection fields apply only with it.
 
     The defaults are one set for every recording and rate.
     """
 
-    process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
-    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
-    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
-    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
-    estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
-    bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
-    estimate_scale: bool = field(default=True, metadata={"alias": "scale"})
-    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
-    scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
-    scale_max: float = field(default=0.2, metadata={"alias": "smax"})
-    scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
-    heading_free: bool = field(default=True, metadata={"alias": "hf"})
-    use_acc: bool = field(default=True, metadata={"alias": "acc"})
-    disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
-    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
-    rest_gyr_rad_s: float = 0.035
-    rest_acc_g: float = 0.05
-    rest_time_s: float = 1.5
-    rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
-    gate: Gate = "off"
-    gate_g: float = 0.2
-    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+    owner: ClassVar[str] = "ekf"
 
-    def __post_init__(self) -> None:
-        _check_nonneg("ekf", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
-        check_filter_params(self, "ekf")
-        check_bias_params(self, "ekf")
-        check_scale_params(self, "ekf")
+    estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
+
+    def _check(self) -> None:
+        super()._check()
         if self.estimate_scale and not self.estimate_bias:
             raise ValueError("ekf: estimate_scale needs estimate_bias (the error state is [attitude, bias, scale])")
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        bias = ("estimate_bias", (True,))
+        names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
+                 "rest_time_s", "rest_noise_rad2_s")
+        return {**super()._only_with(), **{name: bias for name in names}}
 
 
 # Normalised innovation squared above which the bias and scale are not corrected: the 99.9 %

@@ -87,7 +87,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from filterpy.kalman import UnscentedKalmanFilter
@@ -108,103 +108,71 @@ from ._attitude import (
     sqrt_psd,
 )
 from .base import RecursiveEstimator
+from .filter_params import BiasFilterParams, FilterParams, Gate, check_nonneg  # noqa: F401 (Gate: re-exported)
 
 Sigma = Literal["kraft", "julier", "merwe"]
-Gate = Literal["off", "skip", "inflate"]
 Impl = Literal["lean", "filterpy"]
 
 
 # --------------------------------------------------------------------------- parameters
-def _check_nonneg(owner: str, **values: float) -> None:
-    for name, value in values.items():
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
-            raise ValueError(f"{owner}: {name} must be a finite number >= 0, got {value!r}")
-
-
-def check_filter_params(p: Any, owner: str) -> None:
-    """The checks every filter's parameters share (ukf, ukf-bias, ekf)."""
-    _check_nonneg(
-        owner,
-        process_noise_rad2_s=p.process_noise_rad2_s,
-        acc_noise_g2_s=p.acc_noise_g2_s,
-        init_var_rad2=p.init_var_rad2,
-        invalid_gyr_std_rad_s=p.invalid_gyr_std_rad_s,
-    )
-    if p.use_acc and p.acc_noise_g2_s <= 0.0:
-        raise ValueError(f"{owner}: acc_noise_g2_s (R) must be > 0 when the accelerometer is used, got {p.acc_noise_g2_s}")
-    _check_nonneg(owner, disturbance_corr_s=p.disturbance_corr_s)
-    if not (math.isfinite(p.disturbance_window_s) and p.disturbance_window_s > 0.0):
-        raise ValueError(f"{owner}: disturbance_window_s must be > 0 s, got {p.disturbance_window_s!r}")
-    if p.gate not in ("off", "skip", "inflate"):
-        raise ValueError(f"{owner}: gate must be off, skip or inflate, got {p.gate!r}")
-    if not (math.isfinite(p.gate_g) and p.gate_g > 0.0):
-        raise ValueError(f"{owner}: gate_g must be > 0 g, got {p.gate_g!r}")
-
-
-def check_scale_params(p: Any, owner: str) -> None:
-    """The checks of the scale-factor states (ukf-bias, ekf)."""
-    _check_nonneg(owner, init_scale_var=p.init_scale_var, scale_walk_1_s=p.scale_walk_1_s)
-    if not (p.scale_max > 0.0 and p.scale_max < 1.0):
-        raise ValueError(f"{owner}: scale_max must be in (0, 1), got {p.scale_max!r}")
-    try:
-        scale_axes_mask(p.scale_axes)
-    except ValueError as exc:
-        raise ValueError(f"{owner}: {exc}") from None
-
-
-def check_bias_params(p: Any, owner: str) -> None:
-    """The checks of the bias-estimating filters (ukf-bias, ekf): bias bound and rest detection."""
-    _check_nonneg(owner, rest_gyr_rad_s=p.rest_gyr_rad_s, rest_acc_g=p.rest_acc_g,
-                  rest_noise_rad2_s=p.rest_noise_rad2_s)
-    if not (p.bias_max_rad_s > 0.0):
-        raise ValueError(f"{owner}: bias_max_rad_s must be > 0 rad/s, got {p.bias_max_rad_s!r}")
-    if not (p.rest_time_s > 0.0):
-        raise ValueError(f"{owner}: rest_time_s must be > 0 s (inf: no rest detection), got {p.rest_time_s!r}")
-    if p.rest_noise_rad2_s <= 0.0 and math.isfinite(p.rest_time_s):
-        raise ValueError(f"{owner}: rest_noise_rad2_s must be > 0 when rest detection is on")
-
-
-def _check_common(p: Any, owner: str) -> None:
-    check_filter_params(p, owner)
-    if not (math.isfinite(p.mean_tol_rad) and p.mean_tol_rad > 0.0):
-        raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {p.mean_tol_rad!r}")
-    if int(p.mean_max_iter) != p.mean_max_iter or p.mean_max_iter < 1:
-        raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {p.mean_max_iter!r}")
-    if p.impl not in ("lean", "filterpy"):
-        raise ValueError(f"{owner}: impl must be lean or filterpy, got {p.impl!r}")
-    if p.impl == "filterpy" and p.heading_free:
-        raise ValueError(
-            f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
-            "use heading_free=false (hf=false) with it"
-        )
-    # Builds the sigma-point weights once, so an impossible scheme fails here, not mid-run.
-    QuaternionSigmaPoints(error_dim(p), p.sigma, p.kappa, p.alpha, p.beta)
-
-
 def error_dim(p: Any) -> int:
     """Error-state dimension of a UKF parameter set: 3 (ukf), 6 or 9 (ukf-bias, with scale)."""
-    if not hasattr(p, "bias_walk_rad2_s3"):
+    if not isinstance(p, BiasFilterParams):
         return 3
     return 9 if p.estimate_scale else 6
 
 
 @dataclass(frozen=True)
-class UKFParams:
-    """Parameters of `ukf`, the quaternion UKF after Kraft 2003.
+class UKFOptions(FilterParams):
+    """The unscented-transform fields of `ukf` and `ukf-bias` (on top of `FilterParams`).
 
-    process_noise_rad2_s (Q): attitude process noise, variance per second of the rotation
-        error, rad^2/s; the step uses `Q dt I`.
-    acc_noise_g2_s (R): accelerometer noise density, g^2 s; step variance `R / dt` per axis.
-    init_var_rad2 (P0): initial attitude variance per axis, rad^2.
     sigma: sigma-point scheme, kraft (Kraft 2003) | julier | merwe; kappa, alpha, beta their
-        parameters (kappa for julier and merwe, alpha and beta for merwe).
-    use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
-    gate, gate_g: accelerometer gating (see `_attitude.acc_variance_scale`); off by default.
-    invalid_gyr_std_rad_s (Qbad): assumed rate uncertainty on invalid gyro samples, rad/s.
+        parameters (kappa for julier and merwe, alpha and beta for merwe only; setting one
+        for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: lean (vectorised) | filterpy (per-point hooks + FilterPy's update), same numbers.
+    """
 
-    heading_free (hf): not in Kraft 2003 (default off); see the module docstring.
+    sigma: Sigma = "kraft"
+    kappa: float = 1.0
+    alpha: float = 1.0
+    beta: float = 2.0
+    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
+    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
+    impl: Impl = "lean"
+
+    def _check(self) -> None:
+        super()._check()
+        owner = self.owner
+        if not (math.isfinite(self.mean_tol_rad) and self.mean_tol_rad > 0.0):
+            raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {self.mean_tol_rad!r}")
+        if int(self.mean_max_iter) != self.mean_max_iter or self.mean_max_iter < 1:
+            raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {self.mean_max_iter!r}")
+        if self.impl not in ("lean", "filterpy"):
+            raise ValueError(f"{owner}: impl must be lean or filterpy, got {self.impl!r}")
+        if self.impl == "filterpy" and self.heading_free:
+            raise ValueError(
+                f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
+                "use heading_free=false (hf=false) with it"
+            )
+        # Builds the sigma-point weights once, so an impossible scheme fails here, not mid-run.
+        QuaternionSigmaPoints(error_dim(self), self.sigma, self.kappa, self.alpha, self.beta)
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        return {**super()._only_with(), "kappa": ("sigma", ("julier", "merwe")),
+                "alpha": ("sigma", ("merwe",)), "beta": ("sigma", ("merwe",))}
+
+
+@dataclass(frozen=True)
+class UKFParams(UKFOptions):
+    """Parameters of `ukf`, the quaternion UKF after Kraft 2003.
+
+    The fields of `FilterParams` (Q, R, P0, tauc, tauw, acc, gate, gate_g, hf, Qbad) and
+    `UKFOptions` (sigma, kappa, alpha, beta, tol, iters, impl), with these defaults of its own:
+    process_noise_rad2_s (Q) = 1e-3 rad^2/s, disturbance_corr_s (tauc) = 0.5 s, gate_g = 0.1 g,
+    heading_free (hf) = False (not in Kraft 2003; see the module docstring); plus
+    scale_noise_s (Qs): rate-dependent attitude process noise, s: `Qs w_i^2 dt` is added to
+        the step variance of axis i (a stand-in for an unmodelled gyro scale error).
 
     Defaults: Q = 1e-3 rad^2/s, R = 1e-2 g^2. Sweep over ece276a 1-9 with the package's
     calibration, --init truth, mean RMSE inclination / total (deg):
@@ -216,28 +184,17 @@ class UKFParams:
     Q/R = 0.1-0.3 /s is the plateau of inclination, 0.1 /s keeps the total under 18 deg.
     """
 
+    owner: ClassVar[str] = "ukf"
+
     process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
-    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs"})
-    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     disturbance_corr_s: float = field(default=0.5, metadata={"alias": "tauc"})
-    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
-    sigma: Sigma = "kraft"
-    kappa: float = 1.0
-    alpha: float = 1.0
-    beta: float = 2.0
-    use_acc: bool = field(default=True, metadata={"alias": "acc"})
-    gate: Gate = "off"
     gate_g: float = 0.1
     heading_free: bool = field(default=False, metadata={"alias": "hf"})
-    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
-    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
-    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
-    impl: Impl = "lean"
+    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs"})
 
-    def __post_init__(self) -> None:
-        _check_nonneg("ukf", scale_noise_s=self.scale_noise_s)
-        _check_common(self, "ukf")
+    def _check(self) -> None:
+        check_nonneg(self.owner, scale_noise_s=self.scale_noise_s)
+        super()._check()
 
     @classmethod
     def equal_variances(cls, **changes: Any) -> "UKFParams":
@@ -249,58 +206,17 @@ class UKFParams:
 
 
 @dataclass(frozen=True)
-class UKFBiasParams:
-    """Parameters of `ukf-bias`: the UKF with the gyro bias in the state, and gating.
+class UKFBiasParams(UKFOptions, BiasFilterParams):
+    """Parameters of `ukf-bias`: the UKF with the gyro bias (and scale factors) in the state.
 
-    As `UKFParams`, plus
-    bias_walk_rad2_s3 (Qb): gyro-bias random walk, variance rate (rad/s)^2 per s.
-    init_bias_var_rad2_s2 (Pb0): initial bias variance per axis, (rad/s)^2. The initial bias
-        estimate is zero (calibration removed the bias of the initial rest).
-    gate (default inflate), gate_g: accelerometer gating, R * (1 + (| |a| - 1 | / gate_g)^2).
-    heading_free (hf, default on): the accelerometer correction does not turn the estimate
-        about the predicted vertical (attitude and bias rows of the gain).
-
-    The state model, the noise densities, the adaptive accelerometer noise, the rest bias
-    update and the defaults are those of `ekf` (see `EKFParams` for every field): the two
-    filters differ only in how they propagate the covariance (sigma points here, Jacobians
-    there).
+    The fields of `BiasFilterParams` (those of `FilterParams` plus bias, scale and rest
+    detection) and of `UKFOptions`, with their defaults: the state model, the noise
+    densities, the adaptive accelerometer noise, the rest bias update and the defaults are
+    those of `ekf`; the two filters differ only in how they propagate the covariance (sigma
+    points here, Jacobians there). heading_free (hf) is on by default.
     """
 
-    process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
-    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
-    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
-    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
-    bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
-    estimate_scale: bool = field(default=True, metadata={"alias": "scale"})
-    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
-    scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
-    scale_max: float = field(default=0.2, metadata={"alias": "smax"})
-    scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
-    disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
-    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
-    rest_gyr_rad_s: float = 0.035
-    rest_acc_g: float = 0.05
-    rest_time_s: float = 1.5
-    rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
-    sigma: Sigma = "kraft"
-    kappa: float = 1.0
-    alpha: float = 1.0
-    beta: float = 2.0
-    use_acc: bool = field(default=True, metadata={"alias": "acc"})
-    gate: Gate = "off"
-    gate_g: float = 0.2
-    heading_free: bool = field(default=True, metadata={"alias": "hf"})
-    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
-    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
-    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
-    impl: Impl = "lean"
-
-    def __post_init__(self) -> None:
-        _check_nonneg("ukf-bias", bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
-        _check_common(self, "ukf-bias")
-        check_bias_params(self, "ukf-bias")
-        check_scale_params(self, "ukf-bias")
+    owner: ClassVar[str] = "ukf-bias"
 
 
 # --------------------------------------------------------------------------- sigma points

@@ -74,3 +74,16 @@ def test_recovers_after_nan_and_saturated_stretch():
 def test_bad_parameters_raise(spec):
     with pytest.raises(ValueError):
         build(spec)
+
+
+@pytest.mark.parametrize(
+    "spec,match",
+    [("ekf:bias=false,scale=false,Qb=1e-6", "ekf: bias_walk_rad2_s3 applies only with estimate_bias=true; it is ignored with estimate_bias=false"),
+     ("ekf:bias=false,scale=false,rest_time_s=2", "rest_time_s applies only with estimate_bias=true"),
+     ("ekf:scale=false,Ps0=1e-3", "ekf: init_scale_var applies only with estimate_scale=true"),
+     ("ekf:gate_g=0.5", "ekf: gate_g applies only with gate=skip or inflate")],
+)
+def test_parameter_ignored_by_the_chosen_option_raises(spec, match):
+    with pytest.raises(ValueError, match=match):
+        build(spec)
+    build(spec.replace("gate_g", "gate=skip,gate_g") if "gate_g" in spec else spec.replace("bias=false,scale=false,", "").replace("scale=false,", ""))

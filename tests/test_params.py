@@ -34,3 +34,30 @@ def test_make_params_converts_and_checks():
         make_params(P, {"iterations": "2.5"})
     with pytest.raises(ValueError, match="expected key=value"):
         parse_specs("ukf:R")
+
+
+def test_filter_params_share_one_base_with_one_alias_per_field():
+    import dataclasses as dc
+
+    from fusion.estimators.ekf import EKFParams
+    from fusion.estimators.filter_params import BiasFilterParams, FilterParams
+    from fusion.estimators.ukf import UKFBiasParams, UKFParams
+
+    assert issubclass(UKFParams, FilterParams) and not issubclass(UKFParams, BiasFilterParams)
+    assert issubclass(UKFBiasParams, BiasFilterParams) and issubclass(EKFParams, BiasFilterParams)
+    base = {f.name: f.metadata.get("alias") for f in dc.fields(BiasFilterParams)}
+    for cls in (UKFParams, UKFBiasParams, EKFParams):
+        for f in dc.fields(cls):
+            if f.name in base:
+                assert f.metadata.get("alias") == base[f.name], (cls.__name__, f.name)
+    # The bias filters keep the base defaults; ukf keeps its own.
+    assert UKFBiasParams().process_noise_rad2_s == EKFParams().process_noise_rad2_s == 3e-4
+    assert UKFParams().process_noise_rad2_s == 1e-3 and UKFParams().disturbance_corr_s == 0.5
+    assert UKFParams().gate_g == 0.1 and UKFParams().heading_free is False
+    assert make_params(UKFParams, {"Q": "2e-3", "tauc": "0"}) == UKFParams(process_noise_rad2_s=2e-3, disturbance_corr_s=0.0)
+    # One place for the shared checks, with each filter's name in the message.
+    for cls, owner in ((UKFParams, "ukf"), (UKFBiasParams, "ukf-bias"), (EKFParams, "ekf")):
+        with pytest.raises(ValueError, match=f"^{owner}: process_noise_rad2_s must be a finite number >= 0"):
+            cls(process_noise_rad2_s=-1.0)
+    with pytest.raises(ValueError, match="^ekf: scale_max must be in"):
+        EKFParams(scale_max=1.5)

@@ -138,6 +138,27 @@ def test_bad_parameters_raise(spec):
         build(spec)
 
 
+@pytest.mark.parametrize(
+    "spec,match",
+    [("ukf:alpha=0.1", "ukf: alpha applies only with sigma=merwe; it is ignored with sigma=kraft"),
+     ("ukf:beta=0", "ukf: beta applies only with sigma=merwe; it is ignored with sigma=kraft"),
+     ("ukf:sigma=julier,alpha=0.5", "alpha applies only with sigma=merwe; it is ignored with sigma=julier"),
+     ("ukf:kappa=2", "ukf: kappa applies only with sigma=julier or merwe; it is ignored with sigma=kraft"),
+     ("ukf-bias:gate_g=0.3", "ukf-bias: gate_g applies only with gate=skip or inflate; it is ignored with gate=off"),
+     ("ukf-bias:scale=false,Qsw=1e-6", "scale_walk_1_s applies only with estimate_scale=true"),
+     ("ukf-bias:scale=false,saxes=xyz", "scale_axes applies only with estimate_scale=true")],
+)
+def test_parameter_ignored_by_the_chosen_option_raises(spec, match):
+    with pytest.raises(ValueError, match=match):
+        build(spec)
+
+
+@pytest.mark.parametrize("spec", ["ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2", "ukf:sigma=julier,kappa=2",
+                                  "ukf:kappa=1", "ukf-bias:gate=inflate,gate_g=0.3", "ukf-bias:scale=false"])
+def test_parameters_of_the_chosen_option_are_accepted(spec):
+    build(spec)
+
+
 def test_registry_and_aliases():
     assert ESTIMATORS["ukf"] is UKF and ESTIMATORS["ukf-bias"] is UKFBias
     est = build("ukf:R=1e-3,Q=1e-2,sigma=julier,kappa=2")

@@ -1,0 +1,184 @@
+"""Parameters shared by the recursive attitude filters (`ukf`, `ukf-bias`, `ekf`).
+
+`FilterParams` holds the fields every filter has (noise densities, initial variance,
+accelerometer disturbance model, gating, invalid-gyro noise, heading_free);
+`BiasFilterParams` adds the gyro bias, scale-factor and rest-detection fields of the
+bias-estimating filters. Each filter's class derives from one of them, adds only its own
+fields and, where its defaults differ, redeclares the field with the same alias.
+
+Validation lives here once: `_check` (extended by subclasses through `super()`) checks
+values, `_only_with` names the parameters that one option ignores. A parameter set away
+from its default while the option it needs is off is an error (`ukf:alpha=0.1` with the
+default `sigma=kraft` would otherwise be silently ignored).
+
+Field order: dataclass inheritance puts base fields first; params are built by keyword
+(`estimators.params.make_params`), so the order changes nothing but the listing order.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+from ._attitude import scale_axes_mask
+
+Gate = Literal["off", "skip", "inflate"]
+
+
+def check_nonneg(owner: str, **values: float) -> None:
+    """ValueError unless every value is a finite number >= 0."""
+    for name, value in values.items():
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
+            raise ValueError(f"{owner}: {name} must be a finite number >= 0, got {value!r}")
+
+
+def _text(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Fields of every recursive attitude filter (units in the names; aliases in brackets).
+
+    Noise is given as continuous-time densities, so one set means the same at 100 Hz and at
+    286 Hz (Sola 2017, "Quaternion kinematics for the error-state Kalman filter", Sec. 5.4:
+    a density sigma^2 over a step dt gives the variance sigma^2 dt for a rate noise
+    integrated into an angle, and sigma^2 / dt for a white measurement noise sampled once
+    per step):
+
+    process_noise_rad2_s (Q): gyro (attitude process) noise density, rad^2/s; step
+        variance `Q dt` per axis.
+    acc_noise_g2_s (R): accelerometer noise density, g^2 s; step variance `R / dt` per axis
+        (a per-sample variance R_k at rate f is the density R_k / f). Without disturbance
+        the attitude correction has the time constant `sqrt(R / Q)`, independent of the rate.
+    init_var_rad2 (P0): initial attitude variance per axis, rad^2.
+    disturbance_corr_s (tauc): correlation time of the external acceleration, s (adaptive R,
+        see `_attitude.AccDisturbance`); 0 turns the adaptation off.
+    disturbance_window_s (tauw): time constant of its running variance, s.
+    use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
+    gate, gate_g: fixed accelerometer gating (see `_attitude.acc_variance_scale`), off by
+        default (the adaptive R replaces it); gate_g applies only with gate=skip or inflate.
+    heading_free (hf): the accelerometer correction does not turn the estimate about the
+        predicted vertical (see the `ukf` and `ekf` module docstrings).
+    invalid_gyr_std_rad_s (Qbad): assumed rate uncertainty on invalid gyro samples, rad/s.
+    """
+
+    owner: ClassVar[str] = "filter"  # the registry name in error messages
+
+    process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
+    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
+    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
+    disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
+    use_acc: bool = field(default=True, metadata={"alias": "acc"})
+    gate: Gate = "off"
+    gate_g: float = 0.2
+    heading_free: bool = field(default=True, metadata={"alias": "hf"})
+    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+
+    def __post_init__(self) -> None:
+        self._check()
+        self._check_applicable()
+
+    def _check(self) -> None:
+        """Value checks; subclasses extend them through `super()._check()`."""
+        owner = self.owner
+        check_nonneg(
+            owner,
+            process_noise_rad2_s=self.process_noise_rad2_s,
+            acc_noise_g2_s=self.acc_noise_g2_s,
+            init_var_rad2=self.init_var_rad2,
+            invalid_gyr_std_rad_s=self.invalid_gyr_std_rad_s,
+        )
+        if self.use_acc and self.acc_noise_g2_s <= 0.0:
+            raise ValueError(f"{owner}: acc_noise_g2_s (R) must be > 0 when the accelerometer is used, got {self.acc_noise_g2_s}")
+        check_nonneg(owner, disturbance_corr_s=self.disturbance_corr_s)
+        if not (math.isfinite(self.disturbance_window_s) and self.disturbance_window_s > 0.0):
+            raise ValueError(f"{owner}: disturbance_window_s must be > 0 s, got {self.disturbance_window_s!r}")
+        if self.gate not in ("off", "skip", "inflate"):
+            raise ValueError(f"{owner}: gate must be off, skip or inflate, got {self.gate!r}")
+        if not (math.isfinite(self.gate_g) and self.gate_g > 0.0):
+            raise ValueError(f"{owner}: gate_g must be > 0 g, got {self.gate_g!r}")
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        """Parameter -> (the option it needs, the option values it applies with)."""
+        return {"gate_g": ("gate", ("skip", "inflate"))}
+
+    def _check_applicable(self) -> None:
+        """A parameter away from its default is an error where its option ignores it."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for name, (option, values) in self._only_with().items():
+            current = getattr(self, option)
+            if current not in values and getattr(self, name) != defaults[name]:
+                raise ValueError(
+                    f"{self.owner}: {name} applies only with {option}={' or '.join(map(_text, values))}; "
+                    f"it is ignored with {option}={_text(current)}"
+                )
+
+
+@dataclass(frozen=True)
+class BiasFilterParams(FilterParams):
+    """`FilterParams` plus gyro bias, scale factors and rest detection (ukf-bias, ekf).
+
+    bias_walk_rad2_s3 (Qb): gyro-bias random-walk density, rad^2/s^3 (step variance Qb dt).
+    init_bias_var_rad2_s2 (Pb0): initial bias variance per axis, (rad/s)^2. The initial bias
+        estimate is zero (calibration removed the bias of the initial rest).
+    bias_max_rad_s (bmax): the bias estimate is clipped to this per axis, rad/s (the
+        calibration removed the rest bias; a larger one means a wrong update).
+    estimate_scale (scale): gyro scale-factor corrections `s` in the state; the four scale
+        fields below apply only with it.
+    init_scale_var (Ps0): initial scale-factor variance per axis, dimensionless (1e-2: a
+        10 % standard deviation, the tolerance of a low-cost MEMS gyro read with its
+        datasheet sensitivity).
+    scale_walk_1_s (Qsw): scale-factor random-walk density, 1/s (step variance Qsw dt).
+    scale_max (smax): the scale correction is clipped to this per axis.
+    scale_axes (saxes): the body axes whose scale factor is estimated ("xy" by default; the
+        others stay at their calibration). With the body z axis near vertical, as a hand-held
+        or worn IMU mostly is, z's scale acts on heading alone, which a gyro and an
+        accelerometer cannot observe; estimating it lets the accelerometer's corrections after a
+        long gyro outage drive a wrong z scale and with it the heading.
+    rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (gyro norm, accelerometer
+        deviation, minimum duration) for the zero-rate bias update; rest_time_s = inf
+        turns it off.
+    rest_noise_rad2_s (Rrest): density of the gyro reading at rest, rad^2/s (step variance
+        Rrest / dt).
+    """
+
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
+    bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
+    estimate_scale: bool = field(default=True, metadata={"alias": "scale"})
+    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
+    scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
+    scale_max: float = field(default=0.2, metadata={"alias": "smax"})
+    scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
+    rest_gyr_rad_s: float = 0.035
+    rest_acc_g: float = 0.05
+    rest_time_s: float = 1.5
+    rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
+
+    def _check(self) -> None:
+        owner = self.owner
+        check_nonneg(owner, bias_walk_rad2_s3=self.bias_walk_rad2_s3, init_bias_var_rad2_s2=self.init_bias_var_rad2_s2)
+        super()._check()
+        check_nonneg(owner, rest_gyr_rad_s=self.rest_gyr_rad_s, rest_acc_g=self.rest_acc_g,
+                     rest_noise_rad2_s=self.rest_noise_rad2_s)
+        if not (self.bias_max_rad_s > 0.0):
+            raise ValueError(f"{owner}: bias_max_rad_s must be > 0 rad/s, got {self.bias_max_rad_s!r}")
+        if not (self.rest_time_s > 0.0):
+            raise ValueError(f"{owner}: rest_time_s must be > 0 s (inf: no rest detection), got {self.rest_time_s!r}")
+        if self.rest_noise_rad2_s <= 0.0 and math.isfinite(self.rest_time_s):
+            raise ValueError(f"{owner}: rest_noise_rad2_s must be > 0 when rest detection is on")
+        check_nonneg(owner, init_scale_var=self.init_scale_var, scale_walk_1_s=self.scale_walk_1_s)
+        if not (self.scale_max > 0.0 and self.scale_max < 1.0):
+            raise ValueError(f"{owner}: scale_max must be in (0, 1), got {self.scale_max!r}")
+        try:
+            scale_axes_mask(self.scale_axes)
+        except ValueError as exc:
+            raise ValueError(f"{owner}: {exc}") from None
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        scale = ("estimate_scale", (True,))
+        return {**super()._only_with(), "init_scale_var": scale, "scale_walk_1_s": scale, "scale_max": scale,
+                "scale_axes": scale}
