@@ -37,8 +37,10 @@ map, `fx`/`hx` the process and measurement models. Traps worked around:
 
 * `UnscentedKalmanFilter.predict()` re-draws sigma points from the predicted (x, P)
   after the transform, so `update` would not use the propagated points as Kraft does, and
-  it adds Q *after* the transform. `QuaternionUKF.predict` replaces it (draws from P + Q,
-  keeps the propagated points and their error vectors for the update).
+  it adds Q *after* the transform. `QuaternionUKF.predict_kraft` is Kraft's instead (draws from
+  P + Q, keeps the propagated points and their error vectors for the update).
+* FilterPy's `predict`/`update` stay as FilterPy wrote them (our steps are `predict_kraft`
+  and `update_kraft`), so the object is still a working FilterPy filter.
 * FilterPy's `unscented_transform` and `cross_variance` size the covariance from the state
   vector (4 or 7 entries) and fail for a 3x3 / 6x6 error covariance:
   `unscented_transform_state` (passed as `UT=`) and an overridden `cross_variance` size it
@@ -339,7 +341,8 @@ def unscented_transform_state(sigmas, Wm, Wc, noise_cov=None, mean_fn=None, resi
     sigmas: (m, n + 1) state points; the covariance is sized from the residuals (n, n),
     which FilterPy's `unscented_transform` cannot do for a 4-vector with a 3x3 P.
     """
-    x = mean_fn(sigmas, Wm)
+    x = mean_fn(sigmas, Wm) if mean_fn is not None else Wm @ sigmas  # Euclidean (measurement side)
+    residual_fn = residual_fn if residual_fn is not None else np.subtract
     res = np.array([residual_fn(s, x) for s in sigmas])
     P = res.T @ (Wc[:, None] * res)
     if noise_cov is not None:
@@ -351,10 +354,18 @@ def unscented_transform_state(sigmas, Wm, Wc, noise_cov=None, mean_fn=None, resi
 class QuaternionUKF(UnscentedKalmanFilter):
     """FilterPy's `UnscentedKalmanFilter` with a quaternion (+ bias) state.
 
-    x: (4,) or (7,) `[q_wxyz, b_rad_s]`; P: (n, n) error covariance, n = 3 or 6.
-    `predict(dt, gyr_rad_s, Q)` / `update(z, R)` are the lean vectorised steps;
+    x: (4,), (7,) or (10,) `[q_wxyz, b_rad_s, s]`; P: (n, n) error covariance, n = 3, 6 or 9.
+    `predict_kraft(dt, gyr_rad_s, Q)` / `update_kraft(z, R)` are Kraft's steps, vectorised;
     `predict_reference` / `update_reference` run the same steps through the per-point hooks
-    and FilterPy's own `update`.
+    and FilterPy's own `update`. FilterPy's `predict` and `update` are not overridden: they
+    work on this object as FilterPy defines them (pass `UT=unscented_transform_state`, whose
+    covariance is sized from the error state, and the gyro as `gyr_rad_s=`). FilterPy's
+    `predict` is not Kraft's (it adds Q after the transform and re-draws the sigma points
+    before the update), which is why the estimator uses `predict_kraft`. `batch_filter` and
+    `rts_smoother` cannot apply to a quaternion state: both size covariances by the state
+    vector's length (4 or 7, not the error state's 3 or 6), `batch_filter` cannot pass the gyro
+    to `fx`, and `rts_smoother` adds `K (x' - x)` to the state in Euclidean space (`gn` is the
+    smoother here).
     """
 
     def __init__(self, points: QuaternionSigmaPoints, mean_tol_rad: float = 1e-9, mean_max_iter: int = 20) -> None:
@@ -388,7 +399,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self.heading_free = False
 
     # -- models (per point, used by the reference path) --
-    def fx_rotate(self, x: np.ndarray, dt: float, gyr_rad_s: np.ndarray | None) -> np.ndarray:
+    def fx_rotate(self, x: np.ndarray, dt: float, gyr_rad_s: np.ndarray | None = None) -> np.ndarray:
         """Process model for one state point: `q exp(diag(1 + s) (w - b) dt / 2)` (steps 1, 4).
 
         gyr_rad_s None: an invalid gyro sample, nothing is integrated.
@@ -419,7 +430,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         return Pxz
 
     # -- lean path --
-    def predict(self, dt: float, gyr_rad_s: np.ndarray | None, Q: np.ndarray) -> None:  # type: ignore[override]
+    def predict_kraft(self, dt: float, gyr_rad_s: np.ndarray | None, Q: np.ndarray) -> None:
         """Steps 1-5 for all sigma points at once. gyr_rad_s: (3,) rad/s, body, or None
         (invalid sample: nothing integrated); Q: (n, n)."""
         pts: QuaternionSigmaPoints = self.points_fn
@@ -459,7 +470,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self.x_prior = self.x
         self.P_prior = self.P
 
-    def update(self, z: np.ndarray, R: np.ndarray) -> None:  # type: ignore[override]
+    def update_kraft(self, z: np.ndarray, R: np.ndarray) -> None:
         """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
         Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
         zp = self.Wm @ Z  # step 7
@@ -543,8 +554,8 @@ class UKF(RecursiveEstimator):
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
-        self._predict = kf.predict if p.impl == "lean" else kf.predict_reference
-        self._update = kf.update if p.impl == "lean" else kf.update_reference
+        self._predict = kf.predict_kraft if p.impl == "lean" else kf.predict_reference
+        self._update = kf.update_kraft if p.impl == "lean" else kf.update_reference
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
