@@ -51,7 +51,7 @@ def main() -> None:
 def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t0 = time.perf_counter()
     from fusion.evaluation import report, runner, series as series_io
-    from fusion.evaluation.compare import _as_specs, expand_all, results_json
+    from fusion.evaluation.compare import as_specs, expand_all, results_json
     from fusion import datasets
     t_import = time.perf_counter() - t0
 
@@ -61,7 +61,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
         datasets.load_source(source)
     t_load = time.perf_counter() - t
 
-    specs = expand_all(_as_specs([args.estimators]))
+    specs = expand_all(as_specs([args.estimators]))
     t = time.perf_counter()
     results, infos = runner.run(specs, sources, jobs=args.jobs, with_info=True)
     t_pool = time.perf_counter() - t

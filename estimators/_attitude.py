@@ -221,8 +221,9 @@ def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float,
 UNESTIMATED_VAR = 1e-12
 
 
-def scale_axes_mask(axes: str) -> np.ndarray:
-    """(3,) bool: which body axes' gyro scale factors a filter estimates ("xy", "xyz", ...)."""
+def axes_mask(axes: str, name: str = "scale_axes") -> np.ndarray:
+    """(3,) bool: which body axes an axis list names ("xy", "xyz", "" for none), e.g. the gyro
+    scale factors or biases an estimator estimates. `name` is the parameter, for the error."""
     if any(a not in "xyz" for a in axes) or len(set(axes)) != len(axes):
-        raise ValueError(f"scale_axes={axes!r}: expected distinct letters from 'xyz'")
+        raise ValueError(f"{name}={axes!r}: expected distinct letters from 'xyz' (or 'none')")
     return np.array([a in axes for a in "xyz"])

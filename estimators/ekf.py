@@ -70,7 +70,7 @@ from ._attitude import (
     bias_rest_update,
     inv_sym3,
     repair_covariance,
-    scale_axes_mask,
+    axes_mask,
 )
 from .base import RecursiveEstimator
 from .filter_params import BiasFilterParams
@@ -132,7 +132,7 @@ class EKF(RecursiveEstimator):
             self.P[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
             self._Qrate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3
         if p.estimate_scale:
-            on = scale_axes_mask(p.scale_axes)
+            on = axes_mask(p.scale_axes)
             self.P[6:, 6:] = np.diag(np.where(on, p.init_scale_var, UNESTIMATED_VAR))
             self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
         self._Qbad = np.zeros((n, n))

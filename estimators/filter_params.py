@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
-from ._attitude import scale_axes_mask
+from ._attitude import axes_mask
 
 Gate = Literal["off", "skip", "inflate"]
 
@@ -174,7 +174,7 @@ class BiasFilterParams(FilterParams):
         if not (self.scale_max > 0.0 and self.scale_max < 1.0):
             raise ValueError(f"{owner}: scale_max must be in (0, 1), got {self.scale_max!r}")
         try:
-            scale_axes_mask(self.scale_axes)
+            axes_mask(self.scale_axes)
         except ValueError as exc:
             raise ValueError(f"{owner}: {exc}") from None
 

@@ -31,7 +31,7 @@ from scipy.linalg import solveh_banded
 
 from fusion.quaternion import retract
 
-from .smoother import BatchSmoother, SmootherParams, progress_bar
+from .smoother import BatchSmoother, progress_bar
 from .smoother_cost import SmootherProblem, banded_lower
 
 

@@ -19,20 +19,16 @@ import numpy as np
 
 from fusion.types import ImuSamples, Trajectory
 
+from ._attitude import axes_mask
 from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import make_params, parse_specs
-from .smoother_cost import AXES, SmootherProblem, Weights
+from .smoother_cost import SmootherProblem, Weights
 from .ukf import UKF, UKFBias
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.
 INIT_ESTIMATORS: dict[str, type[Estimator]] = {"dr": DeadReckoning, "ukf": UKF, "ukf-bias": UKFBias, "ekf": EKF}
-
-
-def _check_axes(name: str, value: str) -> None:
-    if any(a not in AXES for a in value) or len(set(value)) != len(value):
-        raise ValueError(f"{name}={value!r}: expected distinct letters from 'xyz' (or 'none')")
 
 
 @dataclass(frozen=True)
@@ -113,7 +109,7 @@ class SmootherParams:
         for name in ("bias_axes", "scale_axes"):  # "none" (as typed on a command line) is ""
             if getattr(self, name) == "none":
                 object.__setattr__(self, name, "")
-            _check_axes(name, getattr(self, name))
+            axes_mask(getattr(self, name), name)
         if not 0 < self.scale_release_ratio <= 1:
             raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
         if self.max_iter < 1:

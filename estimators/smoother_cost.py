@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion import quaternion as quat
-from fusion.quaternion import retract, right_jacobian, right_jacobian_inv, rotation_matrix, skew
+from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix, skew
 from fusion.types import ImuSamples
 
 AXES = "xyz"

@@ -106,11 +106,11 @@ from ._attitude import (
     bias_rest_update,
     inv_sym3,
     repair_covariance,
-    scale_axes_mask,
+    axes_mask,
     sqrt_psd,
 )
 from .base import RecursiveEstimator
-from .filter_params import BiasFilterParams, FilterParams, Gate, check_nonneg  # noqa: F401 (Gate: re-exported)
+from .filter_params import BiasFilterParams, FilterParams, check_nonneg
 
 Sigma = Literal["kraft", "julier", "merwe"]
 Impl = Literal["lean", "filterpy"]
@@ -540,7 +540,7 @@ class UKF(RecursiveEstimator):
             P0[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
             self._Qrate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3
         if n > 6:
-            on = scale_axes_mask(p.scale_axes)
+            on = axes_mask(p.scale_axes)
             P0[6:, 6:] = np.diag(np.where(on, p.init_scale_var, UNESTIMATED_VAR))
             self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
         kf.P = P0

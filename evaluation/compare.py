@@ -27,7 +27,6 @@ from .job import (  # noqa: F401  (the job layer, re-exported: `from fusion.eval
 from .metrics import KINDS, MIN_COVERAGE
 from .runner import run
 
-_as_specs = as_specs  # the former private name, kept for scripts that used it
 
 
 def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,

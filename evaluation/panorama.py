@@ -38,7 +38,7 @@ from fusion.types import Trajectory
 
 from . import camsim
 from .camsim import check_rate
-from .equirect import MAX_HEIGHT_PX, MAX_WIDTH_PX, PanoramaGrid  # noqa: F401  (PanoramaGrid: part of this module's API)
+from .equirect import PanoramaGrid  # noqa: F401  (PanoramaGrid: part of this module's API)
 
 Blend = Literal["last", "average", "feather"]
 BLENDS = ("last", "average", "feather")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from fusion.evaluation import plots, runner, series
-from fusion.evaluation.compare import _as_specs
+from fusion.evaluation.compare import as_specs
 from fusion.cli import main
 
 from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
@@ -38,10 +38,10 @@ def run_dir(toy, tmp_path_factory):
 
 
 def _series(specs=SPECS, **kwargs) -> series.RecordingSeries:
-    from fusion.evaluation.compare import _as_specs
+    from fusion.evaluation.compare import as_specs
 
     rec = recording(**kwargs)
-    spec_list = _as_specs(specs)
+    spec_list = as_specs(specs)
     results, infos = runner.run(spec_list, [rec], with_info=True)
     causal = {label: d["causal"] for label, d in runner.describe_specs(spec_list).items()}
     return series.from_results(infos[0], results, causal)
@@ -314,7 +314,7 @@ def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
     from fusion import datasets
 
     rec = datasets.load("ece276a/6", data_dir / "ece276a")
-    results, infos = runner.run(_as_specs(["dr"]), [rec], with_info=True)
+    results, infos = runner.run(as_specs(["dr"]), [rec], with_info=True)
     s = series.from_results(infos[0], results, {"dr": True})
     nan_rows = int((~np.all(np.isfinite(rec.truth.quat_wxyz), axis=1)).sum())
     inside = [(a, b) for a, b in plots.truth_gaps(s) if a > s.imu_t[0] and b < s.imu_t[-1]]
