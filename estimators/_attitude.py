@@ -224,6 +224,7 @@ UNESTIMATED_VAR = 1e-12
 def axes_mask(axes: str, name: str = "scale_axes") -> np.ndarray:
     """(3,) bool: which body axes an axis list names ("xy", "xyz", "" for none), e.g. the gyro
     scale factors or biases an estimator estimates. `name` is the parameter, for the error."""
+    axes = "" if axes == "none" else axes
     if any(a not in "xyz" for a in axes) or len(set(axes)) != len(axes):
         raise ValueError(f"{name}={axes!r}: expected distinct letters from 'xyz' (or 'none')")
     return np.array([a in axes for a in "xyz"])
