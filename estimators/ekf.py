@@ -144,12 +144,14 @@ class EKF(RecursiveEstimator):
         self._I = np.eye(n)
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
+        self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
+        self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
         self.n_skipped = self.n_cov_repaired = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p = self.params
         n = self.n
-        self.acc_var, self.at_rest = math.nan, False
+        self.acc_var, self.at_rest, self.nis, self.guarded = math.nan, False, math.nan, False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -210,7 +212,9 @@ class EKF(RecursiveEstimator):
                 if n > 3:
                     K[3:6] -= np.outer(h, h @ K[3:6])
             y = acc_g - h
-            if n > 3 and float(y @ Sinv @ y) > _CHI2_3DOF:
+            self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
+            if n > 3 and self.nis > _CHI2_3DOF:
+                self.guarded = True
                 # The innovation is inconsistent with the predicted covariance (a gyro freeze
                 # or a large error): correct the attitude only, not the bias and scale through
                 # their linearised correlations. Any gain is exact in the Joseph form.
@@ -236,7 +240,7 @@ class EKF(RecursiveEstimator):
 
     def current(self) -> dict[str, Any]:
         return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "acc_var_g2": self.acc_var,
-                "at_rest": self.at_rest}
+                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded}
 
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}

@@ -554,13 +554,14 @@ class UKF(RecursiveEstimator):
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
+        self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self._predict = kf.predict_kraft if p.impl == "lean" else kf.predict_reference
         self._update = kf.update_kraft if p.impl == "lean" else kf.update_reference
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p, kf, n = self.params, self.kf, self.n
-        self.acc_var, self.at_rest = math.nan, False
+        self.acc_var, self.at_rest, self.nis = math.nan, False, math.nan
         Q = self._Qrate * dt_s
         x = kf.x
         if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
@@ -599,6 +600,8 @@ class UKF(RecursiveEstimator):
             r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, d, dt_s) * scale
             self.acc_var = r
             self._update(acc_g, self._eye3 * r)
+            y = kf.y
+            self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
         else:
             self.n_skipped += 1
         x = kf.x
@@ -612,7 +615,7 @@ class UKF(RecursiveEstimator):
 
     def current(self) -> dict[str, Any]:
         kf = self.kf
-        out = {"cov": kf.P, "mean_iterations": kf.mean_iterations, "acc_var_g2": self.acc_var}
+        out = {"cov": kf.P, "mean_iterations": kf.mean_iterations, "acc_var_g2": self.acc_var, "nis": self.nis}
         if self.with_bias:
             out["gyr_bias_rad_s"] = kf.x[4:7]
             out["at_rest"] = self.at_rest
