@@ -12,9 +12,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 import fusion
 from fusion import datasets
-from fusion.types import Recording
+from fusion.types import ImuSamples, Recording
 
 SIM = datasets.SIM_ID
 
@@ -67,3 +69,13 @@ def course_recordings(limit: int | None = None) -> list[str]:
         print(f"NOTE: no course recordings under {root.resolve()}: using '{SIM}' instead")
         return [SIM]
     return ids[:limit] if limit else ids
+
+
+def first_seconds(imu: ImuSamples, seconds: float) -> ImuSamples:
+    """The samples of the first `seconds` of a recording (all of them if it is shorter)."""
+    stop = int(np.searchsorted(imu.t, imu.t[0] + seconds, side="right"))
+    if stop >= len(imu):
+        return imu
+    print(f"trimmed to the first {seconds:g} s: {stop} of {len(imu)} samples")
+    return imu.replace(t=imu.t[:stop], gyr_rad_s=imu.gyr_rad_s[:stop], acc_g=imu.acc_g[:stop],
+                       gyr_valid=imu.gyr_valid[:stop])
