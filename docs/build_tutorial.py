@@ -113,8 +113,16 @@ def execute(source: Path, timeout_s: float = DEFAULT_TIMEOUT_S, data_dir: str | 
 
 def write_html(built: list[Built], html_dir: Path) -> list[Path]:
     """One HTML page per notebook (nbconvert, outputs and figures embedded) and an index.html."""
+    from jupyter_core.paths import jupyter_path
     from nbconvert import HTMLExporter
 
+    # nbconvert's templates are data files under <prefix>/share/jupyter. In a virtual environment
+    # that sees a base interpreter's packages (--system-site-packages), nbconvert may come from the
+    # base, its templates too: add the base prefix to the search path when they are not found.
+    if not any((Path(d) / "nbconvert" / "templates" / "lab").is_dir() for d in jupyter_path()):
+        base = Path(sys.base_prefix) / "share" / "jupyter"
+        if (base / "nbconvert" / "templates" / "lab").is_dir():
+            os.environ["JUPYTER_PATH"] = os.pathsep.join(filter(None, [os.environ.get("JUPYTER_PATH"), str(base)]))
     html_dir.mkdir(parents=True, exist_ok=True)
     exporter = HTMLExporter()
     pages = []
