@@ -13,7 +13,7 @@
 # An IMU does not give you angular rates and accelerations. It gives you numbers from an
 # analogue-to-digital converter (ADC). Everything an orientation filter does later rests on how
 # those numbers are turned into rad/s and g, and a filter cannot repair a wrong conversion: a
-# gyro that reads 9 % too little turns every 90 degree turn into 82.6 degrees, for ever.
+# gyro that reads 9 % too much turns every 90 degree turn into 98 degrees, for ever.
 #
 # In this notebook, on a real recording of the course board (VICON motion capture as the truth):
 #
@@ -194,8 +194,8 @@ if rec.truth is not None:
               f"  [gravity component spans {spread:.2f} g{'; too little to fit' if spread < 1 else ''}]")
 
 # %% [markdown]
-# On ece276a/1 (the one recording here that visits every orientation) all three axes give about
-# 103-105 counts per g, 1-3 % more than the datasheet value; the data README quotes "about 104
+# On ece276a/1 (the one recording here that visits every orientation) the three axes give
+# 103-105 counts per g, up to 3 % more than the datasheet value; the data README quotes "about 104
 # counts per g". The toolkit keeps the nominal value: the filters use the accelerometer for the
 # *direction* of gravity, which a common scale error does not change, and they distrust samples
 # whose norm is off 1 g (external accelerations) anyway. The gyro is a different story.
@@ -235,10 +235,11 @@ print(calibration_run.text.splitlines()[0])
 print("true / nominal sensitivity:", np.round(calibration_run.fit.sensitivity_ratio, 3))
 
 # %% [markdown]
-# The x gyro is about 9 % more sensitive than its datasheet value, y about 4-6 % and z about 3-4 %
-# less: a consistent property of the board (the data README quotes +9, +4, -4 %), not noise.
-# What it does to orientation: a true 90 degree turn about x, integrated with the nominal scale,
-# comes out as $90 / 1.09 \approx 82.6$ degrees. The filters of notebooks 3-5 either estimate these
+# The x gyro is about 9 % more sensitive than its datasheet value, y about 4-6 % more and z about
+# 3-4 % less: a consistent property of the board (the data README quotes +9, +4, -4 %), not noise.
+# More sensitive means more counts per deg/s, so the nominal conversion *overestimates* the rate
+# (the slopes above are below 1): a true 90 degree turn about x, integrated with the nominal scale,
+# comes out as $90 \times 1.09 \approx 98$ degrees. The filters of notebooks 3-5 either estimate these
 # scale factors (`ekf`, `ukf-bias`, `gn`) or absorb them as process noise (`ukf`); `fusion
 # calibrate --out calib.json` writes them to a file that `--calibration` applies to every command.
 #

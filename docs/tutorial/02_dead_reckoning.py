@@ -178,8 +178,8 @@ print(f"angle random walk after {duration:.0f} s: {np.degrees(density * np.sqrt(
 
 # %% [markdown]
 # Half a degree: noise does not explain the error above. **Scale factors.** Notebook 1 found the
-# x and y gyros 9 % and 4-6 % more sensitive than the datasheet; every turn about x is then
-# integrated 9 % short. Re-calibrate the recording with scale factors fitted on the *other*
+# x and y gyros 9 % and 4-6 % more sensitive than the datasheet; with the nominal scale every turn
+# about x is integrated 9 % too large. Re-calibrate the recording with scale factors fitted on the *other*
 # recordings (so that this recording's VICON is not used to correct itself) and integrate again.
 # **Freezes.** With the freeze *integrated* (the loader's dropout detection switched off), the
 # frozen reading acts as a steady false rate.
@@ -228,4 +228,4 @@ plt.show()
 #   (proportional to how much you turn), bias (grows linearly with time) and faults such as freezes.
 #
 # **Try it:** add a constant 0.5 deg/s bias to the gyro (`imu.replace(gyr_rad_s=...)`) and check
-# that the heading error grows like $0.5\,t$ degrees.
+# that the error grows roughly like $0.5\,t$ degrees.

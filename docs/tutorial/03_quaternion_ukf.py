@@ -135,7 +135,9 @@ print("Q_k diagonal (rad^2):", np.diag(Q), " R_k diagonal (g^2):", np.diag(R))
 # $n = 3$ error dimensions give $2n = 6$ points $W_i = \pm$ the columns of $\sqrt{c\,(P_k + Q_k)}$
 # (a Cholesky factor) with $c = n$ and equal weights $1/(2n)$; the library also carries a centre
 # point of weight 0, which only starts the mean of step 5. The check that matters: the points
-# reproduce the covariance they were drawn from, $\sum_i w_i W_i W_i^\top = P_k + Q_k$.
+# reproduce the covariance they were drawn from, $\sum_i w_i W_i W_i^\top = P_k + Q_k$. (With weights
+# $1/(2n)$ that holds for $c = n$ only; the module docstring attributes this choice to Kraft, which
+# could not be checked against the paper here.)
 
 # %%
 points = QuaternionSigmaPoints(3, p.sigma)
