@@ -78,6 +78,10 @@ def test_notebook_runs(source, tutorial_data, timings, tmp_path, record_property
     else:
         assert "built-in simulated recording" in text
     assert (tmp_path / f"{source.stem}.ipynb").is_file()
+    # The figures are the lesson: every notebook shows some (inline PNGs, whatever MPLBACKEND says).
+    images = [out for cell in built.nb.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
+              if "image/png" in out.get("data", {})]
+    assert len(images) >= 2, f"{source.name}: {len(images)} figures"
 
 
 def test_missing_data_fails_the_notebook(tmp_path):
