@@ -124,10 +124,12 @@ plt.show()
 #   helped by its scale-factor states; plain `ukf`, then the peers, which do not model the board's
 #   4-9 % scale errors, follow. Recordings 6 and 7 (fast motion, gyro samples beyond 300 deg/s)
 #   separate the peers most.
-# * **Heading** is not observable: its error is integration error, and the recordings with gyro
-#   freezes (1, 2, 4, 5, 8, 9) have the largest. No filter can recover the rotation that happened
-#   while the gyro was frozen: `dr`'s mean heading error is about that of plain `ukf` and of most
-#   peers, and the estimators with scale-factor states gain a degree or two.
+# * **Heading** is not observable: its error is integration error, from gyro freezes and gyro
+#   scale errors. On recording 4 (a 2.8 s freeze) every estimator loses 14-20 degrees of
+#   heading: nothing can recover the rotation that happened while the gyro was frozen. On
+#   recording 3 (no freeze, much turning) the estimators without scale-factor states lose 8-19
+#   degrees, `ekf` and `gn` 2-4. On average `dr`'s heading error is about that of plain `ukf` and
+#   of most peers; the estimators with scale-factor states gain a degree or two.
 # * **Cost** spans four orders of magnitude: the compiled peers (VQF in C++, Fusion in C) need
 #   between a fraction of a microsecond and a few tens per sample, the Python filters (ours and the
 #   `ahrs` package's) one to a few hundred. Filters that must run on a small board need the left
