@@ -238,7 +238,7 @@ print("true / nominal sensitivity:", np.round(calibration_run.fit.sensitivity_ra
 # The x gyro is about 9 % more sensitive than its datasheet value, y about 4-6 % more and z about
 # 3-4 % less: a consistent property of the board (the data README quotes +9, +4, -4 %), not noise.
 # More sensitive means more counts per deg/s, so the nominal conversion *overestimates* the rate
-# (the slopes above are below 1): a true 90 degree turn about x, integrated with the nominal scale,
+# (the x and y slopes above are below 1): a true 90 degree turn about x, integrated with the nominal scale,
 # comes out as $90 \times 1.09 \approx 98$ degrees. The filters of notebooks 3-5 either estimate these
 # scale factors (`ekf`, `ukf-bias`, `gn`) or absorb them as process noise (`ukf`); `fusion
 # calibrate --out calib.json` writes them to a file that `--calibration` applies to every command.
