@@ -22,7 +22,7 @@ statistics here are the tests of that section, for one run of one filter on one 
   fall inside it. Its time average over the K updates of a run, under the same hypothesis and
   white innovations, is chi-square with 3K degrees of freedom divided by K (the single-run
   time-average test of the same section), so the band of the mean NIS is
-  [chi2_3K^-1(0.025) / K, chi2_3K^-1(0.975) / K], narrow for long recordings (2.93-3.07 for
+  [chi2_3K^-1(0.025) / K, chi2_3K^-1(0.975) / K], narrow for long recordings (2.94-3.06 for
   K = 6,000). Real innovations are not white (hand accelerations last longer than a sample),
   so this band is a strict yardstick; the mean's distance from 3 says more than the verdict.
   The NIS needs no truth: it tests the filter against its own measurements.
