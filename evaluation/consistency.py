@@ -12,11 +12,12 @@ statistics here are the tests of that section, for one run of one filter on one 
   rotation vector the filters' covariance rows 0-2 describe
   (`fusion.quaternion.relative_rotvec`), against the envelope +-3 sqrt(P_ii). Under the
   hypothesis "e_k ~ N(0, P_k)" each component is inside +-3 sigma with probability 99.73 %.
+  This fraction only detects overconfidence: an underconfident filter is always "inside".
 - NEES, the normalised estimation error squared e_k^T P_att^-1 e_k over the 3x3 attitude
-  block (Bar-Shalom et al. 2001, Sec. 5.4.2): chi-square with 3 degrees of freedom when
-  consistent, mean 3.
+  block (Bar-Shalom et al. 2001, Sec. 5.4): chi-square with 3 degrees of freedom when
+  consistent, mean 3; far below 3 is underconfident, far above overconfident.
 - NIS, the normalised innovation squared y_k^T S_k^-1 y_k of the accelerometer update, as
-  the filters record it (`nis`; Bar-Shalom et al. 2001, Sec. 5.4.2): chi-square with 3
+  the filters record it (`nis`; Bar-Shalom et al. 2001, Sec. 5.4): chi-square with 3
   degrees of freedom (the accelerometer's three axes); the two-sided 95 % band is
   [chi2_3^-1(0.025), chi2_3^-1(0.975)] = [0.216, 9.35], and about 95 % of the updates should
   fall inside it. Its time average over the K updates of a run, under the same hypothesis and
@@ -27,16 +28,18 @@ statistics here are the tests of that section, for one run of one filter on one 
   so this band is a strict yardstick; the mean's distance from 3 says more than the verdict.
   The NIS needs no truth: it tests the filter against its own measurements.
 
-Equation numbers of Bar-Shalom et al. are not cited: they could not be checked here.
+P_k is the covariance the filters record after the update at sample k, so e_k is taken at
+the same instant. Equation and subsection numbers of Bar-Shalom et al. are not cited: they
+could not be checked here.
 
 What the numbers cannot separate:
 
 - Heading (the rotation about the vertical) is unobservable from an accelerometer: gravity
-  does not change under it. Its variance grows as a random walk (Q dt per step) and nothing
-  shrinks it (with `heading_free` the filters do not even try), so the envelope of the axis
-  that points up (body z for a level board; the others share it as the board tilts) widens
-  all the time. Being inside that envelope says the filter knows it does not know, not that
-  the heading is good.
+  does not change under it. Its variance grows as a random walk (Q dt per step) and no
+  measurement shrinks it (only correlations with the tilt can, which `heading_free` cuts), so
+  the envelope of the axis that points up (body z for a level board; the others share it as
+  the board tilts) widens all the time. Being inside that envelope says the filter knows it
+  does not know, not that the heading is good.
 - The "error" is the estimate against the truth slerped onto the IMU's time stamps: VICON's
   own error, the marker-to-IMU mounting rotation (unless `--align` fitted it), a residual clock
   offset between IMU and VICON (an offset dt looks like an error of |omega| dt, several degrees
@@ -76,7 +79,7 @@ def chi2_band(dof: int, probability: float = BAND_PROBABILITY) -> tuple[float, f
 
 def mean_band(count: int, dof: int = NIS_DOF, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
     """Acceptance region of the mean of `count` independent chi-square(dof) samples: the sum is
-    chi-square(count * dof) (the single-run time-average test, Bar-Shalom et al. 2001, Sec. 5.4.2).
+    chi-square(count * dof) (the single-run time-average test, Bar-Shalom et al. 2001, Sec. 5.4).
     (nan, nan) for count 0."""
     if count <= 0:
         return float("nan"), float("nan")
