@@ -642,47 +642,53 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
     span = float(x[-1]) if len(x) > 1 and x[-1] > 0 else 1.0
     has_bias = belief.bias_rad_s is not None
     ratios = [1.0, 1.0, 1.0, 1.3, 0.55] + ([0.9] if has_bias else [])
-    panel_in, gap_in, top_in, bottom_in = 1.45, 0.42, 0.75, 0.55
+    panel_in, gap_in, top_in, bottom_in = 1.45, 0.3, 0.65, 0.55
     height = top_in + bottom_in + panel_in * sum(ratios) + gap_in * (len(ratios) - 1)
     fig = Figure(figsize=(11, height), dpi=DPI)
     with matplotlib.rc_context({"axes.grid": True, "grid.alpha": 0.3}):  # grids made with the ticks, not redone
         axes = fig.subplots(len(ratios), 1, sharex=True, gridspec_kw={
             "height_ratios": ratios, "left": 0.11, "right": 0.985, "top": 1 - top_in / height,
             "bottom": bottom_in / height, "hspace": gap_in / (panel_in * sum(ratios) / len(ratios))})
+    # Text is most of the drawing time of a figure like this one (a report draws one per filter and
+    # recording): the numbers go into few, short titles; the report's section explains them.
     err_deg = np.degrees(belief.err_rad)
     env_deg = cons.N_SIGMA * np.degrees(belief.sigma_rad)
     has_truth = summary.samples_with_truth > 0
+    clipped = []
     for i, (ax, name) in enumerate(zip(axes[:3], "xyz")):
         _shade(ax, s, t0)
         xe, env = decimate_max(x, env_deg[:, i], max_bins)
-        ax.fill_between(xe, -env, env, color=SIGMA_COLOR, alpha=0.18, lw=0, label="filter's ±3σ (3 √P_ii)")
+        ax.fill_between(xe, -env, env, color=SIGMA_COLOR, alpha=0.18, lw=0, label="filter's ±3σ")
         if has_truth:
-            ax.plot(*decimate_minmax(x, err_deg[:, i], max_bins), color=ERR_COLOR, lw=0.7, label="error against VICON")
+            ax.plot(*decimate_minmax(x, err_deg[:, i], max_bins), color=ERR_COLOR, lw=0.7, label="error vs VICON")
         lim = _error_limit(err_deg[:, i] if has_truth else np.array([np.nan]), env_deg[:, i])
         ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"about body {name}\n[deg]")
-        if has_truth:
-            text = (f"error about body {name}: {_pct(summary.inside_3sigma[i])} of {summary.samples_with_truth} samples "
-                    "inside ±3σ (99.7 % if consistent)")
-        else:
-            text = f"about body {name}: no VICON, the error is unknown; the filter's envelope only"
         widest = float(np.nanmax(env_deg[:, i])) if np.isfinite(env_deg[:, i]).any() else 0.0
         if widest > lim:
-            text += f"; envelope off the panel, up to ±{widest:.0f} deg"
-        ax.set_title(text, fontsize=9, loc="left", y=1.0)
+            clipped.append(f"{name} ±{widest:.0f}")
+    if has_truth:
+        x_in, y_in, z_in = (_pct(v) for v in summary.inside_3sigma)
+        text = (f"inside ±3σ (99.7 % if consistent): x {x_in}, y {y_in}, z {z_in} of {summary.samples_with_truth} "
+                "samples")
+    else:
+        text = "no VICON: the error is unknown, the filter's envelope only"
+    if clipped:
+        text += f"; envelope beyond the panel up to {', '.join(clipped)} deg"
+    axes[0].set_title(text, fontsize=9, loc="left", y=1.0)
     handles, _ = axes[0].get_legend_handles_labels()
     axes[0].legend(handles=handles + _shade_handles(s), loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
 
     ax = axes[3]
     lo, hi = cons.chi2_band(cons.NIS_DOF)
-    ax.axhspan(lo, hi, color=BAND_COLOR, alpha=0.15, lw=0, label=f"χ²(3) 95 % band [{lo:.2f}, {hi:.2f}]")
-    ax.axhline(cons.NIS_DOF, color=BAND_COLOR, lw=1.0, ls=":", label="expected mean 3")
+    ax.axhspan(lo, hi, color=BAND_COLOR, alpha=0.15, lw=0, label=f"χ²(3) 95 % band")
+    ax.axhline(cons.NIS_DOF, color=BAND_COLOR, lw=1.0, ls=":", label="mean if consistent")
     nis = np.where(belief.nis > 0, belief.nis, np.nan)  # log axis: a zero NIS is drawn as no point
     if summary.updates and len(nis) > max_bins:
         starts, nmin, nmed, nmax, k = _bin_quantiles(nis, max_bins)
         xc = _centres(x, starts, k)
-        ax.fill_between(xc, nmin, nmax, color=NIS_COLOR, alpha=0.25, lw=0, label=f"NIS, min-max per {k} samples")
-        ax.plot(xc, nmed, color=NIS_COLOR, lw=0.8, label="NIS, median per bin")
+        ax.fill_between(xc, nmin, nmax, color=NIS_COLOR, alpha=0.25, lw=0, label=f"min-max per {k} samples")
+        ax.plot(xc, nmed, color=NIS_COLOR, lw=0.8, label="median")
     elif summary.updates:
         ax.plot(x, nis, ".", color=NIS_COLOR, ms=2, label="NIS per update")
     ax.set_yscale("log")
@@ -697,9 +703,9 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
     ax.yaxis.set_major_formatter(lambda v, _: f"{v:g}")  # plain numbers, no mathtext: cheaper and as clear
     ax.set_ylabel("NIS (log)")
     mlo, mhi = summary.nis_mean_band
-    ax.set_title(f"NIS (accelerometer update): {_pct(summary.nis_inside)} of {summary.updates} in the 95 % band "
-                 f"(95 % if consistent); mean {summary.nis_mean:.3g} (3 if consistent; band of the mean "
-                 f"{mlo:.2f}-{mhi:.2f})", fontsize=9, loc="left", y=1.0)
+    ax.set_title(f"NIS: {_pct(summary.nis_inside)} of {summary.updates} updates in [{lo:.2f}, {hi:.2f}] (95 % if "
+                 f"consistent); mean {summary.nis_mean:.3g} (if consistent {mlo:.2f}-{mhi:.2f})", fontsize=9,
+                 loc="left", y=1.0)
     ax.legend(loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
 
     ax = axes[4]
@@ -716,21 +722,18 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
     ax.set_ylim(-0.6, len(rows) - 0.4)
     ax.yaxis.grid(False)
     counts = ", ".join(f"{label} {count}" for _, _, label, count in rows)
-    ax.set_title(f"events, samples: {counts} (no acc update: skipped, gated or invalid)", fontsize=9, loc="left",
-                 y=1.0)
+    ax.set_title(f"samples: {counts}", fontsize=9, loc="left", y=1.0)
 
     if has_bias:
         ax = axes[5]
         xb, bias = decimate_stride(x, np.degrees(belief.bias_rad_s), max_bins)
         for i, name in enumerate("xyz"):
-            ax.plot(xb, bias[:, i], color=f"C{i}", lw=1.0, label=f"bias {name}")
+            ax.plot(xb, bias[:, i], color=f"C{i}", lw=1.0, label=name)
         ax.set_ylabel("gyro bias\n[deg/s]")
         ax.legend(loc="upper right", fontsize=8, ncol=3, framealpha=0.9)
-        ax.set_title("gyro-bias estimate (body frame)", fontsize=9, loc="left", y=1.0)
     axes[-1].set_xlabel("time since first IMU sample [s]")
     axes[-1].set_xlim(0, span)
     label = _display_label(s.labels[e], s.causal[e])
-    fig.suptitle(f"{s.id}, {label}: what the filter believed (±3σ, NIS) against what happened\n"
-                 "heading (about the vertical) is unobservable from the accelerometer, so its envelope grows; "
-                 "the error includes VICON's own error and time offset", fontsize=10, y=1 - 0.12 / height, va="top")
+    fig.suptitle(f"{s.id}, {label}: attitude error against the filter's ±3σ, NIS, events"
+                 + (", gyro bias" if has_bias else ""), fontsize=10, y=1 - 0.15 / height, va="top")
     return fig

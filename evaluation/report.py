@@ -296,8 +296,11 @@ def _render_recording(series_path: str, fig_dir: str) -> tuple[list[tuple[str, s
             name = f"{stem}-consistency-{e}-{plots.slug(label)}.png"
         names.add(name)
         _save(plots.consistency_figure(s, e), Path(fig_dir) / name)
-        beliefs.append({"dataset": s.id, "estimator": label, "file": name,
-                        "caption": f"{s.id}, {label}: attitude error against the filter's +-3 sigma, NIS, events, bias",
+        caption = (f"{s.id}, {label}: attitude error against VICON about each body axis and the filter's +-3 sigma "
+                   "(deg); NIS of the accelerometer updates and its chi-square(3) 95 % band; samples without an "
+                   "accelerometer update (skipped, gated or invalid), with the chi-square guard, with a rest update"
+                   + ("; gyro-bias estimate (deg/s)" if belief.bias_rad_s is not None else ""))
+        beliefs.append({"dataset": s.id, "estimator": label, "file": name, "caption": caption,
                         "summary": dataclasses.asdict(consistency.summarize(belief))})
     return out, beliefs
 
@@ -623,8 +626,8 @@ CONSISTENCY_TEXT = (
     "3 sqrt(P_ii) (99.7 % if consistent). NEES: e^T P^-1 e over the attitude block (mean 3 if consistent). NIS: the "
     "normalised innovation squared of the accelerometer updates, chi-square with 3 degrees of freedom if consistent: "
     "95 % of the updates inside the band [0.22, 9.35] and a mean of 3 (the band of the mean assumes white "
-    "innovations, which hand motion is not). Far below: the filter trusts the accelerometer less than it could; "
-    "far above: more. Heading (about the vertical) is unobservable from an accelerometer, so its envelope grows "
+    "innovations, which hand motion is not). A mean NIS far below 3: the filter expects larger innovations than it "
+    "sees (it trusts the accelerometer less than it could); far above: smaller. Heading (about the vertical) is unobservable from an accelerometer, so its envelope grows "
     "and being inside it says little; the error includes VICON's own error and any residual time offset between "
     "IMU and VICON, the NIS does not.")
 

@@ -291,10 +291,10 @@ def test_consistency_figure_panels_and_numbers():
     summary = cons.summarize(belief)
     fig = plots.consistency_figure(s, 0, max_bins=500)
     assert len(fig.axes) == 6  # error x, y, z, NIS, events, bias
+    title = fig.axes[0].get_title(loc="left")
     for i, ax in enumerate(fig.axes[:3]):
-        title = ax.get_title(loc="left")
-        assert f"{100 * summary.inside_3sigma[i]:.1f} %" in title and "deg" in ax.get_ylabel()
-        (err_line,) = [line for line in ax.get_lines() if line.get_label() == "error against VICON"]
+        assert f"{'xyz'[i]} {100 * summary.inside_3sigma[i]:.1f} %" in title and "deg" in ax.get_ylabel()
+        (err_line,) = [line for line in ax.get_lines() if line.get_label() == "error vs VICON"]
         assert len(err_line.get_xdata()) <= 2 * 500 + 2  # decimated
         y = np.asarray(err_line.get_ydata(), float)  # the extremes survive decimation (deg)
         assert np.nanmax(y) == pytest.approx(np.degrees(np.nanmax(belief.err_rad[:, i])), rel=1e-9)
