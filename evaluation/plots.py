@@ -11,6 +11,8 @@ backend), so tests can count its lines and bars and the report can save it. Conv
 - Shaded: spans without VICON (tracking gaps, before and after its span) in grey, and spans
   where `imu.gyr_valid` is False in red.
 - An estimator keeps one colour in every figure of a report (its position in the run).
+- The filter-consistency figures draw long recordings from per-bin statistics (about one bin
+  per pixel: `decimate_minmax`, `decimate_max`): a BROAD trial has 50,000 samples.
 """
 from __future__ import annotations
 
@@ -523,7 +525,7 @@ def slug(text: str) -> str:
 
 # --- filter consistency (what a filter believes, `fusion.evaluation.consistency`) ---
 
-MAX_BINS = 1500  # a curve longer than this many samples is drawn from per-bin statistics
+MAX_BINS = 800  # a curve longer than this is drawn from per-bin statistics (about one bin per pixel)
 ERR_COLOR, SIGMA_COLOR, NIS_COLOR, BAND_COLOR = "tab:red", "tab:blue", "tab:purple", "tab:green"
 EVENT_COLORS = {"skipped": "tab:red", "guarded": "tab:orange", "rest": "tab:green"}
 
