@@ -683,7 +683,7 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
 
     ax = axes[3]
     lo, hi = cons.chi2_band(cons.NIS_DOF)
-    ax.axhspan(lo, hi, color=BAND_COLOR, alpha=0.15, lw=0, label=f"χ²(3) 95 % band")
+    ax.axhspan(lo, hi, color=BAND_COLOR, alpha=0.15, lw=0, label="χ²(3) 95 % band")
     ax.axhline(cons.NIS_DOF, color=BAND_COLOR, lw=1.0, ls=":", label="mean if consistent")
     nis = np.where(belief.nis > 0, belief.nis, np.nan)  # log axis: a zero NIS is drawn as no point
     if summary.updates and len(nis) > max_bins:
