@@ -1,7 +1,8 @@
 """Figures for reports: every number the toolkit computes, also as a picture.
 
-Each function returns a `matplotlib.figure.Figure` (built without pyplot, on the Agg
-backend), so tests can count its lines and bars and the report can save it. Conventions:
+Each function returns a `matplotlib.figure.Figure` (built without pyplot, so importing this
+module leaves the caller's backend alone, e.g. a notebook's inline one), so tests can count its
+lines and bars and the report can save it. Conventions:
 
 - Euler angles appear only here, as intrinsic ZYX (yaw about z, then pitch about the new y,
   then roll about the newest x) of `R_world_body`; the sequence is in the axis labels. A
@@ -20,17 +21,15 @@ import math
 import re
 
 import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from scipy.spatial.transform import Rotation
 
-matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+from fusion.estimators.params import parse_specs
 
-from fusion.estimators.params import parse_specs  # noqa: E402
-
-from .metrics import KINDS  # noqa: E402
-from .series import RecordingSeries  # noqa: E402
+from .metrics import KINDS
+from .series import RecordingSeries
 
 EULER_SEQ = "ZYX"
 EULER_NAMES = ("roll", "pitch", "yaw")
