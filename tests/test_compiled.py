@@ -229,3 +229,17 @@ def test_without_a_writable_cache_folder_the_kernels_still_run():
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "(0.0, 1.0, 0.0, 0.0)"
     assert run.stderr.count("cannot be cached") == 1, run.stderr
+
+
+def test_numba_is_imported_only_for_the_compiled_filters():
+    code = ("import sys\n"
+            "from fusion.estimators import build\n"
+            "for spec in ('ekf:impl=numpy', 'ukf:impl=lean', 'ukf-bias:impl=filterpy,hf=false'):\n"
+            "    build(spec)\n"
+            "assert 'numba' not in sys.modules\n"
+            "from fusion.estimators import _compiled\n"
+            "assert not _compiled._loaded\n"
+            "build('ukf')\n"
+            "assert _compiled._loaded\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
