@@ -49,8 +49,6 @@ from ._attitude import COV_FLOOR, COV_RESET_VAR, SQRT_FLOOR
 from .filter_params import BiasFilterParams
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
-
-
 _OPTIONS = dict(error_model="numpy", nogil=True)
 _cache = True  # False once numba has found no writable cache folder
 
