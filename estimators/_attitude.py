@@ -114,33 +114,57 @@ class AccDisturbance:
     The filters model `a_ext` as a first-order Gauss-Markov process of variance `d` and
     correlation time `corr_s`, whose low-frequency spectral density is `2 corr_s d` (g^2 s);
     it adds to the accelerometer noise density (see `acc_step_variance`).
+
+    With `lowpass_s > 0` it also low-passes `a_I` (first order, time constant `lowpass_s`),
+    as VQF does before its inclination correction (Laidig & Seel 2023, Sec. 3.2, eq. 7). The
+    acceleration of a body whose velocity stays bounded averages out in `I`, while gravity,
+    constant there, passes: `lowpass_body` is the low-passed direction rotated back into the
+    body frame (a unit vector, a measurement of gravity's direction), and `lowpass_density`
+    (g^2 s) the low-frequency density of what is left of `a_ext` in it, `2 lowpass_s v_lp`
+    from the running variance `v_lp` of the low-passed signal about its own slower mean
+    (time constant `lowpass_window_s`): a white noise of density S low-passed with time
+    constant tau has the variance S / (2 tau). See `acc_measurement` for how a filter
+    chooses between the raw sample and this one.
     """
 
-    __slots__ = ("window_s", "m", "v", "qi", "age")
+    __slots__ = ("window_s", "m", "v", "qi", "age", "lowpass_s", "lowpass_window_s", "lp", "lp_mean", "lp_v",
+                 "lowpass_body", "lowpass_density")
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0) -> None:
         self.window_s = window_s
-        self.m: tuple[float, float, float] | None = None
-        self.v = 0.0
+        self.lowpass_s, self.lowpass_window_s = lowpass_s, lowpass_window_s
         self.qi = (1.0, 0.0, 0.0, 0.0)
-        self.age = 0.0
+        self.lose_frame()
 
     def lose_frame(self) -> None:
         """The gyro sample could not be integrated: restart the window."""
-        self.m = None
+        self.m: tuple[float, float, float] | None = None
         self.v = 0.0
         self.age = 0.0
+        self.lp: tuple[float, float, float] | None = None  # low-passed a_I
+        self.lp_mean = (0.0, 0.0, 0.0)  # its slower mean
+        self.lp_v = 0.0  # its running variance about that mean, g^2
+        self.lowpass_body: np.ndarray | None = None  # (3,) unit, body frame; None: not yet available
+        self.lowpass_density = math.inf  # g^2 s
 
     def state(self) -> np.ndarray:
-        """(10,) float64 `[has_mean, m (3), v, q_I (4, wxyz), age]`: the state as the compiled
-        filters (`_compiled`) carry it; `set_state` takes it back."""
-        m = (0.0, 0.0, 0.0) if self.m is None else self.m
-        return np.array([float(self.m is not None), *m, self.v, *self.qi, self.age])
+        """(23,) float64, the state as the compiled filters (`_compiled`) carry it: `[has_mean,
+        m (3), v, q_I (4, wxyz), age, has_lowpass, lp (3), lp_mean (3), lp_v, has_body,
+        lowpass_body (3), lowpass_density]`; `set_state` takes it back."""
+        none3 = (0.0, 0.0, 0.0)
+        return np.array([float(self.m is not None), *(self.m or none3), self.v, *self.qi, self.age,
+                         float(self.lp is not None), *(self.lp or none3), *self.lp_mean, self.lp_v,
+                         float(self.lowpass_body is not None),
+                         *(none3 if self.lowpass_body is None else self.lowpass_body), self.lowpass_density])
 
     def set_state(self, state: np.ndarray) -> None:
         s = [float(v) for v in state]
         self.m = tuple(s[1:4]) if s[0] else None
         self.v, self.qi, self.age = s[4], tuple(s[5:9]), s[9]
+        self.lp = tuple(s[11:14]) if s[10] else None
+        self.lp_mean, self.lp_v = tuple(s[14:17]), s[17]
+        self.lowpass_body = np.array(s[19:22]) if s[18] else None
+        self.lowpass_density = s[22]
 
     def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
         """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
@@ -161,7 +185,69 @@ class AccDisturbance:
         # Weight of the samples seen since the (re)start, 1 - exp(-age / window_s): dividing by
         # it makes v the mean over the samples available so far instead of starting at 0.
         seen = -math.expm1(-self.age / self.window_s)
+        if self.lowpass_s > 0.0:
+            self._lowpass(wx, wy, wz, dt_s)
         return max(self.v / seen, inst, nd2)
+
+    def _lowpass(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
+        """Feed a_I (g) to the low-pass; update `lowpass_body` and `lowpass_density`."""
+        if self.lp is None:
+            self.lp = self.lp_mean = (wx, wy, wz)
+        beta = -math.expm1(-dt_s / self.lowpass_s)
+        gamma = -math.expm1(-dt_s / self.lowpass_window_s)
+        lx, ly, lz = self.lp
+        lx, ly, lz = lx + beta * (wx - lx), ly + beta * (wy - ly), lz + beta * (wz - lz)
+        self.lp = (lx, ly, lz)
+        mx, my, mz = self.lp_mean
+        ex, ey, ez = lx - mx, ly - my, lz - mz
+        self.lp_mean = (mx + gamma * ex, my + gamma * ey, mz + gamma * ez)
+        self.lp_v += gamma * (ex * ex + ey * ey + ez * ez - self.lp_v)
+        seen = -math.expm1(-self.age / self.lowpass_window_s)
+        self.lowpass_density = 2.0 * self.lowpass_s * self.lp_v / seen
+        w, x, y, z = self.qi
+        bx, by, bz = quat.rotate_floats((w, -x, -y, -z), (lx, ly, lz))  # back into the body frame
+        norm = math.sqrt(bx * bx + by * by + bz * bz)
+        self.lowpass_body = np.array((bx / norm, by / norm, bz / norm)) if norm > 0.0 else None
+
+
+def lowpass_drift_density(lowpass_s: float, rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float, bias_var: float,
+                          scale_var: float) -> float:
+    """Density (g^2 s) of the strapdown frame's drift within the low-pass window.
+
+    The frame `I` of `AccDisturbance` turns with the filter's corrected rates. Over one window
+    it turns away from the world by an angle of variance `lowpass_s q + lowpass_s^2 sigma_w^2`:
+    the random walk of the rate noise (density q, rad^2/s) and a rate error that holds over the
+    window, sigma_w^2 = |w|^2 scale_var + bias_var (bias variance in (rad/s)^2, scale-factor
+    variance dimensionless; the filters pass their largest diagonal entries, so a freshly
+    started filter trusts the low-passed sample little until the gyro is calibrated). Gravity's
+    low-passed direction turns with it (an angle of e rad moves a 1 g vector by e g); as an
+    error of correlation time `lowpass_s` its low-frequency density is twice `lowpass_s`
+    times that variance. `rate_rad_s` (3,) is the corrected rate, None when not integrated.
+    """
+    w2 = 0.0 if rate_rad_s is None else float(rate_rad_s @ rate_rad_s)
+    return 2.0 * lowpass_s * (lowpass_s * rate_noise_rad2_s + lowpass_s ** 2 * (w2 * scale_var + bias_var))
+
+
+def acc_measurement(acc_g: np.ndarray, dist: AccDisturbance, density_g2_s: float, corr_s: float, d_g2: float,
+                    drift_g2_s: float) -> tuple[np.ndarray, float, bool]:
+    """The accelerometer measurement of one update and its noise density: `(z (3,) g, density
+    g^2 s, lowpassed)`.
+
+    The raw sample `acc_g` has the density `density_g2_s + 2 corr_s d_g2` (white noise plus
+    the external acceleration, see `AccDisturbance`); the low-passed one
+    `density_g2_s + dist.lowpass_density + drift_g2_s` (what is left of the external
+    acceleration, plus the frame drift of `lowpass_drift_density`). The one with the smaller
+    density is used: the raw sample while the body is quiet or the gyro still uncalibrated
+    (it answers at once), the low-passed one through sustained translation, tapping and
+    vibration (it averages them out). Either is a measurement of gravity in the body frame
+    for the same update equations.
+    """
+    raw = density_g2_s + 2.0 * corr_s * d_g2
+    if dist.lowpass_body is not None:
+        lowpassed = density_g2_s + dist.lowpass_density + drift_g2_s
+        if lowpassed < raw:
+            return dist.lowpass_body, lowpassed, True
+    return acc_g, raw, False
 
 
 class RestDetector:

@@ -74,6 +74,7 @@ Settings = namedtuple("Settings", [
     "n",  # error-state dimension: 3, 6 or 9
     "use_acc", "gate", "gate_g",  # accelerometer update on, gate (0 off, 1 skip, 2 inflate), gate_g (g)
     "acc_noise", "corr_s", "dist_window",  # R (g^2 s), disturbance correlation time and window (s)
+    "lowpass_s", "lowpass_window", "process_noise",  # accelerometer low-pass (s), its variance window (s), Q (rad^2/s)
     "heading_free",
     "rest_on", "rest_gyr", "rest_acc", "rest_time", "rest_window", "rest_noise",  # rest detection + update
     "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
@@ -94,6 +95,7 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
     return Settings(
         int(n), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
         float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
+        float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
         bool(p.heading_free),
         bool(rest_on), float(rest.gyr_th) if rest_on else 0.0, float(rest.acc_th) if rest_on else 0.0,
         float(rest.min_time) if rest_on else math.inf, float(rest.window_s) if rest_on else 1.0,
@@ -127,6 +129,7 @@ def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[st
         "at_rest": np.zeros(n_samples, dtype=bool),
         "nis": np.zeros(n_samples),
         "bias_guarded": np.zeros(n_samples, dtype=bool),
+        "acc_lowpassed": np.zeros(n_samples, dtype=bool),
     }
     out["quat"][0] = init_quat_wxyz
     for key, value in current.items():
@@ -149,17 +152,18 @@ def load() -> None:
     o = settings(BiasFilterParams(), n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
     inputs_ = (np.zeros((1, 3)), np.ones(1, dtype=bool), np.full(1, 0.01), np.tile([0.0, 0.0, 1.0], (2, 1)))
     unit = np.array([1.0, 0.0, 0.0, 0.0])
-    state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), np.array([0.0] * 5 + [1.0] + [0.0] * 4), np.zeros(5))
+    state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), np.array([0.0] * 5 + [1.0] + [0.0] * 16 + [math.inf]), np.zeros(5))
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
     ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, o, out["quat"], out["cov"],
-               out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"])
+               out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"],
+               out["acc_lowpassed"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
     ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-               out["acc_var_g2"], out["at_rest"], out["nis"])
+               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
     _loaded = True
 
 
@@ -362,14 +366,18 @@ def acc_variance_scale(ax, ay, az, gate, gate_g):
 @_jit
 def disturbance_lose_frame(st):
     """`AccDisturbance.lose_frame` on the state array of `AccDisturbance.state`."""
-    st[0] = 0.0
-    st[4] = 0.0
-    st[9] = 0.0
+    st[0] = 0.0  # no mean
+    st[4] = 0.0  # v
+    st[9] = 0.0  # age
+    st[10] = 0.0  # no low-pass
+    st[14], st[15], st[16], st[17] = 0.0, 0.0, 0.0, 0.0  # lp_mean, lp_v
+    st[18] = 0.0  # no lowpass_body
+    st[22] = math.inf  # lowpass_density
 
 
 @_jit
-def disturbance_update(st, dq, ax, ay, az, dt, window):
-    """`AccDisturbance.update` on its state array `[has_mean, m (3), v, q_I (4), age]`; -> d, g^2."""
+def disturbance_update(st, dq, ax, ay, az, dt, o):
+    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0) on its state array; -> d, g^2."""
     qi = qnormalize(qmul((st[5], st[6], st[7], st[8]), dq))
     st[5], st[6], st[7], st[8] = qi
     wx, wy, wz = rotate(qi, ax, ay, az)
@@ -379,17 +387,70 @@ def disturbance_update(st, dq, ax, ay, az, dt, window):
         st[0], st[1], st[2], st[3] = 1.0, wx, wy, wz
     ex, ey, ez = wx - st[1], wy - st[2], wz - st[3]
     inst = ex * ex + ey * ey + ez * ez
-    alpha = -math.expm1(-dt / window)
+    alpha = -math.expm1(-dt / o.dist_window)
     st[1], st[2], st[3] = st[1] + alpha * ex, st[2] + alpha * ey, st[3] + alpha * ez
     st[4] += alpha * (inst - st[4])
     st[9] += dt
-    seen = -math.expm1(-st[9] / window)
+    seen = -math.expm1(-st[9] / o.dist_window)
+    if o.lowpass_s > 0.0:
+        _lowpass(st, qi, wx, wy, wz, dt, o)
     d = st[4] / seen  # max(v / seen, inst, nd2) with Python's max semantics
     if inst > d:
         d = inst
     if nd2 > d:
         d = nd2
     return d
+
+
+@_jit
+def _lowpass(st, qi, wx, wy, wz, dt, o):
+    """`AccDisturbance._lowpass`: a_I low-passed, its density, its direction in the body frame."""
+    if st[10] == 0.0:
+        st[10], st[11], st[12], st[13] = 1.0, wx, wy, wz
+        st[14], st[15], st[16] = wx, wy, wz
+    beta = -math.expm1(-dt / o.lowpass_s)
+    gamma = -math.expm1(-dt / o.lowpass_window)
+    lx, ly, lz = st[11] + beta * (wx - st[11]), st[12] + beta * (wy - st[12]), st[13] + beta * (wz - st[13])
+    st[11], st[12], st[13] = lx, ly, lz
+    ex, ey, ez = lx - st[14], ly - st[15], lz - st[16]
+    st[14], st[15], st[16] = st[14] + gamma * ex, st[15] + gamma * ey, st[16] + gamma * ez
+    st[17] += gamma * (ex * ex + ey * ey + ez * ez - st[17])
+    seen = -math.expm1(-st[9] / o.lowpass_window)
+    st[22] = 2.0 * o.lowpass_s * st[17] / seen
+    bx, by, bz = rotate((qi[0], -qi[1], -qi[2], -qi[3]), lx, ly, lz)  # back into the body frame
+    norm = math.sqrt(bx * bx + by * by + bz * bz)
+    if norm > 0.0:
+        st[18], st[19], st[20], st[21] = 1.0, bx / norm, by / norm, bz / norm
+    else:
+        st[18] = 0.0
+
+
+@_jit
+def lowpass_drift_density(lowpass_s, w2, rate_noise, bias_var, scale_var):
+    """`_attitude.lowpass_drift_density`, with the squared rate w2 ((rad/s)^2; 0 when not integrated)."""
+    return 2.0 * lowpass_s * (lowpass_s * rate_noise + lowpass_s ** 2 * (w2 * scale_var + bias_var))
+
+
+@_jit
+def acc_measurement(st, ax, ay, az, o, d, drift):
+    """`_attitude.acc_measurement`: the raw sample or the low-passed direction, whichever has the
+    smaller noise density; -> (z (3 floats), density g^2 s, low-passed)."""
+    raw = o.acc_noise + 2.0 * o.corr_s * d
+    if st[18] != 0.0:
+        lowpassed = o.acc_noise + st[22] + drift
+        if lowpassed < raw:
+            return st[19], st[20], st[21], lowpassed, True
+    return ax, ay, az, raw, False
+
+
+@_jit
+def _max_diag(P, i0):
+    """max(P[i0, i0], P[i0 + 1, i0 + 1], P[i0 + 2, i0 + 2]) with Python's max semantics."""
+    v = P[i0, i0]
+    for i in range(i0 + 1, i0 + 3):
+        if P[i, i] > v:
+            v = P[i, i]
+    return v
 
 
 @_jit
@@ -469,11 +530,11 @@ def _sample(gyr, valid, acc, k):
 # ============================================================================ ekf
 @_jit
 def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard):
+               out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard, out_lowpassed):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (10,), rest (5,). Qrate, Qbad
+    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (23,), rest (5,). Qrate, Qbad
     (n, n) as built by `EKF.reset`. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, covariance repairs).
     """
@@ -574,10 +635,19 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
         var = math.nan
         nis = math.nan
         guarded = False
+        lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
         if scale < math.inf:
-            dd = disturbance_update(dist, d, ax, ay, az, h, o.dist_window) if o.corr_s > 0.0 else 0.0
-            r = (o.acc_noise + 2.0 * o.corr_s * dd) / h * scale
+            mx, my, mz = ax, ay, az  # the measurement: the raw sample or the low-passed one
+            if o.corr_s > 0.0:
+                dd = disturbance_update(dist, d, ax, ay, az, h, o)
+                rx, ry, rz = tx / h, ty / h, tz / h
+                drift = lowpass_drift_density(o.lowpass_s, rx * rx + ry * ry + rz * rz, o.process_noise,
+                                              _max_diag(P, 3) if n > 3 else 0.0, _max_diag(P, 6) if n > 6 else 0.0)
+                mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, dd, drift)
+                r = density / h * scale
+            else:
+                r = o.acc_noise / h * scale
             var = r
             hx, hy, hz = gravity(q)
             Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
@@ -598,7 +668,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
                 _project_heading(K, 0, hx, hy, hz)
                 if n > 3:
                     _project_heading(K, 3, hx, hy, hz)
-            yx, yy, yz = ax - hx, ay - hy, az - hz
+            yx, yy, yz = mx - hx, my - hy, mz - hz
             nis = _nis(yx, yy, yz, Sinv)
             if n > 3 and nis > o.chi2:  # inconsistent innovation: correct the attitude only
                 guarded = True
@@ -634,6 +704,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
         out_rest[k + 1] = at_rest
         out_nis[k + 1] = nis
         out_guard[k + 1] = guarded
+        out_lowpassed[k + 1] = lowpassed
     qio[0], qio[1], qio[2], qio[3] = q
     return skipped, repaired
 
@@ -641,12 +712,12 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
 # ============================================================================ ukf, ukf-bias
 @_jit
 def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis):
+               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
     """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (10,), rest (5,). Qrate, Qbad
+    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (23,), rest (5,). Qrate, Qbad
     (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the sigma-point weights, centre first.
     Fills rows 1.. of the (N, ...) outputs; returns (updates skipped, square-root recoveries,
     covariance repairs, mean-iteration cap hits).
@@ -699,6 +770,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
                 wx, wy, wz = wx * (1.0 + x[7]), wy * (1.0 + x[8]), wz * (1.0 + x[9])
             dq = qexp(wx * h, wy * h, wz * h, small)
         else:
+            wx, wy, wz = 0.0, 0.0, 0.0
             dq = (1.0, 0.0, 0.0, 0.0)
             disturbance_lose_frame(dist)
         # ---- predict (steps 1-5)
@@ -774,10 +846,21 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         # ---- accelerometer update (steps 6-9)
         var = math.nan
         nis = math.nan
+        lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
         if scale < math.inf:
-            dd = disturbance_update(dist, dq, ax, ay, az, h, o.dist_window) if o.corr_s > 0.0 else 0.0
-            r = (o.acc_noise + 2.0 * o.corr_s * dd) / h * scale
+            mx, my, mz = ax, ay, az  # the measurement: the raw sample or the low-passed one
+            if o.corr_s > 0.0:
+                dd = disturbance_update(dist, dq, ax, ay, az, h, o)
+                q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
+                if ok and o.scale_noise > 0.0:
+                    q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
+                drift = lowpass_drift_density(o.lowpass_s, wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate,
+                                              _max_diag(P, 3) if n > 3 else 0.0, _max_diag(P, 6) if n > 6 else 0.0)
+                mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, dd, drift)
+                r = density / h * scale
+            else:
+                r = o.acc_noise / h * scale
             var = r
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
@@ -828,7 +911,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
                 for a in range(n):  # step 9: P - K P_zz K^T = P - P_xz K^T
                     for c in range(n):
                         P[a, c] = P[a, c] - (Pxz[a, 0] * K[c, 0] + Pxz[a, 1] * K[c, 1] + Pxz[a, 2] * K[c, 2])
-            yx, yy, yz = ax - zx, ay - zy, az - zz
+            yx, yy, yz = mx - zx, my - zy, mz - zz
             for a in range(n):
                 dx[a] = K[a, 0] * yx + K[a, 1] * yy + K[a, 2] * yz
             qn4 = qnormalize(qmul((x[0], x[1], x[2], x[3]), qexp(dx[0], dx[1], dx[2], small)))  # step 9
@@ -856,4 +939,5 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         out_var[k + 1] = var
         out_rest[k + 1] = at_rest
         out_nis[k + 1] = nis
+        out_lowpassed[k + 1] = lowpassed
     return skipped, sqrt_recovered, repaired, capped

@@ -30,6 +30,10 @@ injection, reset with the reset Jacobian taken as I):
     R_k = (R + 2 tauc d_k) / dt I   adaptive: d_k the external-acceleration power of
                   `_attitude.AccDisturbance`, measured without the filter's attitude
                   (Suh 2010, IEEE TIM 59(12), adapts R to the external acceleration)
+    a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Laidig & Seel
+                  2023, Sec. 3.2), rotated back into the body, with R_k = (R + S_lp + S_drift)
+                  / dt, whenever that density is the smaller (`_attitude.acc_measurement`):
+                  through sustained translation, tapping and vibration
     S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
     heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
                   predicted vertical; the Joseph form below is exact for any gain)
@@ -75,8 +79,10 @@ from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
     RestDetector,
+    acc_measurement,
     acc_step_variance,
     acc_variance_scale,
+    lowpass_drift_density,
     bias_rest_update,
     inv_sym3,
     repair_covariance,
@@ -160,7 +166,7 @@ class EKF(RecursiveEstimator):
             self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
-        self._dist = AccDisturbance(p.disturbance_window_s)
+        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
@@ -169,12 +175,13 @@ class EKF(RecursiveEstimator):
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
+        self.lowpassed = False  # whether the last update used the low-passed accelerometer
         self.n_skipped = self.n_cov_repaired = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
         p = self.params
         n = self.n
-        self.acc_var, self.at_rest, self.nis, self.guarded = math.nan, False, math.nan, False
+        self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -212,8 +219,16 @@ class EKF(RecursiveEstimator):
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
-            dist = self._dist.update(d, acc_g, dt_s) if p.disturbance_corr_s > 0.0 else 0.0
-            r = acc_step_variance(p.acc_noise_g2_s, p.disturbance_corr_s, dist, dt_s) * scale
+            meas = acc_g
+            if p.disturbance_corr_s > 0.0:
+                dist = self._dist.update(d, acc_g, dt_s)
+                drift = lowpass_drift_density(p.acc_lowpass_s, np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s,
+                                              max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
+                                              max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
+                meas, density, self.lowpassed = acc_measurement(acc_g, self._dist, p.acc_noise_g2_s, p.disturbance_corr_s, dist, drift)
+                r = density / dt_s * scale
+            else:
+                r = acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale
             self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
@@ -234,7 +249,7 @@ class EKF(RecursiveEstimator):
                 K[:3] -= np.outer(h, h @ K[:3])
                 if n > 3:
                     K[3:6] -= np.outer(h, h @ K[3:6])
-            y = acc_g - h
+            y = meas - h
             self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
             if n > 3 and self.nis > _CHI2_3DOF:
                 self.guarded = True
@@ -263,7 +278,7 @@ class EKF(RecursiveEstimator):
 
     def current(self) -> dict[str, Any]:
         return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "acc_var_g2": self.acc_var,
-                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded}
+                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed}
 
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}
@@ -284,11 +299,12 @@ class EKF(RecursiveEstimator):
             *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest,
             _compiled.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"],
-            out["nis"], out["bias_guarded"])
+            out["nis"], out["bias_guarded"], out["acc_lowpassed"])
         self.q, self.b, self.s, self.P = q, b, s, P
         self._dist.set_state(dist)
         self._rest.set_state(rest)
         self.acc_var, self.at_rest = float(out["acc_var_g2"][-1]), bool(out["at_rest"][-1])
         self.nis, self.guarded = float(out["nis"][-1]), bool(out["bias_guarded"][-1])
+        self.lowpassed = bool(out["acc_lowpassed"][-1])
         history = {key: out[key] for key in self.current()}
         return Trajectory(imu.t, out["quat"], diagnostics={**history, **self.diagnostics()})

@@ -56,6 +56,12 @@ class FilterParams:
     disturbance_corr_s (tauc): correlation time of the external acceleration, s (adaptive R,
         see `_attitude.AccDisturbance`); 0 turns the adaptation off.
     disturbance_window_s (tauw): time constant of its running variance, s.
+    acc_lowpass_s (taulp): time constant of the accelerometer low-passed in the strapdown
+        frame, s (see `_attitude.AccDisturbance`); each update uses the low-passed or the raw
+        sample, whichever has the smaller noise density. 0 turns it off (raw samples only);
+        it needs the disturbance model (disturbance_corr_s > 0).
+    acc_lowpass_window_s (taulpw): time constant of the running variance of the low-passed
+        signal, s, from which its noise density is measured.
     use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
     gate, gate_g: fixed accelerometer gating (see `_attitude.acc_variance_scale`), off by
         default (the adaptive R replaces it); gate_g applies only with gate=skip or inflate.
@@ -71,6 +77,8 @@ class FilterParams:
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
     disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
+    acc_lowpass_s: float = field(default=1.0, metadata={"alias": "taulp"})
+    acc_lowpass_window_s: float = field(default=3.0, metadata={"alias": "taulpw"})
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "off"
     gate_g: float = 0.2
@@ -96,6 +104,9 @@ class FilterParams:
         check_nonneg(owner, disturbance_corr_s=self.disturbance_corr_s)
         if not (math.isfinite(self.disturbance_window_s) and self.disturbance_window_s > 0.0):
             raise ValueError(f"{owner}: disturbance_window_s must be > 0 s, got {self.disturbance_window_s!r}")
+        check_nonneg(owner, acc_lowpass_s=self.acc_lowpass_s)
+        if not (math.isfinite(self.acc_lowpass_window_s) and self.acc_lowpass_window_s > 0.0):
+            raise ValueError(f"{owner}: acc_lowpass_window_s must be > 0 s, got {self.acc_lowpass_window_s!r}")
         if self.gate not in ("off", "skip", "inflate"):
             raise ValueError(f"{owner}: gate must be off, skip or inflate, got {self.gate!r}")
         if not (math.isfinite(self.gate_g) and self.gate_g > 0.0):

@@ -25,17 +25,20 @@ TOL = 1e-10
 
 SPECS = (
     # ekf: bias and scale on/off, scale axes, gating, heading_free, accelerometer off, no
-    # disturbance model, rest detection early / off
+    # disturbance model, rest detection early / off, accelerometer low-pass off / shorter
     "ekf", "ekf:bias=false,scale=false", "ekf:scale=false", "ekf:saxes=xyz", "ekf:gate=skip,gate_g=0.05",
     "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
-    "ekf:rest_time_s=inf",
-    # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap
+    "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
+    # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
+    # accelerometer low-pass on (with and without the scale noise in its drift density)
     "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
     "ukf:gate=skip,gate_g=0.05", "ukf:gate=inflate,gate_g=0.1", "ukf:Qs=0", "ukf:acc=false", "ukf:iters=1",
-    # ukf-bias: scale on/off and axes, sigma schemes, heading_free off, gating, rest, cap, no disturbance model
+    "ukf:taulp=1", "ukf:taulp=0.5,taulpw=1,Qs=0",
+    # ukf-bias: scale on/off and axes, sigma schemes, heading_free off, gating, rest, cap, no
+    # disturbance model, accelerometer low-pass off
     "ukf-bias", "ukf-bias:scale=false", "ukf-bias:saxes=xyz", "ukf-bias:sigma=julier,kappa=1",
     "ukf-bias:sigma=merwe,alpha=1,kappa=0.5", "ukf-bias:hf=false", "ukf-bias:gate=skip,gate_g=0.05",
-    "ukf-bias:acc=false", "ukf-bias:rest_time_s=0.3", "ukf-bias:iters=2", "ukf-bias:tauc=0",
+    "ukf-bias:acc=false", "ukf-bias:rest_time_s=0.3", "ukf-bias:iters=2", "ukf-bias:tauc=0", "ukf-bias:taulp=0",
 )
 
 
@@ -150,6 +153,9 @@ def test_the_cases_reach_the_rarer_branches(sim, course, broad):
             for spec in ("ekf", "ukf-bias", "ukf-bias:iters=2", "ekf:gate=skip,gate_g=0.05")
             for name, (imu, q0) in (("sim", sim), ("course", course), ("broad", broad))}
     assert all(runs[spec, name].diagnostics["at_rest"].any() for spec in ("ekf", "ukf-bias") for name in ("sim", "broad"))
+    for spec in ("ekf", "ukf-bias"):  # both the raw and the low-passed accelerometer are used
+        lowpassed = np.concatenate([runs[spec, name].diagnostics["acc_lowpassed"] for name in ("sim", "course", "broad")])
+        assert lowpassed.any() and not lowpassed.all()
     assert build("ekf").estimate(broken(sim[0]), wrong_start(sim[1])).diagnostics["bias_guarded"].any()
     assert runs["ukf-bias:iters=2", "sim"].diagnostics["mean_iteration_cap_hits"] > 0
     assert all(runs["ekf:gate=skip,gate_g=0.05", name].diagnostics["updates_skipped"] > 0 for name in ("sim", "course", "broad"))

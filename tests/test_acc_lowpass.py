@@ -1,0 +1,86 @@
+"""The accelerometer low-passed in the gyro-only frame (`_attitude.AccDisturbance` with
+`lowpass_s`) and the choice between it and the raw sample (`_attitude.acc_measurement`)."""
+import math
+
+import numpy as np
+import pytest
+
+from fusion import quaternion as quat
+from fusion.estimators._attitude import AccDisturbance, acc_measurement, lowpass_drift_density
+
+
+def _turning_body_with_translation(seconds=20.0, rate_hz=200.0, amp_g=0.5, freq_hz=2.0):
+    """A body turning about a tilted axis while shaken back and forth along world x
+    (velocity bounded: a sinusoidal acceleration). Returns per-sample rate increments
+    (4-float quaternions), accelerometer samples (N, 3) g and the true gravity in the body."""
+    dt = 1.0 / rate_hz
+    n = int(seconds * rate_hz)
+    w_body = np.array([0.6, -0.4, 1.5])  # rad/s
+    q = (math.cos(0.2), math.sin(0.2), 0.0, 0.0)  # tilted start
+    dq = quat.exp_floats(*(w_body * dt))
+    incs, acc, grav = [], [], []
+    for k in range(n):
+        q = quat.normalize_floats(quat.multiply_floats(q, dq))
+        t = (k + 1) * dt
+        f_world = np.array([amp_g * math.sin(2 * math.pi * freq_hz * t), 0.0, 1.0])  # specific force, g
+        w, x, y, z = q
+        conj = (w, -x, -y, -z)
+        acc.append(quat.rotate_floats(conj, tuple(f_world)))
+        grav.append(quat.rotate_floats(conj, (0.0, 0.0, 1.0)))
+        incs.append(dq)
+    return dt, incs, np.array(acc), np.array(grav)
+
+
+def test_lowpassed_direction_removes_bounded_translation():
+    dt, incs, acc, grav = _turning_body_with_translation()
+    dist = AccDisturbance(0.5, lowpass_s=1.0, lowpass_window_s=3.0)
+    err_raw, err_lp = [], []
+    for k, (dq, a) in enumerate(zip(incs, acc)):
+        dist.update(dq, a, dt)
+        if k * dt > 5.0:  # after the low-pass settled
+            err_raw.append(math.degrees(math.acos(np.clip(a @ grav[k] / np.linalg.norm(a), -1, 1))))
+            err_lp.append(math.degrees(math.acos(np.clip(dist.lowpass_body @ grav[k], -1, 1))))
+    # raw: off by up to atan(0.5) = 27 deg; a first-order low-pass of 1 s passes 2 Hz at
+    # 1 / sqrt(1 + (2 pi 2 Hz 1 s)^2) = 8 %, so the low-passed direction is off by ~2 deg
+    assert max(err_raw) > 20.0
+    assert np.sqrt(np.mean(np.square(err_lp))) < 0.15 * np.sqrt(np.mean(np.square(err_raw)))
+    assert np.isclose(np.linalg.norm(dist.lowpass_body), 1.0)
+    # what is left of the translation has a far smaller low-frequency density than the raw power
+    assert 0.0 < dist.lowpass_density < 2 * 0.1 * 0.5**2 / 2
+
+
+def test_lowpass_restarts_when_the_frame_is_lost():
+    dist = AccDisturbance(0.5, lowpass_s=1.0)
+    dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
+    assert dist.lowpass_body is not None
+    dist.lose_frame()
+    assert dist.lowpass_body is None and dist.lowpass_density == math.inf
+
+
+def test_without_lowpass_nothing_is_lowpassed():
+    dist = AccDisturbance(0.5)
+    dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
+    assert dist.lowpass_body is None
+    acc = np.array([0.1, 0.0, 1.0])
+    meas, density, lowpassed = acc_measurement(acc, dist, 3e-5, 0.1, 0.2, 0.0)
+    assert meas is acc and not lowpassed and density == pytest.approx(3e-5 + 2 * 0.1 * 0.2)
+
+
+@pytest.mark.parametrize("raw_power,expect_lowpassed", [(0.0, False), (0.5, True)])
+def test_the_measurement_with_the_smaller_density_is_chosen(raw_power, expect_lowpassed):
+    dist = AccDisturbance(0.5, lowpass_s=1.0)
+    for _ in range(100):
+        dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
+    drift = lowpass_drift_density(1.0, np.zeros(3), 3e-4, 1e-6, 0.0)
+    meas, density, lowpassed = acc_measurement(np.array([0.3, 0.0, 1.0]), dist, 3e-5, 0.1, raw_power, drift)
+    assert lowpassed is expect_lowpassed
+    raw = 3e-5 + 2 * 0.1 * raw_power
+    assert density == pytest.approx(min(raw, 3e-5 + dist.lowpass_density + drift))
+
+
+def test_drift_density_grows_with_rate_and_calibration_uncertainty():
+    quiet = lowpass_drift_density(1.0, np.zeros(3), 3e-4, 0.0, 1e-2)
+    turning = lowpass_drift_density(1.0, np.array([0.0, 0.0, 10.0]), 3e-4, 0.0, 1e-2)
+    assert quiet == pytest.approx(2 * 3e-4)  # the rate noise's random walk over one window
+    assert turning == pytest.approx(2 * 3e-4 + 2 * 100 * 1e-2)
+    assert lowpass_drift_density(2.0, None, 0.0, 1e-4, 1.0) == pytest.approx(2 * 2 * 4 * 1e-4)
