@@ -1,0 +1,247 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+# ---
+
+# %% [markdown]
+# # 4. The error-state EKF beside the UKF
+#
+# The UKF of notebook 3 pushes sigma points through the nonlinear models. The extended Kalman
+# filter linearises the models instead, with Jacobians, and pushes the covariance through the
+# linear maps. The toolkit's `ekf` is a multiplicative (error-state) EKF: the same nominal
+# quaternion, the same body-frame rotation-vector error $e$ with $q_\text{true} = q \otimes \operatorname{Exp}(e)$, the
+# same gyro bias and scale-factor states and noise model as `ukf-bias`. The two differ *only* in
+# how the covariance is propagated. In this notebook:
+#
+# 1. the Jacobians, each checked against finite differences;
+# 2. the unscented transform against the linearisation, as the uncertainty grows;
+# 3. `ekf` and `ukf-bias` on the course recordings: how far apart they are, and why.
+#
+# Reference for the error-state formulation: J. Sola, "Quaternion kinematics for the error-state
+# Kalman filter", 2017 (arXiv:1711.02508), the chapters on the error-state kinematics and the
+# ESKF; `estimators/ekf.py` states the filter in full in its module docstring.
+
+# %%
+# %matplotlib inline
+import time
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from fusion import datasets, estimators
+from fusion import quaternion as quat
+from fusion.datasets import initial_orientation
+from fusion.estimators.ukf import QuaternionSigmaPoints
+from fusion.evaluation.metrics import score
+from tutorial_data import course_recordings, load_recording
+
+np.set_printoptions(precision=5, linewidth=110)
+plt.rcParams.update({"figure.figsize": (10, 3.4), "axes.grid": True, "figure.dpi": 90})
+rec = load_recording("ece276a/1")
+imu = rec.imu
+q0 = initial_orientation(rec)
+
+# %% [markdown]
+# ## 4.1 The Jacobians
+#
+# **Measurement.** The accelerometer predicts gravity in the body frame, $h(q) = R(q)^\top e_z$. Perturb
+# the attitude by a small body-frame rotation $e$: $R(q \otimes \operatorname{Exp}(e))^\top e_z = \operatorname{Exp}(e)^\top h \approx (I - [e]_\times) h = h + [h]_\times e$,
+# so
+#
+# $$ H = \frac{\partial h}{\partial e} = [h]_\times , $$
+#
+# the cross-product matrix of the predicted gravity. **Process.** One gyro step turns the nominal
+# state by $\theta = \omega \Delta t$: $q \otimes \operatorname{Exp}(e) \otimes \operatorname{Exp}(\theta) = q \otimes \operatorname{Exp}(\theta) \otimes \operatorname{Exp}(R(\theta)^\top e)$,
+# so the error is rotated into the new body frame, $F_{ee} = R(\theta)^\top$. A gyro bias error $\delta b$
+# changes the step to $\operatorname{Exp}(\theta - \delta b\, \Delta t) \approx \operatorname{Exp}(\theta) \operatorname{Exp}(-J_r(\theta)\, \delta b\, \Delta t)$, with $J_r$ the right
+# Jacobian of SO(3): $F_{eb} = -J_r(\theta)\, \Delta t$. We check all three with central differences,
+# using only `fusion.quaternion`:
+
+# %%
+rng = np.random.default_rng(0)
+q = quat.normalize(rng.normal(size=4))  # some orientation
+theta = np.array([0.02, -0.035, 0.01])  # one gyro step, rad
+dt = 0.01
+eps = 1e-6
+
+
+def numeric_jacobian(f, n=3):
+    return np.column_stack([(f(eps * np.eye(n)[j]) - f(-eps * np.eye(n)[j])) / (2 * eps) for j in range(n)])
+
+
+h = quat.gravity_in_body(q)
+H_num = numeric_jacobian(lambda e: quat.gravity_in_body(quat.multiply(q, quat.from_rotvec(e))))
+print("H = [h]x, analytic vs numeric:", np.abs(quat.skew(h) - H_num).max())
+
+step = quat.from_rotvec(theta)
+F_num = numeric_jacobian(lambda e: quat.relative_rotvec(quat.multiply(q, step),
+                                                        quat.multiply(quat.multiply(q, quat.from_rotvec(e)), step)))
+print("F_ee = R(theta)^T, analytic vs numeric:", np.abs(quat.rotation_matrix(step).T - F_num).max())
+
+F_b_num = numeric_jacobian(lambda db: quat.relative_rotvec(quat.multiply(q, step),
+                                                           quat.multiply(q, quat.from_rotvec(theta - db * dt))))
+print("F_eb = -J_r(theta) dt, analytic vs numeric:", np.abs(-quat.right_jacobian(theta) * dt - F_b_num).max())
+
+# %% [markdown]
+# All agree to the finite differences' own error ($\sim 10^{-10}$). The EKF then runs the textbook
+# equations with these matrices (Joseph form for the covariance update):
+#
+# $$ P^- = F P F^\top + Q_k, \quad S = H P^- H^\top + R_k, \quad K = P^- H^\top S^{-1}, \quad
+#    \delta x = K (a - h(q^-)), \quad q \leftarrow q^- \otimes \operatorname{Exp}(\delta x_e), \quad
+#    P = (I - K H) P^- (I - K H)^\top + K R_k K^\top . $$
+#
+# ## 4.2 Sigma points or Jacobians: when does it matter?
+#
+# Take one attitude with covariance $P = \sigma^2 I$ and ask both methods for the mean and the
+# covariance of the predicted gravity $h(q \otimes \operatorname{Exp}(e))$, $e \sim N(0, P)$; a Monte Carlo run with
+# 20,000 samples is the reference. The EKF answers $h(q)$ and $H P H^\top$; the UKF the weighted mean
+# and covariance of the sigma points' $h$ (the library's `QuaternionSigmaPoints`, Kraft's scheme).
+
+# %%
+points = QuaternionSigmaPoints(3, "kraft")
+q_tilted = quat.from_rotvec(np.radians([30.0, -20.0, 45.0]))
+h0 = quat.gravity_in_body(q_tilted)
+H = quat.skew(h0)
+samples = rng.normal(size=(20000, 3))
+rows = []
+for sigma_deg in (1, 3, 10, 20, 30, 45, 60):
+    s = np.radians(sigma_deg)
+    P = s**2 * np.eye(3)
+    Z = quat.gravity_in_body(points.sigma_points(q_tilted, P))
+    z_ukf = points.Wm @ Z
+    P_ukf = (Z - z_ukf).T @ (points.Wc[:, None] * (Z - z_ukf))
+    Z_mc = quat.gravity_in_body(quat.multiply(q_tilted, quat.from_rotvec(s * samples)))
+    z_mc, P_mc = Z_mc.mean(axis=0), np.cov(Z_mc.T)
+    P_ekf = H @ P @ H.T
+    rows.append((sigma_deg, np.linalg.norm(h0 - z_mc), np.linalg.norm(z_ukf - z_mc),
+                 np.trace(P_ekf) / np.trace(P_mc) - 1, np.trace(P_ukf) / np.trace(P_mc) - 1))
+print(" sigma   |mean error| (g)      trace(Pzz) / Monte Carlo - 1")
+print("  (deg)     EKF      UKF          EKF       UKF")
+for r in rows:
+    print(f"  {r[0]:4d}  {r[1]:8.5f} {r[2]:8.5f}     {r[3]:+8.3f} {r[4]:+8.3f}")
+
+# %%
+r = np.array(rows)
+fig, axes = plt.subplots(1, 2)
+axes[0].plot(r[:, 0], r[:, 1], "o-", label="EKF: h(q)")
+axes[0].plot(r[:, 0], r[:, 2], "s-", label="UKF: sigma-point mean")
+axes[0].set(xlabel="attitude sigma (deg)", ylabel="|mean - Monte Carlo mean| (g)", title="predicted gravity: mean")
+axes[1].plot(r[:, 0], 100 * r[:, 3], "o-", label="EKF: H P H^T")
+axes[1].plot(r[:, 0], 100 * r[:, 4], "s-", label="UKF: sigma points")
+axes[1].set(xlabel="attitude sigma (deg)", ylabel="trace error vs Monte Carlo (%)", title="predicted gravity: covariance")
+for ax in axes:
+    ax.legend(fontsize=8)
+plt.tight_layout()
+plt.show()
+
+# %% [markdown]
+# The linearisation misses the curvature of $h$: a cloud of attitudes predicts gravity vectors on
+# the unit sphere, whose mean lies *inside* the sphere (shorter than 1 g) and whose spread is
+# smaller than the tangent plane suggests. Both errors grow like $\sigma^2$: at the filters'
+# working point, a degree or two, they are around $10^{-4}$ g and a part in a thousand; at tens of
+# degrees they are large, and the sigma points stay closer to the truth (not exact: six points
+# cannot capture every moment). When is a filter's $\sigma$ that large? Right after it starts from an
+# unknown attitude, and while the gyro is missing.
+#
+# ## 4.3 `ekf` and `ukf-bias` on a real recording
+#
+# The two filters share `BiasFilterParams`: the same noise densities, the same adaptive
+# accelerometer variance, the same zero-rate bias update at rest, the same gain projection
+# (`heading_free`). Run both:
+
+# %%
+def timed(spec, recording):
+    estimator = estimators.build(spec)
+    start = time.perf_counter()
+    trajectory = estimator.estimate(recording.imu, initial_orientation(recording))
+    return trajectory, (time.perf_counter() - start) / len(recording.imu) * 1e6
+
+
+ekf, us_ekf = timed("ekf", rec)
+ukfb, us_ukf = timed("ukf-bias", rec)
+apart = np.degrees(np.linalg.norm(quat.relative_rotvec(ekf.quat_wxyz, ukfb.quat_wxyz), axis=1))
+print(f"{rec.id}: ekf and ukf-bias differ by at most {apart.max():.4f} deg, {apart.mean():.4f} deg on average")
+for name, trajectory, us in (("ekf", ekf, us_ekf), ("ukf-bias", ukfb, us_ukf)):
+    s = score(rec.truth, trajectory)
+    print(f"  {name:<9} RMSE vs VICON: total {s.rmse_deg['total']:.3f}, inclination {s.rmse_deg['inclination']:.3f}, "
+          f"heading {s.rmse_deg['heading']:.3f} deg; {us:.0f} us per sample")
+print("largest difference of the estimated gyro bias (deg/s):",
+      np.degrees(np.abs(ekf.diagnostics["gyr_bias_rad_s"] - ukfb.diagnostics["gyr_bias_rad_s"]).max()))
+print("largest difference of the estimated gyro scale corrections:",
+      np.abs(ekf.diagnostics["gyr_scale"] - ukfb.diagnostics["gyr_scale"]).max())
+
+# %% [markdown]
+# Hundredths of a degree, against errors of a degree or more with respect to VICON: the two filters
+# are the same estimator for practical purposes, and the EKF costs half the time. Where do the
+# hundredths come from? Plot the difference with the filters' attitude uncertainty:
+
+# %%
+t = imu.t - imu.t[0]
+# The attitude uncertainty split into tilt and heading: h is the predicted gravity (body frame),
+# the heading variance is h^T P h, the tilt variance the rest of the trace.
+h_est = quat.gravity_in_body(ekf.quat_wxyz)
+P_att = ekf.diagnostics["cov"][:, :3, :3]
+var_heading = np.einsum("ti,tij,tj->t", h_est, P_att, h_est)
+sigma_tilt = np.degrees(np.sqrt(np.trace(P_att, axis1=1, axis2=2) - var_heading))
+fig, ax = plt.subplots()
+ax.plot(t, apart, "k", lw=0.8, label="|ekf - ukf-bias| (left axis)")
+ax.set(xlabel="time (s)", ylabel="difference (deg)", title=f"{rec.id}: where the EKF and the UKF part")
+ax2 = ax.twinx()
+ax2.plot(t, sigma_tilt, color="tab:orange", lw=0.8, label="ekf tilt sigma (right axis)")
+ax2.set_ylabel("tilt sigma (deg)", color="tab:orange")
+ax2.grid(False)
+bad = ~imu.gyr_valid
+if bad.any():
+    ax.axvspan(t[bad][0], t[bad][-1], color="tab:red", alpha=0.2, label="gyro freeze")
+lines = ax.get_legend_handles_labels()
+lines2 = ax2.get_legend_handles_labels()
+ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=8, loc="upper right")
+plt.show()
+
+# %% [markdown]
+# Until the gyro freeze the two filters agree to $10^{-4}$ degrees: the tilt $\sigma$ is below a degree
+# and the linearisation is exact for all practical purposes. Inside the freeze the filters
+# integrate nothing and inflate the attitude noise (`invalid_gyr_std_rad_s`, 2 rad/s): the tilt
+# $\sigma$ jumps to 5-7 degrees, where section 4.2 showed the two propagations part. They come out of
+# it with slightly different attitudes and gyro bias and scale estimates (the printed differences
+# above). From then on the difference rises and falls with the motion, since a scale estimate that
+# differs by a few hundredths of a percent turns every turn of the board into a few hundredths of
+# a degree, which the accelerometer then pulls back: it never exceeds 0.04 degrees here, and it
+# does not grow, because neither filter's tilt $\sigma$ does. (The heading $\sigma$ grows steadily, to
+# about 14 degrees by the end, but nothing measures the heading, so no update acts on it.)
+#
+# The same on every course recording:
+
+# %%
+print(f"{'recording':<12} {'max (deg)':>9} {'mean (deg)':>10}   {'RMSE total ekf / ukf-bias (deg)':>32}")
+for rid in course_recordings():
+    r_i = rec if rid == rec.id else datasets.load(rid)
+    a_traj, _ = timed("ekf", r_i)
+    b_traj, _ = timed("ukf-bias", r_i)
+    d = np.degrees(np.linalg.norm(quat.relative_rotvec(a_traj.quat_wxyz, b_traj.quat_wxyz), axis=1))
+    totals = [score(r_i.truth, tr).rmse_deg["total"] for tr in (a_traj, b_traj)] if r_i.truth is not None else [np.nan] * 2
+    print(f"{rid:<12} {d.max():9.4f} {d.mean():10.4f}   {totals[0]:15.3f} / {totals[1]:.3f}")
+
+# %% [markdown]
+# On the nine course recordings the two filters are at most a few tenths of a degree apart
+# (0.04-0.23 degrees), a few hundredths on average, while their errors against VICON are
+# degrees: their RMSEs agree to the second decimal.
+#
+# ## Summary
+#
+# * The error-state EKF and the quaternion UKF share the state, the error definition, the models
+#   and the noise; the EKF propagates the covariance with $F = R(\theta)^\top$ (and $-J_r \Delta t$ for the
+#   bias) and $H = [h]_\times$, the UKF with sigma points.
+# * The linearisation error grows like $\sigma^2$; at a filter's usual $\sigma$ of a degree it is
+#   negligible, so `ekf` and `ukf-bias` agree to hundredths of a degree on real data (at most
+#   0.04 degrees on ece276a/1, 0.23 on the worst course recording), and part mainly when a gyro
+#   freeze blows up $P$.
+# * At that agreement, the cheaper filter wins: the EKF takes about half the time per sample.
+#
+# **Try it:** start both filters from a wrong initial attitude (`--init identity`, i.e.
+# `initial_orientation(rec, "identity")`) with a large `P0` (`ekf:P0=0.3`, `ukf-bias:P0=0.3`): how far
+# apart are they in the first seconds?
