@@ -5,8 +5,9 @@
 Prints (1) the end-to-end wall time of the CLI in a fresh process (imports included), and
 (2) a breakdown from library calls in this process: loading, estimating and scoring (per
 estimator, summed over recordings, measured inside the jobs), the pool's wall time,
-writing the series, drawing the figures, and writing the pages. Figures only; timings
-taken while other work runs on the machine are noisy.
+writing the series, drawing the figures (the filter-consistency figures of one recording
+timed again on their own), and writing the pages. Figures only; timings taken while other work
+runs on the machine are noisy.
 """
 from __future__ import annotations
 
@@ -94,8 +95,14 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     report._render_summary(doc, str(out))  # one process: the per-figure cost
     t_summary = time.perf_counter() - t
     t = time.perf_counter()
-    report._render_recording(str(out / "series" / "000.npz"), str(out))
+    _, beliefs = report._render_recording(str(out / "series" / "000.npz"), str(out))
     t_one = time.perf_counter() - t
+    from fusion.evaluation import plots
+    first = series_io.load(out / "series" / "000.npz")
+    t = time.perf_counter()
+    for e in first.beliefs:
+        plots.consistency_figure(first, e).savefig(out / "consistency.png")
+    t_consistency = time.perf_counter() - t
     t = time.perf_counter()
     report.render(out, jobs=args.jobs)
     t_render = time.perf_counter() - t
@@ -111,6 +118,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     print(f"  write series .npz                 {t_series:7.2f} s")
     print(f"  summary figures (serial)          {t_summary:7.2f} s")
     print(f"  one recording's figures (serial)  {t_one:7.2f} s")
+    print(f"    of which consistency figures    {t_consistency:7.2f} s  ({len(beliefs)} filters with a covariance)")
     print(f"  render all figures + pages        {t_render:7.2f} s  ({args.jobs} workers)")
 
 

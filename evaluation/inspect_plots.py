@@ -16,15 +16,13 @@ from fusion.types import Recording
 
 
 def plot_check(recording: Recording, check: RecordingCheck, path: str | Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: the caller's backend is left alone
 
     imu = recording.imu
     t0 = imu.t[0]
     t = imu.t - t0
-    fig, axes = plt.subplots(3, 1, figsize=(12, 8), sharex=True)
+    fig = Figure(figsize=(12, 8))
+    axes = fig.subplots(3, 1, sharex=True)
     gyr = np.rad2deg(imu.gyr_rad_s)
     for i, name in enumerate("xyz"):
         axes[0].plot(t, gyr[:, i], lw=0.6, label=f"w{name}")
@@ -58,4 +56,3 @@ def plot_check(recording: Recording, check: RecordingCheck, path: str | Path) ->
                       f"{check.vicon.missing_samples if check.vicon else 0} VICON NaN rows")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,7 +1,8 @@
 """Figures for reports: every number the toolkit computes, also as a picture.
 
-Each function returns a `matplotlib.figure.Figure` (built without pyplot, on the Agg
-backend), so tests can count its lines and bars and the report can save it. Conventions:
+Each function returns a `matplotlib.figure.Figure` (built without pyplot, so importing this
+module leaves the caller's backend alone, e.g. a notebook's inline one), so tests can count its
+lines and bars and the report can save it. Conventions:
 
 - Euler angles appear only here, as intrinsic ZYX (yaw about z, then pitch about the new y,
   then roll about the newest x) of `R_world_body`; the sequence is in the axis labels. A
@@ -11,6 +12,8 @@ backend), so tests can count its lines and bars and the report can save it. Conv
 - Shaded: spans without VICON (tracking gaps, before and after its span) in grey, and spans
   where `imu.gyr_valid` is False in red.
 - An estimator keeps one colour in every figure of a report (its position in the run).
+- The filter-consistency figures draw long recordings from per-bin statistics (about one bin
+  per pixel: `decimate_minmax`, `decimate_max`): a BROAD trial has 50,000 samples.
 """
 from __future__ import annotations
 
@@ -18,17 +21,15 @@ import math
 import re
 
 import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from scipy.spatial.transform import Rotation
 
-matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+from fusion.estimators.params import parse_specs
 
-from fusion.estimators.params import parse_specs  # noqa: E402
-
-from .metrics import KINDS  # noqa: E402
-from .series import RecordingSeries  # noqa: E402
+from .metrics import KINDS
+from .series import RecordingSeries
 
 EULER_SEQ = "ZYX"
 EULER_NAMES = ("roll", "pitch", "yaw")
@@ -519,3 +520,221 @@ def bars_figure(rows: list[dict]) -> Figure:
 def slug(text: str) -> str:
     """A file-name-safe form of a dataset id or label."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "x"
+
+
+# --- filter consistency (what a filter believes, `fusion.evaluation.consistency`) ---
+
+MAX_BINS = 800  # a curve longer than this is drawn from per-bin statistics (about one bin per pixel)
+ERR_COLOR, SIGMA_COLOR, NIS_COLOR, BAND_COLOR = "tab:red", "tab:blue", "tab:purple", "tab:green"
+EVENT_COLORS = {"skipped": "tab:red", "guarded": "tab:orange", "rest": "tab:green"}
+
+
+def _bins(n: int, max_bins: int) -> tuple[np.ndarray, int]:
+    """Start indices of equal bins of k samples covering n samples (k = 1 when n <= max_bins)."""
+    k = max(1, math.ceil(n / max_bins))
+    return np.arange(0, n, k), k
+
+
+def _centres(x: np.ndarray, starts: np.ndarray, k: int) -> np.ndarray:
+    return x[np.minimum(starts + k // 2, len(x) - 1)]
+
+
+def decimate_minmax(x: np.ndarray, y: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """A long curve as the minimum and maximum of each of at most `max_bins` bins, drawn as a
+    vertical stroke per bin, so that no spike is lost; bins with only NaN stay NaN (a break).
+    Short curves (at most 2 `max_bins` samples) are returned as they are."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(y) <= 2 * max_bins:
+        return x, y
+    starts, k = _bins(len(y), max_bins)
+    lo, hi = np.fmin.reduceat(y, starts), np.fmax.reduceat(y, starts)
+    xc = _centres(x, starts, k)
+    return np.repeat(xc, 2), np.column_stack([lo, hi]).ravel()
+
+
+def decimate_max(x: np.ndarray, y: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """A long curve as the maximum of each of at most `max_bins` bins (an envelope drawn no
+    narrower than it is), at the bins' centres; NaN-only bins stay NaN."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(y) <= max_bins:
+        return x, y
+    starts, k = _bins(len(y), max_bins)
+    return _centres(x, starts, k), np.fmax.reduceat(y, starts)
+
+
+def decimate_stride(x: np.ndarray, y: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """Every k-th sample of a smooth curve (at most `max_bins` points); y may be (N,) or (N, m)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    _, k = _bins(len(x), max_bins)
+    return x[::k], y[::k]
+
+
+def _bin_quantiles(y: np.ndarray, max_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """(starts, min, median, max) of the finite values of each bin, and k."""
+    import warnings
+
+    starts, k = _bins(len(y), max_bins)
+    padded = np.full(len(starts) * k, np.nan)
+    padded[:len(y)] = y
+    table = padded.reshape(len(starts), k)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins (no update) give NaN
+        return starts, np.nanmin(table, axis=1), np.nanmedian(table, axis=1), np.nanmax(table, axis=1), k
+
+
+def event_spans(t: np.ndarray, mask: np.ndarray, min_width: float) -> list[tuple[float, float]]:
+    """(start, width) of the runs of True in `mask` over samples `t`, each at least `min_width`
+    wide (one sample of a 50,000-sample recording would be a fraction of a pixel) and merged
+    where they then overlap, for `broken_barh`."""
+    spans: list[tuple[float, float]] = []
+    for a, b in runs(mask):
+        start = float(t[a])
+        end = max(float(t[min(b + 1, len(t) - 1)]), start + min_width)
+        if spans and start <= spans[-1][0] + spans[-1][1]:
+            spans[-1] = (spans[-1][0], max(end, spans[-1][0] + spans[-1][1]) - spans[-1][0])
+        else:
+            spans.append((start, end - start))
+    return spans
+
+
+def _pct(value: float) -> str:
+    return "-" if not np.isfinite(value) else f"{100 * value:.1f} %"
+
+
+def _error_limit(err: np.ndarray, env: np.ndarray) -> float:
+    """Half-range (deg) of an error panel: set by the error, not by the envelope, so that an
+    error of 2 deg stays readable beside a heading envelope of 40 deg: 1.3 times the larger of the
+    largest error and the envelope's 10th percentile (where the filter is most confident), at most
+    180 deg. Where the envelope is wider, its band runs off the panel (the title says so)."""
+    peak = float(np.nanmax(np.abs(err))) if np.isfinite(err).any() else 0.0
+    tight = float(np.nanpercentile(env, 10)) if np.isfinite(env).any() else 1.0
+    return min(180.0, 1.3 * max(peak, tight, 1e-3))
+
+
+def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> Figure | None:
+    """What filter `e` believed on this recording (None if it reports no covariance):
+
+    (a) the attitude error against the truth about each body axis with the filter's own
+        +-3 sqrt(P_ii) envelope, deg, and the fraction of samples inside it;
+    (b) the NIS of its accelerometer updates on a log axis with the chi-square(3) two-sided
+        95 % band, the fraction inside it and the mean with its own band;
+    (c) the samples without an accelerometer update (skipped or gated), the rest bias updates
+        and the chi-square guard, as marks on the time axis;
+    (d) the gyro-bias estimate, deg/s, where the filter estimates one.
+
+    Recordings longer than `max_bins` samples are drawn from per-bin statistics: the error as
+    per-bin minimum and maximum, the envelope as per-bin maximum, the NIS as per-bin median
+    with its minimum-maximum range. The error panels' range follows the error
+    (`_error_limit`). See `fusion.evaluation.consistency` for the tests and what they cannot
+    separate (heading is unobservable; the truth's own error enters the error). The layout is
+    fixed (no layout engine): a report draws one of these per filter and recording, and the
+    constrained layout would double its cost.
+    """
+    from matplotlib.ticker import LogLocator, NullLocator
+
+    from . import consistency as cons
+
+    belief = s.beliefs.get(e)
+    if belief is None:
+        return None
+    summary = cons.summarize(belief)
+    t0 = float(s.imu_t[0])
+    x = s.imu_t - t0
+    span = float(x[-1]) if len(x) > 1 and x[-1] > 0 else 1.0
+    has_bias = belief.bias_rad_s is not None
+    ratios = [1.0, 1.0, 1.0, 1.3, 0.55] + ([0.9] if has_bias else [])
+    panel_in, gap_in, top_in, bottom_in = 1.45, 0.3, 0.65, 0.55
+    height = top_in + bottom_in + panel_in * sum(ratios) + gap_in * (len(ratios) - 1)
+    fig = Figure(figsize=(11, height), dpi=DPI)
+    with matplotlib.rc_context({"axes.grid": True, "grid.alpha": 0.3}):  # grids made with the ticks, not redone
+        axes = fig.subplots(len(ratios), 1, sharex=True, gridspec_kw={
+            "height_ratios": ratios, "left": 0.11, "right": 0.985, "top": 1 - top_in / height,
+            "bottom": bottom_in / height, "hspace": gap_in / (panel_in * sum(ratios) / len(ratios))})
+    # Text is most of the drawing time of a figure like this one (a report draws one per filter and
+    # recording): the numbers go into few, short titles; the report's section explains them.
+    err_deg = np.degrees(belief.err_rad)
+    env_deg = cons.N_SIGMA * np.degrees(belief.sigma_rad)
+    has_truth = summary.samples_with_truth > 0
+    clipped = []
+    for i, (ax, name) in enumerate(zip(axes[:3], "xyz")):
+        _shade(ax, s, t0)
+        xe, env = decimate_max(x, env_deg[:, i], max_bins)
+        ax.fill_between(xe, -env, env, color=SIGMA_COLOR, alpha=0.18, lw=0, label="filter's ±3σ")
+        if has_truth:
+            ax.plot(*decimate_minmax(x, err_deg[:, i], max_bins), color=ERR_COLOR, lw=0.7, label="error vs VICON")
+        lim = _error_limit(err_deg[:, i] if has_truth else np.array([np.nan]), env_deg[:, i])
+        ax.set_ylim(-lim, lim)
+        ax.set_ylabel(f"about body {name}\n[deg]")
+        widest = float(np.nanmax(env_deg[:, i])) if np.isfinite(env_deg[:, i]).any() else 0.0
+        if widest > lim:
+            clipped.append(f"{name} ±{widest:.0f}")
+    if has_truth:
+        x_in, y_in, z_in = (_pct(v) for v in summary.inside_3sigma)
+        text = (f"inside ±3σ (99.7 % if consistent): x {x_in}, y {y_in}, z {z_in} of {summary.samples_with_truth} "
+                "samples")
+    else:
+        text = "no VICON: the error is unknown, the filter's envelope only"
+    if clipped:
+        text += f"; envelope beyond the panel up to {', '.join(clipped)} deg"
+    axes[0].set_title(text, fontsize=9, loc="left", y=1.0)
+    handles, _ = axes[0].get_legend_handles_labels()
+    axes[0].legend(handles=handles + _shade_handles(s), loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
+
+    ax = axes[3]
+    lo, hi = cons.chi2_band(cons.NIS_DOF)
+    ax.axhspan(lo, hi, color=BAND_COLOR, alpha=0.15, lw=0, label="χ²(3) 95 % band")
+    ax.axhline(cons.NIS_DOF, color=BAND_COLOR, lw=1.0, ls=":", label="mean if consistent")
+    nis = np.where(belief.nis > 0, belief.nis, np.nan)  # log axis: a zero NIS is drawn as no point
+    if summary.updates and len(nis) > max_bins:
+        starts, nmin, nmed, nmax, k = _bin_quantiles(nis, max_bins)
+        xc = _centres(x, starts, k)
+        ax.fill_between(xc, nmin, nmax, color=NIS_COLOR, alpha=0.25, lw=0, label=f"min-max per {k} samples")
+        ax.plot(xc, nmed, color=NIS_COLOR, lw=0.8, label="median")
+    elif summary.updates:
+        ax.plot(x, nis, ".", color=NIS_COLOR, ms=2, label="NIS per update")
+    ax.set_yscale("log")
+    finite = nis[np.isfinite(nis)]
+    if finite.size:
+        ax.set_ylim(max(min(float(finite.min()), lo) / 2, 1e-6), max(float(finite.max()), hi) * 2)
+    else:
+        ax.set_ylim(1e-2, 1e2)
+        ax.text(0.5, 0.5, "no accelerometer update: no NIS", transform=ax.transAxes, ha="center", va="center")
+    ax.yaxis.set_major_locator(LogLocator(numticks=6))
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_major_formatter(lambda v, _: f"{v:g}")  # plain numbers, no mathtext: cheaper and as clear
+    ax.set_ylabel("NIS (log)")
+    mlo, mhi = summary.nis_mean_band
+    ax.set_title(f"NIS: {_pct(summary.nis_inside)} of {summary.updates} updates in [{lo:.2f}, {hi:.2f}] (95 % if "
+                 f"consistent); mean {summary.nis_mean:.3g} (if consistent {mlo:.2f}-{mhi:.2f})", fontsize=9,
+                 loc="left", y=1.0)
+    ax.legend(loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
+
+    ax = axes[4]
+    skipped = ~belief.updated
+    skipped[0] = False  # row 0 is the reset, not a skipped update
+    rows = [("skipped", skipped, "no acc update", summary.skipped)]
+    if belief.guarded is not None:
+        rows.append(("guarded", belief.guarded, "bias guarded", summary.guarded))
+    if belief.rest is not None:
+        rows.append(("rest", belief.rest, "rest update", summary.rest))
+    for r, (key, mask, _, _) in enumerate(rows):
+        ax.broken_barh(event_spans(x, mask, span / 800), (r - 0.35, 0.7), color=EVENT_COLORS[key])
+    ax.set_yticks(range(len(rows)), [label for _, _, label, _ in rows], fontsize=8)
+    ax.set_ylim(-0.6, len(rows) - 0.4)
+    ax.yaxis.grid(False)
+    counts = ", ".join(f"{label} {count}" for _, _, label, count in rows)
+    ax.set_title(f"samples: {counts}", fontsize=9, loc="left", y=1.0)
+
+    if has_bias:
+        ax = axes[5]
+        xb, bias = decimate_stride(x, np.degrees(belief.bias_rad_s), max_bins)
+        for i, name in enumerate("xyz"):
+            ax.plot(xb, bias[:, i], color=f"C{i}", lw=1.0, label=name)
+        ax.set_ylabel("gyro bias\n[deg/s]")
+        ax.legend(loc="upper right", fontsize=8, ncol=3, framealpha=0.9)
+    axes[-1].set_xlabel("time since first IMU sample [s]")
+    axes[-1].set_xlim(0, span)
+    label = _display_label(s.labels[e], s.causal[e])
+    fig.suptitle(f"{s.id}, {label}: attitude error against the filter's ±3σ, NIS, events"
+                 + (", gyro bias" if has_bias else ""), fontsize=10, y=1 - 0.15 / height, va="top")
+    return fig

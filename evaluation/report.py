@@ -4,7 +4,8 @@
     DIR/table.txt        the table the command printed
     DIR/command.txt      the exact command, and how to re-render
     DIR/series/NNN.npz   per recording, the time series the figures need (`fusion.evaluation.series`)
-    DIR/figures/*.png    per recording: Euler angles over VICON, errors, smoother cost;
+    DIR/figures/*.png    per recording: Euler angles over VICON, errors, smoother cost, and per
+                         filter with a covariance its consistency (`plots.consistency_figure`);
                          summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter
     DIR/report.html      one self-contained page (images embedded as base64 PNG), readable offline
     DIR/report.md        the same for a repository (links to figures/)
@@ -264,9 +265,13 @@ def _save(fig, path: Path) -> None:
     fig.savefig(path, dpi=fig.dpi)
 
 
-def _render_recording(series_path: str, fig_dir: str) -> list[tuple[str, str]]:
-    """Draw one recording's figures; returns (caption, file name) pairs."""
-    from . import plots
+def _render_recording(series_path: str, fig_dir: str) -> tuple[list[tuple[str, str]], list[dict[str, Any]]]:
+    """Draw one recording's figures. Returns (caption, file name) pairs of its figures, and one
+    entry per filter that reports a covariance for the "Filter consistency" section: dataset,
+    estimator, caption, file and the `fusion.evaluation.consistency.Summary` as a dict."""
+    import dataclasses
+
+    from . import consistency, plots
 
     s = series_io.load(Path(series_path))
     stem = f"rec-{Path(series_path).stem}-{plots.slug(s.id)}"
@@ -282,7 +287,22 @@ def _render_recording(series_path: str, fig_dir: str) -> list[tuple[str, str]]:
         name = f"{stem}-{suffix}.png"
         _save(fig, Path(fig_dir) / name)
         out.append((f"{s.id}: {caption}", name))
-    return out
+    beliefs = []
+    names: set[str] = set()
+    for e, belief in sorted(s.beliefs.items()):
+        label = s.labels[e]
+        name = f"{stem}-consistency-{plots.slug(label)}.png"
+        if name in names:  # two labels with the same slug
+            name = f"{stem}-consistency-{e}-{plots.slug(label)}.png"
+        names.add(name)
+        _save(plots.consistency_figure(s, e), Path(fig_dir) / name)
+        caption = (f"{s.id}, {label}: attitude error against VICON about each body axis and the filter's +-3 sigma "
+                   "(deg); NIS of the accelerometer updates and its chi-square(3) 95 % band; samples without an "
+                   "accelerometer update (skipped, gated or invalid), with the chi-square guard, with a rest update"
+                   + ("; gyro-bias estimate (deg/s)" if belief.bias_rad_s is not None else ""))
+        beliefs.append({"dataset": s.id, "estimator": label, "file": name, "caption": caption,
+                        "summary": dataclasses.asdict(consistency.summarize(belief))})
+    return out, beliefs
 
 
 def _render_summary(doc: dict[str, Any], fig_dir: str) -> list[tuple[str, str]]:
@@ -340,9 +360,10 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir)))]
     tasks += [(_render_recording, (str(p), str(fig_dir))) for p in series_paths]
     outputs = _run_tasks(tasks, jobs, progress)
-    summary, per_recording = outputs[0], [fig for figs in outputs[1:] for fig in figs]
-    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording))
-    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir))
+    summary, per_recording = outputs[0], [fig for figs, _ in outputs[1:] for fig in figs]
+    beliefs = [entry for _, entries in outputs[1:] for entry in entries]
+    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs))
+    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs))
 
 
 def _sweep_text(doc: dict[str, Any]) -> str:
@@ -376,7 +397,19 @@ def check_series(path: Path) -> None:
     expect = {"imu_t": ((n,), s.imu_t.shape), "gyr_valid": ((n,), s.gyr_valid.shape),
               "truth_quat": ((len(s.truth_t), 4), s.truth_quat.shape), "causal": ((e,), (len(s.causal),)),
               "quat": ((e, n, 4), s.quat.shape), "err_deg": ((e, len(KINDS), n), s.err_deg.shape)}
+    for e, belief in s.beliefs.items():
+        if not 0 <= e < len(s.labels):
+            raise ValueError(f"{path}: 'belief_{e}_*' names no estimator of the {len(s.labels)} here; not a series this "
+                             "toolkit wrote")
+        for attr, shape in (("err_rad", (n, 3)), ("sigma_rad", (n, 3)), ("nees", (n,)), ("nis", (n,)), ("updated", (n,)),
+                            ("rest", (n,)), ("guarded", (n,)), ("bias_rad_s", (n, 3))):
+            value = getattr(belief, attr)
+            required = attr in ("err_rad", "sigma_rad", "nees", "nis", "updated")
+            if (value is None and required) or (value is not None and value.shape != shape):
+                expect[f"belief_{e} {attr}"] = (shape, None if value is None else value.shape)
     for name, (want, got) in expect.items():
+        if got is None:
+            raise ValueError(f"{path}: {name!r} is missing; not a series this toolkit wrote")
         if tuple(want) != tuple(got) or (name in ("imu_t", "truth_t") and np.ndim(getattr(s, name)) != 1):
             raise ValueError(f"{path}: {name!r} has shape {tuple(got)}, expected {tuple(want)}; not a series this toolkit wrote")
 
@@ -582,6 +615,52 @@ def _details_items(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return out
 
 
+CONSISTENCY_HEADER = ["estimator", "samples with truth", "inside +-3 sigma x", "inside +-3 sigma y", "inside +-3 sigma z",
+                      "mean NEES", "NIS updates", "NIS in 95 % band", "mean NIS", "95 % band of the mean NIS",
+                      "no acc update", "rest updates", "bias guarded"]
+
+CONSISTENCY_TEXT = (
+    "What each filter that reports an error covariance believed, against what happened (Bar-Shalom, Li & "
+    "Kirubarajan 2001, Estimation with Applications to Tracking and Navigation, Sec. 5.4). Inside +-3 sigma: the "
+    "fraction of samples whose attitude error against VICON about a body axis lies within the filter's own "
+    "3 sqrt(P_ii) (99.7 % if consistent). NEES: e^T P^-1 e over the attitude block (mean 3 if consistent). NIS: the "
+    "normalised innovation squared of the accelerometer updates, chi-square with 3 degrees of freedom if consistent: "
+    "95 % of the updates inside the band [0.22, 9.35] and a mean of 3 (the band of the mean assumes white "
+    "innovations, which hand motion is not). A mean NIS far below 3: the filter expects larger innovations than it "
+    "sees (it trusts the accelerometer less than it could); far above: smaller. Heading (about the vertical) is unobservable from an accelerometer, so its envelope grows "
+    "and being inside it says little; the error includes VICON's own error and any residual time offset between "
+    "IMU and VICON, the NIS does not.")
+
+
+def _pct_cell(v: Any) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{100 * v:.1f}%"
+
+
+def _num_cell(v: Any, fmt: str) -> str:
+    return "-" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
+def _consistency_rows(entries: list[dict[str, Any]]) -> list[list[str]]:
+    rows = []
+    for entry in entries:
+        m = entry["summary"]
+        lo, hi = m["nis_mean_band"]
+        band = "-" if not np.isfinite(lo) else f"{lo:.2f} - {hi:.2f}"
+        rows.append([entry["estimator"], str(m["samples_with_truth"]), *(_pct_cell(v) for v in m["inside_3sigma"]),
+                     _num_cell(m["nees_mean"], ".3g"), str(m["updates"]), _pct_cell(m["nis_inside"]),
+                     _num_cell(m["nis_mean"], ".3g"), band, str(m["skipped"]),
+                     "-" if m["rest"] is None else str(m["rest"]), "-" if m["guarded"] is None else str(m["guarded"])])
+    return rows
+
+
+def _by_recording(entries: list[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """The consistency entries grouped per recording, in run order."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for entry in entries:
+        groups.setdefault(entry["dataset"], []).append(entry)
+    return list(groups.items())
+
+
 def _title(doc: dict[str, Any]) -> str:
     settings = doc.get("settings", {})
     if settings.get("kind") == "ablate":
@@ -590,7 +669,8 @@ def _title(doc: dict[str, Any]) -> str:
     return "fusion comparison"
 
 
-def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: list) -> str:
+def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: list,
+              beliefs: list[dict[str, Any]] = ()) -> str:
     header, body, mean_header, means = _tables(doc)
 
     def md_table(head: list[str], rows: list[list[str]]) -> list[str]:
@@ -613,6 +693,11 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
     lines += ["## Figures", ""] + [f"![{c}](figures/{n})" for c, n in summary] + [""]
     if per_recording:
         lines += ["## Per recording", ""] + [f"![{c}](figures/{n})" for c, n in per_recording] + [""]
+    if beliefs:
+        lines += ["## Filter consistency", "", CONSISTENCY_TEXT, ""]
+        for dataset, entries in _by_recording(list(beliefs)):
+            lines += [f"### {dataset}", ""] + md_table(CONSISTENCY_HEADER, _consistency_rows(entries)) + [""]
+            lines += [f"![{e['caption']}](figures/{e['file']})" for e in entries] + [""]
     lines += ["## Settings", ""] + md_table(["setting", "value"], [[k, str(v)] for k, v in _settings_items(doc)])
     if _details_items(doc):
         lines += ["", "## Estimators", ""] + md_table(["estimator", "details"], [[k, v] for k, v in _details_items(doc)])
@@ -648,7 +733,8 @@ def _img(fig_dir: Path, caption: str, name: str) -> str:
             f'src="data:image/png;base64,{data}"><figcaption>{html.escape(caption)}</figcaption></figure>')
 
 
-def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path) -> str:
+def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path,
+          beliefs: list[dict[str, Any]] = ()) -> str:
     header, body, mean_header, means = _tables(doc)
     settings = doc.get("settings", {})
     parts = [
@@ -673,6 +759,12 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
     if per_recording:
         parts += ["<h2>Per recording</h2><p>Grey: no VICON (gaps, outside its span); red: gyro marked invalid.</p>",
                   *(_img(fig_dir, c, n) for c, n in per_recording)]
+    if beliefs:
+        parts += ['<h2 id="consistency">Filter consistency</h2>', f"<p>{html.escape(CONSISTENCY_TEXT)}</p>"]
+        for n, (dataset, entries) in enumerate(_by_recording(list(beliefs))):
+            parts += [f"<h3>{html.escape(dataset)}</h3>",
+                      _html_table(CONSISTENCY_HEADER, _consistency_rows(entries), f"consistency-{n:03d}", 1),
+                      *(_img(fig_dir, e["caption"], e["file"]) for e in entries)]
     parts += ["<h2>Settings</h2>", _html_table(["setting", "value"], [[k, str(v)] for k, v in _settings_items(doc)],
                                                "settings", 9)]
     if _details_items(doc):

@@ -16,6 +16,12 @@ that `fusion report DIR` can draw the figures again without running any estimato
     err_deg       (E, 3, N) float32 total/inclination/heading error, deg; NaN where not
                             scored (outside the truth span, in gaps; all NaN without truth)
     loss_<e>      (K_e,)   float64 cost per iteration of estimator e, where it reports one
+    belief_<e>_*           what filter e believed, where it reports an error covariance
+                            (`fusion.evaluation.consistency.Belief`): `_err` (N, 3) float32
+                            attitude error against the truth, rad, body frame (NaN without
+                            truth); `_sigma` (N, 3) float32 sqrt(P_ii), rad; `_nees`, `_nis`
+                            (N,) float32; `_updated` (N,) bool; where recorded `_rest`,
+                            `_guarded` (N,) bool and `_bias` (N, 3) float32 rad/s
 
 float32 is plenty for plotting (1e-7 relative) and halves the files; the scores in
 results.json come from the float64 computation.
@@ -27,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import consistency
 from .metrics import KINDS
 
 
@@ -44,6 +51,7 @@ class RecordingSeries:
     quat: np.ndarray
     err_deg: np.ndarray
     losses: dict[int, np.ndarray] = field(default_factory=dict)
+    beliefs: dict[int, consistency.Belief] = field(default_factory=dict)
 
     @property
     def has_truth(self) -> bool:
@@ -56,6 +64,8 @@ def from_results(info, results: list, causal: dict[str, bool]) -> RecordingSerie
     quat = np.empty((len(results), n, 4), np.float32)
     err = np.full((len(results), len(KINDS), n), np.nan, np.float32)
     losses: dict[int, np.ndarray] = {}
+    beliefs: dict[int, consistency.Belief] = {}
+    truth_at_imu = None  # the truth slerped onto the IMU stamps, once per recording, if a filter needs it
     for e, r in enumerate(results):
         if r.trajectory is None:
             raise ValueError(f"{info.id}: result {r.estimator!r} has no trajectory to plot")
@@ -66,14 +76,23 @@ def from_results(info, results: list, causal: dict[str, bool]) -> RecordingSerie
         loss = r.trajectory.diagnostics.get("loss") if r.trajectory.diagnostics else None
         if loss is not None:
             losses[e] = np.asarray(loss, dtype=float).ravel()
+        if consistency.has_covariance(r.trajectory):
+            if truth_at_imu is None and info.truth is not None:
+                truth_at_imu = consistency.truth_on(info.truth, r.trajectory.t)
+            beliefs[e] = consistency.from_trajectory(r.trajectory, truth_at_imu)
     truth = info.truth
     return RecordingSeries(
         info.id, np.asarray(info.imu_t), np.asarray(info.gyr_valid, bool),
         np.asarray(truth.t) if truth is not None else np.empty(0),
         np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)),
         [r.estimator for r in results], [causal.get(r.estimator, True) for r in results],
-        quat, err, losses,
+        quat, err, losses, beliefs,
     )
+
+
+_BELIEF_ARRAYS = (("err", "err_rad", np.float32), ("sigma", "sigma_rad", np.float32), ("nees", "nees", np.float32),
+                  ("nis", "nis", np.float32), ("updated", "updated", bool), ("rest", "rest", bool),
+                  ("guarded", "guarded", bool), ("bias", "bias_rad_s", np.float32))
 
 
 def save(path: Path, s: RecordingSeries) -> None:
@@ -81,6 +100,11 @@ def save(path: Path, s: RecordingSeries) -> None:
                   truth_quat=s.truth_quat, labels=np.array(s.labels, dtype=str), causal=np.array(s.causal, bool),
                   quat=s.quat, err_deg=s.err_deg)
     arrays.update({f"loss_{e}": v for e, v in s.losses.items()})
+    for e, belief in s.beliefs.items():
+        for key, attr, dtype in _BELIEF_ARRAYS:
+            value = getattr(belief, attr)
+            if value is not None:
+                arrays[f"belief_{e}_{key}"] = np.asarray(value, dtype=dtype)
     np.savez(path, **arrays)
 
 
@@ -88,5 +112,10 @@ def load(path: Path) -> RecordingSeries:
     with np.load(path, allow_pickle=False) as z:
         losses = {int(k[5:]): z[k] for k in z.files if k.startswith("loss_")}
         labels = [str(x) for x in z["labels"]]
+        beliefs = {}
+        for e in sorted({int(k.split("_")[1]) for k in z.files if k.startswith("belief_")}):
+            fields = {attr: (z[f"belief_{e}_{key}"].astype(float if dtype is np.float32 else bool)
+                             if f"belief_{e}_{key}" in z.files else None) for key, attr, dtype in _BELIEF_ARRAYS}
+            beliefs[e] = consistency.Belief(**fields)
         return RecordingSeries(str(z["id"]), z["imu_t"], z["gyr_valid"], z["truth_t"], z["truth_quat"],
-                               labels, [bool(x) for x in z["causal"]], z["quat"], z["err_deg"], losses)
+                               labels, [bool(x) for x in z["causal"]], z["quat"], z["err_deg"], losses, beliefs)

@@ -389,3 +389,87 @@ def test_reports_open_with_the_means(run_dir):
     assert first_mean < first_row
     settings = json.loads((run_dir / "results.json").read_text())["settings"]
     assert settings["dropouts"] == "on" and settings["calibration"] is None and settings["git_commit"]
+
+
+# --- filter consistency ---
+
+def _table_cells(page: str, table_id: str) -> list[list[str]]:
+    match = re.search(rf'<table id="{table_id}">(.*?)</table>', page, re.S)
+    assert match, table_id
+    return [[html.unescape(c) for c in re.findall(r"<t[hd][^>]*>(.*?)</t[hd]>", row)]
+            for row in re.findall(r"<tr>(.*?)</tr>", match.group(1), re.S)]
+
+
+def test_consistency_section_only_for_filters_with_a_covariance(tmp_path, monkeypatch):
+    """ekf reports a covariance: its figure and table row appear, with the numbers of
+    `consistency.summarize`; dr and the peer vqf do not. The section re-renders from the folder."""
+    from fusion.evaluation import consistency, report
+
+    data = write_csv_dataset(tmp_path / "data", count=2)
+    out = tmp_path / "run"
+    assert main(["compare", "--estimators", "dr,ekf,vqf", "--data-dir", str(data), "--out", str(out), "--jobs", "1",
+                 "--no-progress"]) == 0
+    figures = sorted(p.name for p in (out / "figures").glob("*consistency*"))
+    assert figures == [f"rec-00{n}-lab_rec{n + 1}-consistency-ekf.png" for n in range(2)]
+    for name in figures:
+        spread, colours = _png_stats(out / "figures" / name)
+        assert spread > 0.05 and colours > 20, name
+    page = (out / "report.html").read_text()
+    assert page.count('<h2 id="consistency">Filter consistency</h2>') == 1 and "Bar-Shalom" in page
+    assert page.index("<h2>Per recording</h2>") < page.index('id="consistency"') < page.index("<h2>Settings</h2>")
+    assert page.count('src="data:image/png;base64,') == len(list((out / "figures").glob("*.png")))
+    for n in range(2):
+        s = series.load(out / "series" / f"{n:03d}.npz")
+        assert list(s.beliefs) == [1]  # dr (0) and vqf (2) have none
+        m = consistency.summarize(s.beliefs[1])
+        head, row = _table_cells(page, f"consistency-{n:03d}")
+        assert head == report.CONSISTENCY_HEADER
+        assert row[:2] == ["ekf", str(m.samples_with_truth)]
+        assert row[2:5] == [f"{100 * v:.1f}%" for v in m.inside_3sigma]
+        assert row[6:9] == [str(m.updates), f"{100 * m.nis_inside:.1f}%", f"{m.nis_mean:.3g}"]
+        assert row[10:] == [str(m.skipped), str(m.rest), str(m.guarded)]
+        assert f"<h3>lab/rec{n + 1}</h3>" in page
+    md = (out / "report.md").read_text()
+    assert "## Filter consistency" in md and "### lab/rec2" in md
+    assert all(f"(figures/{name})" in md for name in figures)
+    # re-rendered from results.json and series/ alone, with no estimator installed
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("figures", "report.html"))
+    from fusion import estimators
+    monkeypatch.setattr(estimators, "ESTIMATORS", {})
+    assert main(["report", str(copy), "--jobs", "1", "--no-progress"]) == 0
+    assert (copy / "report.md").read_text() == md
+    assert sorted(p.name for p in (copy / "figures").glob("*consistency*")) == figures
+
+
+def test_no_consistency_section_without_a_covariance(run_dir):
+    assert "Filter consistency" not in (run_dir / "report.html").read_text()
+    assert "Filter consistency" not in (run_dir / "report.md").read_text()
+    assert not list((run_dir / "figures").glob("*consistency*"))
+
+
+def test_a_damaged_belief_in_a_series_file_is_one_line(tmp_path, capsys):
+    data = write_csv_dataset(tmp_path / "data", count=1)
+    out = tmp_path / "run"
+    assert main(["compare", "--estimators", "ekf", "--data-dir", str(data), "--out", str(out), "--jobs", "1",
+                 "--no-progress"]) == 0
+    path = out / "series" / "000.npz"
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["belief_0_sigma"] = arrays["belief_0_sigma"][:10]
+    np.savez(path, **arrays)
+    capsys.readouterr()
+    assert main(["report", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "belief_0 sigma_rad" in err and "000.npz" in err and err.count("\n") == 1
+
+
+def test_importing_the_plotting_modules_leaves_the_backend_alone():
+    # A notebook's inline backend must survive `import fusion.evaluation.plots` (no matplotlib.use).
+    import subprocess
+    import sys
+
+    code = ("import matplotlib; matplotlib.use('svg'); import fusion.evaluation.plots, fusion.evaluation.report, "
+            "fusion.evaluation.inspect_plots; print(matplotlib.get_backend())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "svg"
