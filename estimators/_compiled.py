@@ -444,6 +444,24 @@ def acc_measurement(st, ax, ay, az, o, d, drift):
 
 
 @_jit
+def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o):
+    """The measurement and variance of one accelerometer update, as the filters' steps choose
+    them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq),
+    the low-pass frame drift (w2: the squared corrected rate; rate_noise: its noise density), the
+    raw or the low-passed sample (`_attitude.acc_measurement`), its variance times the gate's
+    scale; without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2,
+    low-passed)."""
+    if o.corr_s > 0.0:
+        d = disturbance_update(dist, dq, ax, ay, az, dt, o)
+        n = o.n
+        drift = lowpass_drift_density(o.lowpass_s, w2, rate_noise, _max_diag(P, 3) if n > 3 else 0.0,
+                                      _max_diag(P, 6) if n > 6 else 0.0)
+        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift)
+        return mx, my, mz, density / dt * scale, lowpassed
+    return ax, ay, az, o.acc_noise / dt * scale, False
+
+
+@_jit
 def _max_diag(P, i0):
     """max(P[i0, i0], P[i0 + 1, i0 + 1], P[i0 + 2, i0 + 2]) with Python's max semantics."""
     v = P[i0, i0]
@@ -638,16 +656,9 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
         if scale < math.inf:
-            mx, my, mz = ax, ay, az  # the measurement: the raw sample or the low-passed one
-            if o.corr_s > 0.0:
-                dd = disturbance_update(dist, d, ax, ay, az, h, o)
-                rx, ry, rz = tx / h, ty / h, tz / h
-                drift = lowpass_drift_density(o.lowpass_s, rx * rx + ry * ry + rz * rz, o.process_noise,
-                                              _max_diag(P, 3) if n > 3 else 0.0, _max_diag(P, 6) if n > 6 else 0.0)
-                mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, dd, drift)
-                r = density / h * scale
-            else:
-                r = o.acc_noise / h * scale
+            rx, ry, rz = tx / h, ty / h, tz / h
+            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, rx * rx + ry * ry + rz * rz,
+                                                   o.process_noise, P, o)
             var = r
             hx, hy, hz = gravity(q)
             Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
@@ -849,18 +860,11 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
         if scale < math.inf:
-            mx, my, mz = ax, ay, az  # the measurement: the raw sample or the low-passed one
-            if o.corr_s > 0.0:
-                dd = disturbance_update(dist, dq, ax, ay, az, h, o)
-                q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
-                if ok and o.scale_noise > 0.0:
-                    q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
-                drift = lowpass_drift_density(o.lowpass_s, wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate,
-                                              _max_diag(P, 3) if n > 3 else 0.0, _max_diag(P, 6) if n > 6 else 0.0)
-                mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, dd, drift)
-                r = density / h * scale
-            else:
-                r = o.acc_noise / h * scale
+            q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
+            if ok and o.scale_noise > 0.0:
+                q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
+            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale,
+                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o)
             var = r
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
