@@ -1,36 +1,92 @@
-"""Microseconds per sample of each recursive filter on recording ece276a/1.
+"""Microseconds per sample of each recursive filter on recording ece276a/1, and the compile times.
 
-    python benchmarks/bench_filters.py [--data-dir DIR] [--repeat 3] [--profile ukf]
+    python benchmarks/bench_filters.py [--data-dir DIR] [--repeat 5] [--profile SPEC] [--no-compile-times]
 
-Prints the best of `--repeat` runs for each filter (the whole-recording `estimate`, so the
-base-class loop is included), the lean and the FilterPy-reference implementations of the
-UKFs, and with `--profile SPEC` a cProfile of one run sorted by internal time. Figures
-taken while other jobs share the machine are noisy; compare them on a quiet machine.
-Without data the built-in `sim` recording is used (and said so).
+Prints, per estimator, the best of at least `--repeat` runs (more for the fast ones, up to
+about a second each) of the whole-recording `estimate` (the loop and the per-sample
+diagnostics recording included): the compiled filters (`impl=compiled`, the default), their
+numpy references (`ekf:impl=numpy`, the UKFs' `impl=lean` and `impl=filterpy`) and VQF (the
+`vqf` package: `VQF.updateBatch` and `offlineVQF`, through this toolkit's adapters) on the
+same recording, with the ratio to VQF. Then the compile time of the two numba kernels
+(`_compiled.ekf_kernel`, `_compiled.ukf_kernel`, which serves `ukf` and `ukf-bias`; a
+compiled filter compiles or loads them when it is built, `_compiled.load`), measured in a
+fresh process with an empty cache (`NUMBA_CACHE_DIR` pointed at a new temporary folder: numba
+compiles), and again in another with that cache filled (numba loads the machine code). With
+`--profile SPEC` a cProfile of one run sorted by internal time. Figures taken while other
+jobs share the machine are noisy; compare them on a quiet machine. Without data the built-in
+`sim` recording is used (and said so).
 """
 from __future__ import annotations
 
 import argparse
 import cProfile
+import json
+import os
 import pstats
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 from fusion.estimators import build  # noqa: E402
 from fusion import datasets  # noqa: E402
 
-SPECS = ("dr", "ukf", "ukf-bias", "ekf", "ukf:sigma=julier", "ukf:impl=filterpy", "ukf-bias:impl=filterpy,hf=false")
+SPECS = (
+    "ekf", "ukf", "ukf-bias",  # compiled (the defaults)
+    "ukf:sigma=julier,kappa=2", "ukf-bias:sigma=merwe,alpha=1,kappa=0.5",
+    "ekf:impl=numpy", "ukf:impl=lean", "ukf-bias:impl=lean",  # the numpy references
+    "ukf:impl=filterpy", "ukf-bias:impl=filterpy,hf=false",  # FilterPy's update
+    "dr", "vqf", "vqf-offline",  # peers: dead reckoning, VQF (updateBatch), offlineVQF
+)
+MIN_SECONDS = 1.0  # fast estimators are repeated until they have run this long
+
+# Run in a fresh process: the time to import the kernel module (numba included) and of
+# `_compiled.load()`, which compiles both kernels (empty cache) or loads them from the cache; the
+# filters call it when they are built.
+_FIRST_CALL = r"""
+import json, time
+t0 = time.perf_counter()
+from fusion.estimators import _compiled
+t1 = time.perf_counter()
+_compiled.load()
+print(json.dumps({"import": t1 - t0, "kernels": time.perf_counter() - t1}))
+"""
+
+
+def time_estimate(spec: str, imu, q0, repeat: int) -> float:
+    """Best wall time of `build(spec).estimate(imu, q0)`, s (one untimed warm-up run first)."""
+    build(spec).estimate(imu, q0)
+    best, total, runs = float("inf"), 0.0, 0
+    while runs < repeat or (total < MIN_SECONDS and runs < 50):
+        est = build(spec)
+        start = time.perf_counter()
+        est.estimate(imu, q0)
+        elapsed = time.perf_counter() - start
+        best, total, runs = min(best, elapsed), total + elapsed, runs + 1
+    return best
+
+
+def compile_times() -> tuple[dict, dict]:
+    """(empty cache, cached): {"import": s, "kernels": s}, each from a fresh process."""
+    with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
+        runs = [subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, capture_output=True, text=True,
+                               check=True, cwd=ROOT) for _ in range(2)]
+    cold, cached = (json.loads(run.stdout.strip().splitlines()[-1]) for run in runs)
+    return cold, cached
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data-dir", default=None, help="folder holding ece276a/ (default: $FUSION_DATA, else ./data)")
     ap.add_argument("--dataset", default="ece276a/1")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--profile", default=None, metavar="SPEC", help="cProfile one run of this estimator")
+    ap.add_argument("--no-compile-times", action="store_true", help="skip the compile-time measurement")
     args = ap.parse_args(argv)
     try:
         rec = datasets.load(args.dataset, args.data_dir)
@@ -39,16 +95,19 @@ def main(argv: list[str] | None = None) -> None:
         rec = datasets.load("sim")
     q0 = datasets.initial_orientation(rec, "truth" if rec.truth is not None else None)
     n = len(rec.imu)
-    print(f"{rec.id}: {n} samples")
-    print(f"{'estimator':36s} {'us/sample':>10s}")
+    print(f"{rec.id}: {n} samples; best of >= {args.repeat} runs of the whole estimate")
+    print(f"{'estimator':40s} {'us/sample':>10s} {'x vqf':>8s}")
+    times = {}
     for spec in SPECS:
-        best = float("inf")
-        for _ in range(args.repeat):
-            est = build(spec)
-            start = time.perf_counter()
-            est.estimate(rec.imu, q0)
-            best = min(best, time.perf_counter() - start)
-        print(f"{spec:36s} {best / n * 1e6:10.1f}")
+        times[spec] = time_estimate(spec, rec.imu, q0, args.repeat) / n * 1e6
+    for spec, us in times.items():
+        print(f"{spec:40s} {us:10.2f} {us / times['vqf']:8.2f}")
+    if not args.no_compile_times:
+        cold, cached = compile_times()
+        print("numba kernels in a fresh process (s):")
+        print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
+        print(f"{'import fusion.estimators._compiled':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
+        print(f"{'compile / load ekf_kernel + ukf_kernel':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
     if args.profile:
         prof = cProfile.Profile()
         est = build(args.profile)

@@ -18,7 +18,10 @@ from scipy.linalg.lapack import dpotrf
 
 from fusion import quaternion as quat
 
-_SQRT_FLOOR = 0.0
+SQRT_FLOOR = 0.0  # eigenvalues of a failed square root are clipped to this (sqrt_psd)
+COV_FLOOR = 1e-15  # eigenvalues of a repaired covariance are clipped to this (repair_covariance)
+COV_RESET_VAR = 1e-2  # a non-finite covariance is replaced by this times I (repair_covariance)
+REST_WINDOW_S = 0.5  # time constant of the rest detector's accelerometer low-pass, s
 
 
 def inv_sym3(s: np.ndarray) -> np.ndarray:
@@ -45,10 +48,10 @@ def sqrt_psd(a: np.ndarray) -> tuple[np.ndarray, bool]:
     if info == 0:
         return c, False
     lam, vec = np.linalg.eigh(0.5 * (a + a.T))
-    return vec * np.sqrt(np.maximum(lam, _SQRT_FLOOR)), True
+    return vec * np.sqrt(np.maximum(lam, SQRT_FLOOR)), True
 
 
-def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, bool]:
+def repair_covariance(p: np.ndarray, floor: float = COV_FLOOR) -> tuple[np.ndarray, bool]:
     """Symmetrise `p`; if an eigenvalue is below `floor` (or not finite), clip it there.
 
     Returns `(p, repaired)`. Called after every update so that the covariance handed to
@@ -56,7 +59,7 @@ def repair_covariance(p: np.ndarray, floor: float = 1e-15) -> tuple[np.ndarray, 
     """
     p = 0.5 * (p + p.T)
     if not math.isfinite(p.sum()):  # one reduction instead of an elementwise test
-        return np.eye(len(p)) * 1e-2, True
+        return np.eye(len(p)) * COV_RESET_VAR, True
     # Cheap test first: a Cholesky succeeds exactly for SPD matrices.
     if dpotrf(p, lower=1)[1] == 0:
         return p, False
@@ -143,6 +146,25 @@ class AccDisturbance:
         self.lp_v = 0.0  # its running variance about that mean, g^2
         self.lowpass_body: np.ndarray | None = None  # (3,) unit, body frame; None: not yet available
         self.lowpass_density = math.inf  # g^2 s
+
+    def state(self) -> np.ndarray:
+        """(23,) float64, the state as the compiled filters (`_compiled`) carry it: `[has_mean,
+        m (3), v, q_I (4, wxyz), age, has_lowpass, lp (3), lp_mean (3), lp_v, has_body,
+        lowpass_body (3), lowpass_density]`; `set_state` takes it back."""
+        none3 = (0.0, 0.0, 0.0)
+        return np.array([float(self.m is not None), *(self.m or none3), self.v, *self.qi, self.age,
+                         float(self.lp is not None), *(self.lp or none3), *self.lp_mean, self.lp_v,
+                         float(self.lowpass_body is not None),
+                         *(none3 if self.lowpass_body is None else self.lowpass_body), self.lowpass_density])
+
+    def set_state(self, state: np.ndarray) -> None:
+        s = [float(v) for v in state]
+        self.m = tuple(s[1:4]) if s[0] else None
+        self.v, self.qi, self.age = s[4], tuple(s[5:9]), s[9]
+        self.lp = tuple(s[11:14]) if s[10] else None
+        self.lp_mean, self.lp_v = tuple(s[14:17]), s[17]
+        self.lowpass_body = np.array(s[19:22]) if s[18] else None
+        self.lowpass_density = s[22]
 
     def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
         """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
@@ -239,10 +261,20 @@ class RestDetector:
 
     __slots__ = ("gyr_th", "acc_th", "min_time", "window_s", "lp", "time_still")
 
-    def __init__(self, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float, window_s: float = 0.5) -> None:
+    def __init__(self, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float, window_s: float = REST_WINDOW_S) -> None:
         self.gyr_th, self.acc_th, self.min_time, self.window_s = gyr_th_rad_s, acc_th_g, min_time_s, window_s
         self.lp: np.ndarray | None = None
         self.time_still = 0.0
+
+    def state(self) -> np.ndarray:
+        """(5,) float64 `[has_lowpass, lp (3), time_still]`: the state as the compiled filters
+        (`_compiled`) carry it; `set_state` takes it back."""
+        lp = np.zeros(3) if self.lp is None else self.lp
+        return np.array([float(self.lp is not None), *lp, self.time_still])
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.lp = np.array(state[1:4], dtype=float) if state[0] else None
+        self.time_still = float(state[4])
 
     def update(self, gyr_rad_s: np.ndarray, acc_g: np.ndarray, dt_s: float) -> bool:
         """Feed one step (gyro (3,) rad/s, accelerometer (3,) g, body); -> at rest now."""

@@ -51,11 +51,17 @@ map, `fx`/`hx` the process and measurement models. Traps worked around:
 * FilterPy's sigma-point classes check `size(x) == n`; ours take the (n+1)-entry state
   with an n x n covariance.
 
-Two implementations of the same step (`impl` parameter): `"lean"` (default) runs predict and
-update as a handful of vectorised numpy calls over all sigma points at once (about 5x faster:
-70 vs 355 us per sample on ece276a/1);
-`"filterpy"` calls the per-sigma-point hooks and FilterPy's own `update()` (the reference;
-`tests/test_ukf.py` checks the two agree to 1e-12). Profile: see `benchmarks/bench_filters.py`.
+Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
+per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
+transform); `"lean"` runs predict and update as a handful of vectorised numpy calls over all
+sigma points at once (about 5x faster than filterpy; `tests/test_ukf.py` checks the two agree
+to 1e-12); `"compiled"` (the default) makes `estimate` run the whole recording in one numba
+kernel, `_compiled.ukf_kernel`, which does the lean step's arithmetic in explicit loops and
+records the same diagnostics (about 1 us per sample for `ukf`, 3-6 for `ukf-bias`, against
+60-130 and 120-390 for lean; `tests/test_compiled.py` checks it against lean to 1e-10). The lean
+numpy step stays the readable reference and is what `reset`/`step` (the streaming interface)
+run for compiled and lean alike. Why numba: see `_compiled`. Profile and timings:
+`benchmarks/bench_filters.py`.
 
 Sigma-point schemes (`sigma`): `"kraft"` (2n points at +-sqrt(n (P+Q)), weights 1/(2n); a
 zero-weight centre point is carried along only to start the iterative mean, which changes
@@ -99,6 +105,7 @@ from filterpy.kalman import UnscentedKalmanFilter
 
 from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
+from fusion.types import ImuSamples, Trajectory
 
 from ._attitude import (
     UNESTIMATED_VAR,
@@ -118,7 +125,7 @@ from .base import RecursiveEstimator
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
 
 Sigma = Literal["kraft", "julier", "merwe"]
-Impl = Literal["lean", "filterpy"]
+Impl = Literal["compiled", "lean", "filterpy"]
 
 
 # --------------------------------------------------------------------------- parameters
@@ -137,7 +144,10 @@ class UKFOptions(FilterParams):
         parameters (kappa for julier and merwe, alpha and beta for merwe only; setting one
         for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
-    impl: lean (vectorised) | filterpy (per-point hooks + FilterPy's update), same numbers.
+    impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
+        `_compiled`, the lean step's arithmetic) | lean (vectorised numpy step) | filterpy
+        (per-point hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run
+        the lean step for compiled and lean.
     """
 
     sigma: Sigma = "kraft"
@@ -146,7 +156,7 @@ class UKFOptions(FilterParams):
     beta: float = 2.0
     mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
     mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
-    impl: Impl = "lean"
+    impl: Impl = "compiled"
 
     def _check(self) -> None:
         super()._check()
@@ -155,8 +165,8 @@ class UKFOptions(FilterParams):
             raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {self.mean_tol_rad!r}")
         if int(self.mean_max_iter) != self.mean_max_iter or self.mean_max_iter < 1:
             raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {self.mean_max_iter!r}")
-        if self.impl not in ("lean", "filterpy"):
-            raise ValueError(f"{owner}: impl must be lean or filterpy, got {self.impl!r}")
+        if self.impl not in ("compiled", "lean", "filterpy"):
+            raise ValueError(f"{owner}: impl must be compiled, lean or filterpy, got {self.impl!r}")
         if self.impl == "filterpy" and self.heading_free:
             raise ValueError(
                 f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
@@ -532,6 +542,13 @@ class UKF(RecursiveEstimator):
     Params = UKFParams
     with_bias = False
 
+    def __init__(self, params: Any = None) -> None:
+        super().__init__(params)
+        if self.params.impl == "compiled":
+            from . import _compiled  # numba is imported when a compiled filter is built
+
+            _compiled.load()  # compile or load the kernels here, not in the first (timed) estimate
+
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
         q0 = np.asarray(init_quat_wxyz, dtype=float)
@@ -566,8 +583,8 @@ class UKF(RecursiveEstimator):
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self.lowpassed = False  # whether the last update used the low-passed accelerometer
-        self._predict = kf.predict_kraft if p.impl == "lean" else kf.predict_reference
-        self._update = kf.update_kraft if p.impl == "lean" else kf.update_reference
+        self._predict = kf.predict_reference if p.impl == "filterpy" else kf.predict_kraft
+        self._update = kf.update_reference if p.impl == "filterpy" else kf.update_kraft
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
@@ -654,6 +671,36 @@ class UKF(RecursiveEstimator):
             "cov_repairs": self.n_cov_repaired,
             "mean_iteration_cap_hits": self.n_mean_capped,
         }
+
+    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
+        """The base class's loop of `step` (impl=lean or filterpy), or the lean step's loop
+        compiled (impl=compiled, `_compiled.ukf_kernel`): same trajectory and diagnostics, and
+        the filter is left in the state of the last sample either way."""
+        p = self.params
+        if p.impl != "compiled":
+            return super().estimate(imu, init_quat_wxyz)
+        from . import _compiled  # numba is imported on first use
+
+        self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
+        kf, n = self.kf, self.n
+        out = _compiled.outputs(len(imu), n, init_quat_wxyz, self.current())
+        x, P = kf.x.copy(), kf.P.copy()
+        dist = self._dist.state()
+        rest = self._rest.state() if self._rest is not None else np.zeros(5)
+        o = _compiled.settings(p, n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
+                               mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
+        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled.ukf_kernel(
+            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
+            out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
+            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
+        kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
+        self._dist.set_state(dist)
+        if self._rest is not None:
+            self._rest.set_state(rest)
+        self.acc_var, self.at_rest, self.nis = float(out["acc_var_g2"][-1]), bool(out["at_rest"][-1]), float(out["nis"][-1])
+        self.lowpassed = bool(out["acc_lowpassed"][-1])
+        history = {key: out[key] for key in self.current()}
+        return Trajectory(imu.t, out["quat"], diagnostics={**history, **self.diagnostics()})
 
 
 class UKFBias(UKF):

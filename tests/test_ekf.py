@@ -16,15 +16,16 @@ def test_registry():
     assert ESTIMATORS["ekf"] is EKF
 
 
+@pytest.mark.parametrize("impl", ["compiled", "numpy"])
 @pytest.mark.parametrize("bias", [True, False])
-def test_without_accelerometer_and_noise_equals_dead_reckoning(bias):
+def test_without_accelerometer_and_noise_equals_dead_reckoning(bias, impl):
     imu, _ = synthetic(400)
     valid = np.ones(len(imu), bool)
     valid[100:130] = False
     imu = imu.replace(gyr_valid=valid)
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
     params = EKFParams(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, estimate_bias=bias,
-                       estimate_scale=bias)
+                       estimate_scale=bias, impl=impl)
     est = EKF(params).estimate(imu, q0)
     ref = DeadReckoning().estimate(imu, q0)
     assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9

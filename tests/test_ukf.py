@@ -198,8 +198,11 @@ def test_bad_initial_quaternion_raises():
 # ---------------------------------------------------------------- exact cases
 @pytest.mark.parametrize("cls,kw", [
     (UKF, {}), (UKF, {"sigma": "julier"}), (UKF, {"sigma": "merwe", "kappa": 1.0}), (UKF, {"impl": "filterpy"}),
+    (UKF, {"impl": "lean"}),
     (UKFBias, {"bias_walk_rad2_s3": 0.0, "init_bias_var_rad2_s2": 0.0, "init_scale_var": 0.0,
                "scale_walk_1_s": 0.0}),
+    (UKFBias, {"bias_walk_rad2_s3": 0.0, "init_bias_var_rad2_s2": 0.0, "init_scale_var": 0.0,
+               "scale_walk_1_s": 0.0, "impl": "lean"}),
 ])
 def test_without_accelerometer_and_noise_equals_dead_reckoning(cls, kw):
     imu, _ = synthetic(400)
@@ -219,7 +222,7 @@ def test_lean_step_equals_filterpy_reference(cls):
     # The lean step takes the residuals about the final mean to first order in the last
     # mean update (< mean_tol_rad); with a tight tolerance both paths agree to rounding.
     # FilterPy's update has no gain projection, so heading_free is off for both.
-    a = cls(cls.Params(mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
+    a = cls(cls.Params(impl="lean", mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
     b = cls(cls.Params(impl="filterpy", mean_tol_rad=1e-14, heading_free=False)).estimate(imu, truth[0])
     assert np.allclose(a.quat_wxyz, b.quat_wxyz, rtol=0, atol=1e-12)
     assert np.allclose(a.diagnostics["cov"], b.diagnostics["cov"], rtol=0, atol=1e-14)
@@ -357,19 +360,23 @@ def test_bounds_on_the_simulated_recording(spec, inclination, total):
     assert np.linalg.eigvalsh(cov[1:]).min() > 0.0
 
 
-@pytest.mark.parametrize("spec", ["ukf", "ukf-bias", "ekf"])
-def test_streaming_reset_and_step_equal_estimate(spec):
-    """A streaming user resets from the initial orientation alone and steps; same numbers as `estimate`."""
+@pytest.mark.parametrize("spec,reference", [("ukf", "impl=lean"), ("ukf-bias", "impl=lean"), ("ekf", "impl=numpy")])
+def test_streaming_reset_and_step_equal_estimate(spec, reference):
+    """A streaming user resets from the initial orientation alone and steps; the same numbers as
+    `estimate` with the numpy step (bit for bit) and as the compiled default (to 1e-10)."""
     imu, truth = synthetic(300, noise=0.01, seed=3)
-    batch = build(spec).estimate(imu, truth[0])
+    batch = build(f"{spec}:{reference}").estimate(imu, truth[0])
+    compiled = build(spec).estimate(imu, truth[0])
     est = build(spec)
     est.reset(truth[0])
     (gyr, valid), dt = imu.interval_rates(), imu.dt
     out = [est.step(gyr[k], dt[k], imu.acc_g[k + 1], valid[k]).copy() for k in range(len(imu) - 1)]
     np.testing.assert_array_equal(np.array(out), batch.quat_wxyz[1:])
+    np.testing.assert_allclose(np.array(out), compiled.quat_wxyz[1:], rtol=0, atol=1e-10)
     cov = batch.diagnostics["cov"]
-    assert cov.shape == (len(imu),) + est.current()["cov"].shape
+    assert cov.shape == compiled.diagnostics["cov"].shape == (len(imu),) + est.current()["cov"].shape
     np.testing.assert_array_equal(cov[-1], est.current()["cov"])
+    np.testing.assert_allclose(compiled.diagnostics["cov"][-1], est.current()["cov"], rtol=0, atol=1e-10)
 
 
 def test_filterpy_api_works_on_the_quaternion_ukf():

@@ -1,0 +1,947 @@
+"""Compiled per-sample loops of `ekf`, `ukf` and `ukf-bias` (numba).
+
+What was chosen and why. A recursive filter cannot be vectorised over time: every sample
+needs the state of the one before. Its numpy step works on 3x3 to 9x9 matrices, where each
+numpy call costs about a microsecond of overhead and the arithmetic a few nanoseconds, so the
+step ran at 40-280 us per sample. Here one `numba.njit` function per filter runs the *whole*
+loop of `RecursiveEstimator.estimate` over a recording, in explicit loops over those small
+matrices, and writes the same per-sample diagnostics arrays and counts. Numba rather than a C
+extension or Cython: no compiler at install time, the kernels stay Python source next to the
+reference, and the machine code is cached on disk (`cache=True`), so the compile time
+(seconds) is paid once per installation, not per run. A compiled filter loads the kernels
+when it is built (`load`; about half a second in a new process), so that its `estimate` is
+timed as the filter alone; numba is not imported until then (`impl=numpy`/`lean`/`filterpy`
+never import it).
+
+The numpy steps are the reference. `EKF.step`, `UKF.step` and the helpers of `_attitude` are
+the definition of the filters (readable, and what a streaming user and the tutorial call);
+every line here implements a line there, in the same order where the order matters for
+rounding, and `tests/test_compiled.py` checks that both paths give the same quaternions and
+diagnostics to 1e-10 on real and simulated recordings with every option. The equations and
+their papers are cited in `ekf`, `ukf` and `_attitude`; the kernels cite the step of the
+reference they implement. Where the compiled path is organised differently it says so: the
+EKF's covariance products use the block structure of F and H (the reference multiplies the
+full matrices; zero blocks contribute exact zeros), and the Joseph form is expanded as
+`M = P - K (H P)`, `P = M - (M H^T) K^T + R K K^T`.
+
+Constants that decide the maths (the small-angle limits of `fusion.quaternion`, the covariance
+floors of `_attitude`, the chi-square bound of `ekf`) are passed in at run time from the
+reference modules (`settings`), not frozen into the cached machine code: numba keys its cache on
+this file alone and would not see a change elsewhere.
+
+Cache location: next to this file (`__pycache__`); if that folder is not writable, numba's
+user-wide cache folder; `NUMBA_CACHE_DIR` overrides both. If no folder is writable the kernels
+are compiled in every process (a warning says so) and still run.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from collections import namedtuple
+from typing import Any
+
+import numba
+import numpy as np
+
+from fusion import quaternion as quat
+
+from ._attitude import COV_FLOOR, COV_RESET_VAR, SQRT_FLOOR
+from .filter_params import BiasFilterParams
+
+_GATES = {"off": 0, "skip": 1, "inflate": 2}
+_OPTIONS = dict(error_model="numpy", nogil=True)
+_cache = True  # False once numba has found no writable cache folder
+
+
+def _jit(func):
+    """`numba.njit` with the on-disk cache, IEEE division (`error_model="numpy"`: x / 0 is inf
+    or nan as in numpy, never an exception) and the GIL released. Without a writable cache
+    folder (numba raises at decoration), one warning and no cache."""
+    global _cache
+    if _cache:
+        try:
+            return numba.njit(cache=True, **_OPTIONS)(func)
+        except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+            _cache = False
+            warnings.warn(f"fusion.estimators: the compiled filters cannot be cached ({exc}); they are "
+                          "compiled in every process. Set NUMBA_CACHE_DIR to a writable folder to cache them.",
+                          RuntimeWarning, stacklevel=2)
+    return numba.njit(**_OPTIONS)(func)
+
+
+# Options of a kernel run, all scalars (one compiled signature serves every parameter set).
+Settings = namedtuple("Settings", [
+    "n",  # error-state dimension: 3, 6 or 9
+    "use_acc", "gate", "gate_g",  # accelerometer update on, gate (0 off, 1 skip, 2 inflate), gate_g (g)
+    "acc_noise", "corr_s", "dist_window",  # R (g^2 s), disturbance correlation time and window (s)
+    "lowpass_s", "lowpass_window", "process_noise",  # accelerometer low-pass (s), its variance window (s), Q (rad^2/s)
+    "heading_free",
+    "rest_on", "rest_gyr", "rest_acc", "rest_time", "rest_window", "rest_noise",  # rest detection + update
+    "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
+    "chi2",  # ekf: NIS above which bias and scale are not corrected (inf: never)
+    "scale_noise",  # ukf: Qs, s
+    "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
+    "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
+    "cov_floor", "cov_reset", "sqrt_floor",  # _attitude's covariance repair
+])
+
+
+def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noise: float = 0.0,
+             sqrt_c: float = 0.0, mean_tol: float = 0.0, mean_max_iter: int = 0) -> Settings:
+    """The kernel options of a filter's parameters `p` (a `FilterParams`), error dimension `n`
+    and rest detector `rest` (the `_attitude.RestDetector` its reset built, or None)."""
+    bias = isinstance(p, BiasFilterParams) and n > 3
+    rest_on = bias and rest is not None
+    return Settings(
+        int(n), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
+        float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
+        float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
+        bool(p.heading_free),
+        bool(rest_on), float(rest.gyr_th) if rest_on else 0.0, float(rest.acc_th) if rest_on else 0.0,
+        float(rest.min_time) if rest_on else math.inf, float(rest.window_s) if rest_on else 1.0,
+        float(p.rest_noise_rad2_s) if bias else 0.0,
+        float(p.bias_max_rad_s) if bias else math.inf, float(p.scale_max) if bias else math.inf,
+        float(chi2), float(scale_noise), float(sqrt_c), float(mean_tol), int(mean_max_iter),
+        float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD),
+        tuple(float(c) for c in quat._A[1]), tuple(float(c) for c in quat._B[1]),
+        float(COV_FLOOR), float(COV_RESET_VAR), float(SQRT_FLOOR),
+    )
+
+
+def inputs(imu: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`(gyr (N-1, 3), valid (N-1,), dt (N-1,), acc (N, 3))` as the base class's loop reads them
+    (`ImuSamples.interval_rates`), as writable C arrays (one compiled signature for all)."""
+    gyr, valid = imu.interval_rates()
+    return (np.ascontiguousarray(gyr, dtype=float), np.ascontiguousarray(valid, dtype=bool),
+            np.ascontiguousarray(imu.dt, dtype=float), np.array(imu.acc_g, dtype=float, order="C"))
+
+
+def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per-sample arrays the kernels fill from row 1 on. Row 0 is what `RecursiveEstimator.estimate`
+    records after the reset: the initial quaternion as given and the filter's `current()`."""
+    out = {
+        "quat": np.zeros((n_samples, 4)),
+        "cov": np.zeros((n_samples, n, n)),
+        "gyr_bias_rad_s": np.zeros((n_samples, 3)),
+        "gyr_scale": np.zeros((n_samples, 3)),
+        "mean_iterations": np.zeros(n_samples, dtype=np.int64),
+        "acc_var_g2": np.zeros(n_samples),
+        "at_rest": np.zeros(n_samples, dtype=bool),
+        "nis": np.zeros(n_samples),
+        "bias_guarded": np.zeros(n_samples, dtype=bool),
+        "acc_lowpassed": np.zeros(n_samples, dtype=bool),
+    }
+    out["quat"][0] = init_quat_wxyz
+    for key, value in current.items():
+        out[key][0] = value
+    return out
+
+
+_loaded = False
+
+
+def load() -> None:
+    """Compile the kernels now, or load them from numba's cache: run each once on a one-step
+    recording. The first call in a process costs the compilation (seconds, once per
+    installation and numba version) or the cache load (about half a second); the filters call
+    this when they are built, so that `estimate` is timed as the filter alone."""
+    global _loaded
+    if _loaded:
+        return
+    n = 9
+    o = settings(BiasFilterParams(), n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
+    inputs_ = (np.zeros((1, 3)), np.ones(1, dtype=bool), np.full(1, 0.01), np.tile([0.0, 0.0, 1.0], (2, 1)))
+    unit = np.array([1.0, 0.0, 0.0, 0.0])
+    state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), np.array([0.0] * 5 + [1.0] + [0.0] * 16 + [math.inf]), np.zeros(5))
+    out = outputs(2, n, unit, {})
+    P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
+    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, o, out["quat"], out["cov"],
+               out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"],
+               out["acc_lowpassed"])
+    weights = np.full(2 * n + 1, 0.5 / n)
+    weights[0] = 0.0
+    P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
+    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
+               out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
+               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
+    _loaded = True
+
+
+# ============================================================================ quaternions
+# The scalar path of `fusion.quaternion`, as tuples of floats.
+@_jit
+def qmul(a, b):
+    """Hamilton product a * b (`quaternion.multiply_floats`)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw)
+
+
+@_jit
+def qexp(vx, vy, vz, small):
+    """exp([0, v / 2]) (`quaternion.exp_floats`); `small`: `quaternion.SMALL_ANGLE`."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle <= small:
+        return (1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz)
+    s = math.sin(0.5 * angle) / angle
+    return (math.cos(0.5 * angle), vx * s, vy * s, vz * s)
+
+
+@_jit
+def qlog(q):
+    """2 log(q), shortest rotation, q and -q alike (`quaternion.to_rotvec`)."""
+    w, x, y, z = q
+    s = math.sqrt(x * x + y * y + z * z)
+    scale = math.copysign(2.0 * math.atan2(s, abs(w)) / max(s, 1e-300), w)
+    return (x * scale, y * scale, z * scale)
+
+
+@_jit
+def qnormalize(q):
+    """q / |q| (`quaternion.normalize_floats`)."""
+    w, x, y, z = q
+    m = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / m, x / m, y / m, z / m)
+
+
+@_jit
+def rotate(q, vx, vy, vz):
+    """R(q) v (`quaternion.rotate_floats`)."""
+    w, x, y, z = q
+    return ((1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
+            2 * (x * y + w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z - w * x) * vz,
+            2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz)
+
+
+@_jit
+def gravity(q):
+    """R(q)^T e_z (`quaternion.gravity_in_body_floats`)."""
+    w, x, y, z = q
+    return (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z)
+
+
+@_jit
+def right_jacobian_dt(tx, ty, tz, dt, o, out):
+    """out = J_r(t) dt, the SO(3) right Jacobian (`quaternion.right_jacobian_floats`) times dt."""
+    t = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if t > o.series_rad:
+        a = (1.0 - math.cos(t)) / (t * t)
+        b = (t - math.sin(t)) / (t * t * t)
+    else:
+        t2 = t * t
+        a = 0.0
+        b = 0.0
+        for i in range(2, -1, -1):
+            a = a * t2 + o.jac_a[i]
+            b = b * t2 + o.jac_b[i]
+    S = ((0.0, -tz, ty), (tz, 0.0, -tx), (-ty, tx, 0.0))
+    for i in range(3):
+        for j in range(3):
+            ss = S[i][0] * S[0][j] + S[i][1] * S[1][j] + S[i][2] * S[2][j]
+            out[i, j] = ((1.0 if i == j else 0.0) - a * S[i][j] + b * ss) * dt
+
+
+# ============================================================================ small matrices
+@_jit
+def inv_sym3(S, out):
+    """Inverse of a symmetric 3x3 matrix by its adjugate, from its upper triangle (`_attitude.inv_sym3`)."""
+    a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    out[0, 0], out[0, 1], out[0, 2] = A / det, B / det, C / det
+    out[1, 0], out[1, 1], out[1, 2] = B / det, D / det, E / det
+    out[2, 0], out[2, 1], out[2, 2] = C / det, E / det, F / det
+
+
+@_jit
+def cholesky(A, L, n):
+    """Lower Cholesky factor of A (n x n, lower triangle read) into L, upper part zeroed; False
+    (instead of an exception) if A is not positive definite, as LAPACK's dpotrf reports it."""
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:  # also false for nan
+            return False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@_jit
+def sqrt_psd(A, L, n, floor):
+    """L with L L^T = A (`_attitude.sqrt_psd`): Cholesky, else the clipped eigen-decomposition
+    of the symmetrised A. Returns True when the fallback was needed."""
+    if cholesky(A, L, n):
+        return False
+    lam, vec = np.linalg.eigh(0.5 * (A + A.T))
+    for j in range(n):
+        v = lam[j]
+        if v < floor:
+            v = floor
+        r = math.sqrt(v)
+        for i in range(n):
+            L[i, j] = vec[i, j] * r
+    return True
+
+
+@_jit
+def repair_covariance(P, n, o, L):
+    """In place, `_attitude.repair_covariance`: symmetrise; a non-finite P becomes cov_reset * I;
+    a P that is not positive definite gets its eigenvalues clipped to cov_floor. -> repaired."""
+    total = 0.0
+    for i in range(n):
+        for j in range(i, n):
+            v = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = v
+            P[j, i] = v
+            total += v if i == j else 2.0 * v
+    if not math.isfinite(total):
+        for i in range(n):
+            for j in range(n):
+                P[i, j] = o.cov_reset if i == j else 0.0
+        return True
+    if cholesky(P, L, n):
+        return False
+    lam, vec = np.linalg.eigh(P.copy())
+    for j in range(n):
+        if lam[j] < o.cov_floor:
+            lam[j] = o.cov_floor
+    for a in range(n):
+        for b in range(n):
+            v = 0.0
+            for j in range(n):
+                v += vec[a, j] * lam[j] * vec[b, j]
+            P[a, b] = v
+    return True
+
+
+@_jit
+def joseph(P, K, Hb, c0, r, n, G, M):
+    """P <- (I - K H) P (I - K H)^T + r K K^T for H (3 x n) zero but for the 3x3 block Hb at
+    columns c0..c0+2 (the Joseph form of `ekf` and of `_attitude.bias_rest_update`), as
+    M = P - K (H P), P = M - (M H^T) K^T + r K K^T."""
+    for j in range(3):  # G = H P (3 x n)
+        for c in range(n):
+            G[j, c] = Hb[j, 0] * P[c0, c] + Hb[j, 1] * P[c0 + 1, c] + Hb[j, 2] * P[c0 + 2, c]
+    for i in range(n):  # M = P - K G
+        for c in range(n):
+            M[i, c] = P[i, c] - (K[i, 0] * G[0, c] + K[i, 1] * G[1, c] + K[i, 2] * G[2, c])
+    for i in range(n):
+        e0 = Hb[0, 0] * M[i, c0] + Hb[0, 1] * M[i, c0 + 1] + Hb[0, 2] * M[i, c0 + 2]  # (M H^T)[i]
+        e1 = Hb[1, 0] * M[i, c0] + Hb[1, 1] * M[i, c0 + 1] + Hb[1, 2] * M[i, c0 + 2]
+        e2 = Hb[2, 0] * M[i, c0] + Hb[2, 1] * M[i, c0 + 1] + Hb[2, 2] * M[i, c0 + 2]
+        for c in range(n):
+            P[i, c] = (M[i, c] - (e0 * K[c, 0] + e1 * K[c, 1] + e2 * K[c, 2])
+                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
+
+
+# ============================================================================ _attitude helpers
+@_jit
+def acc_variance_scale(ax, ay, az, gate, gate_g):
+    """`_attitude.acc_variance_scale` (gate 0 off, 1 skip, 2 inflate)."""
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    if not math.isfinite(norm):
+        return math.inf
+    if gate == 0:
+        return 1.0
+    dev = abs(norm - 1.0)
+    if gate == 1:
+        return math.inf if dev > gate_g else 1.0
+    r = dev / gate_g
+    return 1.0 + r * r
+
+
+@_jit
+def disturbance_lose_frame(st):
+    """`AccDisturbance.lose_frame` on the state array of `AccDisturbance.state`."""
+    st[0] = 0.0  # no mean
+    st[4] = 0.0  # v
+    st[9] = 0.0  # age
+    st[10] = 0.0  # no low-pass
+    st[14], st[15], st[16], st[17] = 0.0, 0.0, 0.0, 0.0  # lp_mean, lp_v
+    st[18] = 0.0  # no lowpass_body
+    st[22] = math.inf  # lowpass_density
+
+
+@_jit
+def disturbance_update(st, dq, ax, ay, az, dt, o):
+    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0) on its state array; -> d, g^2."""
+    qi = qnormalize(qmul((st[5], st[6], st[7], st[8]), dq))
+    st[5], st[6], st[7], st[8] = qi
+    wx, wy, wz = rotate(qi, ax, ay, az)
+    norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
+    nd2 = norm_dev * norm_dev
+    if st[0] == 0.0:
+        st[0], st[1], st[2], st[3] = 1.0, wx, wy, wz
+    ex, ey, ez = wx - st[1], wy - st[2], wz - st[3]
+    inst = ex * ex + ey * ey + ez * ez
+    alpha = -math.expm1(-dt / o.dist_window)
+    st[1], st[2], st[3] = st[1] + alpha * ex, st[2] + alpha * ey, st[3] + alpha * ez
+    st[4] += alpha * (inst - st[4])
+    st[9] += dt
+    seen = -math.expm1(-st[9] / o.dist_window)
+    if o.lowpass_s > 0.0:
+        _lowpass(st, qi, wx, wy, wz, dt, o)
+    d = st[4] / seen  # max(v / seen, inst, nd2) with Python's max semantics
+    if inst > d:
+        d = inst
+    if nd2 > d:
+        d = nd2
+    return d
+
+
+@_jit
+def _lowpass(st, qi, wx, wy, wz, dt, o):
+    """`AccDisturbance._lowpass`: a_I low-passed, its density, its direction in the body frame."""
+    if st[10] == 0.0:
+        st[10], st[11], st[12], st[13] = 1.0, wx, wy, wz
+        st[14], st[15], st[16] = wx, wy, wz
+    beta = -math.expm1(-dt / o.lowpass_s)
+    gamma = -math.expm1(-dt / o.lowpass_window)
+    lx, ly, lz = st[11] + beta * (wx - st[11]), st[12] + beta * (wy - st[12]), st[13] + beta * (wz - st[13])
+    st[11], st[12], st[13] = lx, ly, lz
+    ex, ey, ez = lx - st[14], ly - st[15], lz - st[16]
+    st[14], st[15], st[16] = st[14] + gamma * ex, st[15] + gamma * ey, st[16] + gamma * ez
+    st[17] += gamma * (ex * ex + ey * ey + ez * ez - st[17])
+    seen = -math.expm1(-st[9] / o.lowpass_window)
+    st[22] = 2.0 * o.lowpass_s * st[17] / seen
+    bx, by, bz = rotate((qi[0], -qi[1], -qi[2], -qi[3]), lx, ly, lz)  # back into the body frame
+    norm = math.sqrt(bx * bx + by * by + bz * bz)
+    if norm > 0.0:
+        st[18], st[19], st[20], st[21] = 1.0, bx / norm, by / norm, bz / norm
+    else:
+        st[18] = 0.0
+
+
+@_jit
+def lowpass_drift_density(lowpass_s, w2, rate_noise, bias_var, scale_var):
+    """`_attitude.lowpass_drift_density`, with the squared rate w2 ((rad/s)^2; 0 when not integrated)."""
+    return 2.0 * lowpass_s * (lowpass_s * rate_noise + lowpass_s ** 2 * (w2 * scale_var + bias_var))
+
+
+@_jit
+def acc_measurement(st, ax, ay, az, o, d, drift):
+    """`_attitude.acc_measurement`: the raw sample or the low-passed direction, whichever has the
+    smaller noise density; -> (z (3 floats), density g^2 s, low-passed)."""
+    raw = o.acc_noise + 2.0 * o.corr_s * d
+    if st[18] != 0.0:
+        lowpassed = o.acc_noise + st[22] + drift
+        if lowpassed < raw:
+            return st[19], st[20], st[21], lowpassed, True
+    return ax, ay, az, raw, False
+
+
+@_jit
+def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o):
+    """The measurement and variance of one accelerometer update, as the filters' steps choose
+    them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq),
+    the low-pass frame drift (w2: the squared corrected rate; rate_noise: its noise density), the
+    raw or the low-passed sample (`_attitude.acc_measurement`), its variance times the gate's
+    scale; without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2,
+    low-passed)."""
+    if o.corr_s > 0.0:
+        d = disturbance_update(dist, dq, ax, ay, az, dt, o)
+        n = o.n
+        drift = lowpass_drift_density(o.lowpass_s, w2, rate_noise, _max_diag(P, 3) if n > 3 else 0.0,
+                                      _max_diag(P, 6) if n > 6 else 0.0)
+        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift)
+        return mx, my, mz, density / dt * scale, lowpassed
+    return ax, ay, az, o.acc_noise / dt * scale, False
+
+
+@_jit
+def _max_diag(P, i0):
+    """max(P[i0, i0], P[i0 + 1, i0 + 1], P[i0 + 2, i0 + 2]) with Python's max semantics."""
+    v = P[i0, i0]
+    for i in range(i0 + 1, i0 + 3):
+        if P[i, i] > v:
+            v = P[i, i]
+    return v
+
+
+@_jit
+def rest_update(st, gx, gy, gz, ax, ay, az, dt, o):
+    """`RestDetector.update` on its state array `[has_lowpass, lp (3), time_still]`; -> at rest."""
+    if not (math.isfinite(ax + ay + az) and math.isfinite(gx + gy + gz)):
+        st[4] = 0.0
+        return False
+    if st[0] == 0.0:
+        st[0], st[1], st[2], st[3] = 1.0, ax, ay, az
+    alpha = -math.expm1(-dt / o.rest_window)
+    dx, dy, dz = ax - st[1], ay - st[2], az - st[3]
+    st[1], st[2], st[3] = st[1] + alpha * dx, st[2] + alpha * dy, st[3] + alpha * dz
+    g = gx * gx + gy * gy + gz * gz
+    a = ax * ax + ay * ay + az * az
+    still = (g < o.rest_gyr * o.rest_gyr and dx * dx + dy * dy + dz * dz < o.rest_acc * o.rest_acc
+             and abs(math.sqrt(a) - 1.0) < o.rest_acc)
+    st[4] = st[4] + dt if still else 0.0
+    return st[4] >= o.rest_time
+
+
+@_jit
+def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, Hb, G, M):
+    """`_attitude.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0];
+    P updated in place (Joseph form), the correction into dx (n,)."""
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = P[3 + i, 3 + j] + (r if i == j else 0.0)
+            Hb[i, j] = 1.0 if i == j else 0.0
+    inv_sym3(S, Sinv)
+    yx, yy, yz = gx - bx, gy - by, gz - bz
+    for i in range(n):
+        for j in range(3):
+            K[i, j] = P[i, 3] * Sinv[0, j] + P[i, 4] * Sinv[1, j] + P[i, 5] * Sinv[2, j]
+        dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
+    joseph(P, K, Hb, 3, r, n, G, M)
+
+
+@_jit
+def _nis(yx, yy, yz, Sinv):
+    """y^T S^-1 y, as (y @ Sinv) @ y."""
+    t0 = yx * Sinv[0, 0] + yy * Sinv[1, 0] + yz * Sinv[2, 0]
+    t1 = yx * Sinv[0, 1] + yy * Sinv[1, 1] + yz * Sinv[2, 1]
+    t2 = yx * Sinv[0, 2] + yy * Sinv[1, 2] + yz * Sinv[2, 2]
+    return t0 * yx + t1 * yy + t2 * yz
+
+
+@_jit
+def _project_heading(K, row0, hx, hy, hz):
+    """K[row0:row0+3] <- (I - h h^T) K[row0:row0+3]: no correction about the vertical h."""
+    for j in range(K.shape[1]):
+        hk = hx * K[row0, j] + hy * K[row0 + 1, j] + hz * K[row0 + 2, j]
+        K[row0, j] -= hx * hk
+        K[row0 + 1, j] -= hy * hk
+        K[row0 + 2, j] -= hz * hk
+
+
+@_jit
+def _clip(x, lo, hi):
+    """np.clip for one float (nan passes through)."""
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@_jit
+def _sample(gyr, valid, acc, k):
+    """Step k's gyro reading, the accelerometer sample at its end, and whether the gyro is usable
+    (marked valid and finite)."""
+    gx, gy, gz = gyr[k, 0], gyr[k, 1], gyr[k, 2]
+    ok = valid[k] and math.isfinite(gx) and math.isfinite(gy) and math.isfinite(gz)
+    return gx, gy, gz, acc[k + 1, 0], acc[k + 1, 1], acc[k + 1, 2], ok
+
+
+# ============================================================================ ekf
+@_jit
+def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
+               out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard, out_lowpassed):
+    """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
+
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (23,), rest (5,). Qrate, Qbad
+    (n, n) as built by `EKF.reset`. Fills rows 1.. of the (N, ...) outputs; returns (updates
+    skipped, covariance repairs).
+    """
+    n = o.n
+    small = o.small_angle
+    F = np.zeros((n, n))
+    FP = np.empty((n, n))
+    J = np.empty((3, 3))
+    Hs = np.zeros((3, 3))
+    PHt = np.empty((n, 3))
+    S = np.empty((3, 3))
+    Sinv = np.empty((3, 3))
+    K = np.empty((n, 3))
+    dx = np.empty(n)
+    G = np.empty((3, n))
+    M = np.empty((n, n))
+    L = np.empty((n, n))
+    q = (qio[0], qio[1], qio[2], qio[3])
+    skipped = 0
+    repaired = 0
+    for k in range(dt.shape[0]):
+        h = dt[k]
+        gx, gy, gz, ax, ay, az, ok = _sample(gyr, valid, acc, k)
+        ux, uy, uz = gx, gy, gz
+        sx, sy, sz = 1.0, 1.0, 1.0
+        if ok:
+            if n > 3:
+                ux, uy, uz = gx - b[0], gy - b[1], gz - b[2]
+            if n > 6:
+                sx, sy, sz = 1.0 + s[0], 1.0 + s[1], 1.0 + s[2]
+                tx, ty, tz = ux * sx * h, uy * sy * h, uz * sz * h  # w_true = diag(1 + s) (w_meas - b)
+            else:
+                tx, ty, tz = ux * h, uy * h, uz * h
+        else:  # no rate integration; the attitude noise is inflated below
+            tx, ty, tz = 0.0, 0.0, 0.0
+            disturbance_lose_frame(dist)
+        d = qexp(tx, ty, tz, small)
+        q = qmul(q, d)
+        # F[:3, :3] = R(theta)^T; F[:3, 3:6] = -J_r diag(1 + s) dt; F[:3, 6:] = J_r diag(w - b) dt
+        dw, dxx, dyy, dzz = d
+        F[0, 0] = 1 - 2 * (dyy * dyy + dzz * dzz)
+        F[1, 0] = 2 * (dxx * dyy - dw * dzz)
+        F[2, 0] = 2 * (dxx * dzz + dw * dyy)
+        F[0, 1] = 2 * (dxx * dyy + dw * dzz)
+        F[1, 1] = 1 - 2 * (dxx * dxx + dzz * dzz)
+        F[2, 1] = 2 * (dyy * dzz - dw * dxx)
+        F[0, 2] = 2 * (dxx * dzz - dw * dyy)
+        F[1, 2] = 2 * (dyy * dzz + dw * dxx)
+        F[2, 2] = 1 - 2 * (dxx * dxx + dyy * dyy)
+        if n > 3:
+            right_jacobian_dt(tx, ty, tz, h, o, J)
+            for i in range(3):
+                for j in range(3):
+                    if not ok:  # the rate was not integrated: no bias or scale enters
+                        F[i, 3 + j] = 0.0
+                        if n > 6:
+                            F[i, 6 + j] = 0.0
+                    elif n > 6:
+                        F[i, 3 + j] = -J[i, j] * (sx if j == 0 else sy if j == 1 else sz)
+                        F[i, 6 + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
+                    else:
+                        F[i, 3 + j] = -J[i, j]
+        for i in range(3, n):
+            F[i, i] = 1.0
+        # P <- F P F^T + Q, with F = [[F_top], [0, I]]: rows and columns 3.. pass through.
+        for i in range(3):
+            for c in range(n):
+                v = 0.0
+                for j in range(n):
+                    v += F[i, j] * P[j, c]
+                FP[i, c] = v
+        for i in range(3, n):
+            for c in range(n):
+                FP[i, c] = P[i, c]
+        hh = h * h
+        for i in range(n):
+            for c in range(n):
+                if c < 3:
+                    v = 0.0
+                    for j in range(n):
+                        v += FP[i, j] * F[c, j]
+                else:
+                    v = FP[i, c]
+                qn = Qrate[i, c] * h
+                if not ok:
+                    qn = qn + Qbad[i, c] * hh
+                P[i, c] = v + qn
+        at_rest = False
+        if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
+            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
+            bias_rest_update(P, n, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Hs, G, M)
+            q = qmul(q, qexp(dx[0], dx[1], dx[2], small))
+            for i in range(3):
+                b[i] = b[i] + dx[3 + i]
+                if n > 6:
+                    s[i] = s[i] + dx[6 + i]
+            at_rest = True
+        var = math.nan
+        nis = math.nan
+        guarded = False
+        lowpassed = False
+        scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
+        if scale < math.inf:
+            rx, ry, rz = tx / h, ty / h, tz / h
+            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, rx * rx + ry * ry + rz * rz,
+                                                   o.process_noise, P, o)
+            var = r
+            hx, hy, hz = gravity(q)
+            Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
+            Hs[1, 0], Hs[1, 1], Hs[1, 2] = hz, 0.0, -hx
+            Hs[2, 0], Hs[2, 1], Hs[2, 2] = -hy, hx, 0.0
+            for i in range(n):  # P H^T (H is zero beyond column 2)
+                for j in range(3):
+                    PHt[i, j] = P[i, 0] * Hs[j, 0] + P[i, 1] * Hs[j, 1] + P[i, 2] * Hs[j, 2]
+            for i in range(3):
+                for j in range(3):
+                    S[i, j] = Hs[i, 0] * PHt[0, j] + Hs[i, 1] * PHt[1, j] + Hs[i, 2] * PHt[2, j]
+                S[i, i] += r
+            inv_sym3(S, Sinv)
+            for i in range(n):
+                for j in range(3):
+                    K[i, j] = PHt[i, 0] * Sinv[0, j] + PHt[i, 1] * Sinv[1, j] + PHt[i, 2] * Sinv[2, j]
+            if o.heading_free:  # K <- (I - h h^T) K on the attitude and bias rows
+                _project_heading(K, 0, hx, hy, hz)
+                if n > 3:
+                    _project_heading(K, 3, hx, hy, hz)
+            yx, yy, yz = mx - hx, my - hy, mz - hz
+            nis = _nis(yx, yy, yz, Sinv)
+            if n > 3 and nis > o.chi2:  # inconsistent innovation: correct the attitude only
+                guarded = True
+                for i in range(3, n):
+                    K[i, 0] = 0.0
+                    K[i, 1] = 0.0
+                    K[i, 2] = 0.0
+            for i in range(n):
+                dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
+            q = qmul(q, qexp(dx[0], dx[1], dx[2], small))
+            for i in range(3):
+                if n > 3:
+                    b[i] = b[i] + dx[3 + i]
+                if n > 6:
+                    s[i] = s[i] + dx[6 + i]
+            joseph(P, K, Hs, 0, r, n, G, M)
+        else:
+            skipped += 1
+        if n > 3:
+            for i in range(3):
+                b[i] = _clip(b[i], -o.bias_max, o.bias_max)
+        if n > 6:
+            for i in range(3):
+                s[i] = _clip(s[i], -o.scale_max, o.scale_max)
+        q = qnormalize(q)
+        if repair_covariance(P, n, o, L):
+            repaired += 1
+        out_q[k + 1, 0], out_q[k + 1, 1], out_q[k + 1, 2], out_q[k + 1, 3] = q
+        out_cov[k + 1, :, :] = P
+        out_b[k + 1, :] = b
+        out_s[k + 1, :] = s
+        out_var[k + 1] = var
+        out_rest[k + 1] = at_rest
+        out_nis[k + 1] = nis
+        out_guard[k + 1] = guarded
+        out_lowpassed[k + 1] = lowpassed
+    qio[0], qio[1], qio[2], qio[3] = q
+    return skipped, repaired
+
+
+# ============================================================================ ukf, ukf-bias
+@_jit
+def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
+               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
+    """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
+    `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
+
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (23,), rest (5,). Qrate, Qbad
+    (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the sigma-point weights, centre first.
+    Fills rows 1.. of the (N, ...) outputs; returns (updates skipped, square-root recoveries,
+    covariance repairs, mean-iteration cap hits).
+    """
+    n = o.n
+    m = 2 * n + 1
+    small = o.small_angle
+    A = np.empty((n, n))
+    L = np.empty((n, n))
+    off = np.zeros((m, n))
+    sig = np.empty((m, n + 1))
+    err = np.empty((m, 3))
+    res = np.empty((m, n))
+    dZ = np.empty((m, 3))
+    WdZ = np.empty((m, 3))
+    S = np.empty((3, 3))
+    Sinv = np.empty((3, 3))
+    Pxz = np.empty((n, 3))
+    K = np.empty((n, 3))
+    KS = np.empty((n, 3))
+    dx = np.empty(n)
+    Hb = np.empty((3, 3))
+    G = np.empty((3, n))
+    M = np.empty((n, n))
+    skipped = 0
+    sqrt_recovered = 0
+    repaired = 0
+    capped = 0
+    iters = 0
+    for k in range(dt.shape[0]):
+        h = dt[k]
+        gx, gy, gz, ax, ay, az, ok = _sample(gyr, valid, acc, k)
+        hh = h * h
+        scale_noise = ok and o.scale_noise > 0.0  # ukf only: Qs w_i^2 dt added to the attitude noise
+        for i in range(n):  # A = P + Q
+            for c in range(n):
+                qn = Qrate[i, c] * h
+                if not ok:  # no rate integration; inflate the attitude noise instead
+                    qn = qn + Qbad[i, c] * hh
+                elif scale_noise and i == c and i < 3:
+                    g = gx if i == 0 else gy if i == 1 else gz
+                    qn += o.scale_noise * g * g * h
+                A[i, c] = P[i, c] + qn
+        if ok:
+            # The mean rate increment, for the disturbance estimator's strapdown frame.
+            wx, wy, wz = gx, gy, gz
+            if n > 3:
+                wx, wy, wz = gx - x[4], gy - x[5], gz - x[6]
+            if n > 6:
+                wx, wy, wz = wx * (1.0 + x[7]), wy * (1.0 + x[8]), wz * (1.0 + x[9])
+            dq = qexp(wx * h, wy * h, wz * h, small)
+        else:
+            wx, wy, wz = 0.0, 0.0, 0.0
+            dq = (1.0, 0.0, 0.0, 0.0)
+            disturbance_lose_frame(dist)
+        # ---- predict (steps 1-5)
+        if sqrt_psd(A, L, n, o.sqrt_floor):  # step 2: +- columns of sqrt(c (P + Q))
+            sqrt_recovered += 1
+        for i in range(n):
+            for j in range(n):
+                v = L[j, i] * o.sqrt_c
+                off[1 + i, j] = v
+                off[1 + n + i, j] = -v
+        xq = (x[0], x[1], x[2], x[3])
+        for i in range(m):
+            X = qmul(xq, qexp(off[i, 0], off[i, 1], off[i, 2], small))  # step 3
+            if not ok:
+                sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = X
+                for j in range(3, n):
+                    sig[i, j + 1] = x[j + 1] + off[i, j]
+            elif n > 3:
+                bx, by, bz = x[4] + off[i, 3], x[5] + off[i, 4], x[6] + off[i, 5]
+                rx, ry, rz = gx - bx, gy - by, gz - bz
+                if n > 6:
+                    s0, s1, s2 = x[7] + off[i, 6], x[8] + off[i, 7], x[9] + off[i, 8]
+                    rx, ry, rz = rx * (1.0 + s0), ry * (1.0 + s1), rz * (1.0 + s2)
+                    sig[i, 7], sig[i, 8], sig[i, 9] = s0, s1, s2
+                Y = qmul(X, qexp(rx * h, ry * h, rz * h, small))  # steps 1, 4, per point
+                sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = Y
+                sig[i, 4], sig[i, 5], sig[i, 6] = bx, by, bz
+            else:
+                sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = qmul(X, dq)  # steps 1, 4 (dq: exp(w dt / 2))
+        # step 5: iterative quaternion mean (`ukf.quaternion_mean`)
+        qt = (sig[0, 0], sig[0, 1], sig[0, 2], sig[0, 3])
+        ex, ey, ez = 0.0, 0.0, 0.0
+        for it in range(1, o.mean_max_iter + 1):
+            iters = it
+            ci = (qt[0], -qt[1], -qt[2], -qt[3])
+            ex, ey, ez = 0.0, 0.0, 0.0
+            for i in range(m):
+                e0, e1, e2 = qlog(qmul(ci, (sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3])))
+                err[i, 0], err[i, 1], err[i, 2] = e0, e1, e2
+                ex += Wm[i] * e0
+                ey += Wm[i] * e1
+                ez += Wm[i] * e2
+            qt = qnormalize(qmul(qt, qexp(ex, ey, ez, small)))
+            if math.sqrt(ex * ex + ey * ey + ez * ez) < o.mean_tol:
+                break
+        if iters >= o.mean_max_iter:
+            capped += 1
+        x[0], x[1], x[2], x[3] = qt
+        for i in range(m):
+            res[i, 0], res[i, 1], res[i, 2] = err[i, 0] - ex, err[i, 1] - ey, err[i, 2] - ez
+        for j in range(3, n):
+            v = 0.0
+            for i in range(m):
+                v += Wm[i] * sig[i, j + 1]
+            x[j + 1] = v
+            for i in range(m):
+                res[i, j] = sig[i, j + 1] - v
+        for a in range(n):  # P_pred = sum Wc e_i e_i^T
+            for c in range(n):
+                v = 0.0
+                for i in range(m):
+                    v += res[i, a] * (Wc[i] * res[i, c])
+                P[a, c] = v
+        # ---- rest update (ukf-bias)
+        at_rest = False
+        if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
+            bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Hb, G, M)
+            qn4 = qnormalize(qmul((x[0], x[1], x[2], x[3]), qexp(dx[0], dx[1], dx[2], small)))
+            x[0], x[1], x[2], x[3] = qn4
+            for j in range(3, n):
+                x[j + 1] = x[j + 1] + dx[j]
+            at_rest = True
+        # ---- accelerometer update (steps 6-9)
+        var = math.nan
+        nis = math.nan
+        lowpassed = False
+        scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
+        if scale < math.inf:
+            q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
+            if ok and o.scale_noise > 0.0:
+                q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
+            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale,
+                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o)
+            var = r
+            zx, zy, zz = 0.0, 0.0, 0.0
+            for i in range(m):  # step 6
+                g0, g1, g2 = gravity((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
+                dZ[i, 0], dZ[i, 1], dZ[i, 2] = g0, g1, g2
+                zx += Wm[i] * g0  # step 7
+                zy += Wm[i] * g1
+                zz += Wm[i] * g2
+            for i in range(m):
+                dZ[i, 0] -= zx
+                dZ[i, 1] -= zy
+                dZ[i, 2] -= zz
+                for j in range(3):
+                    WdZ[i, j] = Wc[i] * dZ[i, j]
+            for a in range(3):  # step 8: P_zz
+                for c in range(3):
+                    v = 0.0
+                    for i in range(m):
+                        v += dZ[i, a] * WdZ[i, c]
+                    S[a, c] = v + (r if a == c else 0.0)
+            for a in range(n):  # step 8: P_xz
+                for c in range(3):
+                    v = 0.0
+                    for i in range(m):
+                        v += res[i, a] * WdZ[i, c]
+                    Pxz[a, c] = v
+            inv_sym3(S, Sinv)
+            for a in range(n):  # step 9: K = P_xz P_zz^-1
+                for c in range(3):
+                    K[a, c] = Pxz[a, 0] * Sinv[0, c] + Pxz[a, 1] * Sinv[1, c] + Pxz[a, 2] * Sinv[2, c]
+            if o.heading_free:
+                nz = math.sqrt(zx * zx + zy * zy + zz * zz)
+                hx, hy, hz = zx / nz, zy / nz, zz / nz
+                _project_heading(K, 0, hx, hy, hz)
+                if n > 3:
+                    _project_heading(K, 3, hx, hy, hz)
+                # P - K Pxz^T - Pxz K^T + K S K^T (the covariance of a general gain)
+                for a in range(n):
+                    for c in range(3):
+                        KS[a, c] = K[a, 0] * S[0, c] + K[a, 1] * S[1, c] + K[a, 2] * S[2, c]
+                for a in range(n):
+                    for c in range(n):
+                        kp_ac = K[a, 0] * Pxz[c, 0] + K[a, 1] * Pxz[c, 1] + K[a, 2] * Pxz[c, 2]
+                        kp_ca = K[c, 0] * Pxz[a, 0] + K[c, 1] * Pxz[a, 1] + K[c, 2] * Pxz[a, 2]
+                        ksk = KS[a, 0] * K[c, 0] + KS[a, 1] * K[c, 1] + KS[a, 2] * K[c, 2]
+                        P[a, c] = P[a, c] - kp_ac - kp_ca + ksk
+            else:
+                for a in range(n):  # step 9: P - K P_zz K^T = P - P_xz K^T
+                    for c in range(n):
+                        P[a, c] = P[a, c] - (Pxz[a, 0] * K[c, 0] + Pxz[a, 1] * K[c, 1] + Pxz[a, 2] * K[c, 2])
+            yx, yy, yz = mx - zx, my - zy, mz - zz
+            for a in range(n):
+                dx[a] = K[a, 0] * yx + K[a, 1] * yy + K[a, 2] * yz
+            qn4 = qnormalize(qmul((x[0], x[1], x[2], x[3]), qexp(dx[0], dx[1], dx[2], small)))  # step 9
+            x[0], x[1], x[2], x[3] = qn4
+            for j in range(3, n):
+                x[j + 1] = x[j + 1] + dx[j]
+            nis = _nis(yx, yy, yz, Sinv)
+        else:
+            skipped += 1
+        if n > 3:
+            for i in range(4, 7):
+                x[i] = _clip(x[i], -o.bias_max, o.bias_max)
+        if n > 6:
+            for i in range(7, 10):
+                x[i] = _clip(x[i], -o.scale_max, o.scale_max)
+        if repair_covariance(P, n, o, L):
+            repaired += 1
+        out_q[k + 1, :] = x[:4]
+        out_cov[k + 1, :, :] = P
+        if n > 3:
+            out_b[k + 1, :] = x[4:7]
+        if n > 6:
+            out_s[k + 1, :] = x[7:10]
+        out_iter[k + 1] = iters
+        out_var[k + 1] = var
+        out_rest[k + 1] = at_rest
+        out_nis[k + 1] = nis
+        out_lowpassed[k + 1] = lowpassed
+    return skipped, sqrt_recovered, repaired, capped

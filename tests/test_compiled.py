@@ -1,0 +1,251 @@
+"""The compiled filters (`impl=compiled`, numba) against their numpy reference steps.
+
+`ekf` against `impl=numpy`, `ukf` and `ukf-bias` against `impl=lean` (itself checked against
+FilterPy's update in test_ukf.py): same quaternions and the same per-sample diagnostics and
+counts, to 1e-10, NaN at the same places, on a course recording, a BROAD trial and the
+simulator (each trimmed to a few thousand samples), for every option and with broken samples.
+Real-data cases use the `data_dir` fixture: skipped without FUSION_DATA, failing when it is
+set but the files are missing.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fusion import datasets
+from fusion import quaternion as quat
+from fusion.estimators import build
+from fusion.types import ImuSamples
+
+TOL = 1e-10
+
+SPECS = (
+    # ekf: bias and scale on/off, scale axes, gating, heading_free, accelerometer off, no
+    # disturbance model, rest detection early / off, accelerometer low-pass off / shorter
+    "ekf", "ekf:bias=false,scale=false", "ekf:scale=false", "ekf:saxes=xyz", "ekf:gate=skip,gate_g=0.05",
+    "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
+    "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
+    # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
+    # accelerometer low-pass on (with and without the scale noise in its drift density)
+    "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
+    "ukf:gate=skip,gate_g=0.05", "ukf:gate=inflate,gate_g=0.1", "ukf:Qs=0", "ukf:acc=false", "ukf:iters=1",
+    "ukf:taulp=1", "ukf:taulp=0.5,taulpw=1,Qs=0",
+    # ukf-bias: scale on/off and axes, sigma schemes, heading_free off, gating, rest, cap, no
+    # disturbance model, accelerometer low-pass off
+    "ukf-bias", "ukf-bias:scale=false", "ukf-bias:saxes=xyz", "ukf-bias:sigma=julier,kappa=1",
+    "ukf-bias:sigma=merwe,alpha=1,kappa=0.5", "ukf-bias:hf=false", "ukf-bias:gate=skip,gate_g=0.05",
+    "ukf-bias:acc=false", "ukf-bias:rest_time_s=0.3", "ukf-bias:iters=2", "ukf-bias:tauc=0", "ukf-bias:taulp=0",
+)
+
+
+def reference(spec: str) -> str:
+    """The spec with the numpy reference implementation."""
+    impl = "impl=numpy" if spec.split(":")[0] == "ekf" else "impl=lean"
+    return spec + ("," if ":" in spec else ":") + impl
+
+
+def assert_same(a, b) -> None:
+    """Trajectories a (compiled) and b (reference): quaternions, every diagnostic, to TOL."""
+    np.testing.assert_allclose(a.quat_wxyz, b.quat_wxyz, rtol=0, atol=TOL)
+    assert list(a.diagnostics) == list(b.diagnostics)
+    for key, ref in b.diagnostics.items():
+        got, ref = np.asarray(a.diagnostics[key]), np.asarray(ref)
+        assert got.shape == ref.shape and got.dtype == ref.dtype, key
+        if ref.dtype.kind == "f":
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(ref), err_msg=key)
+            np.testing.assert_allclose(got, ref, rtol=TOL, atol=TOL, equal_nan=True, err_msg=key)
+        else:
+            np.testing.assert_array_equal(got, ref, err_msg=key)
+
+
+def window(rec, start: int, stop: int) -> tuple[ImuSamples, np.ndarray]:
+    """Samples start..stop of a recording and the true orientation at the first one."""
+    imu = rec.imu
+    part = imu.replace(t=imu.t[start:stop], gyr_rad_s=imu.gyr_rad_s[start:stop], acc_g=imu.acc_g[start:stop],
+                       gyr_valid=imu.gyr_valid[start:stop])
+    rot, mask = rec.truth.interpolate(part.t[:1])
+    return part, (rot.as_quat(scalar_first=True)[0] if mask[0] else quat.IDENTITY)
+
+
+def broken(imu: ImuSamples) -> ImuSamples:
+    """Invalid gyro stretch, NaN and inf gyro rows, NaN and inf accelerometer rows, a saturated
+    (8 g) stretch. The stretch is 5 samples: with the disturbance model off (tauc=0) and no
+    gate, each saturated sample turns the estimate by tens of degrees and rounding differences
+    between any two implementations grow by a factor of several per sample (one ulp changed in
+    one saturated sample moves the reference's nis by 4e-12; compiled and reference differ by
+    6e-12 after 5 samples, 5e-10 after 10). Every other case agrees to 1e-13 or better."""
+    gyr, acc, valid = imu.gyr_rad_s.copy(), imu.acc_g.copy(), imu.gyr_valid.copy()
+    n = len(imu)
+    valid[n // 5: n // 5 + 60] = False
+    gyr[n // 3: n // 3 + 5] = np.nan
+    gyr[n // 3 + 40, 1] = np.inf
+    acc[n // 2: n // 2 + 7] = np.nan
+    acc[n // 2 + 30, 2] = np.inf
+    acc[n // 2 + 50: n // 2 + 55] = 8.0
+    return imu.replace(gyr_rad_s=gyr, acc_g=acc, gyr_valid=valid)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    """2,500 samples of the built-in simulated recording (3 s rest, then hand-held motion)."""
+    return window(datasets.load("sim"), 0, 2500)
+
+
+@pytest.fixture(scope="module")
+def course(data_dir):
+    """ece276a/1, samples 0-3,000: the initial rest and the gyro freeze at 8.6 s (marked invalid)."""
+    imu, q0 = window(datasets.load("ece276a/1", data_dir), 0, 3000)
+    assert not imu.gyr_valid.all()
+    return imu, q0
+
+
+@pytest.fixture(scope="module")
+def broad(data_dir):
+    """BROAD trial 25 (tapping), 3,000 samples around the end of its initial rest (285.7 Hz)."""
+    path = data_dir / "broad" / "25_disturbed_tapping_B.hdf5"
+    if not path.is_file():
+        pytest.fail(f"FUSION_DATA={data_dir} is set but {path} is missing")
+    pytest.importorskip("h5py")
+    return window(datasets.load(str(path)), 11500, 14500)
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_compiled_equals_reference_on_the_simulator(sim, spec):
+    imu, q0 = sim
+    assert_same(build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0))
+
+
+def wrong_start(q0: np.ndarray) -> np.ndarray:
+    """An initial orientation 36 deg off in tilt: large innovations (the ekf's chi-square guard)."""
+    return quat.multiply(q0, quat.from_rotvec(np.radians([30.0, -20.0, 0.0])))
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_compiled_equals_reference_with_broken_samples_from_a_wrong_start(sim, spec):
+    imu, q0 = sim
+    imu, q0 = broken(imu), wrong_start(q0)
+    a, b = build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0)
+    assert_same(a, b)
+    if "acc=false" not in spec:
+        assert a.diagnostics["updates_skipped"] > 0
+        assert np.isnan(a.diagnostics["acc_var_g2"]).sum() > 1
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_compiled_equals_reference_on_a_course_recording(course, spec):
+    imu, q0 = course
+    assert_same(build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0))
+
+
+@pytest.mark.parametrize("spec", SPECS)
+def test_compiled_equals_reference_on_a_broad_trial(broad, spec):
+    imu, q0 = broad
+    assert_same(build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0))
+
+
+def test_the_cases_reach_the_rarer_branches(sim, course, broad):
+    """The comparisons above are only as good as the branches they run through."""
+    runs = {(spec, name): build(spec).estimate(imu, q0)
+            for spec in ("ekf", "ukf-bias", "ukf-bias:iters=2", "ekf:gate=skip,gate_g=0.05")
+            for name, (imu, q0) in (("sim", sim), ("course", course), ("broad", broad))}
+    assert all(runs[spec, name].diagnostics["at_rest"].any() for spec in ("ekf", "ukf-bias") for name in ("sim", "broad"))
+    for spec in ("ekf", "ukf-bias"):  # both the raw and the low-passed accelerometer are used
+        lowpassed = np.concatenate([runs[spec, name].diagnostics["acc_lowpassed"] for name in ("sim", "course", "broad")])
+        assert lowpassed.any() and not lowpassed.all()
+    assert build("ekf").estimate(broken(sim[0]), wrong_start(sim[1])).diagnostics["bias_guarded"].any()
+    assert runs["ukf-bias:iters=2", "sim"].diagnostics["mean_iteration_cap_hits"] > 0
+    assert all(runs["ekf:gate=skip,gate_g=0.05", name].diagnostics["updates_skipped"] > 0 for name in ("sim", "course", "broad"))
+
+
+@pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])
+def test_covariance_repair_and_square_root_recovery_agree(spec):
+    """P = Q = 0 makes every Cholesky fail: the eigenvalue repair and the square-root fallback
+    run on every step, in both paths."""
+    from test_ukf import synthetic
+
+    imu, truth = synthetic(200, noise=0.01)
+    imu = broken(imu)
+    zero = "Q=0,P0=0,Qbad=0" + (",Pb0=0,Qb=0,Ps0=0,Qsw=0" if spec != "ukf" else ",Qs=0")
+    spec = f"{spec}:{zero}"
+    a, b = build(spec).estimate(imu, truth[0]), build(reference(spec)).estimate(imu, truth[0])
+    assert_same(a, b)
+    assert a.diagnostics["cov_repairs"] > 0
+    assert a.diagnostics.get("sqrt_recoveries", 1) > 0
+
+
+@pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])
+def test_compiled_estimate_leaves_the_filter_where_the_steps_do(sim, spec):
+    """After `estimate`, `current()` and further `step`s continue as after the reference's loop."""
+    imu, q0 = sim
+    a, b = build(spec), build(reference(spec))
+    a.estimate(imu, q0)
+    b.estimate(imu, q0)
+    for key, value in b.current().items():
+        np.testing.assert_allclose(a.current()[key], value, rtol=TOL, atol=TOL, err_msg=key)
+    assert a.diagnostics() == b.diagnostics()
+    (gyr, valid), acc = imu.interval_rates(), imu.acc_g
+    for k in range(300):
+        np.testing.assert_allclose(a.step(gyr[k], 0.01, acc[k], valid[k]), b.step(gyr[k], 0.01, acc[k], valid[k]),
+                                   rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])
+def test_first_row_is_the_initial_quaternion_as_given(spec):
+    from test_ukf import synthetic
+
+    imu, truth = synthetic(50)
+    q0 = 3.0 * truth[0]  # not normalised: recorded as given, normalised for the filter
+    a, b = build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0)
+    np.testing.assert_array_equal(a.quat_wxyz[0], q0)
+    assert_same(a, b)
+
+
+@pytest.mark.parametrize("spec", ["ekf", "ukf-bias"])
+def test_a_single_sample_recording(spec):
+    imu = ImuSamples(np.array([0.0]), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
+    a, b = build(spec).estimate(imu, quat.IDENTITY), build(reference(spec)).estimate(imu, quat.IDENTITY)
+    assert_same(a, b)
+
+
+@pytest.mark.parametrize("spec", ["ekf:impl=lean", "ekf:impl=filterpy", "ukf:impl=numpy", "ukf-bias:impl=fast"])
+def test_unknown_implementations_raise(spec):
+    with pytest.raises(ValueError, match="impl"):
+        build(spec)
+
+
+def test_compiled_is_the_default():
+    assert build("ekf").params.impl == build("ukf").params.impl == build("ukf-bias").params.impl == "compiled"
+
+
+def test_without_a_writable_cache_folder_the_kernels_still_run():
+    """numba raises at decoration when it finds no writable cache folder; the module warns once
+    and compiles without a cache. Simulated by allowing only the NUMBA_CACHE_DIR locator with
+    NUMBA_CACHE_DIR unset (what a read-only install and a read-only home give)."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
+    code = ("import warnings; warnings.simplefilter('always')\n"
+            "from fusion.estimators import _compiled as c\n"
+            "assert not c._cache\n"
+            "print(c.qmul((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)))\n")
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "(0.0, 1.0, 0.0, 0.0)"
+    assert run.stderr.count("cannot be cached") == 1, run.stderr
+
+
+def test_numba_is_imported_only_for_the_compiled_filters():
+    code = ("import sys\n"
+            "from fusion.estimators import build\n"
+            "for spec in ('ekf:impl=numpy', 'ukf:impl=lean', 'ukf-bias:impl=filterpy,hf=false'):\n"
+            "    build(spec)\n"
+            "assert 'numba' not in sys.modules\n"
+            "from fusion.estimators import _compiled\n"
+            "assert not _compiled._loaded\n"
+            "build('ukf')\n"
+            "assert _compiled._loaded\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
