@@ -166,10 +166,15 @@ class AccDisturbance:
         self.lowpass_body = np.array(s[19:22]) if s[18] else None
         self.lowpass_density = s[22]
 
+    def turn(self, dq: tuple) -> None:
+        """Advance the frame by the rate increment `dq` (4 floats, body) of a step without an
+        accelerometer sample (skipped or gated), so that the frame keeps following the gyro."""
+        self.qi = quat.normalize_floats(quat.multiply_floats(self.qi, dq))
+
     def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
         """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
         ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
-        self.qi = quat.normalize_floats(quat.multiply_floats(self.qi, dq))
+        self.turn(dq)
         wx, wy, wz = quat.rotate_floats(self.qi, (ax, ay, az))  # a_I = R(q_I) a (body -> strapdown frame)
         norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
         nd2 = norm_dev * norm_dev

@@ -376,10 +376,17 @@ def disturbance_lose_frame(st):
 
 
 @_jit
-def disturbance_update(st, dq, ax, ay, az, dt, o):
-    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0) on its state array; -> d, g^2."""
+def disturbance_turn(st, dq):
+    """`AccDisturbance.turn` on its state array: the frame follows the rate increment dq."""
     qi = qnormalize(qmul((st[5], st[6], st[7], st[8]), dq))
     st[5], st[6], st[7], st[8] = qi
+    return qi
+
+
+@_jit
+def disturbance_update(st, dq, ax, ay, az, dt, o):
+    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0) on its state array; -> d, g^2."""
+    qi = disturbance_turn(st, dq)
     wx, wy, wz = rotate(qi, ax, ay, az)
     norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
     nd2 = norm_dev * norm_dev
@@ -698,6 +705,8 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
             joseph(P, K, Hs, 0, r, n, G, M)
         else:
             skipped += 1
+            if o.corr_s > 0.0:
+                disturbance_turn(dist, d)  # the strapdown frame follows the gyro through skipped updates
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -925,6 +934,8 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
             nis = _nis(yx, yy, yz, Sinv)
         else:
             skipped += 1
+            if o.corr_s > 0.0:
+                disturbance_turn(dist, dq)
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)

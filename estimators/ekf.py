@@ -267,6 +267,8 @@ class EKF(RecursiveEstimator):
             P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
         else:
             self.n_skipped += 1
+            if p.disturbance_corr_s > 0.0:
+                self._dist.turn(d)  # the strapdown frame follows the gyro through skipped updates
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:

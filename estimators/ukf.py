@@ -644,6 +644,8 @@ class UKF(RecursiveEstimator):
             self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
         else:
             self.n_skipped += 1
+            if p.disturbance_corr_s > 0.0:
+                self._dist.turn(dq)  # the strapdown frame follows the gyro through skipped updates
         x = kf.x
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])

@@ -84,3 +84,16 @@ def test_drift_density_grows_with_rate_and_calibration_uncertainty():
     assert quiet == pytest.approx(2 * 3e-4)  # the rate noise's random walk over one window
     assert turning == pytest.approx(2 * 3e-4 + 2 * 100 * 1e-2)
     assert lowpass_drift_density(2.0, None, 0.0, 1e-4, 1.0) == pytest.approx(2 * 2 * 4 * 1e-4)
+
+
+def test_the_frame_follows_the_gyro_through_skipped_samples():
+    # Every third accelerometer sample is missing (a filter skips its update): the frame must
+    # still turn with those steps' rate increments, or the low-passed direction goes wrong.
+    dt, incs, acc, grav = _turning_body_with_translation(seconds=10.0, amp_g=0.0)
+    dist = AccDisturbance(0.5, lowpass_s=1.0)
+    for k, (dq, a) in enumerate(zip(incs, acc)):
+        if k % 3 == 2:
+            dist.turn(dq)
+        else:
+            dist.update(dq, a, dt)
+    assert math.degrees(math.acos(min(1.0, dist.lowpass_body @ grav[-2]))) < 0.5
