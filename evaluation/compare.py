@@ -56,7 +56,7 @@ def versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for package in ("fusion", "numpy", "scipy", "filterpy", "vqf", "ahrs", "imufusion"):
+    for package in ("fusion", "numpy", "scipy", "filterpy", "numba", "vqf", "ahrs", "imufusion"):
         try:
             out[package] = md.version(package)
         except md.PackageNotFoundError:
