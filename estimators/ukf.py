@@ -1,9 +1,12 @@
 """`ukf`: a quaternion UKF after Kraft 2003, and `ukf-bias`, the same with gyro bias and scale.
 
 Kraft 2003: E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking",
-Proc. 6th Int. Conf. Information Fusion. Equation numbers of that paper are not cited (they
-could not be checked here); the numbered steps below are this module's and the code refers
-to them.
+Proc. 6th Int. Conf. Information Fusion. The numbered steps below are this module's and the
+code refers to them; where a step implements a numbered part of the paper it says so (the
+iterative mean is its Sec. 3.4, the covariances eqs. 63-64 and 68-71, the gain and update
+eqs. 72 and 75). Those numbers follow the paper as independent implementations cite it;
+they were not checked against a copy of the paper here. The notebook
+`docs/tutorial/03_quaternion_ukf.py` runs every step on a real sample.
 
 State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, rad/s, for
 `ukf-bias`); covariance `P` on the body-frame rotation-vector error `e`, `q_true = q exp(e/2)`
@@ -18,13 +21,15 @@ State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, ra
 5. the iterative quaternion mean: error rotation vectors `e_i = log(q_t^-1 Y_i)`, wrapped
    to the shortest rotation (angle in [0, pi], so q and -q agree), averaged with the mean
    weights and re-applied, `q_t <- q_t exp(e/2)`, until `|e| < mean_tol_rad` or
-   `mean_max_iter` iterations (Kraft's gradient-descent mean); `P_pred = sum Wc e_i e_i^T`;
+   `mean_max_iter` iterations (Kraft's gradient-descent mean, Sec. 3.4);
+   `P_pred = sum Wc e_i e_i^T` (eqs. 63-64);
 6. predicted measurement per sigma point: gravity in the body frame `Z_i = R(Y_i)^T e_z`
    (the accelerometer part of Kraft's measurement model);
 7. its mean `z = sum Wm Z_i`;
-8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R`, `P_xz = sum Wc e_i (Z_i - z)^T`;
-9. gain `K = P_xz P_zz^-1`, update through the exponential map `q <- q exp(K (a - z) / 2)`,
-   `P <- P_pred - K P_zz K^T`.
+8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R` (eq. 68, plus R: Kraft's P_vv),
+   `P_xz = sum Wc e_i (Z_i - z)^T` (eqs. 70-71);
+9. gain `K = P_xz P_zz^-1` (eq. 72), update through the exponential map
+   `q <- q exp(K (a - z) / 2)`, `P <- P_pred - K P_zz K^T` (eq. 75).
 
 What FilterPy (2.0.0) provides and what is replaced
 ----------------------------------------------------
@@ -79,13 +84,15 @@ adapts to the measured external acceleration, and through sustained translation,
 or vibration the update uses the accelerometer low-passed in a gyro-only frame instead of
 the raw sample, as in `ekf` (`_attitude.AccDisturbance`, `_attitude.acc_measurement`).
 
-Defaults. Equal variances P0 = Q = R = 1e-4 I (Q per sample at 100 Hz, i.e.
-`process_noise_rad2_s = 1e-2`; R in g^2; `UKFParams.equal_variances()`) are a common start. Those apply nearly the whole accelerometer
-innovation every sample (Q/R = 1 per sample), so hand-motion accelerations become attitude
-noise and, through the correlations of the unobservable heading with the tilt, a heading
-random walk: 2.98 deg inclination but 56 deg total RMSE (mean over ece276a 1-9, --init truth).
-A sweep (`UKFParams` docstring) shows inclination depends mainly on Q/R; `ukf` defaults to
-Q = 1e-3 rad^2/s, R = 1e-2 g^2 (Q/R = 0.1 /s): 2.11 deg inclination, 17.4 deg total.
+Defaults. Equal variances P0 = Q = R = 1e-4 I per 100 Hz sample (`UKFParams.equal_variances()`:
+Q = 1e-2 rad^2/s, R = 1e-6 g^2 s, no disturbance model or scale noise) are a common start.
+They apply nearly the whole accelerometer innovation every sample, so hand-motion
+accelerations become attitude noise and, through the correlations of the unobservable
+heading with the tilt, a heading random walk: 2.98 deg inclination but 52.9 deg total RMSE
+(mean over ece276a 1-9, --init truth). Kraft's filter with the package's densities
+(`ukf:tauc=0,Qs=0`: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s) gives 1.98 / 16.4 deg; the default
+`ukf` adds the adaptive accelerometer noise and the rate-dependent process noise, 1.92 / 6.78
+(3.75 / 8.72 without the latter, 2.40 / 25.8 without the former).
 
 Beyond Kraft 2003 (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
 the tilt, yet the optimal gain also turns the estimate about the vertical through the
@@ -195,14 +202,16 @@ class UKFParams(UKFOptions):
     scale_noise_s (Qs): rate-dependent attitude process noise, s: `Qs w_i^2 dt` is added to
         the step variance of axis i (a stand-in for an unmodelled gyro scale error).
 
-    Defaults: Q = 1e-3 rad^2/s, R = 1e-2 g^2. Sweep over ece276a 1-9 with the package's
-    calibration, --init truth, mean RMSE inclination / total (deg):
-        Q = 1e-4: R = 1e-3 2.11/17.4, R = 1e-2 3.14/17.1
-        Q = 1e-3: R = 1e-4 2.70/38.2 (*), 1e-3 2.26/22.7, 3e-3 2.09/18.4, 1e-2 2.11/17.4 (default),
-                  3e-2 2.42/16.7, 1e-1 3.14/17.1
-        Q = 1e-2: R = 1e-4 2.98/56.2 (equal variances), 1e-2 2.27/22.7, 3e-2 2.10/18.5, 1e-1 2.10/17.6
-    (* measured with an earlier, provisional calibration.) Equal Q/R give equal scores;
-    Q/R = 0.1-0.3 /s is the plateau of inclination, 0.1 /s keeps the total under 18 deg.
+    Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density). Sweep over
+    ece276a 1-9 (`fusion ablate --estimator ukf --param Q=1e-4,1e-3,1e-2
+    --param R=1e-5,3e-5,1e-4,1e-3,1e-2 --dataset all`, --init truth), mean RMSE
+    inclination / total (deg):
+        R =        1e-5       3e-5       1e-4       1e-3       1e-2
+        Q = 1e-4   1.93/6.62  1.92/6.64  1.92/6.60  1.93/6.39  2.11/6.66
+        Q = 1e-3   1.92/6.73  1.92/6.78  1.91/6.74  1.94/6.44  2.10/6.66
+        Q = 1e-2   1.88/7.02  1.88/7.05  1.88/6.96  1.89/6.39  2.02/6.47
+    With the adaptive accelerometer noise the scores hardly depend on Q and R (a plateau);
+    the defaults are the package's densities, not a choice from this table.
     """
 
     owner: ClassVar[str] = "ukf"
