@@ -3,6 +3,11 @@ process pool (`--jobs 2`) and on a two-worker Dask cluster started here on this 
 (127.0.0.1); prints both wall times and their ratio (target: Dask within 1.3x of local) and
 checks that the rows agree. A script that prints figures, never a timed test.
 
+The cluster is timed twice: with dask's default worker environment, whose
+`MALLOC_TRIM_THRESHOLD_=65536` (`distributed.nanny.pre-spawn-environ`) makes glibc return freed
+memory at once, so the smoothers' large temporary arrays are paged in again on every
+iteration; and with that variable unset (the README's recommended worker configuration).
+
     python benchmarks/bench_compare.py [--data-dir ../shared/data/ece276a]
 """
 from __future__ import annotations
@@ -10,6 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import dask
 from distributed import LocalCluster
 
 from fusion.evaluation.runs import run_compare
@@ -29,19 +35,22 @@ def main() -> None:
     local = run_compare(args.estimators, "all", args.data_dir, jobs=2)
     t_local = time.perf_counter() - start
 
-    start = time.perf_counter()
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
-        t_up = time.perf_counter() - start
-        start = time.perf_counter()
-        dask = run_compare(args.estimators, "all", args.data_dir, scheduler=cluster.scheduler_address)
-        t_dask = time.perf_counter() - start
     print(f"{len(local.results)} jobs ({len(set(r.dataset for r in local.results))} recordings x "
           f"{len(set(r.estimator for r in local.results))} estimators)")
     print(f"local pool, --jobs 2:        {t_local:6.1f} s")
-    print(f"Dask, 2 workers (localhost): {t_dask:6.1f} s  (+ {t_up:.1f} s to start the cluster, not counted)")
-    print(f"ratio Dask / local:          {t_dask / t_local:6.2f}  (target <= 1.3)")
-    print(f"rows equal (all but seconds): {rows(local) == rows(dask)}")
+    for label, trim in (("default worker environment", {}),
+                        ("MALLOC_TRIM_THRESHOLD_ unset", {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})):
+        with dask.config.set(trim):
+            start = time.perf_counter()
+            with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                              dashboard_address=None) as cluster:
+                t_up = time.perf_counter() - start
+                start = time.perf_counter()
+                run = run_compare(args.estimators, "all", args.data_dir, scheduler=cluster.scheduler_address)
+                t_dask = time.perf_counter() - start
+        print(f"Dask, 2 workers (localhost), {label}: {t_dask:6.1f} s  (+ {t_up:.1f} s to start the cluster, "
+              f"not counted); ratio Dask / local {t_dask / t_local:.2f} (target <= 1.3); "
+              f"rows equal (all but seconds): {rows(local) == rows(run)}")
 
 
 if __name__ == "__main__":
