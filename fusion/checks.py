@@ -479,8 +479,8 @@ def format_check(c: RecordingCheck) -> str:
     if c.rests:
         row("rests (s)", ", ".join(f"{r.interval.start_s:.2f}-{r.interval.stop_s:.2f} |a|={r.acc_norm_g:.3f}g" for r in c.rests[:4])
             + (f" (+{len(c.rests) - 4})" if len(c.rests) > 4 else ""))
-        first, last = c.rests[0], c.rests[-1]
-        row("gyro bias first rest", "[" + ", ".join(f"{v:+.2f}" for v in first.gyro_bias_deg_s) + "] deg/s")
+        last = c.rests[-1]
+        # (no row for the first rest's own gyro mean: the calibration takes the bias from it, so it reads 0)
         if c.gyro_bias_drift_deg_s is not None:
             row("gyro bias drift", "[" + ", ".join(f"{v:+.2f}" for v in c.gyro_bias_drift_deg_s)
                 + f"] deg/s (last rest at {last.interval.start_s:.1f} s minus first)")

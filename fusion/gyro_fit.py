@@ -61,7 +61,7 @@ class GyroFit:
 
     @property
     def sensitivity_ratio(self) -> tuple[float, float, float]:
-        """True / nominal gyro sensitivity (the README's +9 %, +4 %, -4 %)."""
+        """True / nominal gyro sensitivity (on the course board about +9 %, +4-6 %, -3-4 %)."""
         return tuple(1.0 / s for s in self.gyro_scale_factor)
 
 

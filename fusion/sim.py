@@ -46,7 +46,8 @@ class SimSettings:
     acc_noise_counts: float = 1.0
     gyro_noise_counts: float = 0.5
     # Gyro freezes: (start, stop) in s after the first sample; all three channels then read
-    # `freeze_counts` (the sensors' zero-rate level), as in the real recordings.
+    # `freeze_counts`, a few counts above their zero-rate levels (8-12 deg/s), as in the real
+    # recordings.
     freezes_s: tuple[tuple[float, float], ...] = ()
     freeze_counts: tuple[float, float, float] = (382.0, 383.0, 382.0)
     truth_clock_offset_s: float = 0.0  # truth time stamps = true time + offset (VICON lag)
