@@ -3,10 +3,11 @@ process pool (`--jobs 2`) and on a two-worker Dask cluster started here on this 
 (127.0.0.1); prints both wall times and their ratio (target: Dask within 1.3x of local) and
 checks that the rows agree. A script that prints figures, never a timed test.
 
-The cluster is timed twice: with dask's default worker environment, whose
-`MALLOC_TRIM_THRESHOLD_=65536` (`distributed.nanny.pre-spawn-environ`) makes glibc return freed
-memory at once, so the smoothers' large temporary arrays are paged in again on every
-iteration; and with that variable unset (the README's recommended worker configuration).
+The cluster is timed twice: with dask's default worker environment
+(`distributed.nanny.pre-spawn-environ`: `MALLOC_TRIM_THRESHOLD_=65536`, which makes glibc return
+freed memory at once, so the smoothers' large temporary arrays are paged in again on every
+iteration, and one BLAS/OpenMP thread per worker), and with those variables unset (the
+README's recommended worker configuration; the local pool's processes have neither).
 
     python benchmarks/bench_compare.py [--data-dir ../shared/data/ece276a]
 """
@@ -39,7 +40,9 @@ def main() -> None:
           f"{len(set(r.estimator for r in local.results))} estimators)")
     print(f"local pool, --jobs 2:        {t_local:6.1f} s")
     for label, trim in (("default worker environment", {}),
-                        ("MALLOC_TRIM_THRESHOLD_ unset", {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})):
+                        ("pre-spawn environment unset", {"distributed.nanny.pre-spawn-environ": {
+                            name: None for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                                                    "OPENBLAS_NUM_THREADS")}})):
         with dask.config.set(trim):
             start = time.perf_counter()
             with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
