@@ -303,7 +303,7 @@ class SmootherProblem:
         return steps
 
     def step_quat(self, theta: np.ndarray) -> np.ndarray:
-        """(T-1, 4) exp([0, phi_t / 2]) (cached for the last theta)."""
+        """(T-1, 4) exp([0, phi_t / 2]); cached for the last theta (gd evaluates it many times)."""
         return self.steps(theta).u
 
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -418,11 +418,12 @@ class SmootherProblem:
             r_v, _ = self.velocity_residual(q, v, R)
             Ra = np.cross(R[:, :2, :], self.acc[:, None, :])  # (T, 2, 3) P R_t [a_t]x
             half = 0.5 * GRAVITY_M_S2 * self.dt[:, None, None]
-            Jv0 = np.concatenate([half * Ra[:-1], np.broadcast_to(-np.eye(2), (T - 1, 2, 2))], axis=2)  # (T-1, 2, B)
-            Jv1 = np.concatenate([half * Ra[1:], np.broadcast_to(np.eye(2), (T - 1, 2, 2))], axis=2)
+            X0, X1 = half * Ra[:-1], half * Ra[1:]  # d r_v,t / d delta_t and / d delta_{t+1}, (T-1, 2, 3)
             Wv = self.w_vel[:, None] * r_v
-            grad[:-1] += (np.swapaxes(Jv0, -1, -2) @ Wv[:, :, None])[:, :, 0]
-            grad[1:] += (np.swapaxes(Jv1, -1, -2) @ Wv[:, :, None])[:, :, 0]
+            grad[:-1, :3] += np.sum(X0 * Wv[:, :, None], axis=1)
+            grad[1:, :3] += np.sum(X1 * Wv[:, :, None], axis=1)
+            grad[:-1, 3:] -= Wv
+            grad[1:, 3:] += Wv
             grad[:, 3:] += self.w_vzero[:, None] * v
             cost += 0.5 * float(np.sum(self.w_vel * np.sum(r_v**2, axis=1)) + np.sum(self.w_vzero * np.sum(v**2, axis=1)))
 
@@ -437,26 +438,38 @@ class SmootherProblem:
             return Linearization(cost, grad, grad_theta, np.empty((0, B, B)), np.empty((0, B, B)), np.empty((0, B, P)), np.empty((P, P)))
 
         wm = self.w_motion[:, None, None]
-        R_ut = np.swapaxes(steps.R_u, -1, -2)
+        J0 = A @ np.swapaxes(steps.R_u, -1, -2)  # d r_m,t / d delta_t; d r_m,t / d delta_{t+1} = -A^T
+        J0t = np.swapaxes(J0, -1, -2)
         diag = np.zeros((T, B, B))
-        diag[:-1, :3, :3] += wm * (steps.R_u @ (At @ A) @ R_ut)  # J0^T J0
-        diag[1:, :3, :3] += wm * (A @ At)  # J1^T J1
+        diag[:-1, :3, :3] += wm * (J0t @ J0)
+        diag[1:, :3, :3] += wm * (A @ At)
         # Accelerometer: [h]x^T [h]x = |h|^2 I - h h^T, |h| = 1.
         diag[:, :3, :3] += wa[:, None, None] * (np.eye(3) - h[:, :, None] * h[:, None, :])
         diag[0, :3, :3] += self.w_prior * J_0.T @ J_0
         off = np.zeros((T - 1, B, B))
-        off[:, :3, :3] = -wm * (steps.R_u @ (At @ At))  # J0^T J1 = R(u) A^T (-A^T)
+        off[:, :3, :3] = -wm * (J0t @ At)  # J0^T J1
         if V:
+            # Blocks of J_v0 = [X0, -I] and J_v1 = [X1, I] (rotation, velocity columns).
             wv = self.w_vel[:, None, None]
-            diag[:-1] += wv * np.swapaxes(Jv0, -1, -2) @ Jv0
-            diag[1:] += wv * np.swapaxes(Jv1, -1, -2) @ Jv1
+            X0t, X1t = np.swapaxes(X0, -1, -2), np.swapaxes(X1, -1, -2)
+            diag[:-1, :3, :3] += wv * (X0t @ X0)
+            diag[:-1, :3, 3:] -= wv * X0t
+            diag[:-1, 3:, :3] -= wv * X0
+            diag[1:, :3, :3] += wv * (X1t @ X1)
+            diag[1:, :3, 3:] += wv * X1t
+            diag[1:, 3:, :3] += wv * X1
             idx = np.arange(3, B)
             diag[:, idx, idx] += self.w_vzero[:, None]
-            off += wv * np.swapaxes(Jv0, -1, -2) @ Jv1
+            diag[:-1, idx, idx] += self.w_vel[:, None]
+            diag[1:, idx, idx] += self.w_vel[:, None]
+            off[:, :3, :3] += wv * (X0t @ X1)
+            off[:, :3, 3:] += wv * X0t
+            off[:, 3:, :3] -= wv * X1
+            off[:, idx, idx] -= self.w_vel[:, None]
         cross = np.zeros((T, B, P))
         theta_block = np.diag(self.w_theta).astype(float)
         if P:
-            cross[:-1, :3] += wm * (steps.R_u @ (At @ Jth))  # J0^T Jth
+            cross[:-1, :3] += wm * (J0t @ Jth)  # J0^T Jth
             cross[1:, :3] -= wm * (A @ Jth)  # J1^T Jth
             theta_block = theta_block + np.einsum("tjp,tjr->pr", wm * Jth, Jth)
         return Linearization(cost, grad, grad_theta, diag, off, cross, theta_block)
