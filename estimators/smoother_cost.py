@@ -303,7 +303,7 @@ class SmootherProblem:
         return steps
 
     def step_quat(self, theta: np.ndarray) -> np.ndarray:
-        """(T-1, 4) exp([0, phi_t / 2]); cached for the last theta (gd evaluates it many times)."""
+        """(T-1, 4) exp([0, phi_t / 2]) (cached for the last theta)."""
         return self.steps(theta).u
 
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -349,24 +349,6 @@ class SmootherProblem:
             total += 0.5 * float(np.sum(self.w_vel * np.sum(r["velocity"] ** 2, axis=1))
                                  + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
         return total
-
-    def local_costs(self, q_new: np.ndarray, q_old: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """(T,) the cost terms touching q_t when q_t = q_new[t] and its neighbours keep q_old.
-
-        Motion t-1 (from q_old[t-1] to q_new[t]), motion t (q_new[t] to q_old[t+1]),
-        accelerometer t and, for t = 0, the anchor. Used by the per-quaternion step search of `gd`.
-        """
-        u = self.step_quat(theta)
-        out = np.zeros(len(q_new))
-        r_fwd = self.motion_residual(q_new[:-1], q_old[1:], u)
-        r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
-        out[:-1] += 0.5 * self.w_motion * np.sum(r_fwd**2, axis=1)
-        out[1:] += 0.5 * self.w_motion * np.sum(r_bwd**2, axis=1)
-        acc_cost, _ = self.acc_terms(self.acc - up_in_body(q_new))
-        out += acc_cost
-        r0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q_new[0]))
-        out[0] += 0.5 * self.w_prior * r0 @ r0
-        return out
 
     # -------------------------------------------------------------- linearisation
     def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True,
