@@ -18,7 +18,7 @@ ties each quaternion to its neighbours with the weight 1 / (sigma_g^2 dt), 250,0
 the accelerometer ties it to gravity with dt / sigma_a^2, 0.25: a ratio of 10^6. A gradient
 step changes a quaternion through its two neighbours only, so a correction travels about one
 sample per iteration along the chain, and the number of iterations grows with the recording
-(the old `gd` needed thousands; precond="none" below still shows it).
+(precond="none" below: after 200 iterations on 56 s of data still far above the minimum).
 
 The remedy: a preconditioner M that solves the whole chain. The search direction is
 (N&W eq. 3.2)
@@ -37,8 +37,8 @@ default, precond_every=1) p is the Gauss-Newton direction, and `gd` differs from
 it makes the step safe: a line search along p instead of Levenberg-Marquardt damping.
 precond_every=k keeps M for k iterations (the chord / Shamanskii idea: Kelley 1995,
 "Iterative Methods for Linear and Nonlinear Equations", SIAM, ch. 5): cheaper iterations, but
-a stale M slows the heading of long recordings down (one hour, 100 Hz: 69 iterations with
-k = 2 against 39 with k = 1).
+a stale M slows down the heading of long recordings (one hour at 100 Hz, tol 1e-5: 69
+iterations with k = 2 against 39 with k = 1).
 
 Step length: backtracking line search along the whole-trajectory direction p (N&W
 Algorithm 3.1). Try alpha = 1, the natural step of a Newton-like direction (N&W sec. 3.5), and
