@@ -7,8 +7,9 @@ of one hour at 100 Hz (360,000 samples), and whether memory grows linearly (10, 
 
 Each (estimator, duration) runs in a fresh subprocess, so estimators do not share a peak:
 the worker simulates the recording (`fusion.sim`), calibrates it, runs the estimator, scores
-it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase and its peak resident
-memory (`VmHWM` from /proc/self/status, or `ru_maxrss`). The row `(none)` is the same pipeline
+it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase, its peak resident
+memory (`VmHWM` from /proc/self/status, or `ru_maxrss`) and, for the smoothers, the number of
+iterations. The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
 
 Targets: peak < 2 GB for every estimator; a smoother (`causal = False`) under 60 s
@@ -75,6 +76,8 @@ def worker(name: str, duration_s: float) -> dict:
         traj = estimator.estimate(imu, rot[0].as_quat(scalar_first=True))
         out["estimate_s"] = time.perf_counter() - t3
         out["causal"] = type(estimator).causal
+        iterations = traj.diagnostics.get("iterations") if traj.diagnostics else None
+        out["iterations"] = None if iterations is None else int(iterations)
     t4 = time.perf_counter()
     result = score(truth, traj)
     out.update(score_s=time.perf_counter() - t4, rmse_total_deg=result.rmse_deg["total"],
@@ -130,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     header = f"{'estimator':>10} {'min':>4} {'samples':>8} {'sim s':>6} {'calib s':>7} {'estimate s':>10} " \
-             f"{'us/sample':>9} {'score s':>7} {'peak MB':>8} {'RMSE deg':>8}"
+             f"{'us/sample':>9} {'iters':>5} {'score s':>7} {'peak MB':>8} {'RMSE deg':>8}"
     print(header)
     print("-" * len(header))
     for r in rows:
@@ -139,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         us = None if r["estimate_s"] is None else 1e6 * r["estimate_s"] / r["samples"]
         print(f"{r['estimator']:>10} {r['duration_s'] / 60:>4g} {r['samples']:>8} {r['sim_s']:>6.2f} {r['calib_s']:>7.2f} "
-              f"{fmt(r['estimate_s'], '.2f'):>10} {fmt(us, '.2f'):>9} {r['score_s']:>7.2f} {r['peak_mb']:>8.0f} "
+              f"{fmt(r['estimate_s'], '.2f'):>10} {fmt(us, '.2f'):>9} {fmt(r.get('iterations'), 'd'):>5} {r['score_s']:>7.2f} {r['peak_mb']:>8.0f} "
               f"{r['rmse_total_deg']:>8.2f}")
 
     print()

@@ -2,9 +2,11 @@
 `BatchSmoother.estimate`.
 
 Both minimise a cost of `fusion.estimators.smoother_cost`; `SmootherParams.weights()` turns the
-parameters into its `Weights`. The two differ in their solver and their defaults: `gn` uses the
-noise-model weighting with the robust loss, the velocity model and gyro calibration variables;
-`gd` (`GDParams`) the scalar weighting without them (see `fusion.estimators.gd`).
+parameters into its `Weights`. Their cost defaults are the same (the noise-model weighting with
+the robust loss, the velocity model and gyro calibration variables); they differ in their
+solver (Levenberg-Marquardt in `fusion.estimators.gn`, preconditioned gradient descent with a
+line search in `fusion.estimators.gd`) and in the solver's settings, among them the start:
+`gd` re-levels it with the accelerometer (`levelled`).
 
 The initial estimator is one of a few recursive filters (`INIT_ESTIMATORS`), imported from their
 modules directly, so this module does not depend on the registry in `fusion.estimators`.
@@ -17,6 +19,8 @@ from typing import Literal
 
 import numpy as np
 
+from fusion import quaternion as quat
+from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples, Trajectory
 
 from ._attitude import axes_mask
@@ -24,7 +28,7 @@ from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import make_params, parse_specs
-from .smoother_cost import SmootherProblem, Weights
+from .smoother_cost import SmootherProblem, Weights, sample_durations
 from .ukf import UKF, UKFBias
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.
@@ -72,6 +76,8 @@ class SmootherParams:
         no velocity model). "seed", its former name, is accepted as a deprecated alias.
     scalar_motion_weight (wm): the motion term's weight with weighting="scalar".
     init: estimator whose output starts the optimisation ("dr", "ukf", ...).
+    init_level_s (level): re-level the start every this many seconds with the accelerometer
+        (`levelled`; 0: the init estimator's output as it is).
     max_iter (iters), tol: stopping rule (relative cost decrease below tol).
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
     """
@@ -93,6 +99,7 @@ class SmootherParams:
     weighting: Literal["noise", "scalar", "seed"] = "noise"
     scalar_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
     init: str = "dr"
+    init_level_s: float = field(default=0.0, metadata={"alias": "level"})
     max_iter: int = field(default=50, metadata={"alias": "iters"})
     tol: float = 1e-5
     progress: bool = True
@@ -110,6 +117,8 @@ class SmootherParams:
             if getattr(self, name) == "none":
                 object.__setattr__(self, name, "")
             axes_mask(getattr(self, name), name)
+        if not 0 <= self.init_level_s < np.inf:
+            raise ValueError(f"init_level_s={self.init_level_s!r}: must be >= 0 and finite (0: off)")
         if not 0 < self.scale_release_ratio <= 1:
             raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
         if self.max_iter < 1:
@@ -151,6 +160,40 @@ def initial_trajectory(init: str, owner: str, imu: ImuSamples, init_quat_wxyz: n
     return quat_wxyz / np.linalg.norm(quat_wxyz, axis=1, keepdims=True)
 
 
+def levelled(imu: ImuSamples, quat_wxyz: np.ndarray, window_s: float) -> np.ndarray:
+    """(T, 4) the trajectory quat_wxyz (T, 4) with its tilt corrected window by window.
+
+    Over a window of `window_s` seconds the world-frame specific force R(q_t) a_t averages
+    to gravity, e_z (a hand's or a body's linear acceleration averages out: its velocity
+    stays bounded). Each window is turned, as a whole, by the smallest rotation that takes its
+    average direction to e_z (a rotation about a horizontal axis: the heading is kept). This
+    undoes a gyro-integrated start's tilt drift, which on a long recording reaches 180 deg
+    (an upside-down start, from which the accelerometer's pull, proportional to the sine of
+    the tilt error, cannot bring the smoother back). The first window keeps the given initial
+    orientation; the jumps between windows are left to the smoother. O(T), vectorised.
+    """
+    R = rotation_matrix(quat_wxyz)
+    acc_ok = np.all(np.isfinite(imu.acc_g), axis=1)
+    acc = np.where(acc_ok[:, None], imu.acc_g, 0.0)
+    f_world = (R @ acc[:, :, None])[:, :, 0]  # g
+    weight = sample_durations(imu.t) * acc_ok
+    window = np.floor((imu.t - imu.t[0]) / window_s).astype(int)
+    n = window[-1] + 1
+    mean = np.stack([np.bincount(window, weights=weight * f_world[:, j], minlength=n) for j in range(3)], axis=1)
+    norm = np.linalg.norm(mean, axis=1)
+    up = mean / np.where(norm > 0, norm, 1.0)[:, None]
+    axis = np.cross(up, [0.0, 0.0, 1.0])  # rotation taking `up` to e_z: about up x e_z by the angle between them
+    sin = np.linalg.norm(axis, axis=1)
+    angle = np.arctan2(sin, up[:, 2])
+    rotvec = axis * (angle / np.where(sin > 0, sin, 1.0))[:, None]
+    rotvec[(norm == 0) | (sin == 0)] = 0.0
+    correction = quat.from_rotvec(rotvec)  # world frame: applied on the left
+    out = np.array(quat_wxyz, dtype=float)
+    later = window > 0  # the first window keeps the given start
+    out[later] = quat.normalize(quat.multiply(correction[window[later]], out[later]))
+    return out
+
+
 def progress_bar(enabled: bool, total: int, desc: str):
     """A tqdm bar on stderr, shown only on a terminal (disable=None), or a no-op."""
     from tqdm import tqdm
@@ -175,6 +218,8 @@ class BatchSmoother(Estimator):
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
         problem = self.problem(imu, init_quat_wxyz)
         q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
+        if p.init_level_s > 0:
+            q = levelled(imu, q, p.init_level_s)
         q, diagnostics = self.solve(problem, q)
         return Trajectory(imu.t, q, diagnostics=diagnostics)
 

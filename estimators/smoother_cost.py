@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion import quaternion as quat
-from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix, skew
+from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix
 from fusion.types import ImuSamples
 
 AXES = "xyz"
@@ -153,6 +153,23 @@ class Linearization:
     theta_block: np.ndarray
 
 
+@dataclass(frozen=True, eq=False)
+class Steps:
+    """The gyro increments at one theta. phi: (T-1, 3) rotation vectors w_t dt_t, rad;
+    u: (T-1, 4) exp([0, phi / 2]); R_u: (T-1, 3, 3) R(u_t); d_phi: (T-1, 3, P) J_r(phi_t) d phi_t / d theta."""
+
+    phi: np.ndarray
+    u: np.ndarray
+    R_u: np.ndarray
+    d_phi: np.ndarray
+
+
+def up_in_body(q: np.ndarray) -> np.ndarray:
+    """(T, 3) h(q) = R(q)^T e_z, the third row of R(q): `quat.gravity_in_body` for unit q
+    (the same numbers; from the rotation matrix it is several times faster on long arrays)."""
+    return rotation_matrix(q)[:, 2, :]
+
+
 @dataclass(eq=False)
 class SmootherProblem:
     """The cost of one recording. Build with `SmootherProblem.from_imu`."""
@@ -235,11 +252,13 @@ class SmootherProblem:
         """(T, V) the velocity variables' starting point."""
         return np.zeros((len(self.acc), self.n_vel))
 
-    def velocity_residual(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def velocity_residual(self, q: np.ndarray, v: np.ndarray, R: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(T-1, 2) r_v,t = v_{t+1} - v_t - G P (R_t a_t + R_{t+1} a_{t+1}) dt_t / 2, m/s, and (T, 3)
         the world-frame accelerometer R_t a_t, g. P keeps world x and y: gravity (world z) drops out,
-        and a tilt error delta turns 1 g into a horizontal acceleration g delta."""
-        f_world = np.einsum("tij,tj->ti", rotation_matrix(q), self.acc)
+        and a tilt error delta turns 1 g into a horizontal acceleration g delta.
+        R: (T, 3, 3) R(q) if the caller has it."""
+        R = rotation_matrix(q) if R is None else R
+        f_world = (R @ self.acc[:, :, None])[:, :, 0]
         mean = 0.5 * (f_world[:-1, :2] + f_world[1:, :2])
         return v[1:] - v[:-1] - GRAVITY_M_S2 * mean * self.dt[:, None], f_world
 
@@ -259,13 +278,33 @@ class SmootherProblem:
         phi[~self.valid] = 0.0
         return phi
 
+    def steps(self, theta: np.ndarray) -> "Steps":
+        """The gyro increments at theta and what the Jacobians need of them; they depend on theta
+        only, so they are cached for the last theta (a solver evaluates them many times)."""
+        theta = np.asarray(theta, float)
+        key = theta.tobytes()
+        cached = getattr(self, "_steps", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        phi = self.step_rotvec(theta)
+        u = quat.from_rotvec(phi)
+        d_phi = np.zeros((len(phi), 3, self.n_theta))
+        if self.n_theta:
+            # d phi / d b = -dt, d phi / d k_i = dt g_i; Exp(phi + e) ~ Exp(phi) Exp(J_r(phi) e) (eq. 143).
+            nb = len(self.bias_idx)
+            for j, ax in enumerate(self.bias_idx):
+                d_phi[:, ax, j] = -self.dt
+            for j, ax in enumerate(self.scale_idx):
+                d_phi[:, ax, nb + j] = self.dt * self.gyr[:, ax]
+            d_phi[~self.valid] = 0.0
+            d_phi = right_jacobian(phi) @ d_phi
+        steps = Steps(phi=phi, u=u, R_u=rotation_matrix(u), d_phi=d_phi)
+        self._steps = (key, steps)
+        return steps
+
     def step_quat(self, theta: np.ndarray) -> np.ndarray:
-        """(T-1, 4) exp([0, phi_t / 2]); cached for the last theta (gd evaluates it many times)."""
-        key = np.asarray(theta, float).tobytes()
-        if getattr(self, "_u_key", None) != key:
-            self._u = quat.from_rotvec(self.step_rotvec(theta))
-            self._u_key = key
-        return self._u
+        """(T-1, 4) exp([0, phi_t / 2]) (cached for the last theta)."""
+        return self.steps(theta).u
 
     def motion_residual(self, q_a: np.ndarray, q_b: np.ndarray, u: np.ndarray) -> np.ndarray:
         """2 log(q_b^-1 q_a u), all (M, 4) -> (M, 3): the motion residual."""
@@ -276,7 +315,7 @@ class SmootherProblem:
         u = self.step_quat(theta)
         out = {
             "motion": self.motion_residual(q[:-1], q[1:], u),
-            "acc": self.acc - quat.gravity_in_body(q),
+            "acc": self.acc - up_in_body(q),
             "prior": quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0])),
             "theta": np.asarray(theta, float),
         }
@@ -311,24 +350,6 @@ class SmootherProblem:
                                  + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
         return total
 
-    def local_costs(self, q_new: np.ndarray, q_old: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """(T,) the cost terms touching q_t when q_t = q_new[t] and its neighbours keep q_old.
-
-        Motion t-1 (from q_old[t-1] to q_new[t]), motion t (q_new[t] to q_old[t+1]),
-        accelerometer t and, for t = 0, the anchor. Used by the per-quaternion step search of `gd`.
-        """
-        u = self.step_quat(theta)
-        out = np.zeros(len(q_new))
-        r_fwd = self.motion_residual(q_new[:-1], q_old[1:], u)
-        r_bwd = self.motion_residual(q_old[:-1], q_new[1:], u)
-        out[:-1] += 0.5 * self.w_motion * np.sum(r_fwd**2, axis=1)
-        out[1:] += 0.5 * self.w_motion * np.sum(r_bwd**2, axis=1)
-        acc_cost, _ = self.acc_terms(self.acc - quat.gravity_in_body(q_new))
-        out += acc_cost
-        r0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q_new[0]))
-        out[0] += 0.5 * self.w_prior * r0 @ r0
-        return out
-
     # -------------------------------------------------------------- linearisation
     def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True,
                   v: np.ndarray | None = None) -> Linearization:
@@ -341,10 +362,10 @@ class SmootherProblem:
         theta = np.zeros(self.n_theta) if theta is None else np.asarray(theta, float)
         T, P, V = len(q), self.n_theta, self.n_vel
         B = 3 + V
-        phi = self.step_rotvec(theta)
-        u = quat.from_rotvec(phi)
-        r_m = self.motion_residual(q[:-1], q[1:], u)
-        h = quat.gravity_in_body(q)
+        steps = self.steps(theta)
+        r_m = self.motion_residual(q[:-1], q[1:], steps.u)
+        R = rotation_matrix(q)
+        h = R[:, 2, :]  # h(q) = R(q)^T e_z
         r_a = self.acc - h
         r_0 = quat.to_rotvec(quat.multiply(quat.conjugate(self.init_quat), q[0]))
         acc_cost, wa = self.acc_terms(r_a)
@@ -353,19 +374,20 @@ class SmootherProblem:
             + np.sum(self.w_theta * theta**2)
         )
 
-        # Motion Jacobians (right perturbations):
-        #   d r_m,t / d delta_t     = Jr^-1(r) R(u_t)^T   (u^-1 Exp(d) u = Exp(R(u)^T d))
-        #   d r_m,t / d delta_{t+1} = -Jl^-1(r) = -Jr^-1(-r)
-        Jr_inv = right_jacobian_inv(r_m)
-        J0 = Jr_inv @ np.swapaxes(rotation_matrix(u), -1, -2)
-        J1 = -right_jacobian_inv(-r_m)
+        # Motion Jacobians (right perturbations), with A_t = J_r^-1(r_m,t):
+        #   d r_m,t / d delta_t     = A_t R(u_t)^T   (u^-1 Exp(d) u = Exp(R(u)^T d))
+        #   d r_m,t / d delta_{t+1} = -J_l^-1(r_m,t) = -A_t^T
+        # (J_l^-1(r) = J_r^-1(-r) = J_r^-1(r)^T: in eq. 144 [r]x is antisymmetric, [r]x^2 symmetric).
+        A = right_jacobian_inv(r_m)
+        At = np.swapaxes(A, -1, -2)
         Wr = self.w_motion[:, None] * r_m
+        AtWr = (At @ Wr[:, :, None])[:, :, 0]
         grad = np.zeros((T, B))
-        grad[:-1, :3] += np.einsum("tji,tj->ti", J0, Wr)
-        grad[1:, :3] += np.einsum("tji,tj->ti", J1, Wr)
-        # Accelerometer: h(q Exp(d)) ~ h + [h]x d, so d r_a / d delta = -[h]x.
-        Ja = -skew(h)
-        grad[:, :3] += np.einsum("tji,tj->ti", Ja, wa[:, None] * r_a)
+        grad[:-1, :3] += (steps.R_u @ AtWr[:, :, None])[:, :, 0]  # J0^T W r = R(u) A^T W r
+        grad[1:, :3] -= (A @ Wr[:, :, None])[:, :, 0]  # J1^T W r = -A W r
+        # Accelerometer: h(q Exp(d)) ~ h + [h]x d, so d r_a / d delta = -[h]x and
+        # (-[h]x)^T y = [h]x y = h x y.
+        grad[:, :3] += np.cross(h, wa[:, None] * r_a)
         # Anchor: d r_0 / d delta_0 = Jr^-1(r_0).
         J_0 = right_jacobian_inv(r_0)
         grad[0, :3] += self.w_prior * J_0.T @ r_0
@@ -373,56 +395,64 @@ class SmootherProblem:
         if V:
             # Velocity increments: R(q Exp(d)) a ~ R a - R [a]x d, so
             #   d r_v,t / d delta_t = G dt_t P R_t [a_t]x / 2 (same form for t+1), d r_v,t / d v_t = -I, / d v_{t+1} = I.
+            # Row i of R_t [a_t]x is (R_t,i x a_t)^T (r^T [a]x b = r . (a x b) = b . (r x a)).
             v = self.zero_velocity() if v is None else v
-            r_v, _ = self.velocity_residual(q, v)
-            Ra = (rotation_matrix(q) @ skew(self.acc))[:, :2, :]  # (T, 2, 3) P R_t [a_t]x
+            r_v, _ = self.velocity_residual(q, v, R)
+            Ra = np.cross(R[:, :2, :], self.acc[:, None, :])  # (T, 2, 3) P R_t [a_t]x
             half = 0.5 * GRAVITY_M_S2 * self.dt[:, None, None]
-            Jv0 = np.concatenate([half * Ra[:-1], np.broadcast_to(-np.eye(2), (T - 1, 2, 2))], axis=2)  # (T-1, 2, B)
-            Jv1 = np.concatenate([half * Ra[1:], np.broadcast_to(np.eye(2), (T - 1, 2, 2))], axis=2)
+            X0, X1 = half * Ra[:-1], half * Ra[1:]  # d r_v,t / d delta_t and / d delta_{t+1}, (T-1, 2, 3)
             Wv = self.w_vel[:, None] * r_v
-            grad[:-1] += np.einsum("tji,tj->ti", Jv0, Wv)
-            grad[1:] += np.einsum("tji,tj->ti", Jv1, Wv)
+            grad[:-1, :3] += np.sum(X0 * Wv[:, :, None], axis=1)
+            grad[1:, :3] += np.sum(X1 * Wv[:, :, None], axis=1)
+            grad[:-1, 3:] -= Wv
+            grad[1:, 3:] += Wv
             grad[:, 3:] += self.w_vzero[:, None] * v
             cost += 0.5 * float(np.sum(self.w_vel * np.sum(r_v**2, axis=1)) + np.sum(self.w_vzero * np.sum(v**2, axis=1)))
 
-        # Calibration variables: d r_m,t / d phi_t = Jr^-1(r) Jr(phi); d phi / d b = -dt, d phi / d k_i = dt g_i.
+        # Calibration variables: d r_m,t / d theta = A_t J_r(phi_t) d phi_t / d theta (`Steps.d_phi`).
         grad_theta = self.w_theta * theta
         Jth = None
         if P:
-            Jphi = Jr_inv @ right_jacobian(phi)
-            dphi = np.zeros((len(phi), 3, P))
-            nb = len(self.bias_idx)
-            for j, ax in enumerate(self.bias_idx):
-                dphi[:, ax, j] = -self.dt
-            for j, ax in enumerate(self.scale_idx):
-                dphi[:, ax, nb + j] = self.dt * self.gyr[:, ax]
-            dphi[~self.valid] = 0.0
-            Jth = Jphi @ dphi  # (T-1, 3, P)
-            grad_theta = grad_theta + np.einsum("tjp,tj->p", Jth, Wr)
+            Jth = A @ steps.d_phi  # (T-1, 3, P)
+            grad_theta = grad_theta + np.sum(Jth * Wr[:, :, None], axis=(0, 1))
 
         if not hessian:
             return Linearization(cost, grad, grad_theta, np.empty((0, B, B)), np.empty((0, B, B)), np.empty((0, B, P)), np.empty((P, P)))
 
         wm = self.w_motion[:, None, None]
+        J0 = A @ np.swapaxes(steps.R_u, -1, -2)  # d r_m,t / d delta_t; d r_m,t / d delta_{t+1} = -A^T
+        J0t = np.swapaxes(J0, -1, -2)
         diag = np.zeros((T, B, B))
-        diag[:-1, :3, :3] += wm * np.swapaxes(J0, -1, -2) @ J0
-        diag[1:, :3, :3] += wm * np.swapaxes(J1, -1, -2) @ J1
-        diag[:, :3, :3] += wa[:, None, None] * np.swapaxes(Ja, -1, -2) @ Ja
+        diag[:-1, :3, :3] += wm * (J0t @ J0)
+        diag[1:, :3, :3] += wm * (A @ At)
+        # Accelerometer: [h]x^T [h]x = |h|^2 I - h h^T, |h| = 1.
+        diag[:, :3, :3] += wa[:, None, None] * (np.eye(3) - h[:, :, None] * h[:, None, :])
         diag[0, :3, :3] += self.w_prior * J_0.T @ J_0
         off = np.zeros((T - 1, B, B))
-        off[:, :3, :3] = wm * np.swapaxes(J0, -1, -2) @ J1
+        off[:, :3, :3] = -wm * (J0t @ At)  # J0^T J1
         if V:
+            # Blocks of J_v0 = [X0, -I] and J_v1 = [X1, I] (rotation, velocity columns).
             wv = self.w_vel[:, None, None]
-            diag[:-1] += wv * np.swapaxes(Jv0, -1, -2) @ Jv0
-            diag[1:] += wv * np.swapaxes(Jv1, -1, -2) @ Jv1
+            X0t, X1t = np.swapaxes(X0, -1, -2), np.swapaxes(X1, -1, -2)
+            diag[:-1, :3, :3] += wv * (X0t @ X0)
+            diag[:-1, :3, 3:] -= wv * X0t
+            diag[:-1, 3:, :3] -= wv * X0
+            diag[1:, :3, :3] += wv * (X1t @ X1)
+            diag[1:, :3, 3:] += wv * X1t
+            diag[1:, 3:, :3] += wv * X1
             idx = np.arange(3, B)
             diag[:, idx, idx] += self.w_vzero[:, None]
-            off += wv * np.swapaxes(Jv0, -1, -2) @ Jv1
+            diag[:-1, idx, idx] += self.w_vel[:, None]
+            diag[1:, idx, idx] += self.w_vel[:, None]
+            off[:, :3, :3] += wv * (X0t @ X1)
+            off[:, :3, 3:] += wv * X0t
+            off[:, 3:, :3] -= wv * X1
+            off[:, idx, idx] -= self.w_vel[:, None]
         cross = np.zeros((T, B, P))
         theta_block = np.diag(self.w_theta).astype(float)
         if P:
-            cross[:-1, :3] += wm * np.swapaxes(J0, -1, -2) @ Jth
-            cross[1:, :3] += wm * np.swapaxes(J1, -1, -2) @ Jth
+            cross[:-1, :3] += wm * (J0t @ Jth)  # J0^T Jth
+            cross[1:, :3] -= wm * (A @ Jth)  # J1^T Jth
             theta_block = theta_block + np.einsum("tjp,tjr->pr", wm * Jth, Jth)
         return Linearization(cost, grad, grad_theta, diag, off, cross, theta_block)
 

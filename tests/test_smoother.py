@@ -149,24 +149,24 @@ def _sim_imu(duration_s: float = 20.0, **settings):
 
 
 def test_gd_and_gn_reach_the_same_minimum():
-    """Seed weighting (motion 10, accelerometer 1), 10 s of the simulated recording, both from
-    dead reckoning. Stated tolerance: after 300 iterations gd's cost is within 0.5 % of gn's
-    (0.2 % measured) and its gravity direction within 0.1 deg on average (0.025 measured).
-    Heading is the slow mode of gradient descent (only the motion chain fixes it): gd is still
-    up to ~3 deg off there, and crawls (0.2 % cost gap left after 3000 iterations)."""
+    """The scalar weighting (motion 10, accelerometer 1, no robust loss), 10 s of the
+    simulated recording, both from dead reckoning: gd's cost within 0.1 % of gn's and its
+    gravity direction within 0.05 deg on average (measured: 0.0000 % and 0.0007 deg).
+    The default cost: tests/test_gd.py."""
     imu, _, q0 = _sim_imu(10.0)
     gn = build("gn:weighting=scalar,progress=false").estimate(imu, q0)
-    gd = build("gd:weighting=scalar,progress=false,iters=300").estimate(imu, q0)
+    gd = build("gd:weighting=scalar,level=0,tol=1e-6,progress=false").estimate(imu, q0)
     cost_gn, cost_gd = gn.diagnostics["loss"][-1], gd.diagnostics["loss"][-1]
     assert gd.diagnostics["loss"][0] > 1.5 * cost_gn  # the start is far from the minimum
-    assert cost_gn <= cost_gd <= cost_gn * 1.005
+    assert cost_gd <= cost_gn * 1.001
     up_gn, up_gd = quat.gravity_in_body(gn.quat_wxyz), quat.gravity_in_body(gd.quat_wxyz)
     inclination = np.degrees(np.arccos(np.clip(np.sum(up_gn * up_gd, axis=1), -1, 1)))
-    assert inclination.mean() < 0.1
+    assert inclination.mean() < 0.05
     assert np.all(np.diff(gd.diagnostics["loss"]) <= 0) and np.all(np.diff(gn.diagnostics["loss"]) <= 0)
 
 
-@pytest.mark.parametrize("spec", ["gn", "gn:bias=xy,scale=xy", "gd:iters=50", "gd:iters=50,update=normalise", "gd:iters=50,weighting=noise"])
+@pytest.mark.parametrize("spec", ["gn", "gn:bias=xy,scale=xy", "gd", "gd:update=normalise", "gd:weighting=scalar",
+                                  "gd:precond=none,iters=20", "gd:precond=block,iters=20,update=normalise"])
 def test_unit_norm_after_every_iteration(spec):
     imu, _, q0 = _sim_imu(5.0)
     est = build(spec + ",progress=false").estimate(imu, q0)
@@ -202,7 +202,7 @@ def test_dropout_mask_is_honoured(name):
     masked = imu.replace(gyr_valid=~gap)
     gyr[gap] = 5.0  # a large false rate inside the dropout
     garbage = masked.replace(gyr_rad_s=gyr)
-    spec = name + ":progress=false" + (",iters=100" if name == "gd" else "")
+    spec = name + ":progress=false"
     a = build(spec).estimate(masked, q0).quat_wxyz
     b = build(spec).estimate(garbage, q0).quat_wxyz
     np.testing.assert_allclose(np.abs(np.sum(a * b, axis=1)), 1.0, atol=1e-9)
@@ -223,7 +223,8 @@ def test_self_calibration_recovers_the_observable_scales():
     assert np.all(est.diagnostics["theta_std"] < 0.1 * est.diagnostics["theta_prior_std"])
 
 
-@pytest.mark.parametrize("text", ["gn:sg=-1", "gn:bias=xw", "gn:scale=xx", "gn:iters=0", "gd:bias=x", "gd:alpha=2", "gn:init=gn"])
+@pytest.mark.parametrize("text", ["gn:sg=-1", "gn:bias=xw", "gn:scale=xx", "gn:iters=0", "gd:bias=xw", "gd:every=0", "gn:init=gn",
+                                  "gn:level=-1", "gd:level=inf"])
 def test_bad_parameters_raise(text):
     with pytest.raises(ValueError):
         est = build(text)
@@ -245,10 +246,38 @@ def test_real_recording_regression(data_dir):
 def test_seed_weighting_is_a_deprecated_alias_of_scalar():
     assert SmootherParams(weighting="seed") == SmootherParams(weighting="scalar")
     assert build("gn:weighting=seed,wm=3").params.weights() == build("gn:weighting=scalar,wm=3").params.weights()
-    assert GDParams().weighting == "scalar"
+    assert GDParams(weighting="seed").weighting == "scalar"
 
 
 @pytest.mark.parametrize("init", ["vqf", "gd", "nope"])
 def test_init_must_be_a_recursive_estimator(init):
     with pytest.raises(ValueError, match="init"):
         build(f"gn:init={init},progress=false").estimate(random_imu(T=10), quat.IDENTITY)
+
+
+def test_levelled_start():
+    """Dead reckoning of the 5-minute simulated recording drifts to 17 deg of inclination
+    (RMS); re-levelled every 10 s by the accelerometer it stays within 6 deg (2.0 RMS measured).
+    The first window is left as it is, the corrections turn about horizontal axes only (the
+    heading is kept), and the input is not modified."""
+    from fusion.estimators.smoother import levelled
+
+    imu, truth, q0 = _sim_imu(300.0)
+    rot, _ = truth.interpolate(imu.t)
+    q_true = rot.as_quat(scalar_first=True)
+    dr = build("dr").estimate(imu, q0).quat_wxyz
+    before = dr.copy()
+    out = levelled(imu, dr, 10.0)
+    np.testing.assert_array_equal(dr, before)
+
+    def inclination_deg(q):
+        cos = np.sum(quat.gravity_in_body(q_true) * quat.gravity_in_body(q), axis=1)
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+    assert np.sqrt(np.mean(inclination_deg(dr) ** 2)) > 10.0
+    assert np.sqrt(np.mean(inclination_deg(out) ** 2)) < 3.0 and inclination_deg(out).max() < 6.0
+    first = imu.t - imu.t[0] < 10.0
+    np.testing.assert_array_equal(out[first], dr[first])
+    correction = quat.to_rotvec(quat.multiply(out, quat.conjugate(dr)))  # world frame: out = c * dr
+    assert np.max(np.abs(correction[:, 2])) < 1e-12
+    assert np.max(np.abs(np.linalg.norm(out, axis=1) - 1.0)) < 1e-12

@@ -227,9 +227,15 @@ def test_velocity_model_beats_the_accelerometer_alone_under_translation():
     assert with_v < 0.5 * without, (with_v, without)
 
 
-def test_gd_rejects_the_velocity_model():
-    with pytest.raises(ValueError, match="velocity"):
-        build("gd:sv=0.01,vb=0.5")
+def test_gd_solves_the_velocity_model_like_gn():
+    """gd minimises the same cost as gn, velocity model and gyro bias included."""
+    imu, truth = simulated_imu(100.0, duration_s=30.0, translation_m=0.15)
+    q0 = truth.quat_wxyz[0]
+    gn = build(ROBUST).estimate(imu, q0)
+    gd = build(ROBUST.replace("gn:", "gd:")).estimate(imu, q0)
+    assert gd.diagnostics["loss"][-1] <= 1.01 * gn.diagnostics["loss"][-1]
+    np.testing.assert_allclose(gd.diagnostics["gyr_bias_rad_s"], gn.diagnostics["gyr_bias_rad_s"], atol=2e-4)
+    assert inclination_rmse_deg(truth, gd.quat_wxyz) < 1.2 * inclination_rmse_deg(truth, gn.quat_wxyz) + 0.05
 
 
 # ----------------------------------------------------------------------------- real data
