@@ -32,8 +32,8 @@ PRESETS: dict[str, list[str]] = {
     "sigma": ["ukf:sigma=kraft", "ukf:sigma=julier", "ukf:sigma=merwe"],
     # with and without the accelerometer update
     "accel-update": ["ukf:acc=false", "ukf:acc=true"],
-    # projected gradient vs normalisation vs Gauss-Newton, on the same (seed) cost
-    "smoother-solvers": ["gd", "gd:update=normalise", "gn:weighting=scalar"],
+    # preconditioned projected gradient (geodesic or normalising step) vs Gauss-Newton, on one cost
+    "smoother-solvers": ["gd", "gd:update=normalise", "gn"],
     # the weight of the motion term (seed weighting: accelerometer term weight 1)
     "motion-weight": ["gn:weighting=scalar,wm=1", "gn:weighting=scalar,wm=3", "gn:weighting=scalar,wm=10",
                       "gn:weighting=scalar,wm=30"],

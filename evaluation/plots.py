@@ -210,8 +210,8 @@ def error_figure(s: RecordingSeries) -> Figure | None:
 
 def loss_figure(s: RecordingSeries) -> Figure | None:
     """Cost per iteration of the estimators that report one (smoothers), one panel per
-    estimator: their costs are different functions (gd's is ~20, gn's ~5,000 on the same
-    recording), so each gets its own y axis; None if none reports a cost."""
+    estimator, each on its own y axis (settings of the cost, e.g. its weighting, change its
+    scale by orders of magnitude); None if none reports a cost."""
     if not s.losses:
         return None
     items = sorted(s.losses.items())

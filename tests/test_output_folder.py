@@ -151,12 +151,13 @@ def _children(pid: int) -> list[int]:
 def test_sigterm_stops_the_workers_and_leaves_the_folder_as_it_was(first_run, tmp_path):
     out = copy_of(first_run, tmp_path / "run")
     before = snapshot(out)
-    proc = subprocess.Popen([sys.executable, "-m", "fusion", "compare", "--estimators", "gd,gd:update=normalise",
+    proc = subprocess.Popen([sys.executable, "-m", "fusion", "compare", "--estimators",
+                             "gd:precond=none,iters=100000,tol=0,gd:precond=block,iters=100000,tol=0",
                              "--dataset", "sim", "--no-progress", "--jobs", "2", "--out", str(out)],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     workers: list[int] = []
     deadline = time.time() + 60
-    while time.time() < deadline and len(workers) < 2:  # gd runs for many seconds on sim
+    while time.time() < deadline and len(workers) < 2:  # unpreconditioned gd runs for minutes on sim
         time.sleep(0.2)
         workers = _children(proc.pid)
     assert len(workers) >= 2, "the worker processes never started"
