@@ -331,6 +331,30 @@ def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float,
     return (density_g2_s + 2.0 * corr_s * disturbance_g2) / dt_s
 
 
+def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
+                               rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float,
+                               P: np.ndarray) -> tuple[np.ndarray, float, bool]:
+    """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
+    per axis g^2, low-passed)`.
+
+    p: the filter's `FilterParams`; dist: its disturbance estimator, advanced here by the step's
+    rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
+    (`acc_variance_scale`); rate_rad_s: (3,) the corrected rate (None when not integrated) and
+    rate_noise_rad2_s its noise density, for the frame drift; P: the predicted error covariance
+    (bias variances in rows 3-5, scale in 6-8 when present). Without the disturbance model: the
+    raw sample and R / dt. (`_compiled.measurement` is the same in the kernels.)
+    """
+    if p.disturbance_corr_s <= 0.0:
+        return acc_g, acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale, False
+    d = dist.update(dq, acc_g, dt_s)
+    n = len(P)
+    drift = lowpass_drift_density(p.acc_lowpass_s, rate_rad_s, rate_noise_rad2_s,
+                                  max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
+                                  max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
+    meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift)
+    return meas, density / dt_s * scale, lowpassed
+
+
 # Variance standing for "not estimated" in a filter's state: small enough that the state stays
 # at its initial value, large enough to keep the covariance positive definite.
 UNESTIMATED_VAR = 1e-12

@@ -79,10 +79,8 @@ from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
     RestDetector,
-    acc_measurement,
-    acc_step_variance,
+    accelerometer_update_input,
     acc_variance_scale,
-    lowpass_drift_density,
     bias_rest_update,
     inv_sym3,
     repair_covariance,
@@ -219,16 +217,8 @@ class EKF(RecursiveEstimator):
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
-            meas = acc_g
-            if p.disturbance_corr_s > 0.0:
-                dist = self._dist.update(d, acc_g, dt_s)
-                drift = lowpass_drift_density(p.acc_lowpass_s, np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s,
-                                              max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
-                                              max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
-                meas, density, self.lowpassed = acc_measurement(acc_g, self._dist, p.acc_noise_g2_s, p.disturbance_corr_s, dist, drift)
-                r = density / dt_s * scale
-            else:
-                r = acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
+                                                                 np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s, P)
             self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)

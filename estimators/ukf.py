@@ -118,11 +118,9 @@ from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
     RestDetector,
-    acc_measurement,
-    acc_step_variance,
+    accelerometer_update_input,
     acc_variance_scale,
     bias_rest_update,
-    lowpass_drift_density,
     inv_sym3,
     repair_covariance,
     axes_mask,
@@ -633,20 +631,11 @@ class UKF(RecursiveEstimator):
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         if scale < math.inf:
-            meas = acc_g
-            if p.disturbance_corr_s > 0.0:
-                d = self._dist.update(dq, acc_g, dt_s)
-                P = kf.P
-                q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
-                if gyr_valid and self._scale_noise > 0.0:
-                    q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
-                drift = lowpass_drift_density(p.acc_lowpass_s, w if gyr_valid else None, q_rate,
-                                              max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
-                                              max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
-                meas, density, self.lowpassed = acc_measurement(acc_g, self._dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift)
-                r = density / dt_s * scale
-            else:
-                r = acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale
+            q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
+            if gyr_valid and self._scale_noise > 0.0:
+                q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale,
+                                                                 w if gyr_valid else None, q_rate, kf.P)
             self.acc_var = r
             self._update(meas, self._eye3 * r)
             y = kf.y
