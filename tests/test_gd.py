@@ -13,6 +13,8 @@ from fusion.estimators.smoother import SmootherParams
 from fusion.estimators.smoother_cost import SmootherProblem, Weights
 from fusion.types import ImuSamples
 
+from smoother_helpers import dense_normal_matrix
+
 
 def _sim_imu(duration_s: float):
     from fusion.calibration import calibrate
@@ -114,17 +116,6 @@ def _small_problem(T: int = 30, seed: int = 0) -> tuple[SmootherProblem, np.ndar
     return problem, q, rng.normal(size=(T, 2)) * 0.1, rng.normal(size=problem.n_theta) * 0.01
 
 
-def _dense(lin) -> np.ndarray:
-    T, B = lin.diag.shape[:2]
-    P = lin.cross.shape[2]
-    H = np.zeros((B * T + P, B * T + P))
-    for t in range(T):
-        H[B * t:B * t + B, B * t:B * t + B] = lin.diag[t]
-        H[B * t:B * t + B, B * T:] = lin.cross[t]
-        if t < T - 1:
-            H[B * t:B * t + B, B * t + B:B * t + 2 * B] = lin.off[t]
-    H[B * T:, B * T:] = lin.theta_block
-    return np.triu(H) + np.triu(H, 1).T
 
 
 @pytest.mark.parametrize("free", [[True, True, True, True], [True, True, False, False]])
@@ -135,7 +126,7 @@ def test_chain_preconditioner_is_the_gauss_newton_solve(free):
     lin = problem.linearize(q, theta, v=v)
     free = np.array(free)
     keep = np.concatenate([np.ones(lin.grad_q.size, bool), free])
-    H = _dense(lin)[np.ix_(keep, keep)]
+    H = dense_normal_matrix(lin)[np.ix_(keep, keep)]
     H[np.diag_indices_from(H)] *= 1.0 + RIDGE
     g = np.concatenate([lin.grad_q.ravel(), lin.grad_theta[free]])
     expected = np.linalg.solve(H, -g)

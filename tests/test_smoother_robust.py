@@ -11,6 +11,8 @@ from fusion.quaternion import retract
 from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
+from smoother_helpers import dense_normal_matrix
+
 
 # ----------------------------------------------------------------------------- synthetic motion
 def _truth_quat(t: np.ndarray) -> np.ndarray:
@@ -143,14 +145,7 @@ def test_velocity_jacobian_blocks_match_finite_differences():
         cols.append((weighted(q, theta + eps * e, v) - weighted(q, theta - eps * e, v)) / (2 * eps))
     J = np.stack(cols, axis=1)
     lin = problem.linearize(q, theta, v=v)
-    H = np.zeros((B * T + P, B * T + P))
-    for t in range(T):
-        H[B * t:B * t + B, B * t:B * t + B] = lin.diag[t]
-        H[B * t:B * t + B, B * T:] = lin.cross[t]
-        if t < T - 1:
-            H[B * t:B * t + B, B * t + B:B * t + 2 * B] = lin.off[t]
-    H[B * T:, B * T:] = lin.theta_block
-    H = np.triu(H) + np.triu(H, 1).T
+    H = dense_normal_matrix(lin)
     H_fd = J.T @ J
     np.testing.assert_allclose(H, H_fd, rtol=1e-6, atol=1e-6 * np.abs(H_fd).max())
 
