@@ -45,7 +45,7 @@ import numpy as np
 
 from fusion import quaternion as quat
 
-from ._attitude import COV_FLOOR, COV_RESET_VAR, SQRT_FLOOR
+from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR
 from .filter_params import BiasFilterParams
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
@@ -495,6 +495,34 @@ def rest_update(st, gx, gy, gz, ax, ay, az, dt, o):
              and abs(math.sqrt(a) - 1.0) < o.rest_acc)
     st[4] = st[4] + dt if still else 0.0
     return st[4] >= o.rest_time
+
+
+# Options of `rest_kernel`: the `RestDetector` thresholds (the fields `rest_update` reads).
+RestSettings = namedtuple("RestSettings", ["rest_gyr", "rest_acc", "rest_time", "rest_window"])
+
+
+@_jit
+def rest_kernel(gyr, valid, dt, acc, o, out):
+    """out[k] (N-1,): whether step k ends at rest, as the filters' rest updates see it (the
+    detector is fed step k's gyro reading and the accelerometer sample at its end, only on
+    steps whose gyro is usable)."""
+    st = np.zeros(5)
+    for k in range(len(dt)):
+        gx, gy, gz, ax, ay, az, ok = _sample(gyr, valid, acc, k)
+        out[k] = ok and rest_update(st, gx, gy, gz, ax, ay, az, dt[k], o)
+
+
+def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float,
+               window_s: float = REST_WINDOW_S) -> np.ndarray:
+    """(N-1,) bool: the steps of `imu` (`ImuSamples`) that end at rest by `_attitude.RestDetector`
+    with these thresholds, run causally over the recording (the samples the `ekf` and `ukf-bias`
+    rest updates use). A batch smoother reads its gyro bias there."""
+    gyr, valid, dt, acc = inputs(imu)
+    out = np.zeros(len(dt), dtype=bool)
+    if math.isfinite(min_time_s):
+        rest_kernel(gyr, valid, dt, acc, RestSettings(float(gyr_th_rad_s), float(acc_th_g), float(min_time_s),
+                                                      float(window_s)), out)
+    return out
 
 
 @_jit

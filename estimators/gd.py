@@ -106,12 +106,10 @@ class GDParams(SmootherParams):
     precond_every (every): rebuild the preconditioner every this many iterations (and after a
         shortened step, before stopping, and when calibration variables are released).
     update: "geodesic" (exponential map on the sphere) or "normalise" (step in R^4, normalise).
-    init_level_s (level): re-level the start every this many seconds (0: off).
     max_iter (iters), tol: stop when an iteration with a freshly built preconditioner lowers
         the cost by less than the fraction tol, or after max_iter iterations.
     """
 
-    init_level_s: float = field(default=10.0, metadata={"alias": "level"})
     max_iter: int = field(default=100, metadata={"alias": "iters"})
     tol: float = 1e-4
     precond: Literal["chain", "block", "none"] = "chain"
@@ -277,7 +275,7 @@ class GradientDescentSmoother(BatchSmoother):
             "preconditioner_builds": builds,
             "gyr_bias_rad_s": bias,
             "gyr_scale_error": scale,
-            "theta_names": [f"bias_{a}" for a in p.bias_axes] + [f"scale_{a}" for a in p.scale_axes],
+            "theta_names": problem.theta_names(),
             "theta": theta,
             "theta_std": theta_posterior_std(problem.linearize(q, theta, v=v)) if problem.n_theta else np.zeros(0),
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),

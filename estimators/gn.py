@@ -164,7 +164,7 @@ class GaussNewtonSmoother(BatchSmoother):
             "converged": converged,
             "gyr_bias_rad_s": bias,
             "gyr_scale_error": scale,
-            "theta_names": [f"bias_{a}" for a in p.bias_axes] + [f"scale_{a}" for a in p.scale_axes],
+            "theta_names": problem.theta_names(),
             "theta": theta,
             "theta_std": theta_posterior_std(lin),
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),

@@ -6,6 +6,7 @@ The cost over the whole recording (weighted least squares with a robust accelero
                    + 1/2 sum_t  w_a,t c^2 rho(|r_a,t|^2 / c^2)            (accelerometer, t = 0 .. T-1)
                    + 1/2 w_0 |r_0|^2 + 1/2 theta^T W_theta theta          (anchor of q_0, calibration prior)
                    + 1/2 sum_t  w_v,t |r_v,t|^2 + 1/2 sum_t w_z,t |v_t|^2   (optional velocity model)
+                   + 1/2 sum_t  w_r,t |w_t|^2                            (rest: steps detected at rest)
 
     r_m,t = 2 log(q_{t+1}^-1 * q_t * exp([0, w_t dt_t / 2]))            (motion residual)
     r_a,t = a_t - h(q_t),   h(q) = R(q)^T e_z                           (observation residual, g)
@@ -31,6 +32,13 @@ pseudo-measurement v_t = 0 of density D (w_z,t = dt_t / D^2) keeps it bounded. A
 delta turns 1 g into a horizontal acceleration g delta, which the velocity cannot absorb
 for long; a linear acceleration that averages out over seconds, can. Each increment touches
 two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks).
+
+At rest the true rate is zero, so the gyro reads its bias (the rest of VQF's bias estimation,
+Laidig & Seel 2023, Sec. 3.4): on steps that a rest detector flags (`_compiled.rest_steps`,
+the one the filters use), the rate w_t itself is a residual with the density sigma_r of the
+gyro noise at rest (w_r,t = dt_t / sigma_r^2), on the axes that have a bias variable. It touches only the calibration variables, and
+it is what makes the bias about a vertical axis observable: without it nothing but the gyro
+sees a rotation about gravity.
 
 The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the whole
 trajectory about world z, so without it the normal equations are singular in heading.
@@ -116,6 +124,8 @@ class Weights:
         increments, g sqrt(s) (inf: no velocity model).
     velocity_bound_m_sqrt_s: density D of the pseudo-measurement v = 0, m/s sqrt(s): per
         second of recording, one observation "v = 0" of std D m/s (inf: no velocity model).
+    rest_noise_rad_sqrt_s: density sigma_r of the gyro reading at rest, rad/sqrt(s): a step of
+        dt seconds flagged at rest observes "true rate = 0" with variance sigma_r^2 / dt.
     """
 
     gyro_noise_rad_sqrt_s: float = 0.02
@@ -132,6 +142,7 @@ class Weights:
     scale_prior: float = 0.2
     velocity_acc_noise_g_sqrt_s: float = np.inf
     velocity_bound_m_sqrt_s: float = np.inf
+    rest_noise_rad_sqrt_s: float = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,10 +200,13 @@ class SmootherProblem:
     w_theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
     w_vel: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T-1,) velocity increments, (s/m)^2; empty: no velocity model
     w_vzero: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) zero-velocity pseudo-measurements, (s/m)^2
+    w_rest: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T-1,) zero-rate information of steps at rest, (s/rad)^2; empty: none
 
     @classmethod
-    def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True) -> "SmootherProblem":
-        """imu: calibrated samples; init_quat_wxyz: (4,) anchor of q_0."""
+    def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True,
+                 rest: np.ndarray | None = None) -> "SmootherProblem":
+        """imu: calibrated samples; init_quat_wxyz: (4,) anchor of q_0; rest: (T-1,) bool, the
+        steps at rest (`_compiled.rest_steps`; None: no rest term)."""
         dt = imu.dt
         rate, valid = imu.interval_rates()
         if not use_valid:
@@ -230,8 +244,22 @@ class SmootherProblem:
             w_vzero = sample_durations(imu.t) / weights.velocity_bound_m_sqrt_s**2
         else:
             w_vel, w_vzero = np.zeros(0), np.zeros(0)
+        if rest is not None:
+            rest = np.asarray(rest, bool)
+            if rest.shape != dt.shape:
+                raise ValueError(f"{imu.source}: rest mask has shape {rest.shape}, expected {dt.shape}")
+            # Zero true rate observed with density sigma_r: variance sigma_r^2 / dt per step.
+            w_rest = np.where(rest & valid, dt / weights.rest_noise_rad_sqrt_s**2, 0.0)
+            # An axis without a bias variable takes the bias its rest steps read (their mean rate), fixed.
+            if np.any(w_rest):
+                fixed = np.setdiff1d(np.arange(3), [AXES.index(a) for a in weights.bias_axes])
+                read = np.average(rate[w_rest > 0], axis=0, weights=w_rest[w_rest > 0])
+                rate = rate.copy()
+                rate[:, fixed] -= read[fixed]
+        else:
+            w_rest = np.zeros(0)
         return cls(
-            dt=dt, gyr=rate, valid=valid, acc=acc, w_vel=w_vel, w_vzero=w_vzero,
+            dt=dt, gyr=rate, valid=valid, acc=acc, w_vel=w_vel, w_vzero=w_vzero, w_rest=w_rest,
             w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0),
             loss=weights.loss if np.isfinite(weights.loss_scale_g) else "none", loss_c=float(weights.loss_scale_g),
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
@@ -262,6 +290,10 @@ class SmootherProblem:
         mean = 0.5 * (f_world[:-1, :2] + f_world[1:, :2])
         return v[1:] - v[:-1] - GRAVITY_M_S2 * mean * self.dt[:, None], f_world
 
+    def theta_names(self) -> list[str]:
+        """The calibration variables' names, in theta's order ("bias_x", ..., "scale_y")."""
+        return [f"bias_{AXES[i]}" for i in self.bias_idx] + [f"scale_{AXES[i]}" for i in self.scale_idx]
+
     def split_theta(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """theta -> (bias (3,) rad/s, scale error (3,))."""
         b = np.zeros(3)
@@ -271,12 +303,39 @@ class SmootherProblem:
         k[self.scale_idx] = theta[nb:]
         return b, k
 
+    def rates(self, theta: np.ndarray) -> np.ndarray:
+        """(T-1, 3) w_t = (1 + k) g_t - b, rad/s: the calibrated rate of each step."""
+        b, k = self.split_theta(theta)
+        return (1.0 + k) * self.gyr - b
+
+    def rate_jacobian(self) -> np.ndarray:
+        """(T-1, 3, P) d w_t / d theta: -1 for a bias, g_t,i for a scale error (w is linear in theta)."""
+        J = np.zeros((len(self.gyr), 3, self.n_theta))
+        nb = len(self.bias_idx)
+        for j, ax in enumerate(self.bias_idx):
+            J[:, ax, j] = -1.0
+        for j, ax in enumerate(self.scale_idx):
+            J[:, ax, nb + j] = self.gyr[:, ax]
+        return J
+
     def step_rotvec(self, theta: np.ndarray) -> np.ndarray:
         """(T-1, 3) phi_t = w_t dt_t, zero on invalid steps."""
-        b, k = self.split_theta(theta)
-        phi = ((1.0 + k) * self.gyr - b) * self.dt[:, None]
+        phi = self.rates(theta) * self.dt[:, None]
         phi[~self.valid] = 0.0
         return phi
+
+    def rest_terms(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The rest term at theta: its cost, gradient (P,) and Gauss-Newton block (P, P), which is
+        exact (the residual w_t is linear in theta). Only the axes with a bias variable enter: on
+        the others the term could not change and would only add a constant."""
+        P = self.n_theta
+        if not np.any(self.w_rest):
+            return 0.0, np.zeros(P), np.zeros((P, P))
+        at, axes = self.w_rest > 0, self.bias_idx
+        w, r = self.w_rest[at], self.rates(theta)[at][:, axes]
+        J = self.rate_jacobian()[at][:, axes]
+        return (0.5 * float(np.sum(w * np.sum(r**2, axis=1))), np.einsum("t,tj,tjp->p", w, r, J),
+                np.einsum("t,tjp,tjr->pr", w, J, J))
 
     def steps(self, theta: np.ndarray) -> "Steps":
         """The gyro increments at theta and what the Jacobians need of them; they depend on theta
@@ -290,12 +349,8 @@ class SmootherProblem:
         u = quat.from_rotvec(phi)
         d_phi = np.zeros((len(phi), 3, self.n_theta))
         if self.n_theta:
-            # d phi / d b = -dt, d phi / d k_i = dt g_i; Exp(phi + e) ~ Exp(phi) Exp(J_r(phi) e) (eq. 143).
-            nb = len(self.bias_idx)
-            for j, ax in enumerate(self.bias_idx):
-                d_phi[:, ax, j] = -self.dt
-            for j, ax in enumerate(self.scale_idx):
-                d_phi[:, ax, nb + j] = self.dt * self.gyr[:, ax]
+            # d phi / d theta = dt d w / d theta; Exp(phi + e) ~ Exp(phi) Exp(J_r(phi) e) (eq. 143).
+            d_phi = self.rate_jacobian() * self.dt[:, None, None]
             d_phi[~self.valid] = 0.0
             d_phi = right_jacobian(phi) @ d_phi
         steps = Steps(phi=phi, u=u, R_u=rotation_matrix(u), d_phi=d_phi)
@@ -323,6 +378,8 @@ class SmootherProblem:
             v = self.zero_velocity() if v is None else v
             out["velocity"], _ = self.velocity_residual(q, v)
             out["vzero"] = v
+        if np.any(self.w_rest):
+            out["rest"] = self.rates(theta)[self.w_rest > 0][:, self.bias_idx]
         return out
 
     def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -348,7 +405,7 @@ class SmootherProblem:
         if self.n_vel:
             total += 0.5 * float(np.sum(self.w_vel * np.sum(r["velocity"] ** 2, axis=1))
                                  + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
-        return total
+        return total + self.rest_terms(theta)[0]
 
     # -------------------------------------------------------------- linearisation
     def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True,
@@ -410,7 +467,10 @@ class SmootherProblem:
             cost += 0.5 * float(np.sum(self.w_vel * np.sum(r_v**2, axis=1)) + np.sum(self.w_vzero * np.sum(v**2, axis=1)))
 
         # Calibration variables: d r_m,t / d theta = A_t J_r(phi_t) d phi_t / d theta (`Steps.d_phi`).
-        grad_theta = self.w_theta * theta
+        # The rest term touches theta only (`rest_terms`).
+        rest_cost, rest_grad, rest_block = self.rest_terms(theta)
+        cost += rest_cost
+        grad_theta = self.w_theta * theta + rest_grad
         Jth = None
         if P:
             Jth = A @ steps.d_phi  # (T-1, 3, P)
@@ -449,7 +509,7 @@ class SmootherProblem:
             off[:, 3:, :3] -= wv * X1
             off[:, idx, idx] -= self.w_vel[:, None]
         cross = np.zeros((T, B, P))
-        theta_block = np.diag(self.w_theta).astype(float)
+        theta_block = np.diag(self.w_theta).astype(float) + rest_block
         if P:
             cross[:-1, :3] += wm * (J0t @ Jth)  # J0^T Jth
             cross[1:, :3] -= wm * (A @ Jth)  # J1^T Jth
