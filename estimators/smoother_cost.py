@@ -33,12 +33,13 @@ delta turns 1 g into a horizontal acceleration g delta, which the velocity canno
 for long; a linear acceleration that averages out over seconds, can. Each increment touches
 two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks).
 
-At rest the true rate is zero, so the gyro reads its bias (the rest of VQF's bias estimation,
-Laidig & Seel 2023, Sec. 3.4): on steps that a rest detector flags (`_compiled.rest_steps`,
-the one the filters use), the rate w_t itself is a residual with the density sigma_r of the
-gyro noise at rest (w_r,t = dt_t / sigma_r^2), on the axes that have a bias variable. It touches only the calibration variables, and
-it is what makes the bias about a vertical axis observable: without it nothing but the gyro
-sees a rotation about gravity.
+At rest the true rate is zero, so the gyro reads its bias (the rest part of VQF's bias
+estimation, Laidig & Seel 2023, Sec. 3.4): on steps that a rest detector flags
+(`_compiled.rest_steps`, the one the filters use), the rate w_t itself is a residual with the
+density sigma_r of the gyro noise at rest (w_r,t = dt_t / sigma_r^2), on the axes that have a
+bias variable. It touches only the calibration variables. An axis without a bias variable
+takes the mean rest reading as a fixed bias (`from_imu`): about the vertical, nothing but the
+gyro sees a rotation, so the rest is the only place its bias can be read.
 
 The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the whole
 trajectory about world z, so without it the normal equations are singular in heading.
@@ -142,7 +143,7 @@ class Weights:
     scale_prior: float = 0.2
     velocity_acc_noise_g_sqrt_s: float = np.inf
     velocity_bound_m_sqrt_s: float = np.inf
-    rest_noise_rad_sqrt_s: float = 1e-3
+    rest_noise_rad_sqrt_s: float = 1e-2
 
 
 @dataclass(frozen=True, eq=False)
