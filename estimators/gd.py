@@ -67,8 +67,9 @@ recordings, the final cost is within 0.03 % of `gn`'s or below it).
 
 Calibration: as in `gn`, the gyro scale errors are held at zero in a first stage (from a
 drifting start they would absorb the drift) and then released where the recording determines
-them (`gn.released_scales`). The first stage only prepares that test, so it stops at a relative
-decrease of 1e-3 (or half of `max_iter`).
+them (`gn.released_scales`) and where they lower the cost significantly (`BatchSmoother.estimate`).
+The first stage converges to `tol` (or stops after half of `max_iter`): the significance test
+compares its cost with the final one.
 
 Ablations: precond="block" keeps only M's diagonal blocks (each sample's own curvature, no
 chain: iterations grow with the length again); precond="none" is plain projected gradient
@@ -94,7 +95,6 @@ from .smoother_cost import Linearization, SmootherProblem, banded_lower
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
 MAX_HALVINGS = 50  # 2^-50: no step of that length decreases the cost in double precision
 RIDGE = 1e-9  # relative ridge on M's diagonal: keeps the factorisation safe, changes p by ~1e-9
-STAGE1_TOL = 1e-3  # stage 1 (scale errors held at zero) only prepares the release test
 
 
 @dataclass(frozen=True)
@@ -200,6 +200,7 @@ class GradientDescentSmoother(BatchSmoother):
         staged = problem.n_theta > nb
         stage1_iter = max(1, p.max_iter // 2)
         released = np.zeros(problem.n_theta - nb, bool)
+        stage1 = None  # (q, theta, v, cost) where stage 1 ended
 
         hessian = p.precond != "none"
         lin = problem.linearize(q, theta, v=v, hessian=hessian)  # always at the current point
@@ -215,7 +216,8 @@ class GradientDescentSmoother(BatchSmoother):
         start = time.perf_counter()
         elapsed = [0.0]
         try:
-            while iterations < p.max_iter:
+            # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
+            while iterations < p.max_iter + (stage1_iter if staged else 0):
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
                 slope = float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)  # g.p < 0
                 # Backtracking line search (N&W Algorithm 3.1) from alpha = 1 for the Newton-like
@@ -246,7 +248,7 @@ class GradientDescentSmoother(BatchSmoother):
                     bar.update(1)
                     bar.set_postfix(cost=f"{cost:.6g}", alpha=f"{alpha:.3g}")
                 small = decrease < p.tol
-                stage_end = staged and (decrease < max(p.tol, STAGE1_TOL) or iterations >= stage1_iter)
+                stage_end = staged and (decrease < p.tol or iterations >= stage1_iter)
                 if (small and not lagged) and not stage_end:
                     converged = True  # a fresh M's step no longer helps: at the minimum (to tol)
                     break
@@ -257,6 +259,7 @@ class GradientDescentSmoother(BatchSmoother):
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False
+                        stage1 = (q, theta, v, cost, theta_posterior_std(lin))
                         released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
                     M = Preconditioner(lin, p.precond, free)
@@ -281,5 +284,6 @@ class GradientDescentSmoother(BatchSmoother):
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
             "scale_released": released,
             "velocity_m_s": v,
+            "stage1": stage1,
         }
         return q, diagnostics

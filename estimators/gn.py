@@ -15,7 +15,8 @@ the relative cost decrease of an accepted step is below `tol` or after `max_iter
 
 Per-sample variables are the rotation increment and, with the velocity model, the two
 horizontal velocities (5x5 blocks). Scale-error variables are released only after the rest
-has converged with them at zero, and only those the recording determines (`released_scales`).
+has converged with them at zero, and only those the recording determines (`released_scales`);
+they are kept only if they lower the cost significantly (`BatchSmoother.significant_scales`).
 
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
@@ -113,10 +114,13 @@ class GaussNewtonSmoother(BatchSmoother):
         # scale error only if the recording determines it (`released_scales`); the others stay 0.
         nb = len(problem.bias_idx)
         free = np.arange(problem.n_theta) < nb if problem.n_theta > nb else None
-        stage1_iter = max(1, p.max_iter // 2) if free is not None else p.max_iter
+        staged = free is not None  # in stage 1
+        stage1_iter = max(1, p.max_iter // 2)
         released = np.zeros(problem.n_theta - nb, bool)
+        stage1 = None  # (q, theta, v, cost) where stage 1 ended
         try:
-            for iterations in range(1, p.max_iter + 1):
+            # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
+            for iterations in range(1, p.max_iter + (stage1_iter if staged else 0) + 1):
                 while True:
                     if free is None:
                         delta, dtheta = solve_normal_equations(lin, damping)
@@ -143,9 +147,11 @@ class GaussNewtonSmoother(BatchSmoother):
                     damping = max(damping / 10.0, 1e-12)
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")
-                    stage_done = decrease < p.tol or (free is not None and iterations >= stage1_iter)
+                    stage_done = decrease < p.tol or (staged and iterations >= stage1_iter)
                 if stage_done:
-                    if free is not None and not free.all():
+                    if staged:
+                        staged = False
+                        stage1 = (q, theta, v, lin.cost, theta_posterior_std(lin))
                         released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
                         damping = 1e-6
@@ -170,5 +176,6 @@ class GaussNewtonSmoother(BatchSmoother):
             "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
             "scale_released": released,
             "velocity_m_s": v,
+            "stage1": stage1,
         }
         return q, diagnostics

@@ -103,3 +103,28 @@ def test_implausible_scale_error_is_held_at_zero(sim):
             assert d["theta_names"] == ["bias_x", "bias_y", "scale_y"]
         else:
             assert d["theta_names"][-2:] == ["scale_x", "scale_y"]
+
+
+def test_scale_errors_are_kept_only_when_significant(sim):
+    """The simulated board's gyro reads 9 and 4 % high on x and y: the released scale errors
+    lower the cost far beyond the chi-square threshold and are kept. Asking for an absurd
+    significance level rejects them, and the smoother returns its stage-1 solution."""
+    from scipy.stats import chi2
+
+    q0 = initial_orientation(sim, "truth")
+    out = {}
+    for sig in (0.05, 1e-300):
+        est = estimators.build("gn")
+        est.params = dataclasses.replace(est.params, progress=False, scale_significance=sig)
+        traj = est.estimate(sim.imu, q0)
+        out[sig] = (traj, traj.diagnostics, score(sim.truth, traj).rmse_deg["inclination"])
+    traj, d, incl = out[0.05]
+    assert d["scale_released"].all() and d["scale_lr"] > chi2.ppf(0.95, 2)
+    assert np.all(d["gyr_scale_error"][:2] < -0.02)
+    traj_r, d_r, incl_r = out[1e-300]
+    assert d_r["scale_lr"] == d["scale_lr"] and not d_r["scale_released"].any()
+    np.testing.assert_array_equal(d_r["gyr_scale_error"], 0.0)
+    # The stage-1 solution: a higher cost than the final one, and worse without the scale errors.
+    problem = est.problem(sim.imu, q0)
+    assert problem.cost(traj_r.quat_wxyz, d_r["theta"], d_r["velocity_m_s"]) > d["loss"][-1]
+    assert incl_r > incl

@@ -260,7 +260,9 @@ def parse(text: str):
 def test_scale_errors_without_information_are_not_released():
     """A scale error on an axis the recording never rotates about carries no information
     (posterior std = prior std): it stays exactly zero, while the excited axes are released
-    and estimated. Rotation only about x (no y or z rate at all)."""
+    and estimated. Rotation only about x (no y or z rate at all). The significance test,
+    which 30 s of this motion does not pass under the default loose noise model (statistic 3.5
+    for 1 degree of freedom), is switched off: this pins the posterior-std rule alone."""
     rng = np.random.default_rng(4)
     t = np.arange(0.0, 30.0, 0.01)
     rv = np.stack([0.5 * np.sin(2 * np.pi * 0.3 * t) + 0.3 * np.sin(2 * np.pi * 0.07 * t), 0 * t, 0 * t], axis=1)
@@ -271,7 +273,7 @@ def test_scale_errors_without_information_are_not_released():
     gyr[:, 0] *= 1.05  # a 5 % scale error on x (correction 1/1.05 - 1)
     acc = quat.gravity_in_body(q) + rng.normal(size=(len(t), 3)) * 1e-3
     imu = ImuSamples(t, gyr, acc, gyr_timing="start")
-    est = build("gn:scale=xyz,progress=false").estimate(imu, q[0])
+    est = build("gn:scale=xyz,progress=false,sig=1").estimate(imu, q[0])
     d = est.diagnostics
     assert list(d["scale_released"]) == [True, False, False]
     assert np.all(d["gyr_scale_error"][1:] == 0.0)
