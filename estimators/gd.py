@@ -61,9 +61,8 @@ accelerometer's pull, proportional to the sine of the tilt error, vanishes; a lo
 started there stays there.
 
 Stopping: when an iteration with a freshly built M lowers the cost by less than the fraction
-`tol` (1e-4, where `gn` uses 1e-5: what is left then is mostly the heading of long
-recordings, which a gyro and an accelerometer barely observe; measured on the 18 real
-recordings, the final cost is within 0.03 % of `gn`'s or below it).
+`tol` (1e-4, as `gn`: what is left then is mostly the heading of long recordings, which a
+gyro and an accelerometer barely observe).
 
 Calibration: as in `gn`, the gyro scale errors are held at zero in a first stage (from a
 drifting start they would absorb the drift) and then released where the recording determines
@@ -111,7 +110,6 @@ class GDParams(SmootherParams):
     """
 
     max_iter: int = field(default=100, metadata={"alias": "iters"})
-    tol: float = 1e-4
     precond: Literal["chain", "block", "none"] = "chain"
     precond_every: int = field(default=1, metadata={"alias": "every"})
     update: Literal["geodesic", "normalise"] = "geodesic"
