@@ -66,7 +66,8 @@ gyro and an accelerometer barely observe).
 
 Calibration: as in `gn`, the gyro scale errors are held at zero in a first stage (from a
 drifting start they would absorb the drift) and then released where the recording determines
-them (`gn.released_scales`) and where they lower the cost significantly (`BatchSmoother.estimate`).
+them (`gn.released_scales`) and where they lower the cost significantly
+(`BatchSmoother.significant_scales`).
 The first stage converges to `tol` (or stops after half of `max_iter`): the significance test
 compares its cost with the final one.
 
@@ -198,7 +199,7 @@ class GradientDescentSmoother(BatchSmoother):
         staged = problem.n_theta > nb
         stage1_iter = max(1, p.max_iter // 2)
         released = np.zeros(problem.n_theta - nb, bool)
-        stage1 = None  # (q, theta, v, cost) where stage 1 ended
+        stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
 
         hessian = p.precond != "none"
         lin = problem.linearize(q, theta, v=v, hessian=hessian)  # always at the current point
@@ -215,7 +216,8 @@ class GradientDescentSmoother(BatchSmoother):
         elapsed = [0.0]
         try:
             # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
-            while iterations < p.max_iter + (stage1_iter if staged else 0):
+            limit = p.max_iter + (stage1_iter if staged else 0)
+            while iterations < limit:
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
                 slope = float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)  # g.p < 0
                 # Backtracking line search (N&W Algorithm 3.1) from alpha = 1 for the Newton-like

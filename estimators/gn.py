@@ -117,7 +117,7 @@ class GaussNewtonSmoother(BatchSmoother):
         staged = free is not None  # in stage 1
         stage1_iter = max(1, p.max_iter // 2)
         released = np.zeros(problem.n_theta - nb, bool)
-        stage1 = None  # (q, theta, v, cost) where stage 1 ended
+        stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
         try:
             # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
             for iterations in range(1, p.max_iter + (stage1_iter if staged else 0) + 1):
