@@ -304,20 +304,27 @@ class SmootherProblem:
         k[self.scale_idx] = theta[nb:]
         return b, k
 
-    def rates(self, theta: np.ndarray) -> np.ndarray:
-        """(T-1, 3) w_t = (1 + k) g_t - b, rad/s: the calibrated rate of each step."""
+    def rates(self, theta: np.ndarray, rows=slice(None)) -> np.ndarray:
+        """(T-1, 3) w_t = (1 + k) g_t - b, rad/s: the calibrated rate of each step (or of the
+        steps `rows` selects)."""
         b, k = self.split_theta(theta)
-        return (1.0 + k) * self.gyr - b
+        return (1.0 + k) * self.gyr[rows] - b
 
-    def rate_jacobian(self) -> np.ndarray:
-        """(T-1, 3, P) d w_t / d theta: -1 for a bias, g_t,i for a scale error (w is linear in theta)."""
-        J = np.zeros((len(self.gyr), 3, self.n_theta))
+    def rate_jacobian(self, rows=slice(None)) -> np.ndarray:
+        """(T-1, 3, P) d w_t / d theta (or for the steps `rows` selects): -1 for a bias, g_t,i
+        for a scale error (w is linear in theta)."""
+        gyr = self.gyr[rows]
+        J = np.zeros((len(gyr), 3, self.n_theta))
         nb = len(self.bias_idx)
         for j, ax in enumerate(self.bias_idx):
             J[:, ax, j] = -1.0
         for j, ax in enumerate(self.scale_idx):
-            J[:, ax, nb + j] = self.gyr[:, ax]
+            J[:, ax, nb + j] = gyr[:, ax]
         return J
+
+    def rest_residual(self, theta: np.ndarray) -> np.ndarray:
+        """(R, B) the rest residuals: the rate of the R steps at rest, on the B bias axes."""
+        return self.rates(theta, self.w_rest > 0)[:, self.bias_idx]
 
     def step_rotvec(self, theta: np.ndarray) -> np.ndarray:
         """(T-1, 3) phi_t = w_t dt_t, zero on invalid steps."""
@@ -332,9 +339,9 @@ class SmootherProblem:
         P = self.n_theta
         if not np.any(self.w_rest):
             return 0.0, np.zeros(P), np.zeros((P, P))
-        at, axes = self.w_rest > 0, self.bias_idx
-        w, r = self.w_rest[at], self.rates(theta)[at][:, axes]
-        J = self.rate_jacobian()[at][:, axes]
+        at = self.w_rest > 0
+        w, r = self.w_rest[at], self.rest_residual(theta)
+        J = self.rate_jacobian(at)[:, self.bias_idx]
         return (0.5 * float(np.sum(w * np.sum(r**2, axis=1))), np.einsum("t,tj,tjp->p", w, r, J),
                 np.einsum("t,tjp,tjr->pr", w, J, J))
 
@@ -380,7 +387,7 @@ class SmootherProblem:
             out["velocity"], _ = self.velocity_residual(q, v)
             out["vzero"] = v
         if np.any(self.w_rest):
-            out["rest"] = self.rates(theta)[self.w_rest > 0][:, self.bias_idx]
+            out["rest"] = self.rest_residual(theta)
         return out
 
     def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
