@@ -233,15 +233,43 @@ def lowpass_drift_density(lowpass_s: float, rate_rad_s: np.ndarray | None, rate_
     return 2.0 * lowpass_s * (lowpass_s * rate_noise_rad2_s + lowpass_s ** 2 * (w2 * scale_var + bias_var))
 
 
+def lowpass_residual_density(density_g2_s: float, lowpass_s: float, rate_noise_rad2_s: float) -> float:
+    """The density (g^2 s) with which a filter should weigh what is left of the external
+    acceleration in the low-passed sample, from its Gauss-Markov density `density_g2_s`
+    (`AccDisturbance.lowpass_density`, `2 lowpass_s v_lp`).
+
+    The Gauss-Markov model treats the residual as a noise that averages out like a white one
+    beyond its correlation time: its mean over a window T has the variance
+    `density_g2_s / T`. But the external acceleration of a body whose velocity stays bounded
+    is a derivative, and its mean over T is a change of velocity divided by T: for motion no
+    slower than the low-pass (residual of variance v_lp, velocity excursions of about
+    `lowpass_s sqrt(v_lp)`), the variance of that mean is about `v_lp lowpass_s^2 / T^2`,
+    smaller by `lowpass_s / (2 T)`. A filter with process noise density Q (rad^2/s) corrects
+    its attitude from a measurement of density L with the time constant `T = sqrt(L / Q)`: the
+    steady-state Kalman filter of a random walk (step variance Q dt) observed in white noise
+    (variance L / dt) has the gain sqrt(Q / L) dt per step when that is small, and its error
+    is the measurement noise low-passed with T, of variance L / (2 T). The density
+    that gives the bounded-velocity residual's error variance `v_lp lowpass_s^2 / T^2` is
+    `L = density_g2_s lowpass_s / T`; with `T = sqrt(L / Q)` this is
+    `L = (density_g2_s lowpass_s sqrt(Q))^(2/3)`. It applies where T exceeds `lowpass_s`
+    (`density_g2_s > lowpass_s^2 Q`, where the two expressions meet); below, and without
+    process noise (no finite T), the Gauss-Markov density stands.
+    """
+    if rate_noise_rad2_s <= 0.0 or not density_g2_s > lowpass_s * lowpass_s * rate_noise_rad2_s:
+        return density_g2_s
+    return (density_g2_s * lowpass_s * math.sqrt(rate_noise_rad2_s)) ** (2.0 / 3.0)
+
+
 def acc_measurement(acc_g: np.ndarray, dist: AccDisturbance, density_g2_s: float, corr_s: float, d_g2: float,
-                    drift_g2_s: float) -> tuple[np.ndarray, float, bool]:
+                    drift_g2_s: float, rate_noise_rad2_s: float) -> tuple[np.ndarray, float, bool]:
     """The accelerometer measurement of one update and its noise density: `(z (3,) g, density
     g^2 s, lowpassed)`.
 
     The raw sample `acc_g` has the density `density_g2_s + 2 corr_s d_g2` (white noise plus
     the external acceleration, see `AccDisturbance`); the low-passed one
-    `density_g2_s + dist.lowpass_density + drift_g2_s` (what is left of the external
-    acceleration, plus the frame drift of `lowpass_drift_density`). The one with the smaller
+    `density_g2_s + lowpass_residual_density(dist.lowpass_density, ...) + drift_g2_s` (what is
+    left of the external acceleration, as a filter with the rate noise density
+    `rate_noise_rad2_s` sees it, plus the frame drift of `lowpass_drift_density`). The one with the smaller
     density is used: the raw sample while the body is quiet or the gyro still uncalibrated
     (it answers at once), the low-passed one through sustained translation, tapping and
     vibration (it averages them out). Either is a measurement of gravity in the body frame
@@ -249,7 +277,8 @@ def acc_measurement(acc_g: np.ndarray, dist: AccDisturbance, density_g2_s: float
     """
     raw = density_g2_s + 2.0 * corr_s * d_g2
     if dist.lowpass_body is not None:
-        lowpassed = density_g2_s + dist.lowpass_density + drift_g2_s
+        residual = lowpass_residual_density(dist.lowpass_density, dist.lowpass_s, rate_noise_rad2_s)
+        lowpassed = density_g2_s + residual + drift_g2_s
         if lowpassed < raw:
             return dist.lowpass_body, lowpassed, True
     return acc_g, raw, False
@@ -351,7 +380,8 @@ def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: t
     drift = lowpass_drift_density(p.acc_lowpass_s, rate_rad_s, rate_noise_rad2_s,
                                   max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
                                   max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
-    meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift)
+    meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
+                                               rate_noise_rad2_s)
     return meas, density / dt_s * scale, lowpassed
 
 

@@ -439,12 +439,20 @@ def lowpass_drift_density(lowpass_s, w2, rate_noise, bias_var, scale_var):
 
 
 @_jit
-def acc_measurement(st, ax, ay, az, o, d, drift):
+def lowpass_residual_density(density, lowpass_s, rate_noise):
+    """`_attitude.lowpass_residual_density`."""
+    if rate_noise <= 0.0 or not density > lowpass_s * lowpass_s * rate_noise:
+        return density
+    return (density * lowpass_s * math.sqrt(rate_noise)) ** (2.0 / 3.0)
+
+
+@_jit
+def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
     """`_attitude.acc_measurement`: the raw sample or the low-passed direction, whichever has the
     smaller noise density; -> (z (3 floats), density g^2 s, low-passed)."""
     raw = o.acc_noise + 2.0 * o.corr_s * d
     if st[18] != 0.0:
-        lowpassed = o.acc_noise + st[22] + drift
+        lowpassed = o.acc_noise + lowpass_residual_density(st[22], o.lowpass_s, rate_noise) + drift
         if lowpassed < raw:
             return st[19], st[20], st[21], lowpassed, True
     return ax, ay, az, raw, False
@@ -463,7 +471,7 @@ def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o):
         n = o.n
         drift = lowpass_drift_density(o.lowpass_s, w2, rate_noise, _max_diag(P, 3) if n > 3 else 0.0,
                                       _max_diag(P, 6) if n > 6 else 0.0)
-        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift)
+        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
         return mx, my, mz, density / dt * scale, lowpassed
     return ax, ay, az, o.acc_noise / dt * scale, False
 

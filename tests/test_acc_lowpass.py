@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fusion import quaternion as quat
-from fusion.estimators._attitude import AccDisturbance, acc_measurement, lowpass_drift_density
+from fusion.estimators._attitude import AccDisturbance, acc_measurement, lowpass_drift_density, lowpass_residual_density
 
 
 def _turning_body_with_translation(seconds=20.0, rate_hz=200.0, amp_g=0.5, freq_hz=2.0):
@@ -62,7 +62,7 @@ def test_without_lowpass_nothing_is_lowpassed():
     dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
     assert dist.lowpass_body is None
     acc = np.array([0.1, 0.0, 1.0])
-    meas, density, lowpassed = acc_measurement(acc, dist, 3e-5, 0.1, 0.2, 0.0)
+    meas, density, lowpassed = acc_measurement(acc, dist, 3e-5, 0.1, 0.2, 0.0, 3e-4)
     assert meas is acc and not lowpassed and density == pytest.approx(3e-5 + 2 * 0.1 * 0.2)
 
 
@@ -72,10 +72,49 @@ def test_the_measurement_with_the_smaller_density_is_chosen(raw_power, expect_lo
     for _ in range(100):
         dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
     drift = lowpass_drift_density(1.0, np.zeros(3), 3e-4, 1e-6, 0.0)
-    meas, density, lowpassed = acc_measurement(np.array([0.3, 0.0, 1.0]), dist, 3e-5, 0.1, raw_power, drift)
+    meas, density, lowpassed = acc_measurement(np.array([0.3, 0.0, 1.0]), dist, 3e-5, 0.1, raw_power, drift, 3e-4)
     assert lowpassed is expect_lowpassed
     raw = 3e-5 + 2 * 0.1 * raw_power
-    assert density == pytest.approx(min(raw, 3e-5 + dist.lowpass_density + drift))
+    residual = lowpass_residual_density(dist.lowpass_density, 1.0, 3e-4)
+    assert density == pytest.approx(min(raw, 3e-5 + residual + drift))
+
+
+def test_residual_density_of_a_bounded_velocity():
+    tau, q = 1.0, 3e-4
+    meet = tau * tau * q  # where the filter's time constant sqrt(L / Q) equals the low-pass's
+    # below it, and without process noise, the Gauss-Markov density stands
+    assert lowpass_residual_density(0.5 * meet, tau, q) == 0.5 * meet
+    assert lowpass_residual_density(1e-2, tau, 0.0) == 1e-2
+    # continuous where the two meet, then smaller and still increasing
+    assert lowpass_residual_density(meet * (1 + 1e-9), tau, q) == pytest.approx(meet)
+    densities = [lowpass_residual_density(d, tau, q) for d in (1e-3, 1e-2, 1e-1)]
+    assert all(r < d for r, d in zip(densities, (1e-3, 1e-2, 1e-1))) and densities == sorted(densities)
+    # self-consistent: L = L_gm tau / T with the time constant T = sqrt(L / Q) of that L
+    for gm, r in zip((1e-3, 1e-2, 1e-1), densities):
+        assert r == pytest.approx(gm * tau / math.sqrt(r / q))
+
+
+@pytest.mark.parametrize("freq_hz", [0.5, 2.0])
+def test_residual_density_is_still_conservative_for_a_bounded_velocity(freq_hz):
+    # A sustained translation of 0.5 g (velocity bounded), low-passed with 1 s. A filter that
+    # weighs the low-passed sample with the corrected density L corrects with the time
+    # constant T = sqrt(L / Q); its error is the residual low-passed with T. The measured error
+    # variance stays below what L predicts, L / (2 T), which in turn is below the
+    # Gauss-Markov density's prediction at the same T.
+    dt, tau, q = 0.01, 1.0, 3e-4
+    dist = AccDisturbance(0.5, lowpass_s=tau)
+    residual_x = []
+    for tk in np.arange(0.0, 60.0, dt):
+        dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.5 * math.sin(2 * math.pi * freq_hz * tk), 0.0, 1.0]), dt)
+        residual_x.append(dist.lp[0])
+    density = lowpass_residual_density(dist.lowpass_density, tau, q)
+    T = math.sqrt(density / q)
+    alpha, error, errors = dt / T, 0.0, []
+    for x in residual_x:
+        error += alpha * (x - error)
+        errors.append(error)
+    measured = float(np.var(errors[len(errors) // 2:]))
+    assert measured < density / (2 * T) < dist.lowpass_density / (2 * T)
 
 
 def test_drift_density_grows_with_rate_and_calibration_uncertainty():
