@@ -243,14 +243,12 @@ def lowpass_residual_density(density_g2_s: float, lowpass_s: float, rate_noise_r
     `density_g2_s / T`. But the external acceleration of a body whose velocity stays bounded
     is a derivative, and its mean over T is a change of velocity divided by T: for motion no
     slower than the low-pass (residual of variance v_lp, velocity excursions of about
-    `lowpass_s sqrt(v_lp)`), the variance of that mean is about `v_lp lowpass_s^2 / T^2`,
-    smaller by `lowpass_s / (2 T)`. A filter with process noise density Q (rad^2/s) corrects
-    its attitude from a measurement of density L with the time constant `T = sqrt(L / Q)`: the
-    steady-state Kalman filter of a random walk (step variance Q dt) observed in white noise
-    (variance L / dt) has the gain sqrt(Q / L) dt per step when that is small, and its error
-    is the measurement noise low-passed with T, of variance L / (2 T). The density
-    that gives the bounded-velocity residual's error variance `v_lp lowpass_s^2 / T^2` is
-    `L = density_g2_s lowpass_s / T`; with `T = sqrt(L / Q)` this is
+    `lowpass_s sqrt(v_lp)`), the variance of that mean is about `2 v_lp lowpass_s^2 / T^2`,
+    smaller by `lowpass_s / T`. A filter with process noise density Q (rad^2/s) averages a
+    measurement of density L over about `T = sqrt(L / Q)`: the steady-state Kalman filter of a
+    random walk (step variance Q dt) observed in white noise (variance L / dt) has the gain
+    sqrt(Q / L) dt per step when that is small. The density whose mean over T has the
+    bounded-velocity variance is `L = density_g2_s lowpass_s / T`; with `T = sqrt(L / Q)`,
     `L = (density_g2_s lowpass_s sqrt(Q))^(2/3)`. It applies where T exceeds `lowpass_s`
     (`density_g2_s > lowpass_s^2 Q`, where the two expressions meet); below, and without
     process noise (no finite T), the Gauss-Markov density stands.
