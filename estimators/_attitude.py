@@ -215,6 +215,58 @@ class AccDisturbance:
         self.lowpass_body = np.array((bx / norm, by / norm, bz / norm)) if norm > 0.0 else None
 
 
+class LowpassLag:
+    """How the low-passed accelerometer direction of `AccDisturbance` depends on the gyro
+    calibration errors: the lag of the low-pass behind gravity's drift in the strapdown frame.
+
+    The frame I turns with the corrected rate `w_c = diag(1 + s) (w_meas - b)`, the body with
+    the true one. A bias error db and a scale error ds (error state: true = estimate + error)
+    leave the rate error `dw = diag(u) ds - diag(1 + s) db`, u = w_meas - b, and gravity in I
+    moves by `g_I x (R_I dw) dt` per step (R_I = R(q_I), body to I). The first-order low-pass
+    (gain beta) lags it by the deficit `D = g_I - lp`, `D <- (1 - beta) (D + dg_I)`, so
+    `D = g_I x (N_s ds - N_b db)` with
+
+        N <- (1 - beta) (N + R_I J dt),   J = diag(u) for N_s, diag(1 + s) for N_b,
+
+    and without the decay on a step whose sample did not enter the low-pass. Rotated back into
+    the body, the low-passed direction is `g_b - [g_b]x R_I^T (N_s ds - N_b db)`: with
+    `g_b = h + [h]x e` (`ekf`'s attitude error) it measures the calibration errors through
+
+        H = [[h]x, [h]x R_I^T N_b, -[h]x R_I^T N_s]
+
+    instead of adding their drift to its noise (`lowpass_drift_density`). VQF (Laidig & Seel
+    2023, Sec. 3.4) likewise estimates the bias in motion from the low-passed signal. The
+    state `N = [N_b, N_s]` (2, 3, 3) is what the compiled `ekf` carries.
+    """
+
+    __slots__ = ("lowpass_s", "N")
+
+    def __init__(self, lowpass_s: float) -> None:
+        self.lowpass_s = lowpass_s
+        self.N = np.zeros((2, 3, 3))
+
+    def step(self, qi: tuple, u: np.ndarray | None, gain: np.ndarray, dt_s: float, fresh: bool,
+             lowpassed: bool) -> None:
+        """One step: qi the frame's quaternion after it (4 floats), u (3,) the bias-corrected
+        rate (None: not integrated), gain (3,) `1 + s`; fresh: the low-pass started at this
+        sample (no lag); lowpassed: the sample entered the low-pass (else no decay)."""
+        if fresh:
+            self.N[:] = 0.0
+            return
+        if u is not None:
+            RI = quat.rotation_matrix_floats(*qi)
+            self.N[0] += RI * (gain * dt_s)
+            self.N[1] += RI * (u * dt_s)
+        if lowpassed:
+            self.N *= math.exp(-dt_s / self.lowpass_s)
+
+    def jacobian(self, hx: np.ndarray, qi: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The low-passed direction's Jacobians `(H_b, H_s)` (3, 3) for the bias and scale
+        errors, from hx = [h]x (3, 3) and the frame's quaternion qi."""
+        A = hx @ quat.rotation_matrix_floats(*qi).T
+        return A @ self.N[0], -(A @ self.N[1])
+
+
 def lowpass_drift_density(lowpass_s: float, rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float, bias_var: float,
                           scale_var: float) -> float:
     """Density (g^2 s) of the strapdown frame's drift within the low-pass window.
@@ -223,8 +275,9 @@ def lowpass_drift_density(lowpass_s: float, rate_rad_s: np.ndarray | None, rate_
     it turns away from the world by an angle of variance `lowpass_s q + lowpass_s^2 sigma_w^2`:
     the random walk of the rate noise (density q, rad^2/s) and a rate error that holds over the
     window, sigma_w^2 = |w|^2 scale_var + bias_var (bias variance in (rad/s)^2, scale-factor
-    variance dimensionless; the filters pass their largest diagonal entries, so a freshly
-    started filter trusts the low-passed sample little until the gyro is calibrated). Gravity's
+    variance dimensionless; `ukf` and `ukf-bias` pass their largest diagonal entries, so a
+    freshly started filter trusts the low-passed sample little until the gyro is calibrated;
+    `ekf` passes zeros and models that lag in its Jacobian instead, `LowpassLag`). Gravity's
     low-passed direction turns with it (an angle of e rad moves a 1 g vector by e g); as an
     error of correlation time `lowpass_s` its low-frequency density is twice `lowpass_s`
     times that variance. `rate_rad_s` (3,) is the corrected rate, None when not integrated.
@@ -359,8 +412,8 @@ def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float,
 
 
 def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
-                               rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float,
-                               P: np.ndarray) -> tuple[np.ndarray, float, bool]:
+                               rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float, P: np.ndarray,
+                               calibration_as_noise: bool = True) -> tuple[np.ndarray, float, bool]:
     """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
     per axis g^2, low-passed)`.
 
@@ -368,16 +421,19 @@ def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: t
     rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
     (`acc_variance_scale`); rate_rad_s: (3,) the corrected rate (None when not integrated) and
     rate_noise_rad2_s its noise density, for the frame drift; P: the predicted error covariance
-    (bias variances in rows 3-5, scale in 6-8 when present). Without the disturbance model: the
+    (bias variances in rows 3-5, scale in 6-8 when present), whose calibration uncertainty
+    adds to the frame drift's density unless `calibration_as_noise` is False (`ekf` models the
+    lag it causes in its measurement Jacobian instead). Without the disturbance model: the
     raw sample and R / dt. (`_compiled.measurement` is the same in the kernels.)
     """
     if p.disturbance_corr_s <= 0.0:
         return acc_g, acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale, False
     d = dist.update(dq, acc_g, dt_s)
     n = len(P)
+    calibration = calibration_as_noise and n > 3
     drift = lowpass_drift_density(p.acc_lowpass_s, rate_rad_s, rate_noise_rad2_s,
-                                  max(P[3, 3], P[4, 4], P[5, 5]) if n > 3 else 0.0,
-                                  max(P[6, 6], P[7, 7], P[8, 8]) if n > 6 else 0.0)
+                                  max(P[3, 3], P[4, 4], P[5, 5]) if calibration else 0.0,
+                                  max(P[6, 6], P[7, 7], P[8, 8]) if calibration and n > 6 else 0.0)
     meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
                                                rate_noise_rad2_s)
     return meas, density / dt_s * scale, lowpassed

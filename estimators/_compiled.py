@@ -155,7 +155,8 @@ def load() -> None:
     state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), np.array([0.0] * 5 + [1.0] + [0.0] * 16 + [math.inf]), np.zeros(5))
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, o, out["quat"], out["cov"],
+    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, np.zeros((2, 3, 3)), o,
+               out["quat"], out["cov"],
                out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"],
                out["acc_lowpassed"])
     weights = np.full(2 * n + 1, 0.5 / n)
@@ -347,6 +348,75 @@ def joseph(P, K, Hb, c0, r, n, G, M):
                        + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
 
 
+@_jit
+def joseph_full(P, K, H, r, n, G, M):
+    """`joseph` for a full H (3 x n)."""
+    for j in range(3):  # G = H P
+        for c in range(n):
+            v = 0.0
+            for i in range(n):
+                v += H[j, i] * P[i, c]
+            G[j, c] = v
+    for i in range(n):  # M = P - K G
+        for c in range(n):
+            M[i, c] = P[i, c] - (K[i, 0] * G[0, c] + K[i, 1] * G[1, c] + K[i, 2] * G[2, c])
+    for i in range(n):
+        e0 = 0.0
+        e1 = 0.0
+        e2 = 0.0
+        for j in range(n):  # (M H^T)[i]
+            e0 += M[i, j] * H[0, j]
+            e1 += M[i, j] * H[1, j]
+            e2 += M[i, j] * H[2, j]
+        for c in range(n):
+            P[i, c] = (M[i, c] - (e0 * K[c, 0] + e1 * K[c, 1] + e2 * K[c, 2])
+                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
+
+
+@_jit
+def lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, updated, lowpass_s, n):
+    """`_attitude.LowpassLag.step`: lag[0] = N_b, lag[1] = N_s, advanced with the strapdown frame of the
+    disturbance state `dist` (q_I in dist[5:9]); (ux, uy, uz) the bias-corrected rate, s the
+    scale corrections, ok whether the step was integrated."""
+    if fresh:
+        for m in range(2):
+            for i in range(3):
+                for j in range(3):
+                    lag[m, i, j] = 0.0
+        return
+    qi = (dist[5], dist[6], dist[7], dist[8])
+    if ok:
+        for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
+            cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
+            gj = (1.0 + s[j] if n > 6 else 1.0) * h
+            uj = (ux if j == 0 else uy if j == 1 else uz) * h
+            lag[0, 0, j] += cx * gj
+            lag[0, 1, j] += cy * gj
+            lag[0, 2, j] += cz * gj
+            lag[1, 0, j] += cx * uj
+            lag[1, 1, j] += cy * uj
+            lag[1, 2, j] += cz * uj
+    if updated:
+        decay = math.exp(-h / lowpass_s)
+        for m in range(2):
+            for i in range(3):
+                for j in range(3):
+                    lag[m, i, j] *= decay
+
+
+@_jit
+def lag_jacobian(Hf, lag, dist, Hs, n):
+    """`_attitude.LowpassLag.jacobian` into Hf: Hf[:, 3:6] = A N_b, Hf[:, 6:9] = -A N_s with
+    A = [h]x R_I^T (Hs = [h]x)."""
+    qi = (dist[5], -dist[6], -dist[7], -dist[8])  # R_I^T
+    for m in range(2 if n > 6 else 1):
+        sign = 1.0 if m == 0 else -1.0
+        for j in range(3):
+            vx, vy, vz = rotate(qi, lag[m, 0, j], lag[m, 1, j], lag[m, 2, j])
+            for i in range(3):
+                Hf[i, 3 + 3 * m + j] = sign * (Hs[i, 0] * vx + Hs[i, 1] * vy + Hs[i, 2] * vz)
+
+
 # ============================================================================ _attitude helpers
 @_jit
 def acc_variance_scale(ax, ay, az, gate, gate_g):
@@ -459,16 +529,17 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 
 @_jit
-def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o):
+def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o, calibration_as_noise):
     """The measurement and variance of one accelerometer update, as the filters' steps choose
     them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq),
-    the low-pass frame drift (w2: the squared corrected rate; rate_noise: its noise density), the
+    the low-pass frame drift (w2: the squared corrected rate; rate_noise: its noise density; the
+    calibration variances of P only with calibration_as_noise), the
     raw or the low-passed sample (`_attitude.acc_measurement`), its variance times the gate's
     scale; without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2,
     low-passed)."""
     if o.corr_s > 0.0:
         d = disturbance_update(dist, dq, ax, ay, az, dt, o)
-        n = o.n
+        n = o.n if calibration_as_noise else 3
         drift = lowpass_drift_density(o.lowpass_s, w2, rate_noise, _max_diag(P, 3) if n > 3 else 0.0,
                                       _max_diag(P, 6) if n > 6 else 0.0)
         mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
@@ -590,12 +661,13 @@ def _sample(gyr, valid, acc, k):
 
 # ============================================================================ ekf
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
+def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, o,
                out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard, out_lowpassed):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (23,), rest (5,). Qrate, Qbad
+    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (23,), rest (5,), lag (2, 3, 3)
+    (`LowpassLag.N`). Qrate, Qbad
     (n, n) as built by `EKF.reset`. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, covariance repairs).
     """
@@ -605,6 +677,8 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
     FP = np.empty((n, n))
     J = np.empty((3, 3))
     Hs = np.zeros((3, 3))
+    Hf = np.zeros((3, n))
+    with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
     PHt = np.empty((n, 3))
     S = np.empty((3, 3))
     Sinv = np.empty((3, 3))
@@ -698,22 +772,46 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
         guarded = False
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
+        fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
         if scale < math.inf:
             rx, ry, rz = tx / h, ty / h, tz / h
             mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, rx * rx + ry * ry + rz * rz,
-                                                   o.process_noise, P, o)
+                                                   o.process_noise, P, o, not with_lag)
             var = r
             hx, hy, hz = gravity(q)
             Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
             Hs[1, 0], Hs[1, 1], Hs[1, 2] = hz, 0.0, -hx
             Hs[2, 0], Hs[2, 1], Hs[2, 2] = -hy, hx, 0.0
-            for i in range(n):  # P H^T (H is zero beyond column 2)
-                for j in range(3):
-                    PHt[i, j] = P[i, 0] * Hs[j, 0] + P[i, 1] * Hs[j, 1] + P[i, 2] * Hs[j, 2]
-            for i in range(3):
-                for j in range(3):
-                    S[i, j] = Hs[i, 0] * PHt[0, j] + Hs[i, 1] * PHt[1, j] + Hs[i, 2] * PHt[2, j]
-                S[i, i] += r
+            full = False
+            if with_lag:
+                lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, True, o.lowpass_s, n)
+                full = lowpassed
+            if full:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
+                for i in range(3):
+                    for j in range(3):
+                        Hf[i, j] = Hs[i, j]
+                lag_jacobian(Hf, lag, dist, Hs, n)
+                for i in range(n):
+                    for j in range(3):
+                        v = 0.0
+                        for c in range(n):
+                            v += P[i, c] * Hf[j, c]
+                        PHt[i, j] = v
+                for i in range(3):
+                    for j in range(3):
+                        v = 0.0
+                        for c in range(n):
+                            v += Hf[i, c] * PHt[c, j]
+                        S[i, j] = v
+                    S[i, i] += r
+            else:
+                for i in range(n):  # P H^T (H is zero beyond column 2)
+                    for j in range(3):
+                        PHt[i, j] = P[i, 0] * Hs[j, 0] + P[i, 1] * Hs[j, 1] + P[i, 2] * Hs[j, 2]
+                for i in range(3):
+                    for j in range(3):
+                        S[i, j] = Hs[i, 0] * PHt[0, j] + Hs[i, 1] * PHt[1, j] + Hs[i, 2] * PHt[2, j]
+                    S[i, i] += r
             inv_sym3(S, Sinv)
             for i in range(n):
                 for j in range(3):
@@ -738,11 +836,16 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
                     b[i] = b[i] + dx[3 + i]
                 if n > 6:
                     s[i] = s[i] + dx[6 + i]
-            joseph(P, K, Hs, 0, r, n, G, M)
+            if full:
+                joseph_full(P, K, Hf, r, n, G, M)
+            else:
+                joseph(P, K, Hs, 0, r, n, G, M)
         else:
             skipped += 1
             if o.corr_s > 0.0:
                 disturbance_turn(dist, d)  # the strapdown frame follows the gyro through skipped updates
+                if with_lag:
+                    lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, False, o.lowpass_s, n)
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -909,7 +1012,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
             mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale,
-                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o)
+                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o, True)
             var = r
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6

@@ -33,7 +33,12 @@ injection, reset with the reset Jacobian taken as I):
     a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Laidig & Seel
                   2023, Sec. 3.2), rotated back into the body, with R_k = (R + S_lp + S_drift)
                   / dt, whenever that density is the smaller (`_attitude.acc_measurement`):
-                  through sustained translation, tapping and vibration
+                  through sustained translation, tapping and vibration. S_lp is the residual
+                  external acceleration (`_attitude.lowpass_residual_density`), S_drift the
+                  rate noise's drift of the frame; the lag by which the low-pass trails gravity
+                  when the frame drifts with a bias or scale error is modelled, not added as
+                  noise: H = [[h]x, H_b, H_s] (`_attitude.LowpassLag`), so that the low-passed
+                  sample measures the calibration in motion
     S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
     heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
                   predicted vertical; the Joseph form below is exact for any gain)
@@ -78,6 +83,7 @@ from fusion.types import ImuSamples, Trajectory
 from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
+    LowpassLag,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
@@ -169,6 +175,7 @@ class EKF(RecursiveEstimator):
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
+        self._lag = LowpassLag(p.acc_lowpass_s)
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
@@ -216,9 +223,12 @@ class EKF(RecursiveEstimator):
                 self.s = self.s + dx[6:]
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
+        lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+        fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
         if scale < math.inf:
             meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
-                                                                 np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s, P)
+                                                                 np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s, P,
+                                                                 calibration_as_noise=not lag)
             self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
@@ -226,6 +236,14 @@ class EKF(RecursiveEstimator):
             H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
             H[1, 0], H[1, 2] = h[2], -h[0]
             H[2, 0], H[2, 1] = -h[1], h[0]
+            H[:, 3:] = 0.0
+            if lag:
+                self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, True)
+                if self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
+                    H_b, H_s = self._lag.jacobian(H[:, :3], self._dist.qi)
+                    H[:, 3:6] = H_b
+                    if n > 6:
+                        H[:, 6:] = H_s
             PHt = P @ H.T
             S = H @ PHt
             S[0, 0] += r
@@ -259,6 +277,8 @@ class EKF(RecursiveEstimator):
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:
                 self._dist.turn(d)  # the strapdown frame follows the gyro through skipped updates
+                if lag:
+                    self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, False)
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -288,7 +308,7 @@ class EKF(RecursiveEstimator):
         q, b, s, P = self.q.copy(), self.b.copy(), self.s.copy(), self.P.copy()
         dist, rest = self._dist.state(), self._rest.state()
         self.n_skipped, self.n_cov_repaired = _compiled.ekf_kernel(
-            *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest,
+            *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest, self._lag.N,
             _compiled.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"],
             out["nis"], out["bias_guarded"], out["acc_lowpassed"])
