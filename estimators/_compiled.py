@@ -162,7 +162,8 @@ def load() -> None:
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
+    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest,
+               np.zeros((2, 3, 3)), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
     _loaded = True
@@ -870,13 +871,14 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
 
 # ============================================================================ ukf, ukf-bias
 @_jit
-def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
+def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, o,
                out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
     """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (23,), rest (5,). Qrate, Qbad
+    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (23,), rest (5,), lag (2, 3, 3)
+    (`LowpassLag.N`). Qrate, Qbad
     (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the sigma-point weights, centre first.
     Fills rows 1.. of the (N, ...) outputs; returns (updates skipped, square-root recoveries,
     covariance repairs, mean-iteration cap hits).
@@ -901,6 +903,9 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
     Hb = np.empty((3, 3))
     G = np.empty((3, n))
     M = np.empty((n, n))
+    Hs = np.zeros((3, 3))
+    Hf = np.zeros((3, n))
+    with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
     skipped = 0
     sqrt_recovered = 0
     repaired = 0
@@ -1011,12 +1016,29 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
             q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
+            fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
             mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale,
-                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o, True)
+                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o,
+                                                   not with_lag)
             var = r
+            full = False
+            if with_lag:
+                lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], ok, fresh, h, True, o.lowpass_s, n)
+                full = lowpassed
+            if full:  # the low-passed sample's lag (`UKF._lag_step`, `_attitude.LowpassLag`)
+                hx, hy, hz = gravity((x[0], x[1], x[2], x[3]))
+                Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
+                Hs[1, 0], Hs[1, 1], Hs[1, 2] = hz, 0.0, -hx
+                Hs[2, 0], Hs[2, 1], Hs[2, 2] = -hy, hx, 0.0
+                lag_jacobian(Hf, lag, dist, Hs, n)
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
                 g0, g1, g2 = gravity((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
+                if full:
+                    for c in range(3, n):
+                        g0 += Hf[0, c] * res[i, c]
+                        g1 += Hf[1, c] * res[i, c]
+                        g2 += Hf[2, c] * res[i, c]
                 dZ[i, 0], dZ[i, 1], dZ[i, 2] = g0, g1, g2
                 zx += Wm[i] * g0  # step 7
                 zy += Wm[i] * g1
@@ -1074,7 +1096,10 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         else:
             skipped += 1
             if o.corr_s > 0.0:
+                fresh = dist[10] == 0.0
                 disturbance_turn(dist, dq)
+                if with_lag:
+                    lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], ok, fresh, h, False, o.lowpass_s, n)
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)

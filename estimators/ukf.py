@@ -82,7 +82,11 @@ eigenvalue-clipped if needed) after every update; counts of these recoveries are
 trajectory diagnostics. Quaternions are renormalised every step. The accelerometer noise
 adapts to the measured external acceleration, and through sustained translation, tapping
 or vibration the update uses the accelerometer low-passed in a gyro-only frame instead of
-the raw sample, as in `ekf` (`_attitude.AccDisturbance`, `_attitude.acc_measurement`).
+the raw sample, as in `ekf` (`_attitude.AccDisturbance`, `_attitude.acc_measurement`). For
+that sample `ukf-bias` adds to step 6 the lag of the low-pass behind the frame's drift under
+each sigma point's bias and scale, `Z_i += H_b (b_i - b) + H_s (s_i - s)`
+(`_attitude.LowpassLag`, the same Jacobians as `ekf`'s), so that it measures the calibration
+in motion.
 
 Defaults. Equal variances P0 = Q = R = 1e-4 I per 100 Hz sample (`UKFParams.equal_variances()`:
 Q = 1e-2 rad^2/s, R = 1e-6 g^2 s, no disturbance model or scale noise) are a common start.
@@ -117,6 +121,7 @@ from fusion.types import ImuSamples, Trajectory
 from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
+    LowpassLag,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
@@ -497,9 +502,16 @@ class QuaternionUKF(UnscentedKalmanFilter):
         self.x_prior = self.x
         self.P_prior = self.P
 
-    def update_kraft(self, z: np.ndarray, R: np.ndarray) -> None:
-        """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2."""
+    def update_kraft(self, z: np.ndarray, R: np.ndarray, lag: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2;
+        lag: the low-passed sample's calibration Jacobians `(H_b, H_s)` (`_attitude.LowpassLag`),
+        None for the raw sample."""
         Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
+        if lag is not None:  # the low-pass's lag behind the frame drift of each point's calibration
+            res = self._residuals
+            Z = Z + res[:, 3:6] @ lag[0].T
+            if res.shape[1] > 6:
+                Z = Z + res[:, 6:9] @ lag[1].T
         zp = self.Wm @ Z  # step 7
         dZ = Z - zp
         WdZ = self._Wc_col * dZ
@@ -537,9 +549,19 @@ class QuaternionUKF(UnscentedKalmanFilter):
         # No re-draw of sigma points here (FilterPy's predict would): Kraft's update uses Y_i.
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
 
-    def update_reference(self, z: np.ndarray, R: np.ndarray) -> None:
-        """Steps 6-9 by FilterPy's own `UnscentedKalmanFilter.update` (Euclidean UT for z)."""
-        UnscentedKalmanFilter.update(self, z, R=R)
+    def update_reference(self, z: np.ndarray, R: np.ndarray, lag: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Steps 6-9 by FilterPy's own `UnscentedKalmanFilter.update` (Euclidean UT for z);
+        lag as in `update_kraft`, added to the measurement model per point."""
+        if lag is None:
+            UnscentedKalmanFilter.update(self, z, R=R)
+            return
+        mean = self.x.copy()
+
+        def hx_lagged(x: np.ndarray) -> np.ndarray:
+            z_x = quat.gravity_in_body(x[:4]) + lag[0] @ (x[4:7] - mean[4:7])
+            return z_x + lag[1] @ (x[7:10] - mean[7:10]) if len(x) > 7 else z_x
+
+        UnscentedKalmanFilter.update(self, z, R=R, hx=hx_lagged)
 
 
 # --------------------------------------------------------------------------- estimators
@@ -585,6 +607,9 @@ class UKF(RecursiveEstimator):
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
         self._eye3 = np.eye(3)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s)
+        # ukf-bias: the low-passed sample's lag in the measurement model, as in `ekf`
+        self._lag = LowpassLag(p.acc_lowpass_s)
+        self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
@@ -634,16 +659,26 @@ class UKF(RecursiveEstimator):
             q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if gyr_valid and self._scale_noise > 0.0:
                 q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
+            fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
             meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale,
-                                                                 w if gyr_valid else None, q_rate, kf.P)
+                                                                 w if gyr_valid else None, q_rate, kf.P,
+                                                                 calibration_as_noise=not self._with_lag)
             self.acc_var = r
-            self._update(meas, self._eye3 * r)
+            lag = None
+            if self._with_lag:
+                self._lag_step(gyr_rad_s if gyr_valid else None, dt_s, fresh, True)
+                if self.lowpassed:
+                    lag = self._lag.jacobian(quat.skew(quat.gravity_in_body(kf.x[:4])), self._dist.qi)
+            self._update(meas, self._eye3 * r, lag)
             y = kf.y
             self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
         else:
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:
+                fresh = self._dist.lp is None
                 self._dist.turn(dq)  # the strapdown frame follows the gyro through skipped updates
+                if self._with_lag:
+                    self._lag_step(gyr_rad_s if gyr_valid else None, dt_s, fresh, False)
         x = kf.x
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
@@ -652,6 +687,12 @@ class UKF(RecursiveEstimator):
         kf.P, repaired = repair_covariance(kf.P)
         self.n_cov_repaired += repaired
         return x[:4]
+
+    def _lag_step(self, gyr_rad_s: np.ndarray | None, dt_s: float, fresh: bool, lowpassed: bool) -> None:
+        """`LowpassLag.step` with the current mean's calibration (gyr_rad_s None: not integrated)."""
+        x = self.kf.x
+        gain = 1.0 + x[7:10] if self.n > 6 else np.ones(3)
+        self._lag.step(self._dist.qi, None if gyr_rad_s is None else gyr_rad_s - x[4:7], gain, dt_s, fresh, lowpassed)
 
     def current(self) -> dict[str, Any]:
         kf = self.kf
@@ -690,7 +731,7 @@ class UKF(RecursiveEstimator):
         o = _compiled.settings(p, n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                                mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
         (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled.ukf_kernel(
-            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
+            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, self._lag.N, o,
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
             out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
