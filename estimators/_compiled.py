@@ -20,8 +20,8 @@ rounding, and `tests/test_compiled.py` checks that both paths give the same quat
 diagnostics to 1e-10 on real and simulated recordings with every option. The equations and
 their papers are cited in `ekf`, `ukf` and `_attitude`; the kernels cite the step of the
 reference they implement. Where the compiled path is organised differently it says so: the
-EKF's covariance products use the block structure of F and H (the reference multiplies the
-full matrices; zero blocks contribute exact zeros), and the Joseph form is expanded as
+EKF's covariance prediction uses the block structure of F (the reference multiplies the full
+matrices; zero blocks contribute exact zeros), and the Joseph form is expanded as
 `M = P - K (H P)`, `P = M - (M H^T) K^T + R K K^T`.
 
 Constants that decide the maths (the small-angle limits of `fusion.quaternion`, the covariance
@@ -330,28 +330,9 @@ def repair_covariance(P, n, o, L):
 
 
 @_jit
-def joseph(P, K, Hb, c0, r, n, G, M):
-    """P <- (I - K H) P (I - K H)^T + r K K^T for H (3 x n) zero but for the 3x3 block Hb at
-    columns c0..c0+2 (the Joseph form of `ekf` and of `_attitude.bias_rest_update`), as
-    M = P - K (H P), P = M - (M H^T) K^T + r K K^T."""
-    for j in range(3):  # G = H P (3 x n)
-        for c in range(n):
-            G[j, c] = Hb[j, 0] * P[c0, c] + Hb[j, 1] * P[c0 + 1, c] + Hb[j, 2] * P[c0 + 2, c]
-    for i in range(n):  # M = P - K G
-        for c in range(n):
-            M[i, c] = P[i, c] - (K[i, 0] * G[0, c] + K[i, 1] * G[1, c] + K[i, 2] * G[2, c])
-    for i in range(n):
-        e0 = Hb[0, 0] * M[i, c0] + Hb[0, 1] * M[i, c0 + 1] + Hb[0, 2] * M[i, c0 + 2]  # (M H^T)[i]
-        e1 = Hb[1, 0] * M[i, c0] + Hb[1, 1] * M[i, c0 + 1] + Hb[1, 2] * M[i, c0 + 2]
-        e2 = Hb[2, 0] * M[i, c0] + Hb[2, 1] * M[i, c0 + 1] + Hb[2, 2] * M[i, c0 + 2]
-        for c in range(n):
-            P[i, c] = (M[i, c] - (e0 * K[c, 0] + e1 * K[c, 1] + e2 * K[c, 2])
-                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
-
-
-@_jit
-def joseph_full(P, K, H, r, n, G, M):
-    """`joseph` for a full H (3 x n)."""
+def joseph(P, K, H, r, n, G, M):
+    """P <- (I - K H) P (I - K H)^T + r K K^T for H (3 x n) (the Joseph form of `ekf` and of
+    `_attitude.bias_rest_update`), as M = P - K (H P), P = M - (M H^T) K^T + r K K^T."""
     for j in range(3):  # G = H P
         for c in range(n):
             v = 0.0
@@ -406,16 +387,27 @@ def lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, updated, lowpass_s, n):
 
 
 @_jit
-def lag_jacobian(Hf, lag, dist, Hs, n):
-    """`_attitude.LowpassLag.jacobian` into Hf: Hf[:, 3:6] = A N_b, Hf[:, 6:9] = -A N_s with
-    A = [h]x R_I^T (Hs = [h]x)."""
+def gravity_jacobian(H, hx, hy, hz, n):
+    """H (3 x n) <- [[h]x, 0]: the accelerometer's Jacobian `[h]x` for the raw sample."""
+    H[0, 0], H[0, 1], H[0, 2] = 0.0, -hz, hy
+    H[1, 0], H[1, 1], H[1, 2] = hz, 0.0, -hx
+    H[2, 0], H[2, 1], H[2, 2] = -hy, hx, 0.0
+    for i in range(3):
+        for j in range(3, n):
+            H[i, j] = 0.0
+
+
+@_jit
+def lag_jacobian(H, lag, dist, n):
+    """`_attitude.LowpassLag.jacobian` into H (3 x n) holding `[h]x` in its first three
+    columns: H[:, 3:6] = A N_b, H[:, 6:9] = -A N_s with A = [h]x R_I^T."""
     qi = (dist[5], -dist[6], -dist[7], -dist[8])  # R_I^T
     for m in range(2 if n > 6 else 1):
         sign = 1.0 if m == 0 else -1.0
         for j in range(3):
             vx, vy, vz = rotate(qi, lag[m, 0, j], lag[m, 1, j], lag[m, 2, j])
             for i in range(3):
-                Hf[i, 3 + 3 * m + j] = sign * (Hs[i, 0] * vx + Hs[i, 1] * vy + Hs[i, 2] * vz)
+                H[i, 3 + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
 
 # ============================================================================ _attitude helpers
@@ -606,20 +598,21 @@ def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float
 
 
 @_jit
-def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, Hb, G, M):
-    """`_attitude.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0];
-    P updated in place (Joseph form), the correction into dx (n,)."""
+def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, H, G, M):
+    """`_attitude.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0] (3 x n,
+    written into H); P updated in place (Joseph form), the correction into dx (n,)."""
     for i in range(3):
+        for j in range(n):
+            H[i, j] = 1.0 if j == 3 + i else 0.0
         for j in range(3):
             S[i, j] = P[3 + i, 3 + j] + (r if i == j else 0.0)
-            Hb[i, j] = 1.0 if i == j else 0.0
     inv_sym3(S, Sinv)
     yx, yy, yz = gx - bx, gy - by, gz - bz
     for i in range(n):
         for j in range(3):
             K[i, j] = P[i, 3] * Sinv[0, j] + P[i, 4] * Sinv[1, j] + P[i, 5] * Sinv[2, j]
         dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
-    joseph(P, K, Hb, 3, r, n, G, M)
+    joseph(P, K, H, r, n, G, M)
 
 
 @_jit
@@ -677,8 +670,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
     F = np.zeros((n, n))
     FP = np.empty((n, n))
     J = np.empty((3, 3))
-    Hs = np.zeros((3, 3))
-    Hf = np.zeros((3, n))
+    H = np.zeros((3, n))
     with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
     PHt = np.empty((n, 3))
     S = np.empty((3, 3))
@@ -761,7 +753,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
             # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
-            bias_rest_update(P, n, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Hs, G, M)
+            bias_rest_update(P, n, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
             q = qmul(q, qexp(dx[0], dx[1], dx[2], small))
             for i in range(3):
                 b[i] = b[i] + dx[3 + i]
@@ -780,39 +772,24 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
                                                    o.process_noise, P, o, not with_lag)
             var = r
             hx, hy, hz = gravity(q)
-            Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
-            Hs[1, 0], Hs[1, 1], Hs[1, 2] = hz, 0.0, -hx
-            Hs[2, 0], Hs[2, 1], Hs[2, 2] = -hy, hx, 0.0
-            full = False
+            gravity_jacobian(H, hx, hy, hz, n)  # H = [[h]x, 0, 0]
             if with_lag:
                 lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, True, o.lowpass_s, n)
-                full = lowpassed
-            if full:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
-                for i in range(3):
-                    for j in range(3):
-                        Hf[i, j] = Hs[i, j]
-                lag_jacobian(Hf, lag, dist, Hs, n)
-                for i in range(n):
-                    for j in range(3):
-                        v = 0.0
-                        for c in range(n):
-                            v += P[i, c] * Hf[j, c]
-                        PHt[i, j] = v
-                for i in range(3):
-                    for j in range(3):
-                        v = 0.0
-                        for c in range(n):
-                            v += Hf[i, c] * PHt[c, j]
-                        S[i, j] = v
-                    S[i, i] += r
-            else:
-                for i in range(n):  # P H^T (H is zero beyond column 2)
-                    for j in range(3):
-                        PHt[i, j] = P[i, 0] * Hs[j, 0] + P[i, 1] * Hs[j, 1] + P[i, 2] * Hs[j, 2]
-                for i in range(3):
-                    for j in range(3):
-                        S[i, j] = Hs[i, 0] * PHt[0, j] + Hs[i, 1] * PHt[1, j] + Hs[i, 2] * PHt[2, j]
-                    S[i, i] += r
+                if lowpassed:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
+                    lag_jacobian(H, lag, dist, n)
+            for i in range(n):  # P H^T
+                for j in range(3):
+                    v = 0.0
+                    for c in range(n):
+                        v += P[i, c] * H[j, c]
+                    PHt[i, j] = v
+            for i in range(3):  # H P H^T + R
+                for j in range(3):
+                    v = 0.0
+                    for c in range(n):
+                        v += H[i, c] * PHt[c, j]
+                    S[i, j] = v
+                S[i, i] += r
             inv_sym3(S, Sinv)
             for i in range(n):
                 for j in range(3):
@@ -837,10 +814,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
                     b[i] = b[i] + dx[3 + i]
                 if n > 6:
                     s[i] = s[i] + dx[6 + i]
-            if full:
-                joseph_full(P, K, Hf, r, n, G, M)
-            else:
-                joseph(P, K, Hs, 0, r, n, G, M)
+            joseph(P, K, H, r, n, G, M)
         else:
             skipped += 1
             if o.corr_s > 0.0:
@@ -900,11 +874,9 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
     K = np.empty((n, 3))
     KS = np.empty((n, 3))
     dx = np.empty(n)
-    Hb = np.empty((3, 3))
+    H = np.zeros((3, n))
     G = np.empty((3, n))
     M = np.empty((n, n))
-    Hs = np.zeros((3, 3))
-    Hf = np.zeros((3, n))
     with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
     skipped = 0
     sqrt_recovered = 0
@@ -1001,7 +973,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
         # ---- rest update (ukf-bias)
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
-            bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Hb, G, M)
+            bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
             qn4 = qnormalize(qmul((x[0], x[1], x[2], x[3]), qexp(dx[0], dx[1], dx[2], small)))
             x[0], x[1], x[2], x[3] = qn4
             for j in range(3, n):
@@ -1021,24 +993,22 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
                                                    wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o,
                                                    not with_lag)
             var = r
-            full = False
+            lagged = False
             if with_lag:
                 lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], ok, fresh, h, True, o.lowpass_s, n)
-                full = lowpassed
-            if full:  # the low-passed sample's lag (`UKF._lag_step`, `_attitude.LowpassLag`)
+                lagged = lowpassed
+            if lagged:  # the low-passed sample's lag (`UKF._lag_step`, `_attitude.LowpassLag`)
                 hx, hy, hz = gravity((x[0], x[1], x[2], x[3]))
-                Hs[0, 0], Hs[0, 1], Hs[0, 2] = 0.0, -hz, hy  # [h]x
-                Hs[1, 0], Hs[1, 1], Hs[1, 2] = hz, 0.0, -hx
-                Hs[2, 0], Hs[2, 1], Hs[2, 2] = -hy, hx, 0.0
-                lag_jacobian(Hf, lag, dist, Hs, n)
+                gravity_jacobian(H, hx, hy, hz, n)
+                lag_jacobian(H, lag, dist, n)
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
                 g0, g1, g2 = gravity((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
-                if full:
+                if lagged:
                     for c in range(3, n):
-                        g0 += Hf[0, c] * res[i, c]
-                        g1 += Hf[1, c] * res[i, c]
-                        g2 += Hf[2, c] * res[i, c]
+                        g0 += H[0, c] * res[i, c]
+                        g1 += H[1, c] * res[i, c]
+                        g2 += H[2, c] * res[i, c]
                 dZ[i, 0], dZ[i, 1], dZ[i, 2] = g0, g1, g2
                 zx += Wm[i] * g0  # step 7
                 zy += Wm[i] * g1
