@@ -113,7 +113,7 @@ class AccDisturbance:
 
     The filters model `a_ext` as a first-order Gauss-Markov process of variance `d` and
     correlation time `corr_s`, whose low-frequency spectral density is `2 corr_s d` (g^2 s);
-    it adds to the accelerometer noise density (see `acc_step_variance`).
+    it adds to the accelerometer noise density (see `acc_measurement`).
 
     With `lowpass_s > 0` it also low-passes `a_I` (first order, time constant `lowpass_s`),
     as VQF does before its inclination correction (Laidig & Seel 2023, Sec. 3.2, eq. 7). The
@@ -248,15 +248,15 @@ class LowpassLag:
     def step(self, qi: tuple, u: np.ndarray | None, gain: np.ndarray, dt_s: float, fresh: bool,
              lowpassed: bool) -> None:
         """One step: qi the frame's quaternion after it (4 floats), u (3,) the bias-corrected
-        rate (None: not integrated), gain (3,) `1 + s`; fresh: the low-pass started at this
-        sample (no lag); lowpassed: the sample entered the low-pass (else no decay)."""
+        rate, gain (3,) `1 + s`; fresh: the low-pass started at this sample (no lag; a step
+        whose gyro sample was not integrated always restarts it, and passes u None);
+        lowpassed: the sample entered the low-pass (else no decay)."""
         if fresh:
             self.N[:] = 0.0
             return
-        if u is not None:
-            RI = quat.rotation_matrix_floats(*qi)
-            self.N[0] += RI * (gain * dt_s)
-            self.N[1] += RI * (u * dt_s)
+        RI = quat.rotation_matrix_floats(*qi)
+        self.N[0] += RI * (gain * dt_s)
+        self.N[1] += RI * (u * dt_s)
         if lowpassed:
             self.N *= math.exp(-dt_s / self.lowpass_s)
 
@@ -267,23 +267,17 @@ class LowpassLag:
         return A @ self.N[0], -(A @ self.N[1])
 
 
-def lowpass_drift_density(lowpass_s: float, rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float, bias_var: float,
-                          scale_var: float) -> float:
-    """Density (g^2 s) of the strapdown frame's drift within the low-pass window.
+def lowpass_drift_density(lowpass_s: float, rate_noise_rad2_s: float) -> float:
+    """Density (g^2 s) of the strapdown frame's random drift within the low-pass window.
 
     The frame `I` of `AccDisturbance` turns with the filter's corrected rates. Over one window
-    it turns away from the world by an angle of variance `lowpass_s q + lowpass_s^2 sigma_w^2`:
-    the random walk of the rate noise (density q, rad^2/s) and a rate error that holds over the
-    window, sigma_w^2 = |w|^2 scale_var + bias_var (bias variance in (rad/s)^2, scale-factor
-    variance dimensionless; `ukf` and `ukf-bias` pass their largest diagonal entries, so a
-    freshly started filter trusts the low-passed sample little until the gyro is calibrated;
-    `ekf` passes zeros and models that lag in its Jacobian instead, `LowpassLag`). Gravity's
-    low-passed direction turns with it (an angle of e rad moves a 1 g vector by e g); as an
-    error of correlation time `lowpass_s` its low-frequency density is twice `lowpass_s`
-    times that variance. `rate_rad_s` (3,) is the corrected rate, None when not integrated.
+    the rate noise (density q, rad^2/s) turns it away from the world by an angle of variance
+    `lowpass_s q`; gravity's low-passed direction turns with it (an angle of e rad moves a 1 g
+    vector by e g), and as an error of correlation time `lowpass_s` its low-frequency density
+    is twice `lowpass_s` times that variance. The drift that a bias or scale error causes is
+    not noise: the filters with those states model it in the measurement (`LowpassLag`).
     """
-    w2 = 0.0 if rate_rad_s is None else float(rate_rad_s @ rate_rad_s)
-    return 2.0 * lowpass_s * (lowpass_s * rate_noise_rad2_s + lowpass_s ** 2 * (w2 * scale_var + bias_var))
+    return 2.0 * lowpass_s * (lowpass_s * rate_noise_rad2_s)
 
 
 def lowpass_residual_density(density_g2_s: float, lowpass_s: float, rate_noise_rad2_s: float) -> float:
@@ -394,46 +388,28 @@ def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r
     """
     n = len(P)
     S = P[3:6, 3:6] + np.eye(3) * r_rad2_s2
-    K = P[:, 3:6] @ np.linalg.inv(S)
+    K = P[:, 3:6] @ inv_sym3(S)
     dx = K @ (gyr_rad_s - x_bias)
     IKH = np.eye(n)
     IKH[:, 3:6] -= K
     return dx, IKH @ P @ IKH.T + (K * r_rad2_s2) @ K.T
 
 
-def acc_step_variance(density_g2_s: float, corr_s: float, disturbance_g2: float, dt_s: float) -> float:
-    """Per-step accelerometer variance per axis, g^2: `(r + 2 corr_s d) / dt`.
-
-    A white noise of spectral density r (g^2 s) sampled over dt has variance r / dt; the
-    external acceleration, a Gauss-Markov process of variance d (g^2) and correlation time
-    corr_s, adds its low-frequency density 2 corr_s d (see `AccDisturbance`).
-    """
-    return (density_g2_s + 2.0 * corr_s * disturbance_g2) / dt_s
-
-
 def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
-                               rate_rad_s: np.ndarray | None, rate_noise_rad2_s: float, P: np.ndarray,
-                               calibration_as_noise: bool = True) -> tuple[np.ndarray, float, bool]:
+                               rate_noise_rad2_s: float) -> tuple[np.ndarray, float, bool]:
     """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
     per axis g^2, low-passed)`.
 
     p: the filter's `FilterParams`; dist: its disturbance estimator, advanced here by the step's
     rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
-    (`acc_variance_scale`); rate_rad_s: (3,) the corrected rate (None when not integrated) and
-    rate_noise_rad2_s its noise density, for the frame drift; P: the predicted error covariance
-    (bias variances in rows 3-5, scale in 6-8 when present), whose calibration uncertainty
-    adds to the frame drift's density unless `calibration_as_noise` is False (`ekf` models the
-    lag it causes in its measurement Jacobian instead). Without the disturbance model: the
-    raw sample and R / dt. (`_compiled.measurement` is the same in the kernels.)
+    (`acc_variance_scale`); rate_noise_rad2_s: the filter's rate noise density, for the frame
+    drift and the residual's weight. Without the disturbance model: the raw sample and R / dt.
+    (`_compiled.measurement` is the same in the kernels.)
     """
     if p.disturbance_corr_s <= 0.0:
-        return acc_g, acc_step_variance(p.acc_noise_g2_s, 0.0, 0.0, dt_s) * scale, False
+        return acc_g, p.acc_noise_g2_s / dt_s * scale, False
     d = dist.update(dq, acc_g, dt_s)
-    n = len(P)
-    calibration = calibration_as_noise and n > 3
-    drift = lowpass_drift_density(p.acc_lowpass_s, rate_rad_s, rate_noise_rad2_s,
-                                  max(P[3, 3], P[4, 4], P[5, 5]) if calibration else 0.0,
-                                  max(P[6, 6], P[7, 7], P[8, 8]) if calibration and n > 6 else 0.0)
+    drift = lowpass_drift_density(p.acc_lowpass_s, rate_noise_rad2_s)
     meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
                                                rate_noise_rad2_s)
     return meas, density / dt_s * scale, lowpassed

@@ -356,10 +356,10 @@ def joseph(P, K, H, r, n, G, M):
 
 
 @_jit
-def lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, updated, lowpass_s, n):
+def lag_step(lag, dist, ux, uy, uz, s, fresh, h, updated, lowpass_s, n):
     """`_attitude.LowpassLag.step`: lag[0] = N_b, lag[1] = N_s, advanced with the strapdown frame of the
     disturbance state `dist` (q_I in dist[5:9]); (ux, uy, uz) the bias-corrected rate, s the
-    scale corrections, ok whether the step was integrated."""
+    scale corrections (a step that was not integrated restarts the low-pass: fresh)."""
     if fresh:
         for m in range(2):
             for i in range(3):
@@ -367,17 +367,16 @@ def lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, updated, lowpass_s, n):
                     lag[m, i, j] = 0.0
         return
     qi = (dist[5], dist[6], dist[7], dist[8])
-    if ok:
-        for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
-            cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
-            gj = (1.0 + s[j] if n > 6 else 1.0) * h
-            uj = (ux if j == 0 else uy if j == 1 else uz) * h
-            lag[0, 0, j] += cx * gj
-            lag[0, 1, j] += cy * gj
-            lag[0, 2, j] += cz * gj
-            lag[1, 0, j] += cx * uj
-            lag[1, 1, j] += cy * uj
-            lag[1, 2, j] += cz * uj
+    for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
+        cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
+        gj = (1.0 + s[j] if n > 6 else 1.0) * h
+        uj = (ux if j == 0 else uy if j == 1 else uz) * h
+        lag[0, 0, j] += cx * gj
+        lag[0, 1, j] += cy * gj
+        lag[0, 2, j] += cz * gj
+        lag[1, 0, j] += cx * uj
+        lag[1, 1, j] += cy * uj
+        lag[1, 2, j] += cz * uj
     if updated:
         decay = math.exp(-h / lowpass_s)
         for m in range(2):
@@ -496,9 +495,9 @@ def _lowpass(st, qi, wx, wy, wz, dt, o):
 
 
 @_jit
-def lowpass_drift_density(lowpass_s, w2, rate_noise, bias_var, scale_var):
-    """`_attitude.lowpass_drift_density`, with the squared rate w2 ((rad/s)^2; 0 when not integrated)."""
-    return 2.0 * lowpass_s * (lowpass_s * rate_noise + lowpass_s ** 2 * (w2 * scale_var + bias_var))
+def lowpass_drift_density(lowpass_s, rate_noise):
+    """`_attitude.lowpass_drift_density`."""
+    return 2.0 * lowpass_s * (lowpass_s * rate_noise)
 
 
 @_jit
@@ -522,32 +521,18 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 
 @_jit
-def measurement(dist, dq, ax, ay, az, dt, scale, w2, rate_noise, P, o, calibration_as_noise):
+def measurement(dist, dq, ax, ay, az, dt, scale, rate_noise, o):
     """The measurement and variance of one accelerometer update, as the filters' steps choose
     them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq),
-    the low-pass frame drift (w2: the squared corrected rate; rate_noise: its noise density; the
-    calibration variances of P only with calibration_as_noise), the
-    raw or the low-passed sample (`_attitude.acc_measurement`), its variance times the gate's
-    scale; without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2,
-    low-passed)."""
+    the low-pass frame drift (rate_noise: the filter's rate noise density), the raw or the
+    low-passed sample (`_attitude.acc_measurement`), its variance times the gate's scale; without
+    the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2, low-passed)."""
     if o.corr_s > 0.0:
         d = disturbance_update(dist, dq, ax, ay, az, dt, o)
-        n = o.n if calibration_as_noise else 3
-        drift = lowpass_drift_density(o.lowpass_s, w2, rate_noise, _max_diag(P, 3) if n > 3 else 0.0,
-                                      _max_diag(P, 6) if n > 6 else 0.0)
+        drift = lowpass_drift_density(o.lowpass_s, rate_noise)
         mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
         return mx, my, mz, density / dt * scale, lowpassed
     return ax, ay, az, o.acc_noise / dt * scale, False
-
-
-@_jit
-def _max_diag(P, i0):
-    """max(P[i0, i0], P[i0 + 1, i0 + 1], P[i0 + 2, i0 + 2]) with Python's max semantics."""
-    v = P[i0, i0]
-    for i in range(i0 + 1, i0 + 3):
-        if P[i, i] > v:
-            v = P[i, i]
-    return v
 
 
 @_jit
@@ -767,14 +752,12 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
         fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
         if scale < math.inf:
-            rx, ry, rz = tx / h, ty / h, tz / h
-            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, rx * rx + ry * ry + rz * rz,
-                                                   o.process_noise, P, o, not with_lag)
+            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, o.process_noise, o)
             var = r
             hx, hy, hz = gravity(q)
             gravity_jacobian(H, hx, hy, hz, n)  # H = [[h]x, 0, 0]
             if with_lag:
-                lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, True, o.lowpass_s, n)
+                lag_step(lag, dist, ux, uy, uz, s, fresh, h, True, o.lowpass_s, n)
                 if lowpassed:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
                     lag_jacobian(H, lag, dist, n)
             for i in range(n):  # P H^T
@@ -820,7 +803,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
             if o.corr_s > 0.0:
                 disturbance_turn(dist, d)  # the strapdown frame follows the gyro through skipped updates
                 if with_lag:
-                    lag_step(lag, dist, ux, uy, uz, s, ok, fresh, h, False, o.lowpass_s, n)
+                    lag_step(lag, dist, ux, uy, uz, s, fresh, h, False, o.lowpass_s, n)
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -984,18 +967,16 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
         nis = math.nan
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
+        fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
         if scale < math.inf:
             q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
-            fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
-            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale,
-                                                   wx * wx + wy * wy + wz * wz if ok else 0.0, q_rate, P, o,
-                                                   not with_lag)
+            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale, q_rate, o)
             var = r
             lagged = False
             if with_lag:
-                lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], ok, fresh, h, True, o.lowpass_s, n)
+                lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], fresh, h, True, o.lowpass_s, n)
                 lagged = lowpassed
             if lagged:  # the low-passed sample's lag (`UKF._lag_step`, `_attitude.LowpassLag`)
                 hx, hy, hz = gravity((x[0], x[1], x[2], x[3]))
@@ -1066,10 +1047,9 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
         else:
             skipped += 1
             if o.corr_s > 0.0:
-                fresh = dist[10] == 0.0
                 disturbance_turn(dist, dq)
                 if with_lag:
-                    lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], ok, fresh, h, False, o.lowpass_s, n)
+                    lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], fresh, h, False, o.lowpass_s, n)
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)

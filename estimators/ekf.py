@@ -176,6 +176,7 @@ class EKF(RecursiveEstimator):
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
         self._lag = LowpassLag(p.acc_lowpass_s)
+        self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
@@ -223,12 +224,10 @@ class EKF(RecursiveEstimator):
                 self.s = self.s + dx[6:]
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
-        lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
         fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
         if scale < math.inf:
             meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
-                                                                 np.array((tx, ty, tz)) / dt_s, p.process_noise_rad2_s, P,
-                                                                 calibration_as_noise=not lag)
+                                                                 p.process_noise_rad2_s)
             self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
@@ -237,7 +236,7 @@ class EKF(RecursiveEstimator):
             H[1, 0], H[1, 2] = h[2], -h[0]
             H[2, 0], H[2, 1] = -h[1], h[0]
             H[:, 3:] = 0.0
-            if lag:
+            if self._with_lag:
                 self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, True)
                 if self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
                     H_b, H_s = self._lag.jacobian(H[:, :3], self._dist.qi)
@@ -277,7 +276,7 @@ class EKF(RecursiveEstimator):
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:
                 self._dist.turn(d)  # the strapdown frame follows the gyro through skipped updates
-                if lag:
+                if self._with_lag:
                     self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, False)
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)

@@ -655,14 +655,12 @@ class UKF(RecursiveEstimator):
             kf.x = np.concatenate([qn, x[4:] + dx[3:]])
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
+        fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
         if scale < math.inf:
             q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if gyr_valid and self._scale_noise > 0.0:
                 q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
-            fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
-            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale,
-                                                                 w if gyr_valid else None, q_rate, kf.P,
-                                                                 calibration_as_noise=not self._with_lag)
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale, q_rate)
             self.acc_var = r
             lag = None
             if self._with_lag:
@@ -675,7 +673,6 @@ class UKF(RecursiveEstimator):
         else:
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:
-                fresh = self._dist.lp is None
                 self._dist.turn(dq)  # the strapdown frame follows the gyro through skipped updates
                 if self._with_lag:
                     self._lag_step(gyr_rad_s if gyr_valid else None, dt_s, fresh, False)

@@ -1,8 +1,8 @@
 """The rotation module: quaternion and SO(3) algebra on raw scalar-first arrays.
 
-Quaternions are `[w, x, y, z]` (Hamilton product, `R_world_body` convention of STYLE.md);
-rotation vectors are axis * angle in rad; perturbations are on the right (body frame),
-`q_true = q * exp(e / 2)`. Product, exponential and logarithm as in Sola 2017 ("Quaternion
+Quaternions are `[w, x, y, z]` (Hamilton product) and describe `R_world_body` (body vectors
+into the world frame, world z up); rotation vectors are axis * angle in rad; perturbations are
+on the right (body frame), `q_true = q * exp(e / 2)`. Product, exponential and logarithm as in Sola 2017 ("Quaternion
 kinematics for the error-state Kalman filter", arXiv:1711.02508, Secs. 1.2.2, 1.3.4 and 1.3.6);
 the SO(3) Jacobians as in Sola, Deray & Atchuthan 2018 ("A micro Lie theory for state
 estimation in robotics", arXiv:1812.01537, eqs. 143-146).

@@ -3,7 +3,7 @@
 file -> loader -> `RawImu` -> calibration -> `ImuSamples` -> estimator -> `Trajectory`
 -> scoring. A `Recording` bundles what one session provides.
 
-Conventions (STYLE.md): batch-first arrays, float64 seconds, SI units (the accelerometer
+Conventions: batch-first arrays, float64 seconds, SI units (the accelerometer
 in g, said in the field name), scalar-first quaternions `R_world_body` with world z up.
 Arrays are stored read-only: nothing downstream can modify what a loader produced.
 """

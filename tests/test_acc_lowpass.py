@@ -77,7 +77,7 @@ def test_the_measurement_with_the_smaller_density_is_chosen(raw_power, expect_lo
     dist = AccDisturbance(0.5, lowpass_s=1.0)
     for _ in range(100):
         dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.0, 0.0, 1.0]), 0.01)
-    drift = lowpass_drift_density(1.0, np.zeros(3), 3e-4, 1e-6, 0.0)
+    drift = lowpass_drift_density(1.0, 3e-4)
     meas, density, lowpassed = acc_measurement(np.array([0.3, 0.0, 1.0]), dist, 3e-5, 0.1, raw_power, drift, 3e-4)
     assert lowpassed is expect_lowpassed
     raw = 3e-5 + 2 * 0.1 * raw_power
@@ -123,12 +123,10 @@ def test_residual_density_is_still_conservative_for_a_bounded_velocity(freq_hz):
     assert measured < density / (2 * T) < dist.lowpass_density / (2 * T)
 
 
-def test_drift_density_grows_with_rate_and_calibration_uncertainty():
-    quiet = lowpass_drift_density(1.0, np.zeros(3), 3e-4, 0.0, 1e-2)
-    turning = lowpass_drift_density(1.0, np.array([0.0, 0.0, 10.0]), 3e-4, 0.0, 1e-2)
-    assert quiet == pytest.approx(2 * 3e-4)  # the rate noise's random walk over one window
-    assert turning == pytest.approx(2 * 3e-4 + 2 * 100 * 1e-2)
-    assert lowpass_drift_density(2.0, None, 0.0, 1e-4, 1.0) == pytest.approx(2 * 2 * 4 * 1e-4)
+def test_drift_density_is_the_rate_noise_random_walk_over_one_window():
+    assert lowpass_drift_density(1.0, 3e-4) == pytest.approx(2 * 3e-4)
+    assert lowpass_drift_density(2.0, 3e-4) == pytest.approx(2 * 2 * 2 * 3e-4)  # grows as lowpass_s^2
+    assert lowpass_drift_density(0.0, 3e-4) == 0.0
 
 
 def test_the_frame_follows_the_gyro_through_skipped_samples():

@@ -174,7 +174,8 @@ def test_covariance_repair_and_square_root_recovery_agree(spec):
     a, b = build(spec).estimate(imu, truth[0]), build(reference(spec)).estimate(imu, truth[0])
     assert_same(a, b)
     assert a.diagnostics["cov_repairs"] > 0
-    assert a.diagnostics.get("sqrt_recoveries", 1) > 0
+    if not spec.startswith("ekf:"):  # the UKFs' matrix square root falls back to the eigen-decomposition
+        assert a.diagnostics["sqrt_recoveries"] > 0
 
 
 @pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])

@@ -23,7 +23,7 @@
 # 4. checking the scales against physics: $|a| = 1\,g$ at rest, and the gyro against VICON;
 # 5. what `fusion inspect` finds in a recording (gyro freezes, clock offsets, time-stamp jitter).
 #
-# Conventions used throughout (the toolkit's `STYLE.md`): quaternions are scalar-first
+# Conventions used throughout: quaternions are scalar-first
 # `[w, x, y, z]` and describe `R_world_body` (body vectors into the world frame, world z up);
 # arrays are batch-first, `(N, 3)`; SI units inside (the accelerometer in g); degrees only in
 # plots and tables.
