@@ -95,7 +95,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     report._render_summary(doc, str(out))  # one process: the per-figure cost
     t_summary = time.perf_counter() - t
     t = time.perf_counter()
-    _, beliefs = report._render_recording(str(out / "series" / "000.npz"), str(out))
+    report._render_recording(str(out / "series" / "000.npz"), str(out))
     t_one = time.perf_counter() - t
     from fusion.evaluation import plots
     first = series_io.load(out / "series" / "000.npz")
@@ -118,7 +118,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     print(f"  write series .npz                 {t_series:7.2f} s")
     print(f"  summary figures (serial)          {t_summary:7.2f} s")
     print(f"  one recording's figures (serial)  {t_one:7.2f} s")
-    print(f"    of which consistency figures    {t_consistency:7.2f} s  ({len(beliefs)} filters with a covariance)")
+    print(f"    of which consistency figures    {t_consistency:7.2f} s  ({len(first.beliefs)} filters with a covariance)")
     print(f"  render all figures + pages        {t_render:7.2f} s  ({args.jobs} workers)")
 
 

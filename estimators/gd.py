@@ -211,12 +211,12 @@ class GradientDescentSmoother(BatchSmoother):
         alpha = 1.0
         converged = False
         iterations = 0
-        bar = progress_bar(p.progress, p.max_iter, self.name)
+        # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
+        limit = p.max_iter + (stage1_iter if staged else 0)
+        bar = progress_bar(p.progress, limit, self.name)
         start = time.perf_counter()
         elapsed = [0.0]
         try:
-            # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
-            limit = p.max_iter + (stage1_iter if staged else 0)
             while iterations < limit:
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
                 slope = float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)  # g.p < 0
@@ -259,8 +259,9 @@ class GradientDescentSmoother(BatchSmoother):
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False
-                        stage1 = (q, theta, v, cost, theta_posterior_std(lin))
-                        released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
+                        std = theta_posterior_std(lin)
+                        stage1 = (q, theta, v, cost, std)
+                        released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
                     M = Preconditioner(lin, p.precond, free)
                 else:

@@ -72,19 +72,18 @@ def theta_posterior_std(lin) -> np.ndarray:
     return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))
 
 
-def released_scales(lin, n_bias: int, prior_std: np.ndarray, ratio: float) -> np.ndarray:
-    """(S,) which scale errors the recording determines, judged at the stage-1 solution `lin`.
+def released_scales(posterior_std: np.ndarray, prior_std: np.ndarray, ratio: float) -> np.ndarray:
+    """(S,) which scale errors the recording determines, judged at the stage-1 solution.
 
-    Scale error k_i is released if its posterior std (data and prior, every other variable
-    marginalised: `theta_posterior_std`) is below `ratio` times its prior std `prior_std`
+    Scale error k_i is released if its posterior std `posterior_std` (S,) (data and prior, every
+    other variable marginalised: `theta_posterior_std`) is below `ratio` times its prior std `prior_std`
     (S,), i.e. if the recording carries at least 1 / ratio^2 - 1 times the prior's information
     about it (3 times for ratio 0.5). That information comes from rotation about axis i that
     the accelerometer can check (a scale error on a vertical axis only changes the heading,
     which nothing observes); a recording with little of it keeps k_i = 0 rather than fit
     unmodelled linear acceleration with a scale error.
     """
-    std = theta_posterior_std(lin)[n_bias:]
-    return std < ratio * prior_std
+    return posterior_std < ratio * prior_std
 
 
 class GaussNewtonSmoother(BatchSmoother):
@@ -105,7 +104,6 @@ class GaussNewtonSmoother(BatchSmoother):
         norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
         damping = 1e-6
         converged = False
-        bar = progress_bar(p.progress, p.max_iter, self.name)
         iterations = 0
         start = time.perf_counter()
         elapsed = [0.0]
@@ -118,9 +116,11 @@ class GaussNewtonSmoother(BatchSmoother):
         stage1_iter = max(1, p.max_iter // 2)
         released = np.zeros(problem.n_theta - nb, bool)
         stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
+        # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
+        limit = p.max_iter + (stage1_iter if staged else 0)
+        bar = progress_bar(p.progress, limit, self.name)
         try:
-            # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
-            for iterations in range(1, p.max_iter + (stage1_iter if staged else 0) + 1):
+            for iterations in range(1, limit + 1):
                 while True:
                     if free is None:
                         delta, dtheta = solve_normal_equations(lin, damping)
@@ -151,8 +151,9 @@ class GaussNewtonSmoother(BatchSmoother):
                 if stage_done:
                     if staged:
                         staged = False
-                        stage1 = (q, theta, v, lin.cost, theta_posterior_std(lin))
-                        released = released_scales(lin, nb, 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
+                        std = theta_posterior_std(lin)
+                        stage1 = (q, theta, v, lin.cost, std)
+                        released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
                         damping = 1e-6
                         if released.any():

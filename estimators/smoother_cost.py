@@ -253,7 +253,7 @@ class SmootherProblem:
             w_rest = np.where(rest & valid, dt / weights.rest_noise_rad_sqrt_s**2, 0.0)
             # An axis without a bias variable takes the bias its rest steps read (their mean rate), fixed.
             if np.any(w_rest):
-                fixed = np.setdiff1d(np.arange(3), [AXES.index(a) for a in weights.bias_axes])
+                fixed = np.setdiff1d(np.arange(3), bias_idx)
                 read = np.average(rate[w_rest > 0], axis=0, weights=w_rest[w_rest > 0])
                 rate = rate.copy()
                 rate[:, fixed] -= read[fixed]
@@ -413,7 +413,9 @@ class SmootherProblem:
         if self.n_vel:
             total += 0.5 * float(np.sum(self.w_vel * np.sum(r["velocity"] ** 2, axis=1))
                                  + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
-        return total + self.rest_terms(theta)[0]
+        if "rest" in r:  # the rest term of `rest_terms`, from the residual computed above
+            total += 0.5 * float(np.sum(self.w_rest[self.w_rest > 0] * np.sum(r["rest"] ** 2, axis=1)))
+        return total
 
     # -------------------------------------------------------------- linearisation
     def linearize(self, q: np.ndarray, theta: np.ndarray | None = None, hessian: bool = True,

@@ -66,7 +66,6 @@ from fusion import quaternion as quat
 from fusion.types import Trajectory
 
 NIS_DOF = 3  # the accelerometer update: three axes
-NEES_DOF = 3  # the attitude block of the error state
 BAND_PROBABILITY = 0.95  # the two-sided acceptance region of the chi-square tests
 N_SIGMA = 3.0  # the envelope drawn and counted: +-3 sqrt(P_ii)
 
@@ -106,11 +105,7 @@ def attitude_error(est_quat_wxyz: np.ndarray, true_quat_wxyz: np.ndarray) -> np.
     true = np.asarray(true_quat_wxyz, dtype=float)
     if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 4:
         raise ValueError(f"attitude_error: need two (N, 4) quaternion arrays, got {est.shape} and {true.shape}")
-    good = np.all(np.isfinite(est), axis=1) & np.all(np.isfinite(true), axis=1)
-    out = np.full((len(est), 3), np.nan)
-    if good.any():
-        out[good] = quat.relative_rotvec(est[good], true[good])
-    return out
+    return quat.relative_rotvec(est, true)  # NaN rows where either input is NaN
 
 
 def has_covariance(trajectory: Trajectory) -> bool:

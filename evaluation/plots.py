@@ -586,15 +586,8 @@ def event_spans(t: np.ndarray, mask: np.ndarray, min_width: float) -> list[tuple
     """(start, width) of the runs of True in `mask` over samples `t`, each at least `min_width`
     wide (one sample of a 50,000-sample recording would be a fraction of a pixel) and merged
     where they then overlap, for `broken_barh`."""
-    spans: list[tuple[float, float]] = []
-    for a, b in runs(mask):
-        start = float(t[a])
-        end = max(float(t[min(b + 1, len(t) - 1)]), start + min_width)
-        if spans and start <= spans[-1][0] + spans[-1][1]:
-            spans[-1] = (spans[-1][0], max(end, spans[-1][0] + spans[-1][1]) - spans[-1][0])
-        else:
-            spans.append((start, end - start))
-    return spans
+    ends = [(float(t[a]), max(float(t[min(b + 1, len(t) - 1)]), float(t[a]) + min_width)) for a, b in runs(mask)]
+    return [(a, b - a) for a, b in merge_spans(ends)]
 
 
 def _pct(value: float) -> str:
@@ -611,7 +604,7 @@ def _error_limit(err: np.ndarray, env: np.ndarray) -> float:
     return min(180.0, 1.3 * max(peak, tight, 1e-3))
 
 
-def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> Figure | None:
+def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, summary=None) -> Figure | None:
     """What filter `e` believed on this recording (None if it reports no covariance):
 
     (a) the attitude error against the truth about each body axis with the filter's own
@@ -628,7 +621,8 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
     (`_error_limit`). See `fusion.evaluation.consistency` for the tests and what they cannot
     separate (heading is unobservable; the truth's own error enters the error). The layout is
     fixed (no layout engine): a report draws one of these per filter and recording, and the
-    constrained layout would double its cost.
+    constrained layout would double its cost. `summary`: the belief's `consistency.summarize`,
+    if the caller has it already.
     """
     from matplotlib.ticker import LogLocator, NullLocator
 
@@ -637,7 +631,7 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS) -> 
     belief = s.beliefs.get(e)
     if belief is None:
         return None
-    summary = cons.summarize(belief)
+    summary = cons.summarize(belief) if summary is None else summary
     t0 = float(s.imu_t[0])
     x = s.imu_t - t0
     span = float(x[-1]) if len(x) > 1 and x[-1] > 0 else 1.0

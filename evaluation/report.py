@@ -295,13 +295,14 @@ def _render_recording(series_path: str, fig_dir: str) -> tuple[list[tuple[str, s
         if name in names:  # two labels with the same slug
             name = f"{stem}-consistency-{e}-{plots.slug(label)}.png"
         names.add(name)
-        _save(plots.consistency_figure(s, e), Path(fig_dir) / name)
+        summary = consistency.summarize(belief)
+        _save(plots.consistency_figure(s, e, summary=summary), Path(fig_dir) / name)
         caption = (f"{s.id}, {label}: attitude error against VICON about each body axis and the filter's +-3 sigma "
                    "(deg); NIS of the accelerometer updates and its chi-square(3) 95 % band; samples without an "
                    "accelerometer update (skipped, gated or invalid), with the chi-square guard, with a rest update"
                    + ("; gyro-bias estimate (deg/s)" if belief.bias_rad_s is not None else ""))
         beliefs.append({"dataset": s.id, "estimator": label, "file": name, "caption": caption,
-                        "summary": dataclasses.asdict(consistency.summarize(belief))})
+                        "summary": dataclasses.asdict(summary)})
     return out, beliefs
 
 

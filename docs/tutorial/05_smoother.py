@@ -32,7 +32,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fusion import estimators
-from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
 from fusion.estimators.smoother_cost import LOSSES, robust_loss
 from fusion.evaluation.metrics import score
