@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -99,9 +100,7 @@ def execute(source: Path, timeout_s: float = DEFAULT_TIMEOUT_S, data_dir: str | 
         error = f"{source.name}: {exc}"
     finally:
         seconds = time.monotonic() - start
-        for path in sorted(kernel_root.rglob("*"), reverse=True):
-            path.rmdir() if path.is_dir() else path.unlink()
-        kernel_root.rmdir()
+        shutil.rmtree(kernel_root)
     if error is None and seconds > timeout_s:
         error = f"{source.name}: ran {seconds:.0f} s, longer than the {timeout_s:.0f} s limit"
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}

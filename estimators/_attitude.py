@@ -22,6 +22,9 @@ SQRT_FLOOR = 0.0  # eigenvalues of a failed square root are clipped to this (sqr
 COV_FLOOR = 1e-15  # eigenvalues of a repaired covariance are clipped to this (repair_covariance)
 COV_RESET_VAR = 1e-2  # a non-finite covariance is replaced by this times I (repair_covariance)
 REST_WINDOW_S = 0.5  # time constant of the rest detector's accelerometer low-pass, s
+# Default rest detection (`RestDetector`) of the filters and the smoothers: gyro norm, rad/s;
+# accelerometer deviation, g; minimum duration, s.
+REST_GYR_RAD_S, REST_ACC_G, REST_TIME_S = 0.035, 0.05, 1.5
 
 
 def inv_sym3(s: np.ndarray) -> np.ndarray:

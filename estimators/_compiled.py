@@ -45,7 +45,7 @@ import numpy as np
 
 from fusion import quaternion as quat
 
-from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR
+from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector
 from .filter_params import BiasFilterParams
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
@@ -149,10 +149,13 @@ def load() -> None:
     if _loaded:
         return
     n = 9
-    o = settings(BiasFilterParams(), n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
+    p = BiasFilterParams()
+    o = settings(p, n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
     inputs_ = (np.zeros((1, 3)), np.ones(1, dtype=bool), np.full(1, 0.01), np.tile([0.0, 0.0, 1.0], (2, 1)))
     unit = np.array([1.0, 0.0, 0.0, 0.0])
-    state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), np.array([0.0] * 5 + [1.0] + [0.0] * 16 + [math.inf]), np.zeros(5))
+    dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s).state()
+    rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s).state()
+    state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), dist, rest)
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
     ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, np.zeros((2, 3, 3)), o,

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
-from ._attitude import axes_mask
+from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
 
 Gate = Literal["off", "skip", "inflate"]
 
@@ -164,9 +164,9 @@ class BiasFilterParams(FilterParams):
     scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
     scale_max: float = field(default=0.2, metadata={"alias": "smax"})
     scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
-    rest_gyr_rad_s: float = 0.035
-    rest_acc_g: float = 0.05
-    rest_time_s: float = 1.5
+    rest_gyr_rad_s: float = REST_GYR_RAD_S
+    rest_acc_g: float = REST_ACC_G
+    rest_time_s: float = REST_TIME_S
     rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
 
     def _check(self) -> None:

@@ -26,7 +26,7 @@ from fusion import quaternion as quat
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples, Trajectory
 
-from ._attitude import axes_mask
+from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
 from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
@@ -121,9 +121,9 @@ class SmootherParams:
     scale_significance: float = field(default=0.05, metadata={"alias": "sig"})
     velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=0.5, metadata={"alias": "vb"})
-    rest_gyr_rad_s: float = 0.035
-    rest_acc_g: float = 0.05
-    rest_time_s: float = 1.5
+    rest_gyr_rad_s: float = REST_GYR_RAD_S
+    rest_acc_g: float = REST_ACC_G
+    rest_time_s: float = REST_TIME_S
     rest_noise_rad_sqrt_s: float = field(default=1e-2, metadata={"alias": "srest"})
     weighting: Literal["noise", "scalar", "seed"] = "noise"
     scalar_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})

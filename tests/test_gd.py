@@ -116,8 +116,6 @@ def _small_problem(T: int = 30, seed: int = 0) -> tuple[SmootherProblem, np.ndar
     return problem, q, rng.normal(size=(T, 2)) * 0.1, rng.normal(size=problem.n_theta) * 0.01
 
 
-
-
 @pytest.mark.parametrize("free", [[True, True, True, True], [True, True, False, False]])
 def test_chain_preconditioner_is_the_gauss_newton_solve(free):
     """p = -M^-1 g with M the whole Gauss-Newton matrix (its diagonal times 1 + RIDGE; a dense

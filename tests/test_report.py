@@ -466,9 +466,6 @@ def test_a_damaged_belief_in_a_series_file_is_one_line(tmp_path, capsys):
 
 def test_importing_the_plotting_modules_leaves_the_backend_alone():
     # A notebook's inline backend must survive `import fusion.evaluation.plots` (no matplotlib.use).
-    import subprocess
-    import sys
-
     code = ("import matplotlib; matplotlib.use('svg'); import fusion.evaluation.plots, fusion.evaluation.report, "
             "fusion.evaluation.inspect_plots; print(matplotlib.get_backend())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
