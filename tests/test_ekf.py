@@ -119,3 +119,40 @@ def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec):
     assert est.diagnostics["acc_lowpassed"][second_half].mean() > 0.9
     assert np.sqrt(np.mean(inclination_deg(truth[second_half], est.quat_wxyz[second_half]) ** 2)) < 0.22
     assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < 2e-3
+
+
+def _slow_oscillation_with_translation(seconds=150.0, rate_hz=200.0, seed=2):
+    """A hand-held motion: the board rocks +-20 deg about x and y (under 1 rad/s) while it is
+    moved back and forth at 0.15 g (velocity bounded), with an exactly calibrated gyro:
+    (ImuSamples, true (n, 4) quaternions)."""
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / rate_hz
+    t = np.arange(int(seconds * rate_hz)) * dt
+    w = np.stack([0.6 * np.cos(2 * np.pi * 0.55 * t), 0.9 * np.cos(2 * np.pi * 0.4 * t), 0.1 * np.cos(2 * np.pi * 0.05 * t)],
+                 axis=1)
+    truth = quat.cumulative_product(np.concatenate([np.array([[1.0, 0.0, 0.0, 0.0]]), quat.from_rotvec(w[:-1] * dt)]))
+    f_world = np.stack([0.15 * np.sin(2 * np.pi * 0.5 * t), 0.15 * np.sin(2 * np.pi * 0.37 * t + 0.5), np.ones(len(t))], axis=1)
+    acc = np.einsum("nji,nj->ni", quat.rotation_matrix(truth), f_world) + 0.01 * rng.normal(size=(len(t), 3))
+    gyr = np.concatenate([w[:1], w[:-1]]) + 0.005 * rng.normal(size=(len(t), 3))
+    return ImuSamples(t, gyr, acc, source="slow oscillation with translation"), truth
+
+
+@pytest.mark.xfail(strict=True, reason="the scale factors absorb translation that shares the frequencies of a "
+                   "slow rocking motion: with the 10 % prior, ekf fits a scale error of up to 20 % to a calibrated "
+                   "gyro and loses degrees of inclination (known limitation, see the ekf module docstring)")
+@pytest.mark.parametrize("spec", ["ekf", "ukf-bias"])
+def test_slow_rocking_with_translation_invents_no_scale(spec):
+    imu, truth = _slow_oscillation_with_translation()
+    est = build(spec).estimate(imu, truth[0])
+    assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < 0.02
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.0
+
+
+@pytest.mark.parametrize("spec", ["ekf:scale=false", "ukf-bias:scale=false", "gd"])
+def test_slow_rocking_with_translation_without_scale_states(spec):
+    # The same motion without scale states in the filters: the limitation above is the scale's,
+    # not the disturbance model's. The smoothers keep a scale error only where it lowers their
+    # cost significantly (`BatchSmoother.significant_scales`), and here it does not.
+    imu, truth = _slow_oscillation_with_translation()
+    est = build(spec).estimate(imu, truth[0])
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.0
