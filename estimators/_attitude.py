@@ -128,15 +128,21 @@ class AccDisturbance:
     (time constant `lowpass_window_s`): a white noise of density S low-passed with time
     constant tau has the variance S / (2 tau). See `acc_measurement` for how a filter
     chooses between the raw sample and this one.
+
+    With `lag=True` (and `lowpass_s > 0`) it also carries the low-pass's lag behind a frame that
+    drifts with a gyro bias or scale error (`LowpassLag`), advanced with the frame: `update` and
+    `turn` then take the step's bias-corrected rate `u` and scale gain `1 + s`, and
+    `lag_jacobian` gives the low-passed sample's calibration Jacobians.
     """
 
     __slots__ = ("window_s", "m", "v", "qi", "age", "lowpass_s", "lowpass_window_s", "lp", "lp_mean", "lp_v",
-                 "lowpass_body", "lowpass_density")
+                 "lowpass_body", "lowpass_density", "lag")
 
-    def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0) -> None:
+    def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0, lag: bool = False) -> None:
         self.window_s = window_s
         self.lowpass_s, self.lowpass_window_s = lowpass_s, lowpass_window_s
         self.qi = (1.0, 0.0, 0.0, 0.0)
+        self.lag = LowpassLag(lowpass_s) if lag and lowpass_s > 0.0 else None
         self.lose_frame()
 
     def lose_frame(self) -> None:
@@ -151,14 +157,16 @@ class AccDisturbance:
         self.lowpass_density = math.inf  # g^2 s
 
     def state(self) -> np.ndarray:
-        """(23,) float64, the state as the compiled filters (`_compiled`) carry it: `[has_mean,
+        """(41,) float64, the state as the compiled filters (`_compiled`) carry it: `[has_mean,
         m (3), v, q_I (4, wxyz), age, has_lowpass, lp (3), lp_mean (3), lp_v, has_body,
-        lowpass_body (3), lowpass_density]`; `set_state` takes it back."""
+        lowpass_body (3), lowpass_density, N_b (9), N_s (9)]` (the lag's `LowpassLag.N`, row by
+        row; zeros without it); `set_state` takes it back."""
         none3 = (0.0, 0.0, 0.0)
+        lag = np.zeros(18) if self.lag is None else self.lag.N.ravel()
         return np.array([float(self.m is not None), *(self.m or none3), self.v, *self.qi, self.age,
                          float(self.lp is not None), *(self.lp or none3), *self.lp_mean, self.lp_v,
                          float(self.lowpass_body is not None),
-                         *(none3 if self.lowpass_body is None else self.lowpass_body), self.lowpass_density])
+                         *(none3 if self.lowpass_body is None else self.lowpass_body), self.lowpass_density, *lag])
 
     def set_state(self, state: np.ndarray) -> None:
         s = [float(v) for v in state]
@@ -168,16 +176,31 @@ class AccDisturbance:
         self.lp_mean, self.lp_v = tuple(s[14:17]), s[17]
         self.lowpass_body = np.array(s[19:22]) if s[18] else None
         self.lowpass_density = s[22]
+        if self.lag is not None:
+            self.lag.N[:] = np.reshape(state[23:41], (2, 3, 3))
 
-    def turn(self, dq: tuple) -> None:
+    def turn(self, dq: tuple, dt_s: float = 0.0, u: np.ndarray | None = None, gain: np.ndarray | None = None) -> None:
         """Advance the frame by the rate increment `dq` (4 floats, body) of a step without an
-        accelerometer sample (skipped or gated), so that the frame keeps following the gyro."""
+        accelerometer sample (skipped or gated), so that the frame keeps following the gyro;
+        dt_s, u, gain: the step and its rate for the lag (see `update`)."""
+        fresh = self.lp is None
+        self._turn(dq)
+        if self.lag is not None:
+            self.lag.step(self.qi, u, gain, dt_s, fresh, False)
+
+    def _turn(self, dq: tuple) -> None:
         self.qi = quat.normalize_floats(quat.multiply_floats(self.qi, dq))
 
-    def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float) -> float:
-        """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2."""
+    def update(self, dq: tuple, acc_g: np.ndarray, dt_s: float, u: np.ndarray | None = None,
+               gain: np.ndarray | None = None) -> float:
+        """Advance the frame by the rate increment `dq` (4 floats, body), feed `acc_g` (3,), g; -> d, g^2.
+
+        u (3,): the step's bias-corrected rate (None: the gyro sample was not integrated, which
+        restarts the low-pass), gain (3,): `1 + s`; used only with the lag (`LowpassLag.step`).
+        """
         ax, ay, az = float(acc_g[0]), float(acc_g[1]), float(acc_g[2])
-        self.turn(dq)
+        fresh = self.lp is None  # the low-pass (re)starts with this sample: no lag yet
+        self._turn(dq)
         wx, wy, wz = quat.rotate_floats(self.qi, (ax, ay, az))  # a_I = R(q_I) a (body -> strapdown frame)
         norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
         nd2 = norm_dev * norm_dev
@@ -195,7 +218,14 @@ class AccDisturbance:
         seen = -math.expm1(-self.age / self.window_s)
         if self.lowpass_s > 0.0:
             self._lowpass(wx, wy, wz, dt_s)
+        if self.lag is not None:
+            self.lag.step(self.qi, u, gain, dt_s, fresh, True)
         return max(self.v / seen, inst, nd2)
+
+    def lag_jacobian(self, hx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The low-passed sample's Jacobians `(H_b, H_s)` for the bias and scale errors
+        (`LowpassLag.jacobian`), from hx = [h]x (3, 3)."""
+        return self.lag.jacobian(hx, self.qi)
 
     def _lowpass(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
         """Feed a_I (g) to the low-pass; update `lowpass_body` and `lowpass_density`."""
@@ -239,7 +269,7 @@ class LowpassLag:
 
     instead of adding their drift to its noise (`lowpass_drift_density`). VQF (Laidig & Seel
     2023, Sec. 3.4) likewise estimates the bias in motion from the low-passed signal. The
-    state `N = [N_b, N_s]` (2, 3, 3) is what the compiled `ekf` carries.
+    state `N = [N_b, N_s]` (2, 3, 3) lives in the `AccDisturbance` whose frame it follows.
     """
 
     __slots__ = ("lowpass_s", "N")
@@ -399,19 +429,21 @@ def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r
 
 
 def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
-                               rate_noise_rad2_s: float) -> tuple[np.ndarray, float, bool]:
+                               rate_noise_rad2_s: float, u: np.ndarray | None = None,
+                               gain: np.ndarray | None = None) -> tuple[np.ndarray, float, bool]:
     """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
     per axis g^2, low-passed)`.
 
     p: the filter's `FilterParams`; dist: its disturbance estimator, advanced here by the step's
     rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
     (`acc_variance_scale`); rate_noise_rad2_s: the filter's rate noise density, for the frame
-    drift and the residual's weight. Without the disturbance model: the raw sample and R / dt.
+    drift and the residual's weight; u, gain: the step's rate for the lag (`AccDisturbance.update`).
+    Without the disturbance model: the raw sample and R / dt.
     (`_compiled.measurement` is the same in the kernels.)
     """
     if p.disturbance_corr_s <= 0.0:
         return acc_g, p.acc_noise_g2_s / dt_s * scale, False
-    d = dist.update(dq, acc_g, dt_s)
+    d = dist.update(dq, acc_g, dt_s, u, gain)
     drift = lowpass_drift_density(p.acc_lowpass_s, rate_noise_rad2_s)
     meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
                                                rate_noise_rad2_s)

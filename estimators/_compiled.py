@@ -153,20 +153,19 @@ def load() -> None:
     o = settings(p, n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
     inputs_ = (np.zeros((1, 3)), np.ones(1, dtype=bool), np.full(1, 0.01), np.tile([0.0, 0.0, 1.0], (2, 1)))
     unit = np.array([1.0, 0.0, 0.0, 0.0])
-    dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s).state()
+    dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, lag=True).state()
     rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s).state()
     state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), dist, rest)
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, np.zeros((2, 3, 3)), o,
+    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, o,
                out["quat"], out["cov"],
                out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"],
                out["acc_lowpassed"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest,
-               np.zeros((2, 3, 3)), o,
+    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
     _loaded = True
@@ -358,34 +357,34 @@ def joseph(P, K, H, r, n, G, M):
                        + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
 
 
+# Where the disturbance state array (`AccDisturbance.state`) holds the lag N_b, N_s (row by row).
+_LAG = 23
+
+
 @_jit
-def lag_step(lag, dist, ux, uy, uz, s, fresh, h, updated, lowpass_s, n):
-    """`_attitude.LowpassLag.step`: lag[0] = N_b, lag[1] = N_s, advanced with the strapdown frame of the
-    disturbance state `dist` (q_I in dist[5:9]); (ux, uy, uz) the bias-corrected rate, s the
-    scale corrections (a step that was not integrated restarts the low-pass: fresh)."""
+def lag_step(st, rate, fresh, h, updated, lowpass_s):
+    """`_attitude.LowpassLag.step` on the disturbance state `st`: N_b and N_s advanced with its
+    strapdown frame (q_I in st[5:9]); rate (2, 3): the bias-corrected rate u and the gain 1 + s
+    (a step that was not integrated restarts the low-pass: fresh)."""
     if fresh:
-        for m in range(2):
-            for i in range(3):
-                for j in range(3):
-                    lag[m, i, j] = 0.0
+        for c in range(_LAG, _LAG + 18):
+            st[c] = 0.0
         return
-    qi = (dist[5], dist[6], dist[7], dist[8])
+    qi = (st[5], st[6], st[7], st[8])
     for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
         cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
-        gj = (1.0 + s[j] if n > 6 else 1.0) * h
-        uj = (ux if j == 0 else uy if j == 1 else uz) * h
-        lag[0, 0, j] += cx * gj
-        lag[0, 1, j] += cy * gj
-        lag[0, 2, j] += cz * gj
-        lag[1, 0, j] += cx * uj
-        lag[1, 1, j] += cy * uj
-        lag[1, 2, j] += cz * uj
+        gj = rate[1, j] * h
+        uj = rate[0, j] * h
+        st[_LAG + j] += cx * gj
+        st[_LAG + 3 + j] += cy * gj
+        st[_LAG + 6 + j] += cz * gj
+        st[_LAG + 9 + j] += cx * uj
+        st[_LAG + 12 + j] += cy * uj
+        st[_LAG + 15 + j] += cz * uj
     if updated:
         decay = math.exp(-h / lowpass_s)
-        for m in range(2):
-            for i in range(3):
-                for j in range(3):
-                    lag[m, i, j] *= decay
+        for c in range(_LAG, _LAG + 18):
+            st[c] *= decay
 
 
 @_jit
@@ -400,14 +399,15 @@ def gravity_jacobian(H, hx, hy, hz, n):
 
 
 @_jit
-def lag_jacobian(H, lag, dist, n):
-    """`_attitude.LowpassLag.jacobian` into H (3 x n) holding `[h]x` in its first three
-    columns: H[:, 3:6] = A N_b, H[:, 6:9] = -A N_s with A = [h]x R_I^T."""
-    qi = (dist[5], -dist[6], -dist[7], -dist[8])  # R_I^T
+def lag_jacobian(H, st, n):
+    """`AccDisturbance.lag_jacobian` into H (3 x n) holding `[h]x` in its first three columns:
+    H[:, 3:6] = A N_b, H[:, 6:9] = -A N_s with A = [h]x R_I^T (N_b, N_s in the state `st`)."""
+    qi = (st[5], -st[6], -st[7], -st[8])  # R_I^T
     for m in range(2 if n > 6 else 1):
         sign = 1.0 if m == 0 else -1.0
         for j in range(3):
-            vx, vy, vz = rotate(qi, lag[m, 0, j], lag[m, 1, j], lag[m, 2, j])
+            c = _LAG + 9 * m + j
+            vx, vy, vz = rotate(qi, st[c], st[c + 3], st[c + 6])
             for i in range(3):
                 H[i, 3 + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
@@ -441,17 +441,28 @@ def disturbance_lose_frame(st):
 
 
 @_jit
-def disturbance_turn(st, dq):
-    """`AccDisturbance.turn` on its state array: the frame follows the rate increment dq."""
+def _turn(st, dq):
     qi = qnormalize(qmul((st[5], st[6], st[7], st[8]), dq))
     st[5], st[6], st[7], st[8] = qi
     return qi
 
 
 @_jit
-def disturbance_update(st, dq, ax, ay, az, dt, o):
-    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0) on its state array; -> d, g^2."""
-    qi = disturbance_turn(st, dq)
+def disturbance_turn(st, dq, dt, o, lag, rate):
+    """`AccDisturbance.turn` on its state array: the frame follows the rate increment dq; with
+    lag, N_b and N_s follow it (`lag_step`, rate as there)."""
+    fresh = st[10] == 0.0
+    _turn(st, dq)
+    if lag:
+        lag_step(st, rate, fresh, dt, False, o.lowpass_s)
+
+
+@_jit
+def disturbance_update(st, dq, ax, ay, az, dt, o, lag, rate):
+    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0, the lag with `lag`) on its
+    state array; -> d, g^2."""
+    fresh = st[10] == 0.0  # the low-pass (re)starts with this sample: no lag yet
+    qi = _turn(st, dq)
     wx, wy, wz = rotate(qi, ax, ay, az)
     norm_dev = math.sqrt(ax * ax + ay * ay + az * az) - 1.0
     nd2 = norm_dev * norm_dev
@@ -466,6 +477,8 @@ def disturbance_update(st, dq, ax, ay, az, dt, o):
     seen = -math.expm1(-st[9] / o.dist_window)
     if o.lowpass_s > 0.0:
         _lowpass(st, qi, wx, wy, wz, dt, o)
+    if lag:
+        lag_step(st, rate, fresh, dt, True, o.lowpass_s)
     d = st[4] / seen  # max(v / seen, inst, nd2) with Python's max semantics
     if inst > d:
         d = inst
@@ -524,14 +537,15 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 
 @_jit
-def measurement(dist, dq, ax, ay, az, dt, scale, rate_noise, o):
+def measurement(dist, dq, ax, ay, az, dt, scale, rate_noise, o, lag, rate):
     """The measurement and variance of one accelerometer update, as the filters' steps choose
-    them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq),
+    them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq,
+    and with `lag` the low-pass's lag, `lag_step` with rate (2, 3) as there),
     the low-pass frame drift (rate_noise: the filter's rate noise density), the raw or the
     low-passed sample (`_attitude.acc_measurement`), its variance times the gate's scale; without
     the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2, low-passed)."""
     if o.corr_s > 0.0:
-        d = disturbance_update(dist, dq, ax, ay, az, dt, o)
+        d = disturbance_update(dist, dq, ax, ay, az, dt, o, lag, rate)
         drift = lowpass_drift_density(o.lowpass_s, rate_noise)
         mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
         return mx, my, mz, density / dt * scale, lowpassed
@@ -643,15 +657,14 @@ def _sample(gyr, valid, acc, k):
 
 # ============================================================================ ekf
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, o,
+def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
                out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard, out_lowpassed):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (23,), rest (5,), lag (2, 3, 3)
-    (`LowpassLag.N`). Qrate, Qbad
-    (n, n) as built by `EKF.reset`. Fills rows 1.. of the (N, ...) outputs; returns (updates
-    skipped, covariance repairs).
+    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (41,) (`AccDisturbance.state`,
+    with the lag), rest (5,). Qrate, Qbad (n, n) as built by `EKF.reset`. Fills rows 1.. of
+    the (N, ...) outputs; returns (updates skipped, covariance repairs).
     """
     n = o.n
     small = o.small_angle
@@ -660,6 +673,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
     J = np.empty((3, 3))
     H = np.zeros((3, n))
     with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
+    rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`AccDisturbance.update`)
     PHt = np.empty((n, 3))
     S = np.empty((3, 3))
     Sinv = np.empty((3, 3))
@@ -753,16 +767,17 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
         guarded = False
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
-        fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
+        if with_lag:
+            rate[0, 0], rate[0, 1], rate[0, 2] = ux, uy, uz
+            for i in range(3):
+                rate[1, i] = 1.0 + s[i] if n > 6 else 1.0
         if scale < math.inf:
-            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, o.process_noise, o)
+            mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, o.process_noise, o, with_lag, rate)
             var = r
             hx, hy, hz = gravity(q)
             gravity_jacobian(H, hx, hy, hz, n)  # H = [[h]x, 0, 0]
-            if with_lag:
-                lag_step(lag, dist, ux, uy, uz, s, fresh, h, True, o.lowpass_s, n)
-                if lowpassed:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
-                    lag_jacobian(H, lag, dist, n)
+            if with_lag and lowpassed:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
+                lag_jacobian(H, dist, n)
             for i in range(n):  # P H^T
                 for j in range(3):
                     v = 0.0
@@ -803,10 +818,8 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
             joseph(P, K, H, r, n, G, M)
         else:
             skipped += 1
-            if o.corr_s > 0.0:
-                disturbance_turn(dist, d)  # the strapdown frame follows the gyro through skipped updates
-                if with_lag:
-                    lag_step(lag, dist, ux, uy, uz, s, fresh, h, False, o.lowpass_s, n)
+            if o.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
+                disturbance_turn(dist, d, h, o, with_lag, rate)
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -831,17 +844,16 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, lag, 
 
 # ============================================================================ ukf, ukf-bias
 @_jit
-def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, o,
+def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
                out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
     """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (23,), rest (5,), lag (2, 3, 3)
-    (`LowpassLag.N`). Qrate, Qbad
-    (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the sigma-point weights, centre first.
-    Fills rows 1.. of the (N, ...) outputs; returns (updates skipped, square-root recoveries,
-    covariance repairs, mean-iteration cap hits).
+    State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (41,) (`AccDisturbance.state`,
+    with the lag), rest (5,). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
+    sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
+    skipped, square-root recoveries, covariance repairs, mean-iteration cap hits).
     """
     n = o.n
     m = 2 * n + 1
@@ -864,6 +876,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
     G = np.empty((3, n))
     M = np.empty((n, n))
     with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
+    rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
     skipped = 0
     sqrt_recovered = 0
     repaired = 0
@@ -970,21 +983,21 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
         nis = math.nan
         lowpassed = False
         scale = acc_variance_scale(ax, ay, az, o.gate, o.gate_g) if o.use_acc else math.inf
-        fresh = dist[10] == 0.0  # the low-pass (re)starts with this sample
+        if with_lag:
+            rate[0, 0], rate[0, 1], rate[0, 2] = gx - x[4], gy - x[5], gz - x[6]
+            for i in range(3):
+                rate[1, i] = 1.0 + x[7 + i] if n > 6 else 1.0
         if scale < math.inf:
             q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
-            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale, q_rate, o)
+            mx, my, mz, r, lowpassed = measurement(dist, dq, ax, ay, az, h, scale, q_rate, o, with_lag, rate)
             var = r
-            lagged = False
-            if with_lag:
-                lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], fresh, h, True, o.lowpass_s, n)
-                lagged = lowpassed
-            if lagged:  # the low-passed sample's lag (`UKF._lag_step`, `_attitude.LowpassLag`)
+            lagged = with_lag and lowpassed
+            if lagged:  # the low-passed sample's lag (`AccDisturbance.lag_jacobian`)
                 hx, hy, hz = gravity((x[0], x[1], x[2], x[3]))
                 gravity_jacobian(H, hx, hy, hz, n)
-                lag_jacobian(H, lag, dist, n)
+                lag_jacobian(H, dist, n)
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
                 g0, g1, g2 = gravity((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
@@ -1050,9 +1063,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, lag, 
         else:
             skipped += 1
             if o.corr_s > 0.0:
-                disturbance_turn(dist, dq)
-                if with_lag:
-                    lag_step(lag, dist, gx - x[4], gy - x[5], gz - x[6], x[7:], fresh, h, False, o.lowpass_s, n)
+                disturbance_turn(dist, dq, h, o, with_lag, rate)
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)

@@ -95,7 +95,6 @@ from fusion.types import ImuSamples, Trajectory
 from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
-    LowpassLag,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
@@ -182,13 +181,13 @@ class EKF(RecursiveEstimator):
             self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
-        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s)
+        # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
+        self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._F = np.eye(n)
         self._H = np.zeros((3, n))
         self._I = np.eye(n)
-        self._lag = LowpassLag(p.acc_lowpass_s)
-        self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
@@ -236,10 +235,10 @@ class EKF(RecursiveEstimator):
                 self.s = self.s + dx[6:]
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
-        fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
+        rate = u if valid else None  # the lag's inputs (`AccDisturbance.update`)
         if scale < math.inf:
             meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
-                                                                 p.process_noise_rad2_s)
+                                                                 p.process_noise_rad2_s, rate, 1.0 + self.s)
             self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
@@ -248,13 +247,11 @@ class EKF(RecursiveEstimator):
             H[1, 0], H[1, 2] = h[2], -h[0]
             H[2, 0], H[2, 1] = -h[1], h[0]
             H[:, 3:] = 0.0
-            if self._with_lag:
-                self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, True)
-                if self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
-                    H_b, H_s = self._lag.jacobian(H[:, :3], self._dist.qi)
-                    H[:, 3:6] = H_b
-                    if n > 6:
-                        H[:, 6:] = H_s
+            if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
+                H_b, H_s = self._dist.lag_jacobian(H[:, :3])
+                H[:, 3:6] = H_b
+                if n > 6:
+                    H[:, 6:] = H_s
             PHt = P @ H.T
             S = H @ PHt
             S[0, 0] += r
@@ -286,10 +283,8 @@ class EKF(RecursiveEstimator):
             P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
         else:
             self.n_skipped += 1
-            if p.disturbance_corr_s > 0.0:
-                self._dist.turn(d)  # the strapdown frame follows the gyro through skipped updates
-                if self._with_lag:
-                    self._lag.step(self._dist.qi, u if valid else None, 1.0 + self.s, dt_s, fresh, False)
+            if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
+                self._dist.turn(d, dt_s, rate, 1.0 + self.s)
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -319,7 +314,7 @@ class EKF(RecursiveEstimator):
         q, b, s, P = self.q.copy(), self.b.copy(), self.s.copy(), self.P.copy()
         dist, rest = self._dist.state(), self._rest.state()
         self.n_skipped, self.n_cov_repaired = _compiled.ekf_kernel(
-            *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest, self._lag.N,
+            *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest,
             _compiled.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"],
             out["nis"], out["bias_guarded"], out["acc_lowpassed"])

@@ -121,7 +121,6 @@ from fusion.types import ImuSamples, Trajectory
 from ._attitude import (
     UNESTIMATED_VAR,
     AccDisturbance,
-    LowpassLag,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
@@ -606,10 +605,9 @@ class UKF(RecursiveEstimator):
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
         self._eye3 = np.eye(3)
-        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s)
         # ukf-bias: the low-passed sample's lag in the measurement model, as in `ekf`
-        self._lag = LowpassLag(p.acc_lowpass_s)
         self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
@@ -655,27 +653,24 @@ class UKF(RecursiveEstimator):
             kf.x = np.concatenate([qn, x[4:] + dx[3:]])
             self.at_rest = True
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
-        fresh = self._dist.lp is None  # the low-pass (re)starts with this sample
+        rate, gain = self._lag_rate(gyr_rad_s if gyr_valid else None)
         if scale < math.inf:
             q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if gyr_valid and self._scale_noise > 0.0:
                 q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
-            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale, q_rate)
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale, q_rate, rate,
+                                                                 gain)
             self.acc_var = r
             lag = None
-            if self._with_lag:
-                self._lag_step(gyr_rad_s if gyr_valid else None, dt_s, fresh, True)
-                if self.lowpassed:
-                    lag = self._lag.jacobian(quat.skew(quat.gravity_in_body(kf.x[:4])), self._dist.qi)
+            if self._with_lag and self.lowpassed:
+                lag = self._dist.lag_jacobian(quat.skew(quat.gravity_in_body(kf.x[:4])))
             self._update(meas, self._eye3 * r, lag)
             y = kf.y
             self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
         else:
             self.n_skipped += 1
-            if p.disturbance_corr_s > 0.0:
-                self._dist.turn(dq)  # the strapdown frame follows the gyro through skipped updates
-                if self._with_lag:
-                    self._lag_step(gyr_rad_s if gyr_valid else None, dt_s, fresh, False)
+            if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
+                self._dist.turn(dq, dt_s, rate, gain)
         x = kf.x
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
@@ -685,11 +680,14 @@ class UKF(RecursiveEstimator):
         self.n_cov_repaired += repaired
         return x[:4]
 
-    def _lag_step(self, gyr_rad_s: np.ndarray | None, dt_s: float, fresh: bool, lowpassed: bool) -> None:
-        """`LowpassLag.step` with the current mean's calibration (gyr_rad_s None: not integrated)."""
+    def _lag_rate(self, gyr_rad_s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The lag's inputs (`AccDisturbance.update`) from the current mean's calibration: the
+        bias-corrected rate (None: not integrated) and `1 + s`; (None, None) without the lag."""
+        if not self._with_lag:
+            return None, None
         x = self.kf.x
         gain = 1.0 + x[7:10] if self.n > 6 else np.ones(3)
-        self._lag.step(self._dist.qi, None if gyr_rad_s is None else gyr_rad_s - x[4:7], gain, dt_s, fresh, lowpassed)
+        return (None if gyr_rad_s is None else gyr_rad_s - x[4:7]), gain
 
     def current(self) -> dict[str, Any]:
         kf = self.kf
@@ -728,7 +726,7 @@ class UKF(RecursiveEstimator):
         o = _compiled.settings(p, n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                                mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
         (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled.ukf_kernel(
-            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, self._lag.N, o,
+            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
             out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
