@@ -54,10 +54,11 @@ filter, which models it as noise that is white at the scale of `disturbance_corr
 the low-passed sample, as the derivative of a bounded velocity), takes part of it for a
 scale error. With the 10 % prior (`init_scale_var`) it fits up to 15-20 % to an exactly
 calibrated gyro and loses 1-2 deg of inclination (`tests/test_ekf.py`, a strict xfail). On
-BROAD's translation trials the estimates end at -3 to -9 %, where BROAD's gyro is within
-0.4 % (`fusion calibrate --dataset 'broad/*'`). `scale=false` avoids it where the gyro is
-known to be calibrated; the smoothers keep a scale error only where it lowers their cost
-significantly, and do not show it.
+BROAD's slow and translation trials the estimates end at -3 to -9 % (within about one
+posterior sigma of zero), where a fit against the truth over all nine trials gives 0.4 %
+(`fusion calibrate --dataset 'broad/*'`). `scale=false` or a narrower prior avoids it where
+the gyro is known to be calibrated; the smoothers keep a scale error only where it lowers
+their cost significantly, and do not show it.
 
 FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it.
 FilterPy's EKF sizes x and P together (dim_x), adds the correction (`x + K y`) and
