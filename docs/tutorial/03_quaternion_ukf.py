@@ -48,6 +48,7 @@ from fusion import estimators
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
 from fusion.estimators.ukf import QuaternionSigmaPoints, QuaternionUKF, quaternion_mean, unscented_transform_state
+from fusion.evaluation import consistency
 from tutorial_data import load_recording
 
 np.set_printoptions(precision=5, suppress=False, linewidth=110)
@@ -332,6 +333,9 @@ def error_and_sigma(spec):
     P = trajectory.diagnostics["cov"][has_truth][:, :3, :3]  # the attitude block
     sigma = np.sqrt(np.diagonal(P, axis1=1, axis2=2))
     nees = np.einsum("ti,tij,tj->t", e, np.linalg.inv(P), e)
+    # The same three lines are what the comparison reports use (fusion.evaluation.consistency):
+    belief = consistency.from_trajectory(trajectory, consistency.truth_on(rec.truth, imu.t))
+    assert np.allclose(nees, belief.nees[has_truth], rtol=1e-6)
     return e, sigma, nees
 
 
