@@ -15,7 +15,9 @@ from fusion import quaternion as quat
 from fusion.estimators import build
 from fusion.evaluation import consistency as cons
 from fusion.evaluation import plots, series
-from fusion.types import ImuSamples, Trajectory
+from fusion.types import Trajectory
+
+from motion_helpers import turning_body
 
 RATE_HZ = 100.0
 GYR_STD_RAD_S = 0.01  # white gyro noise per sample
@@ -28,18 +30,14 @@ def simulated(seconds: float = 60.0, seed: int = 0, bias=(0.0, 0.0, 0.0), shake_
     optional world-frame shake, mostly vertical, g). `gyr_timing="start"`: interval k is integrated with gyro k, so
     the truth is exactly the noise-free integral of what the filter integrates."""
     n = int(seconds * RATE_HZ) + 1
-    rng = np.random.default_rng(seed)
     t = 100.0 + np.arange(n) / RATE_HZ
     s = t - t[0]
     w = np.stack([1.2 * np.sin(0.9 * s), 0.9 * np.cos(0.6 * s + 0.4), 0.7 * np.sin(0.5 * s + 1.0)], axis=1)
     q0 = quat.normalize(np.array([0.95, 0.1, -0.15, 0.25]))
-    truth = quat.cumulative_product(np.concatenate([q0[None], quat.from_rotvec(w[:-1] * np.diff(t)[:, None])]))
     shake = shake_g * np.stack([0.3 * np.sin(2 * np.pi * 2.0 * s), 0.3 * np.cos(2 * np.pi * 1.3 * s),
                                 np.sin(2 * np.pi * 1.7 * s)], axis=1)
-    acc = quat.gravity_in_body(truth) + Rotation.from_quat(truth, scalar_first=True).inv().apply(shake)
-    acc = acc + ACC_STD_G * rng.normal(size=(n, 3))
-    gyr = w + np.asarray(bias) + GYR_STD_RAD_S * rng.normal(size=(n, 3))
-    return ImuSamples(t, gyr, acc, source="simulated", gyr_timing="start"), truth
+    return turning_body(t, w, q0, shake, gyr_std=GYR_STD_RAD_S, acc_std=ACC_STD_G, bias=bias, seed=seed,
+                        gyr_timing="start")
 
 
 def noise_spec(name: str, scale: float = 1.0) -> str:

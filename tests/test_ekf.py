@@ -8,8 +8,8 @@ from fusion.estimators import ESTIMATORS, build
 from fusion.estimators.dr import DeadReckoning
 from fusion.estimators.ekf import EKF, EKFParams
 from fusion import quaternion as quat
-from fusion.types import ImuSamples
 
+from motion_helpers import turning_body
 from test_ukf import inclination_deg, synthetic
 
 
@@ -91,26 +91,14 @@ def test_parameter_ignored_by_the_chosen_option_raises(spec, match):
     build(spec.replace("gate_g", "gate=skip,gate_g") if "gate_g" in spec else spec.replace("bias=false,scale=false,", "").replace("scale=false,", ""))
 
 
-def _recording(t, w, f_world, q0, seed, source):
-    """(ImuSamples, true (n, 4) quaternions) of a body turning at the body rates w (n, 3) from q0
-    with the specific force f_world (n, 3, g, world frame), read by an exactly calibrated gyro
-    (noise 0.005 rad/s) and accelerometer (noise 0.01 g)."""
-    rng = np.random.default_rng(seed)
-    dt = t[1] - t[0]
-    truth = quat.cumulative_product(np.concatenate([q0[None], quat.from_rotvec(w[:-1] * dt)]))
-    acc = np.einsum("nji,nj->ni", quat.rotation_matrix(truth), f_world) + 0.01 * rng.normal(size=(len(t), 3))
-    # gyro sample k covers the interval that ends at t[k] (the recording's default timing)
-    gyr = np.concatenate([w[:1], w[:-1]]) + 0.005 * rng.normal(size=(len(t), 3))
-    return ImuSamples(t, gyr, acc, source=source), truth
-
-
 def _fast_turning_with_translation(seconds=120.0, rate_hz=200.0, seed=1):
-    """Turning at up to 7 rad/s about all axes while shaken at 0.3 g (velocity bounded)."""
+    """Turning at up to 7 rad/s about all axes while shaken at 0.3 g (velocity bounded), with an
+    exactly calibrated gyro."""
     t = np.arange(int(seconds * rate_hz)) / rate_hz
     w = 5.0 * np.stack([0.8 * np.sin(0.5 * t), -0.6 * np.cos(0.3 * t), 1.2 + 0.3 * np.sin(0.2 * t)], axis=1)
     q0 = quat.normalize(np.array([np.cos(0.2), np.sin(0.2), 0.0, 0.0]))
-    f_world = np.stack([0.3 * np.sin(2 * np.pi * 1.5 * t), 0.3 * np.cos(2 * np.pi * 1.05 * t), np.ones(len(t))], axis=1)
-    return _recording(t, w, f_world, q0, seed, "fast turning with translation")
+    ext = np.stack([0.3 * np.sin(2 * np.pi * 1.5 * t), 0.3 * np.cos(2 * np.pi * 1.05 * t), np.zeros(len(t))], axis=1)
+    return turning_body(t, w, q0, ext, gyr_std=0.005, acc_std=0.01, seed=seed, source="fast turning with translation")
 
 
 @pytest.mark.parametrize("spec", ["ekf", "ukf-bias"])
@@ -129,12 +117,13 @@ def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec):
 
 def _slow_rocking_with_translation(seconds=150.0, rate_hz=200.0, seed=2):
     """A hand-held motion: the board rocks +-20 deg about x and y (under 1 rad/s) while it is
-    moved back and forth at 0.15 g (velocity bounded)."""
+    moved back and forth at 0.15 g (velocity bounded), with an exactly calibrated gyro."""
     t = np.arange(int(seconds * rate_hz)) / rate_hz
     w = np.stack([0.6 * np.cos(2 * np.pi * 0.55 * t), 0.9 * np.cos(2 * np.pi * 0.4 * t), 0.1 * np.cos(2 * np.pi * 0.05 * t)],
                  axis=1)
-    f_world = np.stack([0.15 * np.sin(2 * np.pi * 0.5 * t), 0.15 * np.sin(2 * np.pi * 0.37 * t + 0.5), np.ones(len(t))], axis=1)
-    return _recording(t, w, f_world, np.array([1.0, 0.0, 0.0, 0.0]), seed, "slow rocking with translation")
+    ext = np.stack([0.15 * np.sin(2 * np.pi * 0.5 * t), 0.15 * np.sin(2 * np.pi * 0.37 * t + 0.5), np.zeros(len(t))], axis=1)
+    return turning_body(t, w, np.array([1.0, 0.0, 0.0, 0.0]), ext, gyr_std=0.005, acc_std=0.01, seed=seed,
+                        source="slow rocking with translation")
 
 
 @pytest.mark.xfail(strict=True, reason="the scale factors absorb translation that shares the frequencies of a "

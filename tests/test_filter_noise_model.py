@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from fusion.estimators import build
 from fusion.estimators.params import EstimatorSpec
 from fusion import quaternion as quat
-from fusion.types import ImuSamples
 
+from motion_helpers import turning_body
 from test_ukf import inclination_deg
 
 
@@ -18,15 +17,10 @@ def motion(rate_hz: float, seconds: float = 30.0, seed: int = 0, shake_g: float 
     """The same smooth rotation sampled at `rate_hz`; optional 3 Hz linear shaking (g, world)."""
     n = int(seconds * rate_hz) + 1
     t = np.arange(n) / rate_hz
-    gyr = np.stack([1.5 * np.sin(1.3 * t), 1.0 * np.cos(0.7 * t + 0.3), 0.8 * np.sin(0.9 * t + 1.0)], axis=1)
+    w = np.stack([1.5 * np.sin(1.3 * t), 1.0 * np.cos(0.7 * t + 0.3), 0.8 * np.sin(0.9 * t + 1.0)], axis=1)
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
-    truth = quat.cumulative_product(np.concatenate([q0[None], quat.from_rotvec(gyr[:-1] / rate_hz)]))
     ext_world = shake_g * np.stack([np.sin(2 * np.pi * 3.0 * t), np.cos(2 * np.pi * 2.3 * t), 0.5 * np.sin(2 * np.pi * 1.7 * t)], axis=1)
-    up = np.array([0.0, 0.0, 1.0])
-    acc = Rotation.from_quat(truth, scalar_first=True).inv().apply(up + ext_world)
-    rng = np.random.default_rng(seed)
-    imu = ImuSamples(t, gyr + np.asarray(bias) + 0.003 * rng.normal(size=(n, 3)), acc + 0.005 * rng.normal(size=(n, 3)), source="synthetic")
-    return imu, truth
+    return turning_body(t, w, q0, ext_world, gyr_std=0.003, acc_std=0.005, bias=bias, seed=seed, source="synthetic")
 
 
 @pytest.mark.parametrize("spec", ["ekf", "ukf-bias", "ukf"])

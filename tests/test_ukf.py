@@ -19,22 +19,20 @@ from fusion.estimators.ukf import (
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
 
+from motion_helpers import turning_body
+
 
 def synthetic(n: int = 600, seed: int = 0, noise: float = 0.0, bias=(0.0, 0.0, 0.0)):
     """A smooth rotation with exact accelerometer: (ImuSamples, true (n, 4) quaternions).
 
     Jittered time steps (about 100 Hz); the gyro reads the true rate (+ bias + noise), the
-    accelerometer gravity in the body frame (+ noise).
+    accelerometer gravity in the body frame (+ noise) (`motion_helpers.turning_body`).
     """
-    rng = np.random.default_rng(seed)
-    dt = 0.01 + rng.uniform(-1e-3, 1e-3, n - 1)
+    dt = 0.01 + np.random.default_rng(seed).uniform(-1e-3, 1e-3, n - 1)
     t = np.concatenate([[0.0], np.cumsum(dt)])
-    gyr = np.stack([1.5 * np.sin(1.3 * t), 1.0 * np.cos(0.7 * t + 0.3), 0.8 * np.sin(0.9 * t + 1.0)], axis=1)
+    w = np.stack([1.5 * np.sin(1.3 * t), 1.0 * np.cos(0.7 * t + 0.3), 0.8 * np.sin(0.9 * t + 1.0)], axis=1)
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
-    truth = quat.cumulative_product(np.concatenate([q0[None], quat.from_rotvec(gyr[:-1] * dt[:, None])]))
-    acc = quat.gravity_in_body(truth) + noise * rng.normal(size=(n, 3))
-    imu = ImuSamples(t, gyr + np.asarray(bias) + noise * rng.normal(size=(n, 3)), acc, source="synthetic")
-    return imu, truth
+    return turning_body(t, w, q0, gyr_std=noise, acc_std=noise, bias=bias, seed=seed + 1, source="synthetic")
 
 
 def inclination_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
