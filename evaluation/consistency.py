@@ -143,6 +143,13 @@ class Belief:
     def __len__(self) -> int:
         return len(self.nis)
 
+    @property
+    def skipped(self) -> np.ndarray:
+        """(N,) bool, a step made no accelerometer update (row 0, the reset, is not a step)."""
+        skipped = ~self.updated
+        skipped[:1] = False
+        return skipped
+
 
 def nees(err_rad: np.ndarray, cov_att: np.ndarray) -> np.ndarray:
     """(N,) e_k^T P_k^-1 e_k of (N, 3) errors and (N, 3, 3) covariances; NaN where e or P is not
@@ -258,7 +265,7 @@ def summarize(belief: Belief) -> Summary:
         nis_inside=float(np.mean((nis >= lo) & (nis <= hi))) if nis.size else float("nan"),
         nis_mean=float(nis.mean()) if nis.size else float("nan"),
         nis_mean_band=mean_band(int(nis.size)),
-        skipped=int((~belief.updated[1:]).sum()) if n > 1 else 0,
+        skipped=int(belief.skipped.sum()),
         rest=None if belief.rest is None else int(belief.rest.sum()),
         guarded=None if belief.guarded is None else int(belief.guarded.sum()),
     )

@@ -704,9 +704,7 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
     ax.legend(loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
 
     ax = axes[4]
-    skipped = ~belief.updated
-    skipped[0] = False  # row 0 is the reset, not a skipped update
-    rows = [("skipped", skipped, "no acc update", summary.skipped)]
+    rows = [("skipped", belief.skipped, "no acc update", summary.skipped)]
     if belief.guarded is not None:
         rows.append(("guarded", belief.guarded, "bias guarded", summary.guarded))
     if belief.rest is not None:
