@@ -240,7 +240,7 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
                  + f"); misalignment {', '.join(f'{x:+.2f}' for x in result.misalignment_deg)} deg; "
                  f"residual {result.residual_rms_deg_s:.2f} deg/s")
     if clock_offset:
-        lines += [f"  clock offset {rid}: VICON lags by {off * 1e3:+.1f} ms" for rid, off in result.clock_offset_s.items()]
+        lines += [f"  clock offset {rid}: truth lags by {off * 1e3:+.1f} ms" for rid, off in result.clock_offset_s.items()]
     command = command or f"run_calibrate({dataset!r})"
     if out:
         gyro_fit.write(out, result, with_clock_offset=clock_offset, command=command)

@@ -496,11 +496,11 @@ def format_check(c: RecordingCheck) -> str:
             f"saturated (ADC rail): {r.saturated_samples} samples {_fmt_intervals(r.saturated)}")
     v = c.vicon
     if v is not None:
-        clock = f"VICON lags by {v.clock.offset_s * 1e3:+.1f} ms (corr {v.clock.peak_correlation:.3f})" if v.clock else "offset: n/a"
-        row("VICON", f"{v.samples} samples {v.rate_hz:.2f} Hz, span {v.start_s:+.2f}..{v.stop_s:.2f} s; {clock}")
-        row("VICON stamps", f"jitter vs a regular {1e3 / v.rate_hz:.2f} ms base: std {v.stamp_jitter_std_s * 1e3:.2f} ms, "
+        clock = f"truth lags by {v.clock.offset_s * 1e3:+.1f} ms (corr {v.clock.peak_correlation:.3f})" if v.clock else "offset: n/a"
+        row("truth", f"{v.samples} samples {v.rate_hz:.2f} Hz, span {v.start_s:+.2f}..{v.stop_s:.2f} s; {clock}")
+        row("truth stamps", f"jitter vs a regular {1e3 / v.rate_hz:.2f} ms base: std {v.stamp_jitter_std_s * 1e3:.2f} ms, "
             f"max {v.stamp_jitter_max_s * 1e3:.1f} ms; {v.near_duplicate_stamps} near-duplicate stamps")
-        row("VICON gaps (s)", f"{v.missing_samples} NaN rows: {_fmt_intervals(v.gaps)}")
+        row("truth gaps (s)", f"{v.missing_samples} NaN rows: {_fmt_intervals(v.gaps)}")
     for note in c.notes:
         row("note", note)
     return "\n".join(lines)

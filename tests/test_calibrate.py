@@ -81,7 +81,7 @@ def test_cli_calibrate_then_apply_on_sim(tmp_path, capsys, monkeypatch):
     out = capsys.readouterr().out
     factor = json.loads((tmp_path / "c.json").read_text())["gyro_scale_factor"]
     np.testing.assert_allclose(factor, 1 / np.array(SimSettings().gyro_sensitivity_ratio), rtol=0.005)
-    assert "(sensitivity vs nominal +9." in out and "clock offset sim: VICON lags by" in out
+    assert "(sensitivity vs nominal +9." in out and "clock offset sim: truth lags by" in out
     rows = {}
     for extra in ([], ["--calibration", "c.json"]):
         assert main(["compare", "--estimators", "dr", "--dataset", "sim", "--no-progress", *extra]) == 0
