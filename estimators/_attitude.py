@@ -138,7 +138,8 @@ class AccDisturbance:
     __slots__ = ("window_s", "m", "v", "qi", "age", "lowpass_s", "lowpass_window_s", "lp", "lp_mean", "lp_v",
                  "lowpass_body", "lowpass_density", "lag")
 
-    def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0, lag: bool = False) -> None:
+    def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0,
+                 lag: bool = False) -> None:
         self.window_s = window_s
         self.lowpass_s, self.lowpass_window_s = lowpass_s, lowpass_window_s
         self.qi = (1.0, 0.0, 0.0, 0.0)

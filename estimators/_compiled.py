@@ -776,7 +776,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
             var = r
             hx, hy, hz = gravity(q)
             gravity_jacobian(H, hx, hy, hz, n)  # H = [[h]x, 0, 0]
-            if with_lag and lowpassed:  # the low-passed sample's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
+            if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
                 lag_jacobian(H, dist, n)
             for i in range(n):  # P H^T
                 for j in range(3):
