@@ -301,6 +301,12 @@ class LowpassLag:
         return A @ self.N[0], -(A @ self.N[1])
 
 
+def models_lag(p, n: int) -> bool:
+    """Whether a filter with parameters `p` (`FilterParams`) and error dimension n models the
+    low-pass's lag (`LowpassLag`): it has calibration states and uses the low-passed sample."""
+    return n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+
+
 def lowpass_drift_density(lowpass_s: float, rate_noise_rad2_s: float) -> float:
     """Density (g^2 s) of the strapdown frame's random drift within the low-pass window.
 

@@ -45,7 +45,7 @@ import numpy as np
 
 from fusion import quaternion as quat
 
-from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector
+from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector, models_lag
 from .filter_params import BiasFilterParams
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
@@ -75,6 +75,7 @@ Settings = namedtuple("Settings", [
     "use_acc", "gate", "gate_g",  # accelerometer update on, gate (0 off, 1 skip, 2 inflate), gate_g (g)
     "acc_noise", "corr_s", "dist_window",  # R (g^2 s), disturbance correlation time and window (s)
     "lowpass_s", "lowpass_window", "process_noise",  # accelerometer low-pass (s), its variance window (s), Q (rad^2/s)
+    "lag",  # the low-pass's lag is modelled (`_attitude.models_lag`)
     "heading_free",
     "rest_on", "rest_gyr", "rest_acc", "rest_time", "rest_window", "rest_noise",  # rest detection + update
     "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
@@ -96,7 +97,7 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         int(n), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
         float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
         float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
-        bool(p.heading_free),
+        bool(models_lag(p, n)), bool(p.heading_free),
         bool(rest_on), float(rest.gyr_th) if rest_on else 0.0, float(rest.acc_th) if rest_on else 0.0,
         float(rest.min_time) if rest_on else math.inf, float(rest.window_s) if rest_on else 1.0,
         float(p.rest_noise_rad2_s) if bias else 0.0,
@@ -672,7 +673,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
     FP = np.empty((n, n))
     J = np.empty((3, 3))
     H = np.zeros((3, n))
-    with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
+    with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`AccDisturbance.update`)
     PHt = np.empty((n, 3))
     S = np.empty((3, 3))
@@ -875,7 +876,7 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
     H = np.zeros((3, n))
     G = np.empty((3, n))
     M = np.empty((n, n))
-    with_lag = n > 3 and o.corr_s > 0.0 and o.lowpass_s > 0.0
+    with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
     skipped = 0
     sqrt_recovered = 0

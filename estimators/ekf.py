@@ -101,6 +101,7 @@ from ._attitude import (
     acc_variance_scale,
     bias_rest_update,
     inv_sym3,
+    models_lag,
     repair_covariance,
     axes_mask,
 )
@@ -183,7 +184,7 @@ class EKF(RecursiveEstimator):
         self._Qbad = np.zeros((n, n))
         self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
-        self._with_lag = n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+        self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._F = np.eye(n)
