@@ -91,10 +91,9 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from fusion.quaternion import exp_floats, gravity_in_body_floats, multiply_floats, right_jacobian_floats, rotation_matrix_floats, unit_array
-from fusion.types import ImuSamples, Trajectory
+from fusion.types import ImuSamples
 
 from ._attitude import (
-    UNESTIMATED_VAR,
     AccDisturbance,
     RestDetector,
     accelerometer_update_input,
@@ -103,10 +102,9 @@ from ._attitude import (
     inv_sym3,
     models_lag,
     repair_covariance,
-    axes_mask,
 )
-from .base import RecursiveEstimator
 from .filter_params import BiasFilterParams
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 
 
 @dataclass(frozen=True)
@@ -148,41 +146,20 @@ class EKFParams(BiasFilterParams):
 _CHI2_3DOF = 16.27
 
 
-class EKF(RecursiveEstimator):
+class EKF(KalmanFilter):
     """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
 
     Params = EKFParams
-
-    def __init__(self, params: Any = None) -> None:
-        super().__init__(params)
-        if self.params.impl == "compiled":
-            from . import _compiled  # numba is imported when a compiled filter is built
-
-            _compiled.load()  # compile or load the kernels here, not in the first (timed) estimate
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded"}
 
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
-        q0 = np.asarray(init_quat_wxyz, dtype=float)
-        if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
-            raise ValueError(f"ekf: init_quat_wxyz must be a finite non-zero (4,) quaternion, got {q0!r}")
         n = 3 + 3 * p.estimate_bias + 3 * p.estimate_scale
         self.n = n
-        self.q = q0 / np.linalg.norm(q0)
+        self.q = initial_quaternion("ekf", init_quat_wxyz)
         self.b = np.zeros(3)
         self.s = np.zeros(3)
-        self.P = np.zeros((n, n))
-        self.P[:3, :3] = np.eye(3) * p.init_var_rad2
-        self._Qrate = np.zeros((n, n))
-        self._Qrate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
-        if p.estimate_bias:
-            self.P[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
-            self._Qrate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3
-        if p.estimate_scale:
-            on = axes_mask(p.scale_axes)
-            self.P[6:, 6:] = np.diag(np.where(on, p.init_scale_var, UNESTIMATED_VAR))
-            self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
-        self._Qbad = np.zeros((n, n))
-        self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
+        self.P, self._Qrate, self._Qbad = error_state_covariances(p, n)
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
@@ -303,28 +280,12 @@ class EKF(RecursiveEstimator):
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}
 
-    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        """The base class's loop of `step` (impl=numpy), or the same loop compiled (impl=compiled,
-        `_compiled.ekf_kernel`): same trajectory and diagnostics, and the filter is left in the
-        state of the last sample either way."""
-        if self.params.impl == "numpy":
-            return super().estimate(imu, init_quat_wxyz)
-        from . import _compiled  # numba is imported on first use
-
-        self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
-        out = _compiled.outputs(len(imu), self.n, init_quat_wxyz, self.current())
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
+                    rest: np.ndarray) -> None:
         q, b, s, P = self.q.copy(), self.b.copy(), self.s.copy(), self.P.copy()
-        dist, rest = self._dist.state(), self._rest.state()
-        self.n_skipped, self.n_cov_repaired = _compiled.ekf_kernel(
-            *_compiled.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest,
-            _compiled.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
+        self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
+            *kernels.inputs(imu), q, b, s, P, self._Qrate, self._Qbad, dist, rest,
+            kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"],
             out["nis"], out["bias_guarded"], out["acc_lowpassed"])
         self.q, self.b, self.s, self.P = q, b, s, P
-        self._dist.set_state(dist)
-        self._rest.set_state(rest)
-        self.acc_var, self.at_rest = float(out["acc_var_g2"][-1]), bool(out["at_rest"][-1])
-        self.nis, self.guarded = float(out["nis"][-1]), bool(out["bias_guarded"][-1])
-        self.lowpassed = bool(out["acc_lowpassed"][-1])
-        history = {key: out[key] for key in self.current()}
-        return Trajectory(imu.t, out["quat"], diagnostics={**history, **self.diagnostics()})

@@ -116,10 +116,9 @@ from filterpy.kalman import UnscentedKalmanFilter
 
 from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
-from fusion.types import ImuSamples, Trajectory
+from fusion.types import ImuSamples
 
 from ._attitude import (
-    UNESTIMATED_VAR,
     AccDisturbance,
     RestDetector,
     accelerometer_update_input,
@@ -128,11 +127,10 @@ from ._attitude import (
     inv_sym3,
     models_lag,
     repair_covariance,
-    axes_mask,
     sqrt_psd,
 )
-from .base import RecursiveEstimator
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 
 Sigma = Literal["kraft", "julier", "merwe"]
 Impl = Literal["compiled", "lean", "filterpy"]
@@ -565,46 +563,23 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
 
 # --------------------------------------------------------------------------- estimators
-class UKF(RecursiveEstimator):
+class UKF(KalmanFilter):
     """`ukf`: the quaternion UKF after Kraft 2003 (see the module docstring for the steps)."""
 
     Params = UKFParams
     with_bias = False
 
-    def __init__(self, params: Any = None) -> None:
-        super().__init__(params)
-        if self.params.impl == "compiled":
-            from . import _compiled  # numba is imported when a compiled filter is built
-
-            _compiled.load()  # compile or load the kernels here, not in the first (timed) estimate
-
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
-        q0 = np.asarray(init_quat_wxyz, dtype=float)
-        if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) == 0.0:
-            raise ValueError(f"{type(self).__name__}: init_quat_wxyz must be a finite non-zero (4,) quaternion, got {q0!r}")
         n = error_dim(p)
         points = QuaternionSigmaPoints(n, p.sigma, p.kappa, p.alpha, p.beta)
         kf = QuaternionUKF(points, p.mean_tol_rad, p.mean_max_iter)
         kf.heading_free = p.heading_free
-        kf.x = np.concatenate([q0 / np.linalg.norm(q0), np.zeros(n - 3)])
-        P0 = np.zeros((n, n))
-        P0[:3, :3] = np.eye(3) * p.init_var_rad2
-        self._Qrate = np.zeros((n, n))
-        self._Qrate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
-        if n > 3:
-            P0[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
-            self._Qrate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3
-        if n > 6:
-            on = axes_mask(p.scale_axes)
-            P0[6:, 6:] = np.diag(np.where(on, p.init_scale_var, UNESTIMATED_VAR))
-            self._Qrate[6:, 6:] = np.diag(np.where(on, p.scale_walk_1_s, 0.0))
-        kf.P = P0
+        kf.x = np.concatenate([initial_quaternion(type(self).__name__, init_quat_wxyz), np.zeros(n - 3)])
+        kf.P, self._Qrate, self._Qbad = error_state_covariances(p, n)
         self.kf = kf
         self.n = n
         self._scale_noise = 0.0 if n > 3 else p.scale_noise_s
-        self._Qbad = np.zeros((n, n))
-        self._Qbad[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
         self._eye3 = np.eye(3)
         # ukf-bias: the low-passed sample's lag in the measurement model, as in `ekf`
         self._with_lag = models_lag(p, n)
@@ -709,35 +684,17 @@ class UKF(RecursiveEstimator):
             "mean_iteration_cap_hits": self.n_mean_capped,
         }
 
-    def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        """The base class's loop of `step` (impl=lean or filterpy), or the lean step's loop
-        compiled (impl=compiled, `_compiled.ukf_kernel`): same trajectory and diagnostics, and
-        the filter is left in the state of the last sample either way."""
-        p = self.params
-        if p.impl != "compiled":
-            return super().estimate(imu, init_quat_wxyz)
-        from . import _compiled  # numba is imported on first use
-
-        self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
-        kf, n = self.kf, self.n
-        out = _compiled.outputs(len(imu), n, init_quat_wxyz, self.current())
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
+                    rest: np.ndarray) -> None:
+        p, kf = self.params, self.kf
         x, P = kf.x.copy(), kf.P.copy()
-        dist = self._dist.state()
-        rest = self._rest.state() if self._rest is not None else np.zeros(5)
-        o = _compiled.settings(p, n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
-                               mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
-        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled.ukf_kernel(
-            *_compiled.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
+        o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
+                             mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
+        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.ukf_kernel(
+            *kernels.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
             out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
-        self._dist.set_state(dist)
-        if self._rest is not None:
-            self._rest.set_state(rest)
-        self.acc_var, self.at_rest, self.nis = float(out["acc_var_g2"][-1]), bool(out["at_rest"][-1]), float(out["nis"][-1])
-        self.lowpassed = bool(out["acc_lowpassed"][-1])
-        history = {key: out[key] for key in self.current()}
-        return Trajectory(imu.t, out["quat"], diagnostics={**history, **self.diagnostics()})
 
 
 class UKFBias(UKF):
