@@ -79,7 +79,6 @@ Analytic gradients only (no autodiff). Cost per iteration -> diagnostics["loss"]
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -89,7 +88,7 @@ from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_bande
 from fusion import quaternion as quat
 
 from .gn import released_scales, theta_posterior_std
-from .smoother import BatchSmoother, SmootherParams, progress_bar
+from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, solution_diagnostics
 from .smoother_cost import Linearization, SmootherProblem, banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
@@ -206,16 +205,13 @@ class GradientDescentSmoother(BatchSmoother):
         M = Preconditioner(lin, p.precond, free)
         age, builds = 0, 1  # age: steps taken since M was built (0: M is from the current point)
         cost = lin.cost
-        losses, steps = [cost], []
-        norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
+        log, steps = SolverLog(cost, q), []
         alpha = 1.0
         converged = False
         iterations = 0
         # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
         limit = p.max_iter + (stage1_iter if staged else 0)
         bar = progress_bar(p.progress, limit, self.name)
-        start = time.perf_counter()
-        elapsed = [0.0]
         try:
             while iterations < limit:
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
@@ -241,10 +237,8 @@ class GradientDescentSmoother(BatchSmoother):
                     decrease = (cost - cost_new) / max(cost, 1e-300)
                     q, v, theta, cost = q_new, v_new, theta_new, cost_new
                     age += 1
-                    losses.append(cost)
+                    log.record(cost, q)
                     steps.append(alpha)
-                    norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
-                    elapsed.append(time.perf_counter() - start)
                     bar.update(1)
                     bar.set_postfix(cost=f"{cost:.6g}", alpha=f"{alpha:.3g}")
                 small = decrease < p.tol
@@ -268,23 +262,12 @@ class GradientDescentSmoother(BatchSmoother):
                     lin = problem.linearize(q, theta, v=v, hessian=False)
         finally:
             bar.close()
-        bias, scale = problem.split_theta(theta)
+        theta_std = theta_posterior_std(problem.linearize(q, theta, v=v)) if problem.n_theta else np.zeros(0)
         diagnostics = {
-            "loss": np.array(losses),
-            "elapsed_s": np.array(elapsed),
-            "norm_error": np.array(norm_error),
-            "iterations": iterations,
-            "converged": converged,
+            **log.diagnostics(iterations, converged),
             "step": np.array(steps),
             "preconditioner_builds": builds,
-            "gyr_bias_rad_s": bias,
-            "gyr_scale_error": scale,
-            "theta_names": problem.theta_names(),
-            "theta": theta,
-            "theta_std": theta_posterior_std(problem.linearize(q, theta, v=v)) if problem.n_theta else np.zeros(0),
-            "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
-            "scale_released": released,
-            "velocity_m_s": v,
+            **solution_diagnostics(problem, theta, theta_std, released, v),
             "stage1": stage1,
         }
         return q, diagnostics

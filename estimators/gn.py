@@ -25,14 +25,13 @@ its prior std. A variable the data cannot see keeps a posterior std near the pri
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 from scipy.linalg import solveh_banded
 
 from fusion.quaternion import retract
 
-from .smoother import BatchSmoother, progress_bar
+from .smoother import BatchSmoother, SolverLog, progress_bar, solution_diagnostics
 from .smoother_cost import SmootherProblem, banded_lower
 
 
@@ -100,13 +99,10 @@ class GaussNewtonSmoother(BatchSmoother):
         theta = np.zeros(problem.n_theta)
         v = problem.zero_velocity()
         lin = problem.linearize(q, theta, v=v)
-        losses = [lin.cost]
-        norm_error = [float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))]
+        log = SolverLog(lin.cost, q)
         damping = 1e-6
         converged = False
         iterations = 0
-        start = time.perf_counter()
-        elapsed = [0.0]
         # Two stages. Stage 1 solves with the scale errors held at zero (from a drifting start,
         # dead reckoning, their first steps would otherwise absorb the drift). Stage 2 releases a
         # scale error only if the recording determines it (`released_scales`); the others stay 0.
@@ -141,9 +137,7 @@ class GaussNewtonSmoother(BatchSmoother):
                     decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
                     q, theta, v = q_new, theta_new, v_new
                     lin = problem.linearize(q, theta, v=v)
-                    losses.append(lin.cost)
-                    norm_error.append(float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0))))
-                    elapsed.append(time.perf_counter() - start)
+                    log.record(lin.cost, q)
                     damping = max(damping / 10.0, 1e-12)
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")
@@ -162,21 +156,9 @@ class GaussNewtonSmoother(BatchSmoother):
                     break
         finally:
             bar.close()
-        bias, scale = problem.split_theta(theta)
         diagnostics = {
-            "loss": np.array(losses),
-            "elapsed_s": np.array(elapsed),
-            "norm_error": np.array(norm_error),
-            "iterations": iterations,
-            "converged": converged,
-            "gyr_bias_rad_s": bias,
-            "gyr_scale_error": scale,
-            "theta_names": problem.theta_names(),
-            "theta": theta,
-            "theta_std": theta_posterior_std(lin),
-            "theta_prior_std": 1.0 / np.sqrt(problem.w_theta),
-            "scale_released": released,
-            "velocity_m_s": v,
+            **log.diagnostics(iterations, converged),
+            **solution_diagnostics(problem, theta, theta_posterior_std(lin), released, v),
             "stage1": stage1,
         }
         return q, diagnostics

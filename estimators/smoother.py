@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import time
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -236,6 +237,41 @@ def progress_bar(enabled: bool, total: int, desc: str):
     return tqdm(total=total, desc=desc, file=sys.stderr, disable=None if enabled else True, leave=False)
 
 
+class SolverLog:
+    """What both solvers record at the start and after every accepted step: the cost ("loss"),
+    the largest deviation of a quaternion's norm from 1 ("norm_error"; the retraction keeps it
+    at rounding level) and the time since the start ("elapsed_s")."""
+
+    def __init__(self, cost: float, q: np.ndarray) -> None:
+        self._start = time.perf_counter()
+        self.loss, self.norm_error, self.elapsed_s = [cost], [_norm_error(q)], [0.0]
+
+    def record(self, cost: float, q: np.ndarray) -> None:
+        self.loss.append(cost)
+        self.norm_error.append(_norm_error(q))
+        self.elapsed_s.append(time.perf_counter() - self._start)
+
+    def diagnostics(self, iterations: int, converged: bool) -> dict:
+        return {"loss": np.array(self.loss), "elapsed_s": np.array(self.elapsed_s),
+                "norm_error": np.array(self.norm_error), "iterations": iterations, "converged": converged}
+
+
+def _norm_error(q: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))
+
+
+def solution_diagnostics(problem: SmootherProblem, theta: np.ndarray, theta_std: np.ndarray, released: np.ndarray,
+                         v: np.ndarray) -> dict:
+    """A solution's diagnostics, the same for `gn` and `gd`: the calibration variables `theta`
+    (split into "gyr_bias_rad_s" and "gyr_scale_error", with their names, posterior std
+    `theta_std` and prior std), which scale errors were released (`released`) and the
+    velocity `v` ("velocity_m_s", m/s)."""
+    bias, scale = problem.split_theta(theta)
+    return {"gyr_bias_rad_s": bias, "gyr_scale_error": scale, "theta_names": problem.theta_names(), "theta": theta,
+            "theta_std": theta_std, "theta_prior_std": 1.0 / np.sqrt(problem.w_theta), "scale_released": released,
+            "velocity_m_s": v}
+
+
 class BatchSmoother(Estimator):
     """What `gn` and `gd` share: the problem set-up, the start trajectory and `estimate`;
     each supplies `solve(problem, q) -> (q, diagnostics)`."""
@@ -304,9 +340,7 @@ class BatchSmoother(Estimator):
         diagnostics["scale_lr"] = lr
         if lr > chi2.ppf(1.0 - self.params.scale_significance, int(released.sum())):
             return q, diagnostics
-        bias, scale = problem.split_theta(theta1)
-        diagnostics.update(theta=theta1, theta_std=theta_std1, gyr_bias_rad_s=bias, gyr_scale_error=scale,
-                           velocity_m_s=v1, scale_released=np.zeros_like(released))
+        diagnostics.update(solution_diagnostics(problem, theta1, theta_std1, np.zeros_like(released), v1))
         return q1, diagnostics
 
     def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
