@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .loaders import check_declared, check_physical, read_isolated
+from .loaders import check_declared, check_physical, read_isolated, read_mat
 from .types import ImuSamples, Trajectory
 
 G = 9.80665  # m/s^2 per g
@@ -61,22 +61,6 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: not a readable HDF5 file ({exc})") from None
 
 
-def _read_mat(path: Path) -> dict[str, np.ndarray]:
-    import scipy.io
-
-    try:
-        check_declared(path, ((name, shape) for name, shape, _ in scipy.io.whosmat(str(path))))
-        return {k: v for k, v in scipy.io.loadmat(str(path)).items() if not k.startswith("__")}
-    except NotImplementedError:  # MATLAB v7.3: an HDF5 file
-        return _read_hdf5(path)
-    except ValueError as exc:
-        if str(exc).startswith(f"{path}:"):
-            raise
-        raise ValueError(f"{path}: not a readable MATLAB file (ValueError: {exc})") from None
-    except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
-        raise ValueError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: {exc})") from None
-
-
 def read_trial(path: str | Path) -> dict[str, np.ndarray]:
     """The raw arrays of one trial file, by name (no checks beyond readability)."""
     path = Path(path)
@@ -84,10 +68,10 @@ def read_trial(path: str | Path) -> dict[str, np.ndarray]:
         raise FileNotFoundError(f"{path}: no such file")
     if path.suffix.lower() not in SUFFIXES:
         raise ValueError(f"{path}: not a BROAD trial file (expected {', '.join(SUFFIXES)})")
-    import scipy.io  # noqa: F401  (imported before `read_isolated` forks)
-
-    # In a forked child: a corrupt file can crash SciPy's or HDF5's C code (see `read_isolated`).
-    return read_isolated(path, _read_mat if path.suffix.lower() == ".mat" else _read_hdf5, "BROAD trial")
+    if path.suffix.lower() == ".mat":  # MATLAB v7.3 files are HDF5 inside
+        return read_mat(path, "MATLAB", v73=_read_hdf5)
+    # In a forked child: a corrupt file can crash HDF5's C code (see `read_isolated`).
+    return read_isolated(path, _read_hdf5, "BROAD trial")
 
 
 def is_trial(path: str | Path) -> bool:

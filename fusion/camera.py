@@ -14,14 +14,15 @@ one contiguous frame at a time (`frame(k)`, `frames()`); converting the whole ar
 from __future__ import annotations
 
 import math
-import pickle
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
+
+from .loaders import read_mat, read_pickle
 
 
 # --------------------------------------------------------------------------- camera model
@@ -184,23 +185,10 @@ class ArrayCamera(CameraSource):
         return np.ascontiguousarray(self._cam[:, :, :, k])
 
 
-def _read_pickle(path: Path) -> Any:
-    try:
-        with open(path, "rb") as f:
-            return pickle.load(f, encoding="latin1")
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, ImportError,
-            IndexError, KeyError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not a readable camera pickle ({type(exc).__name__}: {exc})") from exc
-
-
-def _read_mat(path: Path) -> Any:
-    from scipy.io import loadmat
-    from scipy.io.matlab import MatReadError
-
-    try:
-        return loadmat(path, variable_names=["cam", "ts"])
-    except (MatReadError, ValueError, TypeError, OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a readable camera .mat file ({type(exc).__name__}: {exc})") from exc
+# A camera file holds video: H x W x 3 x K uint8 (the course's: 240 x 320 x 3 x ~1700, 0.4 G
+# values), far more than a recording's arrays, so its limits are its own.
+CAMERA_MAX_VALUES = 2**31  # values in one array (2 GiB of uint8)
+CAMERA_MAX_BYTES = 8 * CAMERA_MAX_VALUES  # all arrays, counted as float64 (`loaders.check_declared`)
 
 
 def load_camera(path: str | Path) -> ArrayCamera:
@@ -212,9 +200,9 @@ def load_camera(path: str | Path) -> ArrayCamera:
         raise FileNotFoundError(f"{path}: camera file not found")
     suffix = path.suffix.lower()
     if suffix in (".p", ".pkl", ".pickle"):
-        data = _read_pickle(path)
+        data = read_pickle(path, "camera pickle", CAMERA_MAX_VALUES)
     elif suffix == ".mat":
-        data = _read_mat(path)
+        data = read_mat(path, "camera .mat", ["cam", "ts"], max_values=CAMERA_MAX_VALUES, max_bytes=CAMERA_MAX_BYTES)
     else:
         raise ValueError(f"{path}: unknown camera file type {suffix!r} (expected .p, .pkl or .mat)")
     if not isinstance(data, dict):

@@ -62,6 +62,7 @@ import os
 import pickle
 import sys
 import warnings
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -124,20 +125,23 @@ def _one_line(exc: BaseException, limit: int = 200) -> str:
     return f"{type(exc).__name__}: {text}"
 
 
-def _read_pickle(path: Path) -> Any:
+def read_pickle(path: Path, kind: str = "pickle", max_values: int = MAX_VALUES) -> Any:
+    """The object of a pickle file, built by the restricted unpickler (numpy arrays and plain
+    containers only: a pickle cannot run code here) and checked by `check_structure` with
+    `max_values`. Any failure is one ValueError naming the file; `kind` names the format."""
     data = _read_bytes(path)
     try:
         obj = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
-        raise ValueError(f"{path}: not a readable pickle ({_one_line(exc)})") from None
-    check_structure(obj, path)
+        raise ValueError(f"{path}: not a readable {kind} ({_one_line(exc)})") from None
+    check_structure(obj, path, max_values)
     return obj
 
 
 _CONTAINERS = (list, tuple, dict)
 
 
-def check_structure(obj: Any, path: Path | str) -> None:
+def check_structure(obj: Any, path: Path | str, max_values: int = MAX_VALUES) -> None:
     """Refuse nested containers whose arrays would be unboundedly large, by structure alone.
 
     A 663-byte pickle of lists sharing references (`l = [l] * 10`, 30 times) holds 10**30
@@ -145,7 +149,7 @@ def check_structure(obj: Any, path: Path | str) -> None:
     value count (an ndarray counts its `size`, anything else 1) are computed once per object
     (memo on `id`, so shared references cost nothing, and are counted as often as they are
     referenced, as materialising would), iteratively (no recursion limit), and a container
-    holding itself is refused. Limits: `MAX_NESTING` levels, `MAX_VALUES` values.
+    holding itself is refused. Limits: `MAX_NESTING` levels, `max_values` values.
     """
     if not isinstance(obj, _CONTAINERS):
         return
@@ -160,9 +164,9 @@ def check_structure(obj: Any, path: Path | str) -> None:
             total = 0
             for child in children:
                 total += memo[id(child)] if isinstance(child, _CONTAINERS) else (child.size if isinstance(child, np.ndarray) else 1)
-            if total > MAX_VALUES:
+            if total > max_values:
                 raise ValueError(f"{path}: nested containers hold {total:.3g} values, more than any recording "
-                                 f"(limit {MAX_VALUES:.3g})")
+                                 f"(limit {max_values:.3g})")
             memo[key] = total
             active.discard(key)
             continue
@@ -179,29 +183,36 @@ def check_structure(obj: Any, path: Path | str) -> None:
                 stack.append((child, level + 1, False))
 
 
-def check_declared(path: Path | str, arrays: Iterable[tuple[str, tuple[int, ...]]]) -> None:
+def check_declared(path: Path | str, arrays: Iterable[tuple[str, tuple[int, ...]]], max_values: int = MAX_VALUES,
+                   max_bytes: int = MAX_BYTES) -> None:
     """Refuse a file whose arrays, as its header declares them (`(name, shape)` pairs), exceed
-    `MAX_SAMPLES` along an axis, `MAX_VALUES` in one array or `MAX_BYTES` (as float64) in all;
+    `MAX_SAMPLES` along an axis, `max_values` in one array or `max_bytes` (as float64) in all;
     called before any array is read."""
     total = 0
     for name, shape in arrays:
         shape = tuple(int(n) for n in shape)
         values = int(np.prod(shape, dtype=object)) if shape else 1
-        if any(n > MAX_SAMPLES for n in shape) or values > MAX_VALUES:
+        if any(n > MAX_SAMPLES for n in shape) or values > max_values:
             raise ValueError(f"{path}: {name!r} declares shape {shape} ({values:.3g} values); a recording has at most "
-                             f"{MAX_SAMPLES:.3g} samples per array and {MAX_VALUES:.3g} values")
+                             f"{MAX_SAMPLES:.3g} samples per array and {max_values:.3g} values")
         total += 8 * values
-        if total > MAX_BYTES:
-            raise ValueError(f"{path}: the arrays declare {total / 1024**3:.3g} GiB, more than the {MAX_BYTES / 1024**3:.3g} "
+        if total > max_bytes:
+            raise ValueError(f"{path}: the arrays declare {total / 1024**3:.3g} GiB, more than the {max_bytes / 1024**3:.3g} "
                              "GiB limit of one recording")
 
 
-def _read_mat(path: Path) -> dict[str, Any]:
-    """The variables of a MATLAB file (see `read_isolated`)."""
+def read_mat(path: Path, kind: str = "MATLAB", variable_names: list[str] | None = None,
+             v73: Callable[[Path], dict[str, Any]] | None = None, max_values: int = MAX_VALUES,
+             max_bytes: int = MAX_BYTES) -> dict[str, np.ndarray]:
+    """The numeric variables of a MATLAB file (all, or `variable_names`), read in a child
+    process (`read_isolated`) after `check_declared` with `max_values` and `max_bytes`. A MATLAB
+    v7.3 file (HDF5 inside, which SciPy does not read) goes to `v73` if given. Any failure is
+    one ValueError naming the file; `kind` names the format."""
     import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
 
     _read_bytes(path)  # existence and emptiness checks with a clear message
-    return read_isolated(path, _loadmat, "MATLAB")
+    return read_isolated(path, partial(_loadmat, kind=kind, variable_names=variable_names, v73=v73,
+                                       max_values=max_values, max_bytes=max_bytes), kind)
 
 
 def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: str) -> dict[str, np.ndarray]:
@@ -264,18 +275,25 @@ def _plain_arrays(variables: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
-def _loadmat(path: Path) -> dict[str, Any]:
+def _loadmat(path: Path, kind: str, variable_names: list[str] | None, v73: Callable[[Path], dict[str, Any]] | None,
+             max_values: int, max_bytes: int) -> dict[str, Any]:
     import scipy.io
 
     try:
-        check_declared(path, ((name, shape) for name, shape, _ in scipy.io.whosmat(str(path))))
-        return scipy.io.loadmat(str(path))
+        declared = scipy.io.whosmat(str(path))
+        wanted = [(name, shape) for name, shape, _ in declared if variable_names is None or name in variable_names]
+        check_declared(path, wanted, max_values, max_bytes)
+        return scipy.io.loadmat(str(path), variable_names=variable_names)
+    except NotImplementedError:  # MATLAB v7.3: an HDF5 file
+        if v73 is None:
+            raise ValueError(f"{path}: a MATLAB v7.3 file, which this {kind} reader does not read") from None
+        return v73(path)
     except ValueError as exc:
         if str(exc).startswith(f"{path}:"):
             raise
-        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: not a readable {kind} file ({_one_line(exc)})") from None
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
-        raise ValueError(f"{path}: not a readable MATLAB file ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: not a readable {kind} file ({_one_line(exc)})") from None
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -342,10 +360,10 @@ def check_sampling(t: np.ndarray, path: Path | str) -> None:
 
     t: (N,) strictly increasing time stamps, s, N >= 2.
     """
-    with np.errstate(over="ignore"):  # 1e308 - (-1e308) is inf, and rejected below
+    with np.errstate(over="ignore"):  # 1e308 - (-1e308) is inf, and so is the median of two 1e308 steps: rejected below
         dt = np.diff(t)
         span = t[-1] - t[0]
-    step = float(np.median(dt))
+        step = float(np.median(dt))
     if not (MIN_STEP_S <= step <= MAX_STEP_S):
         hint = " (milliseconds? divide by 1000)" if 1e-3 <= step <= 1e3 else ""
         raise ValueError(f"{path}: median time step {step:.3g} s is outside [{MIN_STEP_S:g}, {MAX_STEP_S:g}] s; "
@@ -428,7 +446,7 @@ def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
 def load_imu_pickle(path: str | Path) -> RawImu:
     """ECE276A `imuRawN.p`, either release (7 x T array, or the 2018 dict `vals`/`ts`)."""
     path = Path(path)
-    obj = _read_pickle(path)
+    obj = read_pickle(path)
     if isinstance(obj, dict):  # 2018 release: same layout as the .mat files
         vals = _field(obj, "vals", path)
         if vals.ndim != 2 or vals.shape[0] != 6:
@@ -447,7 +465,7 @@ def load_imu_pickle(path: str | Path) -> RawImu:
 def load_imu_mat(path: str | Path) -> RawImu:
     """ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy), `ts` 1 x T."""
     path = Path(path)
-    mat = _read_mat(path)
+    mat = read_mat(path)
     vals = _field(mat, "vals", path)
     if vals.ndim != 2 or vals.shape[0] != 6:
         raise ValueError(f"{path}: 'vals' must be 6 x T, got shape {vals.shape}")
@@ -460,7 +478,7 @@ def load_vicon(path: str | Path) -> Trajectory:
     Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them.
     """
     path = Path(path)
-    obj = _read_mat(path) if path.suffix == ".mat" else _read_pickle(path)
+    obj = read_mat(path) if path.suffix == ".mat" else read_pickle(path)
     rots = _field(obj, "rots", path)
     if rots.ndim != 3 or rots.shape[:2] != (3, 3):
         raise ValueError(f"{path}: 'rots' must be 3 x 3 x K, got shape {rots.shape}")

@@ -120,6 +120,15 @@ def test_nan_time_stamps_and_values(tmp_path):
         loaders.load_imu_pickle(write_pickle(tmp_path / "b.p", arr))
 
 
+def test_stamps_at_the_float_limits_are_one_clear_error(tmp_path):
+    arr = good_array()[:, :3]
+    arr[0, 0], arr[0, 2] = -1e308, 1e308  # steps of 1e308: their median overflows to inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way to the error
+        with pytest.raises(ValueError, match="median time step inf s is outside"):
+            loaders.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", arr))
+
+
 def test_duplicate_and_backward_stamps_are_repaired_with_a_warning(tmp_path):
     arr = good_array()
     arr[0, 100] = arr[0, 99]  # duplicate

@@ -260,6 +260,27 @@ def test_mismatched_camera_pickles_are_rejected(tmp_path, content, message):
     assert str(path) in str(info.value)
 
 
+def test_a_camera_pickle_cannot_run_code(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    path = tmp_path / "cam1.p"
+    _pickle(path, {"cam": Evil(), "ts": _cam()[1]})
+    with pytest.raises(ValueError, match="cam1.p: not a readable camera pickle.*refusing to load builtins.print"):
+        load_camera(path)
+
+
+def test_a_camera_pickle_of_shared_references_is_refused_by_structure(tmp_path):
+    bomb = [0]
+    for _ in range(40):
+        bomb = [bomb, bomb]  # 2**40 values once materialised, a few hundred bytes as a pickle
+    path = tmp_path / "cam1.p"
+    _pickle(path, {"cam": bomb, "ts": _cam()[1]})
+    with pytest.raises(ValueError, match="cam1.p: .*(values|nested)"):
+        load_camera(path)
+
+
 def test_corrupt_camera_files_are_rejected(tmp_path):
     cam, ts = _cam()
     good = pickle.dumps({"cam": cam, "ts": ts})
