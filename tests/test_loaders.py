@@ -120,12 +120,14 @@ def test_nan_time_stamps_and_values(tmp_path):
         loaders.load_imu_pickle(write_pickle(tmp_path / "b.p", arr))
 
 
-def test_stamps_at_the_float_limits_are_one_clear_error(tmp_path):
-    arr = good_array()[:, :3]
-    arr[0, 0], arr[0, 2] = -1e308, 1e308  # steps of 1e308: their median overflows to inf
+@pytest.mark.parametrize("n, message", [(3, "median time step inf s is outside"),  # the median overflows
+                                        (6, "gaps cover more than half of the inf s span")])  # the gaps' sum does
+def test_stamps_at_the_float_limits_are_one_clear_error(tmp_path, n, message):
+    arr = good_array()[:, :n]
+    arr[0, 0], arr[0, -1] = -1e308, 1e308
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no RuntimeWarning on the way to the error
-        with pytest.raises(ValueError, match="median time step inf s is outside"):
+        with pytest.raises(ValueError, match=message):
             loaders.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", arr))
 
 
