@@ -129,9 +129,10 @@ def read_pickle(path: Path, kind: str = "pickle", max_values: int = MAX_VALUES) 
     """The object of a pickle file, built by the restricted unpickler (numpy arrays and plain
     containers only: a pickle cannot run code here) and checked by `check_structure` with
     `max_values`. Any failure is one ValueError naming the file; `kind` names the format."""
-    data = _read_bytes(path)
+    _check_file(path)
     try:
-        obj = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
+        with open(path, "rb") as f:  # streamed: a camera pickle is hundreds of MB
+            obj = _RestrictedUnpickler(f, encoding="latin1").load()
     except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
         raise ValueError(f"{path}: not a readable {kind} ({_one_line(exc)})") from None
     check_structure(obj, path, max_values)
@@ -210,7 +211,7 @@ def read_mat(path: Path, kind: str = "MATLAB", variable_names: list[str] | None 
     one ValueError naming the file; `kind` names the format."""
     import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
 
-    _read_bytes(path)  # existence and emptiness checks with a clear message
+    _check_file(path)
     return read_isolated(path, partial(_loadmat, kind=kind, variable_names=variable_names, v73=v73,
                                        max_values=max_values, max_bytes=max_bytes), kind)
 
@@ -296,13 +297,17 @@ def _loadmat(path: Path, kind: str, variable_names: list[str] | None, v73: Calla
         raise ValueError(f"{path}: not a readable {kind} file ({_one_line(exc)})") from None
 
 
-def _read_bytes(path: Path) -> bytes:
+def _check_file(path: Path) -> None:
+    """A clear error for a missing or empty file."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    data = path.read_bytes()
-    if not data:
+    if path.stat().st_size == 0:
         raise ValueError(f"{path}: file is empty")
-    return data
+
+
+def _read_bytes(path: Path) -> bytes:
+    _check_file(path)
+    return path.read_bytes()
 
 
 def _field(obj: Any, key: str, path: Path) -> np.ndarray:
