@@ -47,6 +47,7 @@ from fusion import quaternion as quat
 
 from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector, models_lag
 from .filter_params import BiasFilterParams
+from .smoother_cost import GRAVITY_M_S2
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 _OPTIONS = dict(error_model="numpy", nogil=True)
@@ -71,7 +72,8 @@ def _jit(func):
 
 # Options of a kernel run, all scalars (one compiled signature serves every parameter set).
 Settings = namedtuple("Settings", [
-    "n",  # error-state dimension: 3, 6 or 9
+    "n",  # error-state dimension without the velocity: 3, 6 or 9
+    "nv", "vel_bound", "gravity",  # ekf: velocity states (0 or 2), vb^2 (m^2/s), 1 g in m/s^2
     "use_acc", "gate", "gate_g",  # accelerometer update on, gate (0 off, 1 skip, 2 inflate), gate_g (g)
     "acc_noise", "corr_s", "dist_window",  # R (g^2 s), disturbance correlation time and window (s)
     "lowpass_s", "lowpass_window", "process_noise",  # accelerometer low-pass (s), its variance window (s), Q (rad^2/s)
@@ -93,8 +95,9 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
     and rest detector `rest` (the `_attitude.RestDetector` its reset built, or None)."""
     bias = isinstance(p, BiasFilterParams) and n > 3
     rest_on = bias and rest is not None
+    nv = int(getattr(p, "velocity_states", 0))
     return Settings(
-        int(n), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
+        int(n), nv, float(p.velocity_bound_m_sqrt_s) ** 2 if nv else 0.0, float(GRAVITY_M_S2), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
         float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
         float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
         bool(models_lag(p, n)), bool(p.heading_free),
@@ -125,6 +128,7 @@ def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[st
         "cov": np.zeros((n_samples, n, n)),
         "gyr_bias_rad_s": np.zeros((n_samples, 3)),
         "gyr_scale": np.zeros((n_samples, 3)),
+        "velocity_m_s": np.zeros((n_samples, 2)),
         "mean_iterations": np.zeros(n_samples, dtype=np.int64),
         "acc_var_g2": np.zeros(n_samples),
         "at_rest": np.zeros(n_samples, dtype=bool),
@@ -159,10 +163,9 @@ def load() -> None:
     state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), dist, rest)
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), P, Qrate, Qbad, dist, rest, o,
-               out["quat"], out["cov"],
-               out["gyr_bias_rad_s"], out["gyr_scale"], out["acc_var_g2"], out["at_rest"], out["nis"], out["bias_guarded"],
-               out["acc_lowpassed"])
+    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), P, Qrate, Qbad, dist, rest, o,
+               out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
+               out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
@@ -658,31 +661,91 @@ def _sample(gyr, valid, acc, k):
 
 # ============================================================================ ekf
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_var, out_rest, out_nis, out_guard, out_lowpassed):
+def _inject(q, b, s, v, dx, n, N, small):
+    """`EKF._correct`: q exp(dx_e / 2), b + dx_b, s + dx_s, v + dx_v (in place); -> the new q."""
+    for i in range(3):
+        if n > 3:
+            b[i] = b[i] + dx[3 + i]
+        if n > 6:
+            s[i] = s[i] + dx[6 + i]
+    for i in range(N - n):
+        v[i] = v[i] + dx[n + i]
+    return qmul(q, qexp(dx[0], dx[1], dx[2], small))
+
+
+@_jit
+def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
+    """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
+    the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
+    pseudo-measurement v = 0 (variance vb^2 / dt, H = [0, I]) in Joseph form; the correction
+    into dx (N,) (K: N x 3 scratch, its third column unused; M: N x N scratch)."""
+    w, x, y, z = q
+    r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    if math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az):
+        g = o.gravity * h
+        v[0] += (r00 * ax + r01 * ay + r02 * az) * g
+        v[1] += (r10 * ax + r11 * ay + r12 * az) * g
+        a00, a01, a02 = -(r01 * az - r02 * ay) * g, -(r02 * ax - r00 * az) * g, -(r00 * ay - r01 * ax) * g
+        a10, a11, a12 = -(r11 * az - r12 * ay) * g, -(r12 * ax - r10 * az) * g, -(r10 * ay - r11 * ax) * g
+        for c in range(N):  # V P
+            P[n, c] += a00 * P[0, c] + a01 * P[1, c] + a02 * P[2, c]
+            P[n + 1, c] += a10 * P[0, c] + a11 * P[1, c] + a12 * P[2, c]
+        for i in range(N):  # (V P) V^T
+            P[i, n] += P[i, 0] * a00 + P[i, 1] * a01 + P[i, 2] * a02
+            P[i, n + 1] += P[i, 0] * a10 + P[i, 1] * a11 + P[i, 2] * a12
+    r = o.vel_bound / h
+    s00, s01, s10, s11 = P[n, n] + r, P[n, n + 1], P[n + 1, n], P[n + 1, n + 1] + r
+    det = s00 * s11 - s01 * s10
+    i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det
+    for i in range(N):
+        K[i, 0] = P[i, n] * i00 + P[i, n + 1] * i10
+        K[i, 1] = P[i, n] * i01 + P[i, n + 1] * i11
+        K[i, 2] = 0.0
+    if o.heading_free:
+        hx, hy, hz = gravity(q)
+        _project_heading(K, 0, hx, hy, hz)
+        if n > 3:
+            _project_heading(K, 3, hx, hy, hz)
+    for i in range(N):
+        dx[i] = -(K[i, 0] * v[0] + K[i, 1] * v[1])
+    for i in range(N):  # M = P - K (H P), H P = P[n:]
+        for c in range(N):
+            M[i, c] = P[i, c] - (K[i, 0] * P[n, c] + K[i, 1] * P[n + 1, c])
+    for i in range(N):  # P = M - (M H^T) K^T + r K K^T
+        for c in range(N):
+            P[i, c] = (M[i, c] - (M[i, n] * K[c, 0] + M[i, n + 1] * K[c, 1])
+                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1]))
+
+
+@_jit
+def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
+               out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
-    State in and out: qio (4,), b (3,), s (3,), P (n, n), dist (41,) (`AccDisturbance.state`,
-    with the lag), rest (5,). Qrate, Qbad (n, n) as built by `EKF.reset`. Fills rows 1.. of
-    the (N, ...) outputs; returns (updates skipped, covariance repairs).
+    State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N) (N = n + nv, the velocity
+    last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,). Qrate, Qbad (N, N) as
+    built by `EKF.reset`. Fills rows 1.. of the (samples, ...) outputs; returns (updates
+    skipped, covariance repairs).
     """
     n = o.n
+    N = n + o.nv
     small = o.small_angle
-    F = np.zeros((n, n))
-    FP = np.empty((n, n))
+    F = np.zeros((N, N))
+    FP = np.empty((N, N))
     J = np.empty((3, 3))
-    H = np.zeros((3, n))
+    H = np.zeros((3, N))
     with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`AccDisturbance.update`)
-    PHt = np.empty((n, 3))
+    PHt = np.empty((N, 3))
     S = np.empty((3, 3))
     Sinv = np.empty((3, 3))
-    K = np.empty((n, 3))
-    dx = np.empty(n)
-    G = np.empty((3, n))
-    M = np.empty((n, n))
-    L = np.empty((n, n))
+    K = np.empty((N, 3))
+    dx = np.empty(N)
+    G = np.empty((3, N))
+    M = np.empty((N, N))
+    L = np.empty((N, N))
     q = (qio[0], qio[1], qio[2], qio[3])
     skipped = 0
     repaired = 0
@@ -728,40 +791,39 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
                         F[i, 6 + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
                     else:
                         F[i, 3 + j] = -J[i, j]
-        for i in range(3, n):
+        for i in range(3, N):
             F[i, i] = 1.0
         # P <- F P F^T + Q, with F = [[F_top], [0, I]]: rows and columns 3.. pass through.
         for i in range(3):
-            for c in range(n):
-                v = 0.0
-                for j in range(n):
-                    v += F[i, j] * P[j, c]
-                FP[i, c] = v
-        for i in range(3, n):
-            for c in range(n):
+            for c in range(N):
+                acc_ = 0.0
+                for j in range(N):
+                    acc_ += F[i, j] * P[j, c]
+                FP[i, c] = acc_
+        for i in range(3, N):
+            for c in range(N):
                 FP[i, c] = P[i, c]
         hh = h * h
-        for i in range(n):
-            for c in range(n):
+        for i in range(N):
+            for c in range(N):
                 if c < 3:
-                    v = 0.0
-                    for j in range(n):
-                        v += FP[i, j] * F[c, j]
+                    acc_ = 0.0
+                    for j in range(N):
+                        acc_ += FP[i, j] * F[c, j]
                 else:
-                    v = FP[i, c]
+                    acc_ = FP[i, c]
                 qn = Qrate[i, c] * h
                 if not ok:
                     qn = qn + Qbad[i, c] * hh
-                P[i, c] = v + qn
+                P[i, c] = acc_ + qn
+        if N > n:  # the velocity model (`EKF._velocity_step`)
+            velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M)
+            q = _inject(q, b, s, v, dx, n, N, small)
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
             # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
-            bias_rest_update(P, n, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
-            q = qmul(q, qexp(dx[0], dx[1], dx[2], small))
-            for i in range(3):
-                b[i] = b[i] + dx[3 + i]
-                if n > 6:
-                    s[i] = s[i] + dx[6 + i]
+            bias_rest_update(P, N, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
+            q = _inject(q, b, s, v, dx, n, N, small)
             at_rest = True
         var = math.nan
         nis = math.nan
@@ -776,24 +838,24 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
             mx, my, mz, r, lowpassed = measurement(dist, d, ax, ay, az, h, scale, o.process_noise, o, with_lag, rate)
             var = r
             hx, hy, hz = gravity(q)
-            gravity_jacobian(H, hx, hy, hz, n)  # H = [[h]x, 0, 0]
+            gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
                 lag_jacobian(H, dist, n)
-            for i in range(n):  # P H^T
+            for i in range(N):  # P H^T
                 for j in range(3):
-                    v = 0.0
-                    for c in range(n):
-                        v += P[i, c] * H[j, c]
-                    PHt[i, j] = v
+                    acc_ = 0.0
+                    for c in range(N):
+                        acc_ += P[i, c] * H[j, c]
+                    PHt[i, j] = acc_
             for i in range(3):  # H P H^T + R
                 for j in range(3):
-                    v = 0.0
-                    for c in range(n):
-                        v += H[i, c] * PHt[c, j]
-                    S[i, j] = v
+                    acc_ = 0.0
+                    for c in range(N):
+                        acc_ += H[i, c] * PHt[c, j]
+                    S[i, j] = acc_
                 S[i, i] += r
             inv_sym3(S, Sinv)
-            for i in range(n):
+            for i in range(N):
                 for j in range(3):
                     K[i, j] = PHt[i, 0] * Sinv[0, j] + PHt[i, 1] * Sinv[1, j] + PHt[i, 2] * Sinv[2, j]
             if o.heading_free:  # K <- (I - h h^T) K on the attitude and bias rows
@@ -808,15 +870,10 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
                     K[i, 0] = 0.0
                     K[i, 1] = 0.0
                     K[i, 2] = 0.0
-            for i in range(n):
+            for i in range(N):
                 dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
-            q = qmul(q, qexp(dx[0], dx[1], dx[2], small))
-            for i in range(3):
-                if n > 3:
-                    b[i] = b[i] + dx[3 + i]
-                if n > 6:
-                    s[i] = s[i] + dx[6 + i]
-            joseph(P, K, H, r, n, G, M)
+            q = _inject(q, b, s, v, dx, n, N, small)
+            joseph(P, K, H, r, N, G, M)
         else:
             skipped += 1
             if o.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
@@ -828,12 +885,13 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, P, Qrate, Qbad, dist, rest, o,
             for i in range(3):
                 s[i] = _clip(s[i], -o.scale_max, o.scale_max)
         q = qnormalize(q)
-        if repair_covariance(P, n, o, L):
+        if repair_covariance(P, N, o, L):
             repaired += 1
         out_q[k + 1, 0], out_q[k + 1, 1], out_q[k + 1, 2], out_q[k + 1, 3] = q
         out_cov[k + 1, :, :] = P
         out_b[k + 1, :] = b
         out_s[k + 1, :] = s
+        out_v[k + 1, :] = v
         out_var[k + 1] = var
         out_rest[k + 1] = at_rest
         out_nis[k + 1] = nis

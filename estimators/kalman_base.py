@@ -90,7 +90,7 @@ class KalmanFilter(RecursiveEstimator):
         from . import _compiled  # numba is imported on first use
 
         self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
-        out = _compiled.outputs(len(imu), self.n, init_quat_wxyz, self.current())
+        out = _compiled.outputs(len(imu), len(self.current()["cov"]), init_quat_wxyz, self.current())
         dist = self._dist.state()
         rest = self._rest.state() if self._rest is not None else np.zeros(5)
         self._run_kernel(_compiled, imu, out, dist, rest)

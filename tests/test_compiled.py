@@ -29,6 +29,8 @@ SPECS = (
     "ekf", "ekf:bias=false,scale=false", "ekf:scale=false", "ekf:saxes=xyz", "ekf:gate=skip,gate_g=0.05",
     "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
+    # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
+    "ekf:vb=inf", "ekf:vb=0.3,sv=0.05", "ekf:bias=false,scale=false,vb=0.5",
     # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
     # accelerometer low-pass on (with and without the scale noise in its drift density)
     "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
