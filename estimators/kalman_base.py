@@ -58,8 +58,9 @@ class KalmanFilter(RecursiveEstimator):
     """A recursive filter with a numpy `step` (the reference) and a compiled kernel of the same
     loop (`params.impl == "compiled"`).
 
-    A subclass's `reset` sets `n` (the error dimension), `_dist` (its `AccDisturbance`) and
-    `_rest` (its `RestDetector` or None); it implements `_run_kernel`, and names in `LAST_ROW`
+    A subclass's `reset` sets `_dist` (its `AccDisturbance`) and `_rest` (its `RestDetector` or
+    None), and its `current()` has the covariance "cov" (whose size sizes the kernel's outputs);
+    it implements `_run_kernel`, and names in `LAST_ROW`
     the per-sample attributes of `current()` that the kernel records (diagnostics key ->
     attribute), so that after a compiled run the filter is in the state of the last sample, as
     after the loop of `step`.
