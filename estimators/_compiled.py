@@ -44,10 +44,10 @@ import numba
 import numpy as np
 
 from fusion import quaternion as quat
+from fusion.types import STANDARD_GRAVITY_M_S2
 
 from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector, models_lag
 from .filter_params import BiasFilterParams
-from .smoother_cost import GRAVITY_M_S2
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 _OPTIONS = dict(error_model="numpy", nogil=True)
@@ -97,7 +97,7 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
     rest_on = bias and rest is not None
     nv = int(getattr(p, "velocity_states", 0))
     return Settings(
-        int(n), nv, float(p.velocity_bound_m_sqrt_s) ** 2 if nv else 0.0, float(GRAVITY_M_S2), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
+        int(n), nv, float(p.velocity_bound_m_sqrt_s) ** 2 if nv else 0.0, float(STANDARD_GRAVITY_M_S2), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
         float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
         float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
         bool(models_lag(p, n)), bool(p.heading_free),

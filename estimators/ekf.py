@@ -113,7 +113,7 @@ import numpy as np
 
 from fusion.quaternion import (exp_floats, gravity_in_body_floats, multiply_floats, right_jacobian_floats, rotation_matrix_floats,
                                skew_floats, unit_array)
-from fusion.types import ImuSamples
+from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ._attitude import (
     AccDisturbance,
@@ -127,7 +127,6 @@ from ._attitude import (
 )
 from .filter_params import BiasFilterParams
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
-from .smoother_cost import GRAVITY_M_S2
 
 
 @dataclass(frozen=True)
@@ -210,7 +209,7 @@ class EKF(KalmanFilter):
         self.v = np.zeros(2)
         if N > n:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density sv g
             self.P[n:, n:] = np.eye(2) * VELOCITY_INIT_STD_M_S**2
-            self._Qrate[n:, n:] = np.eye(2) * (GRAVITY_M_S2 * p.velocity_acc_noise_g_sqrt_s) ** 2
+            self._Qrate[n:, n:] = np.eye(2) * (STANDARD_GRAVITY_M_S2 * p.velocity_acc_noise_g_sqrt_s) ** 2
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
@@ -337,10 +336,10 @@ class EKF(KalmanFilter):
         p, n = self.params, self.n
         R = rotation_matrix_floats(*q)
         if math.isfinite(acc_g[0]) and math.isfinite(acc_g[1]) and math.isfinite(acc_g[2]):
-            self.v = self.v + (R[:2] @ acc_g) * (GRAVITY_M_S2 * dt_s)
+            self.v = self.v + (R[:2] @ acc_g) * (STANDARD_GRAVITY_M_S2 * dt_s)
             # dv/de = -(R [a]x)_xy g dt for the body-frame attitude error at the step's end
             V = np.eye(self.N)
-            V[n:, :3] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (GRAVITY_M_S2 * dt_s)
+            V[n:, :3] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (STANDARD_GRAVITY_M_S2 * dt_s)
             P = V @ P @ V.T
         r = p.velocity_bound_m_sqrt_s**2 / dt_s
         S = P[n:, n:] + r * np.eye(2)

@@ -55,11 +55,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from fusion import quaternion as quat
-from fusion.types import ImuSamples, Trajectory
+from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 from .base import Estimator, RecursiveEstimator
 
-STANDARD_GRAVITY_M_S2 = 9.80665
 INSTALL_HINT = "pip install -e '.[peers]'"
 # Stands for a zero rate where a library skips its update on an exactly zero gyro sample.
 _TINY_RATE_RAD_S = np.full(3, 1e-150)

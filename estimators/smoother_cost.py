@@ -58,10 +58,9 @@ import numpy as np
 
 from fusion import quaternion as quat
 from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix
-from fusion.types import ImuSamples
+from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 AXES = "xyz"
-GRAVITY_M_S2 = 9.80665  # standard gravity: 1 g of the accelerometer, m/s^2
 
 
 # ----------------------------------------------------------------------------- the problem
@@ -239,7 +238,7 @@ class SmootherProblem:
         if velocity:
             # Horizontal velocity increments: white acceleration noise of density G sigma (m/s^2 sqrt(s))
             # integrated over dt has variance (G sigma)^2 dt; a step touching a missing sample has none.
-            w_vel = 1.0 / ((GRAVITY_M_S2 * weights.velocity_acc_noise_g_sqrt_s) ** 2 * dt)
+            w_vel = 1.0 / ((STANDARD_GRAVITY_M_S2 * weights.velocity_acc_noise_g_sqrt_s) ** 2 * dt)
             w_vel = np.where(acc_ok[:-1] & acc_ok[1:], w_vel, 0.0)
             # "Velocity stays bounded": v = 0 observed with density D (m/s sqrt(s)), variance D^2 / dt.
             w_vzero = sample_durations(imu.t) / weights.velocity_bound_m_sqrt_s**2
@@ -289,7 +288,7 @@ class SmootherProblem:
         R = rotation_matrix(q) if R is None else R
         f_world = (R @ self.acc[:, :, None])[:, :, 0]
         mean = 0.5 * (f_world[:-1, :2] + f_world[1:, :2])
-        return v[1:] - v[:-1] - GRAVITY_M_S2 * mean * self.dt[:, None], f_world
+        return v[1:] - v[:-1] - STANDARD_GRAVITY_M_S2 * mean * self.dt[:, None], f_world
 
     def theta_names(self) -> list[str]:
         """The calibration variables' names, in theta's order ("bias_x", ..., "scale_y")."""
@@ -466,7 +465,7 @@ class SmootherProblem:
             v = self.zero_velocity() if v is None else v
             r_v, _ = self.velocity_residual(q, v, R)
             Ra = np.cross(R[:, :2, :], self.acc[:, None, :])  # (T, 2, 3) P R_t [a_t]x
-            half = 0.5 * GRAVITY_M_S2 * self.dt[:, None, None]
+            half = 0.5 * STANDARD_GRAVITY_M_S2 * self.dt[:, None, None]
             X0, X1 = half * Ra[:-1], half * Ra[1:]  # d r_v,t / d delta_t and / d delta_{t+1}, (T-1, 2, 3)
             Wv = self.w_vel[:, None] * r_v
             grad[:-1, :3] += np.sum(X0 * Wv[:, :, None], axis=1)

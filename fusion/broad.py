@@ -26,9 +26,8 @@ from typing import Any
 import numpy as np
 
 from .loaders import check_declared, check_physical, read_isolated, read_mat
-from .types import ImuSamples, Trajectory
+from .types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
-G = 9.80665  # m/s^2 per g
 SUFFIXES = (".hdf5", ".h5", ".mat")
 REQUIRED = ("imu_gyr", "imu_acc", "opt_quat", "sampling_rate")
 
@@ -146,5 +145,5 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     quat[ok] /= norm[ok, None]
     quat[~ok] = np.nan
     t = np.arange(n) / rate[0]
-    imu = ImuSamples(t, gyr, acc / G, source=str(path), gyr_timing="end")  # BROAD: gyro k covers (t[k-1], t[k]]
+    imu = ImuSamples(t, gyr, acc / STANDARD_GRAVITY_M_S2, source=str(path), gyr_timing="end")  # BROAD: gyro k covers (t[k-1], t[k]]
     return imu, Trajectory(t, quat), movement

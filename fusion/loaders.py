@@ -68,9 +68,8 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .types import ImuSamples, RawImu, Trajectory
+from .types import STANDARD_GRAVITY_M_S2, ImuSamples, RawImu, Trajectory
 
-G = 9.80665  # m/s^2 per g (CSV files are in m/s^2)
 ADC_LIMIT_COUNTS = 65535  # raw IMU values are ADC counts (10-bit here; any 16-bit ADC fits)
 GAP_S = 0.5  # a time step longer than this is a gap (warned about; see the module docstring)
 MIN_STEP_S, MAX_STEP_S = 1e-5, 1.0  # plausible median time step (100 kHz .. 1 Hz)
@@ -86,7 +85,7 @@ MAX_NESTING = 8  # nested lists/tuples/dicts in a pickle (a 3 x 3 x K list in a 
 # Physical plausibility of files in physical units (CSV, BROAD): see `check_physical`.
 GYRO_LIMIT_RAD_S = 70.0  # 4000 deg/s: the widest range of common MEMS gyros
 GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-1 rad/s; BROAD up to 5.3)
-ACC_LIMIT_M_S2 = 200 * 9.80665  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
+ACC_LIMIT_M_S2 = 200 * STANDARD_GRAVITY_M_S2  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
 
 # Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
 # .mat and 2018 files.
@@ -194,12 +193,12 @@ def check_declared(path: Path | str, arrays: Iterable[tuple[str, tuple[int, ...]
         shape = tuple(int(n) for n in shape)
         values = int(np.prod(shape, dtype=object)) if shape else 1
         if any(n > MAX_SAMPLES for n in shape) or values > max_values:
-            raise ValueError(f"{path}: {name!r} declares shape {shape} ({values:.3g} values); a recording has at most "
-                             f"{MAX_SAMPLES:.3g} samples per array and {max_values:.3g} values")
+            raise ValueError(f"{path}: {name!r} declares shape {shape} ({values:.3g} values); the limit is "
+                             f"{MAX_SAMPLES:.3g} samples along an axis and {max_values:.3g} values per array")
         total += 8 * values
         if total > max_bytes:
             raise ValueError(f"{path}: the arrays declare {total / 1024**3:.3g} GiB, more than the {max_bytes / 1024**3:.3g} "
-                             "GiB limit of one recording")
+                             "GiB limit of one file")
 
 
 def read_mat(path: Path, kind: str = "MATLAB", variable_names: list[str] | None = None,
@@ -557,7 +556,7 @@ def load_csv(path: str | Path, with_movement: bool = False):
     if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
         raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
     check_physical(path, gyr, acc, ("gx", "gy", "gz"), ("ax", "ay", "az"))
-    acc = acc / G
+    acc = acc / STANDARD_GRAVITY_M_S2  # CSV files are in m/s^2
     has_truth = all(c in header for c in CSV_TRUTH)
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
     movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)

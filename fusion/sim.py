@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .calibration import BoardModel
-from .types import GyrTiming, RawImu, Trajectory, _check_timing
+from .types import STANDARD_GRAVITY_M_S2, GyrTiming, RawImu, Trajectory, _check_timing
 
 T0_S = 1_700_000_000.0  # a unix-like start time, as in the real files
 
@@ -124,7 +124,7 @@ class _Motion:
         """(N, 3) world-frame acceleration of the hand, in g."""
         amp, omega, phase = self.trans
         env, _ = self.envelope(t)
-        return -(amp * omega**2 * np.sin(omega * t[:, None] + phase)) * env[:, None] / 9.80665
+        return -(amp * omega**2 * np.sin(omega * t[:, None] + phase)) * env[:, None] / STANDARD_GRAVITY_M_S2
 
 
 def simulate(settings: SimSettings = SimSettings(), board: BoardModel = BoardModel()) -> tuple[RawImu, Trajectory]:

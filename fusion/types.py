@@ -17,6 +17,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 
+STANDARD_GRAVITY_M_S2 = 9.80665  # 1 g, the unit of `ImuSamples.acc_g`, in m/s^2 (CGPM 1901)
+
 GyrTiming = Literal["end", "start"]
 GYR_TIMINGS: tuple[str, ...] = ("end", "start")
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from fusion.estimators import build
-from fusion.estimators.smoother_cost import GRAVITY_M_S2, SmootherProblem, Weights, robust_loss, sample_durations
+from fusion.estimators.smoother_cost import SmootherProblem, Weights, robust_loss, sample_durations
 from fusion.quaternion import retract
 from fusion import quaternion as quat
-from fusion.types import ImuSamples, Trajectory
+from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 from smoother_helpers import dense_normal_matrix
 
@@ -51,7 +51,7 @@ def simulated_imu(rate_hz: float, duration_s: float = 30.0, translation_m: float
     gyr[:-1] = quat.relative_rotvec(q[:-1], q[1:]) / dt[:, None]
     gyr[-1] = gyr[-2]
     gyr = gyr + np.asarray(gyro_bias_rad_s) + rng.normal(size=gyr.shape) * gyro_noise_rad_sqrt_s * np.sqrt(rate_hz)
-    f_world = np.array([0.0, 0.0, 1.0]) + _linear_acc_m_s2(t, translation_m) / GRAVITY_M_S2
+    f_world = np.array([0.0, 0.0, 1.0]) + _linear_acc_m_s2(t, translation_m) / STANDARD_GRAVITY_M_S2
     if taps:
         phase = np.mod(t, 3.0)
         burst = (phase > 1.5) & (phase < 1.54)
