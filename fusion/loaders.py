@@ -58,13 +58,15 @@ from __future__ import annotations
 
 import faulthandler
 import io
+import mmap
 import os
 import pickle
+import struct
 import sys
 import warnings
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, BinaryIO, Callable, Iterable
 
 import numpy as np
 
@@ -224,12 +226,15 @@ def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: st
     outright: with SciPy 1.17 a single flipped bit (the "complex" flag of a uint16 array
     without an imaginary part) is a segmentation fault, which no `except` can catch. So on
     Linux `reader` runs in a forked child (a few ms; the libraries are already imported) that
-    sends the arrays back through a pipe (read with the restricted unpickler); a crashed child
-    becomes a one-line `ValueError`. Elsewhere (no safe fork) it runs in-process, unprotected.
+    sends the arrays back (`_send`, `_receive`: a protocol-5 pickle through a pipe, the arrays'
+    data out of band in a shared-memory file that the parent maps, so it is copied once, in
+    the child; the restricted unpickler rebuilds them); a crashed child becomes a one-line
+    `ValueError`. Elsewhere (no safe fork) it runs in-process, unprotected.
     """
     if not sys.platform.startswith("linux"):
         return _plain_arrays(reader(path))
     read_fd, write_fd = os.pipe()
+    store_fd = os.memfd_create("fusion-read", os.MFD_CLOEXEC)  # the arrays' bytes, shared with the child
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # Python >= 3.12: fork with threads
         pid = os.fork()
@@ -244,25 +249,75 @@ def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: st
                 message = ("error", str(exc))
             except ImportError as exc:
                 message = ("import", str(exc))
-            with os.fdopen(write_fd, "wb") as pipe:
-                pipe.write(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+            with os.fdopen(write_fd, "wb") as pipe, os.fdopen(store_fd, "wb", closefd=False) as store:
+                _send(pipe, store, message)
         except BaseException:  # the child must never return into the parent's code
             code = 1
         finally:
             os._exit(code)
     os.close(write_fd)
-    with os.fdopen(read_fd, "rb") as pipe:
-        data = pipe.read()
+    try:
+        with os.fdopen(read_fd, "rb") as pipe:  # the child writes the pipe last: at its end, the store is complete
+            message = _receive(pipe, store_fd)
+    finally:
+        os.close(store_fd)  # a mapping made from it stays valid
     _, status = os.waitpid(pid, 0)
-    if not data or status != 0:
+    if message is None or status != 0:
         how = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit status {os.waitstatus_to_exitcode(status)}"
         raise ValueError(f"{path}: not a readable {kind} file (the reader crashed on it: {how})")
-    result, value = _RestrictedUnpickler(io.BytesIO(data)).load()
+    result, value = message
     if result == "error":
         raise ValueError(" ".join(value.split()))
     if result == "import":
         raise ImportError(value)
     return value
+
+
+_NUMBER = struct.Struct("<Q")
+_ALIGN = 64  # each array starts on a cache line, as numpy's own allocations are aligned
+
+
+def _send(pipe: BinaryIO, store: BinaryIO, message: Any) -> None:
+    """Write `message` as a protocol-5 pickle whose contiguous arrays travel out of band: their
+    bytes into `store` (a shared-memory file), each at an offset aligned to `_ALIGN`; into `pipe`
+    the pickle's length and bytes, the number of arrays and each one's offset and length."""
+    buffers: list[pickle.PickleBuffer] = []
+    header = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
+    numbers, end = [len(header)], 0
+    for buffer in buffers:
+        raw = buffer.raw()  # the array's own memory, not a copy
+        start = -(-end // _ALIGN) * _ALIGN
+        store.write(bytes(start - end))
+        store.write(raw)
+        numbers += [start, raw.nbytes]
+        end = start + raw.nbytes
+    store.flush()
+    pipe.write(_NUMBER.pack(len(header)) + header + _NUMBER.pack(len(buffers)) + b"".join(map(_NUMBER.pack, numbers[1:])))
+
+
+def _receive(pipe: BinaryIO, store_fd: int) -> Any:
+    """What `_send` wrote, rebuilt by the restricted unpickler, its arrays viewing the shared
+    memory of `store_fd` (mapped, not copied); None if the pipe ends early (the child died)."""
+    data = pipe.read()
+    if len(data) < _NUMBER.size:
+        return None
+    size = _NUMBER.unpack_from(data)[0]
+    header, at = data[_NUMBER.size:_NUMBER.size + size], _NUMBER.size + size
+    if len(data) < at + _NUMBER.size:
+        return None
+    count, at = _NUMBER.unpack_from(data, at)[0], at + _NUMBER.size
+    if len(data) != at + 2 * count * _NUMBER.size:
+        return None
+    numbers = [n for (n,) in _NUMBER.iter_unpack(data[at:])]
+    spans = list(zip(numbers[0::2], numbers[1::2]))
+    end = max((start + length for start, length in spans), default=0)
+    if end != os.fstat(store_fd).st_size:
+        return None
+    # copy-on-write: the child's pages are read in place, and a write (here, or in a process forked
+    # later) changes only the writer's copy
+    store = memoryview(mmap.mmap(store_fd, end, access=mmap.ACCESS_COPY)) if end else memoryview(b"")
+    buffers = [store[start:start + length] for start, length in spans]
+    return _RestrictedUnpickler(io.BytesIO(header), buffers=buffers).load()
 
 
 def _plain_arrays(variables: dict[str, Any]) -> dict[str, np.ndarray]:

@@ -1,5 +1,7 @@
 """Loaders: the three formats agree on real recordings; broken files give one clear line."""
+import os
 import pickle
+import signal
 import warnings
 
 import numpy as np
@@ -196,3 +198,45 @@ def test_csv_gyro_rows_cover_the_interval_ending_at_their_stamp(tmp_path):
     imu, _ = loaders.load_csv(path)
     assert imu.gyr_timing == "end"
     np.testing.assert_array_equal(imu.interval_rates()[0][:, 0], [1.0, 2.0, 3.0, 4.0])
+
+
+def test_isolated_read_returns_the_arrays_exactly_aligned_and_writable(tmp_path):
+    """Arrays come back from the reading child through shared memory: every dtype, memory order
+    and size as the reader made it (a non-contiguous one in band), each aligned and writable,
+    and a write in a process forked later stays in that process (copy-on-write)."""
+    rng = np.random.default_rng(3)
+    made = {
+        "odd": np.arange(7, dtype=np.uint8),  # an odd length before a float64 array
+        "f64": rng.normal(size=(5, 4)),
+        "fortran": np.asfortranarray(rng.normal(size=(3, 6))),
+        "strided": rng.normal(size=(8, 8))[::2, 1::3],
+        "empty": np.zeros((0, 3)),
+        "flags": rng.random(9) > 0.5,
+    }
+    path = tmp_path / "any.bin"
+    path.write_bytes(b"x")
+    got = loaders.read_isolated(path, lambda p: made, "test")
+    assert set(got) == set(made)
+    for name, array in made.items():
+        assert got[name].dtype == array.dtype and got[name].shape == array.shape, name
+        np.testing.assert_array_equal(got[name], array)
+        assert got[name].flags.writeable, name
+        assert got[name].size == 0 or got[name].ctypes.data % 8 == 0, name
+    assert got["fortran"].flags.f_contiguous
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        got["f64"][0, 0] = 1e6
+        os._exit(0)
+    os.waitpid(pid, 0)
+    assert got["f64"][0, 0] == made["f64"][0, 0]
+
+
+def test_isolated_read_reports_a_crashing_reader_in_one_line(tmp_path):
+    path = tmp_path / "any.bin"
+    path.write_bytes(b"x")
+
+    def crash(p):
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    with pytest.raises(ValueError, match=r"any.bin: not a readable test file \(the reader crashed on it: signal 11\)"):
+        loaders.read_isolated(path, crash, "test")
