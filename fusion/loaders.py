@@ -261,7 +261,7 @@ def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: st
             message = _receive(pipe, store_fd)
     finally:
         os.close(store_fd)  # a mapping made from it stays valid
-    _, status = os.waitpid(pid, 0)
+        _, status = os.waitpid(pid, 0)
     if message is None or status != 0:
         how = f"signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status) else f"exit status {os.waitstatus_to_exitcode(status)}"
         raise ValueError(f"{path}: not a readable {kind} file (the reader crashed on it: {how})")
@@ -283,16 +283,16 @@ def _send(pipe: BinaryIO, store: BinaryIO, message: Any) -> None:
     the pickle's length and bytes, the number of arrays and each one's offset and length."""
     buffers: list[pickle.PickleBuffer] = []
     header = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
-    numbers, end = [len(header)], 0
+    spans, end = [], 0
     for buffer in buffers:
         raw = buffer.raw()  # the array's own memory, not a copy
         start = -(-end // _ALIGN) * _ALIGN
         store.write(bytes(start - end))
         store.write(raw)
-        numbers += [start, raw.nbytes]
+        spans += [start, raw.nbytes]
         end = start + raw.nbytes
     store.flush()
-    pipe.write(_NUMBER.pack(len(header)) + header + _NUMBER.pack(len(buffers)) + b"".join(map(_NUMBER.pack, numbers[1:])))
+    pipe.write(_NUMBER.pack(len(header)) + header + _NUMBER.pack(len(buffers)) + b"".join(map(_NUMBER.pack, spans)))
 
 
 def _receive(pipe: BinaryIO, store_fd: int) -> Any:
@@ -315,7 +315,7 @@ def _receive(pipe: BinaryIO, store_fd: int) -> Any:
         return None
     # copy-on-write: the child's pages are read in place, and a write (here, or in a process forked
     # later) changes only the writer's copy
-    store = memoryview(mmap.mmap(store_fd, end, access=mmap.ACCESS_COPY)) if end else memoryview(b"")
+    store = memoryview(mmap.mmap(store_fd, end, access=mmap.ACCESS_COPY) if end else bytearray(0))
     buffers = [store[start:start + length] for start, length in spans]
     return _RestrictedUnpickler(io.BytesIO(header), buffers=buffers).load()
 

@@ -3,6 +3,7 @@ import os
 import pickle
 import signal
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -240,3 +241,10 @@ def test_isolated_read_reports_a_crashing_reader_in_one_line(tmp_path):
 
     with pytest.raises(ValueError, match=r"any.bin: not a readable test file \(the reader crashed on it: signal 11\)"):
         loaders.read_isolated(path, crash, "test")
+
+
+def test_isolated_read_of_empty_arrays_only():
+    made = {"none": np.zeros((0, 3)), "also": np.zeros(0, np.uint8)}
+    got = loaders.read_isolated(Path(__file__), lambda p: made, "test")
+    for name, array in made.items():
+        assert got[name].shape == array.shape and got[name].dtype == array.dtype and got[name].flags.writeable
