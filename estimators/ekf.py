@@ -98,10 +98,10 @@ Two implementations (`impl` parameter). `EKF.step` below, in numpy, is the refer
 definition of the filter, and what `reset`/`step` (the streaming interface) always run.
 `"compiled"` (the default) makes `estimate` run the whole recording in one numba kernel,
 `_compiled.ekf_kernel`, which does the same arithmetic in explicit loops over the small
-matrices and records the same diagnostics: 2.3-2.9 us per sample instead of 150-170 with the
-velocity states (11 x 11 matrices; numpy's per-call overhead dominates), on the course's
-recording 1 and BROAD's trial 15 (`python benchmarks/bench_filters.py --dataset ...`; see
-`_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
+matrices and records the same diagnostics: 2.3-2.9 us per sample instead of 150-170, on the
+course's recording 1 and BROAD's trial 15, with the velocity states (11 x 11 matrices; about
+1.5 us without them, `ekf:vb=inf`). numpy's per-call overhead dominates the reference step
+(`python benchmarks/bench_filters.py --dataset ...`; see `_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
 checks that the two agree to 1e-10.
 """
 from __future__ import annotations
