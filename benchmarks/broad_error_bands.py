@@ -31,6 +31,7 @@ that part leans against the error.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -44,6 +45,7 @@ from fusion import datasets  # noqa: E402
 from fusion.checks import clock_offset  # noqa: E402
 from fusion.estimators import build  # noqa: E402
 from fusion.evaluation.metrics import score  # noqa: E402
+from fusion.types import Trajectory  # noqa: E402
 
 BANDS_HZ = ((None, 0.5), (0.5, 4.0), (4.0, None))
 
@@ -111,13 +113,14 @@ def main(argv: list[str] | None = None) -> None:
     specs = args.estimators.split(",")
     rows = []
     for source in sources:
-        raw = datasets.load_source(source)
-        if raw.truth is None:
+        recording = datasets.load_source(source)
+        if recording.truth is None:
             print(f"{source.id}: no ground truth, skipped", file=sys.stderr)
             continue
-        offset = clock_offset(raw.imu, raw.truth)
+        offset = clock_offset(recording.imu, recording.truth)
         lag_s = offset.offset_s if offset is not None else 0.0
-        recording = datasets.load_source(source, truth_offset_s=lag_s)
+        truth = recording.truth
+        recording = dataclasses.replace(recording, truth=Trajectory(truth.t - lag_s, truth.quat_wxyz, truth.diagnostics))
         fs = 1.0 / float(np.median(np.diff(recording.imu.t)))
         q0 = datasets.initial_orientation(recording)
         for spec in specs:
