@@ -194,12 +194,17 @@ print("largest difference of the estimated gyro scale corrections:",
 
 # %%
 t = imu.t - imu.t[0]
-# The attitude uncertainty split into tilt and heading: h is the predicted gravity (body frame),
-# the heading variance is h^T P h, the tilt variance the rest of the trace.
-h_est = quat.gravity_in_body(ekf.quat_wxyz)
-P_att = ekf.diagnostics["cov"][:, :3, :3]
-var_heading = np.einsum("ti,tij,tj->t", h_est, P_att, h_est)
-sigma_tilt = np.degrees(np.sqrt(np.trace(P_att, axis1=1, axis2=2) - var_heading))
+
+
+def tilt_sigma_deg(trajectory):
+    """The attitude uncertainty's tilt part, deg: with h the predicted gravity (body frame), the
+    heading variance is h^T P h, the tilt variance the rest of the trace."""
+    h = quat.gravity_in_body(trajectory.quat_wxyz)
+    P = trajectory.diagnostics["cov"][:, :3, :3]
+    return np.degrees(np.sqrt(np.trace(P, axis1=1, axis2=2) - np.einsum("ti,tij,tj->t", h, P, h)))
+
+
+sigma_tilt = tilt_sigma_deg(ekf)
 fig, ax = plt.subplots()
 ax.plot(t, apart, "k", lw=0.8, label=f"|{EKF_AS_UKF} - ukf-bias| (left axis)")
 ax.set(xlabel="time (s)", ylabel="difference (deg)", title=f"{rec.id}: where the EKF and the UKF part")
@@ -280,13 +285,6 @@ window = int(round(4.0 / np.median(imu.dt)))
 v_ref -= np.stack([np.convolve(v_ref[:, i], np.ones(window) / window, "same") for i in range(2)], axis=1)
 v_ref[~inside] = np.nan
 v_ref[: window // 2] = v_ref[-(window // 2):] = np.nan  # where the moving average runs off the ends
-
-
-def tilt_sigma_deg(trajectory):
-    h = quat.gravity_in_body(trajectory.quat_wxyz)
-    P = trajectory.diagnostics["cov"][:, :3, :3]
-    return np.degrees(np.sqrt(np.trace(P, axis1=1, axis2=2) - np.einsum("ti,tij,tj->t", h, P, h)))
-
 
 fig, axes = plt.subplots(3, 1, sharex=True, figsize=(10, 7))
 for i, ax in enumerate(axes[:2]):
