@@ -1,4 +1,4 @@
-"""BROAD as published: the nine real trials in `$FUSION_DATA/broad` (five .hdf5, four .mat).
+"""BROAD as published: the fourteen real trials in `$FUSION_DATA/broad` (nine .hdf5, five .mat).
 
 Skipped without FUSION_DATA (a fresh clone has no data); with it set but the trials missing,
 they fail (the `data_dir` fixture's rule). Also: VQF through our adapters equals VQF run
@@ -28,6 +28,11 @@ TRIALS = {  # name: format, as published
     "21_undisturbed_fast_combined": "mat",
     "25_disturbed_tapping_B": "hdf5",
     "26_disturbed_phone_vibration_A": "mat",
+    "28_disturbed_stationary_magnet_A": "mat",
+    "30_disturbed_stationary_magnet_C": "hdf5",
+    "32_disturbed_attached_magnet_1cm": "hdf5",
+    "34_disturbed_attached_magnet_3cm": "hdf5",
+    "36_disturbed_attached_magnet_5cm": "hdf5",
 }
 RATE_HZ = 2000.0 / 7.0  # 285.714 Hz
 
@@ -72,7 +77,7 @@ def test_real_trial_loads_as_published(broad_dir, name):
     assert np.median(np.linalg.norm(imu.gyr_rad_s[rest], axis=1)) < np.radians(2.0)  # rad/s
 
 
-def test_trials_get_their_ids_and_a_glob_finds_all_nine(data_dir, broad_dir):
+def test_trials_get_their_ids_and_a_glob_finds_all_fourteen(data_dir, broad_dir):
     ids = [rid for rid in datasets.discover(data_dir) if rid.startswith("broad/")]
     assert ids == [f"broad/{n}" for n in TRIALS]
     assert [s.id for s in datasets.select("broad/*", data_dir)] == ids

@@ -107,7 +107,7 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     doc = json.loads((tmp_path / "r.json").read_text())
     ids = [r["dataset"] for r in doc["results"]]
     assert [i for i in ids if not i.startswith("broad/")] == [f"ece276a/{n}" for n in range(1, 10)]
-    assert len([i for i in ids if i.startswith("broad/")]) == 9 and len(ids) == 18
+    assert len([i for i in ids if i.startswith("broad/")]) == 14 and len(ids) == 23
     assert all(r["rmse_deg"] for r in doc["results"])  # the truth-less 2018 copies are merged away
     merged = doc["settings"]["merged"]
     assert merged["ece276a/4"] == ["ece276a-2018/4", "ese650/4"] and len(merged) == 9
@@ -117,7 +117,7 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     lines = out.splitlines()
     # one mean per folder (different sensors and protocols are never averaged together)
     assert [line.split()[:4] for line in lines if line.startswith("mean ")] == [
-        ["mean", "broad", "(9)", "dr"], ["mean", "ece276a", "(9)", "dr"]]
+        ["mean", "broad", "(14)", "dr"], ["mean", "ece276a", "(9)", "dr"]]
     first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean "))
     first_row = next(i for i, line in enumerate(lines) if line.startswith(("broad/", "ece276a/")))
     assert first_mean < first_row  # the summary comes first
