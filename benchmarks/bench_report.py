@@ -52,19 +52,19 @@ def main() -> None:
 def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t0 = time.perf_counter()
     from fusion.evaluation import report, runner, series as series_io
-    from fusion.evaluation.compare import as_specs, expand_all, results_json
+    from fusion.evaluation.compare import results_json
+    from fusion.estimators import resolve_all
     from fusion import datasets
     t_import = time.perf_counter() - t0
 
     sources = datasets.select(args.dataset, data_dir)
     t = time.perf_counter()
-    for source in sources:
-        datasets.load_source(source)
+    recordings = [datasets.load_source(source) for source in sources]
     t_load = time.perf_counter() - t
 
-    specs = expand_all(as_specs([args.estimators]))
+    entries = resolve_all(args.estimators)
     t = time.perf_counter()
-    results, infos = runner.run(specs, sources, jobs=args.jobs, with_info=True)
+    results = runner.run(entries, recordings, jobs=args.jobs, keep=True)
     t_pool = time.perf_counter() - t
     estimate = defaultdict(float)
     for r in results:
@@ -72,23 +72,22 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
 
     # scoring, serially in this process (it also runs inside each job)
     from fusion.evaluation.metrics import score
-    recordings = {s.id: datasets.load_source(s) for s in sources}
     t = time.perf_counter()
-    for r in results:
-        if recordings[r.dataset].truth is not None:
-            score(recordings[r.dataset].truth, r.trajectory)
+    for rec, r in zip((rec for rec in recordings for _ in entries), results):
+        if rec.truth is not None:
+            score(rec.truth, r.trajectory)
     t_score = time.perf_counter() - t
 
-    doc = results_json(results, {"command": "benchmark", "estimator_details": runner.describe_specs(specs)})
+    doc = results_json(results, {"command": "benchmark", "estimator_details": {e.label: e.describe() for e in entries}})
     out.mkdir(parents=True)
     import json
     (out / "results.json").write_text(json.dumps(doc))
     t = time.perf_counter()
     (out / "series").mkdir()
-    causal = {k: v["causal"] for k, v in doc["settings"]["estimator_details"].items()}
-    per = len(results) // len(infos)
-    for n, info in enumerate(infos):
-        series_io.save(out / "series" / f"{n:03d}.npz", series_io.from_results(info, results[n * per:(n + 1) * per], causal))
+    causal = {e.label: e.cls.causal for e in entries}
+    per = len(entries)
+    for n, rec in enumerate(recordings):
+        series_io.save(out / "series" / f"{n:03d}.npz", series_io.from_results(rec, results[n * per:(n + 1) * per], causal))
     t_series = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -108,10 +107,10 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t_render = time.perf_counter() - t
 
     n = len(sources)
-    print(f"breakdown ({n} recordings x {len(specs)} estimators = {len(results)} jobs, --jobs {args.jobs}):")
+    print(f"breakdown ({n} recordings x {len(entries)} estimators = {len(results)} jobs, --jobs {args.jobs}):")
     print(f"  import evaluation/fusion          {t_import:7.2f} s")
     print(f"  load + calibrate all recordings   {t_load:7.2f} s  (serial; in the run each worker loads what it needs)")
-    print(f"  job pool wall time                {t_pool:7.2f} s  (load + estimate + score, {args.jobs} workers)")
+    print(f"  job pool wall time                {t_pool:7.2f} s  (estimate + score, {args.jobs} workers)")
     for label, seconds in estimate.items():
         print(f"    estimate {label:24s} {seconds:7.2f} s  (sum over recordings, inside jobs)")
     print(f"  score all results (serial)        {t_score:7.2f} s")

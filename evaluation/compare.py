@@ -22,17 +22,18 @@ from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording
 
 from .job import (  # noqa: F401  (the job layer, re-exported: `from fusion.evaluation.compare import run_one`)
-    Result, aligned, as_specs, default_protocol, expand_all, recording_alignment, run_one, warn_low_coverage,
+    Result, aligned, default_protocol, recording_alignment, run_one,
 )
 from .metrics import KINDS, MIN_COVERAGE
 from .runner import run
 
 
-
-def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording], init: str | None = None,
+def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Recording], init: str | None = None,
             progress: bool = False, protocol: str | None = None, jobs: int | None = 1,
             align: bool = False) -> list[Result]:
-    """Every estimator on every recording, in a stable order (recording-major).
+    """Every estimator on every recording, in a stable order (recording-major), with whole results
+    (trajectories and per-sample errors: for a few recordings; `fusion.evaluation.runs.run_compare`
+    keeps rows only).
 
     specs: estimator specs or spec texts (`"ukf:R=1e-3"`, `"all"`).
     recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
@@ -46,9 +47,7 @@ def compare(specs: Iterable[EstimatorSpec | str], recordings: Iterable[Recording
         fitted once per recording from its IMU and truth (`fusion.evaluation.align`), the same for
         every estimator; each result's `alignment` holds them.
     """
-    results, _ = run(expand_all(as_specs(specs)), list(recordings), init, jobs=jobs, progress=progress,
-                     protocol=protocol, align=align)
-    return results
+    return run(specs, list(recordings), init, jobs=jobs, progress=progress, protocol=protocol, align=align, keep=True)
 
 
 def versions() -> dict[str, str]:
@@ -116,8 +115,8 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
     header = ["dataset", "estimator", "total", "inclination", "heading", "coverage", "us/sample"]
     rows = []
     for r in results:
-        rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["-"] * 3
-        rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), f"{r.us_per_sample:.1f}"])
+        rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["failed" if r.error else "-"] * 3
+        rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), "-" if r.error else f"{r.us_per_sample:.1f}"])
     labels = list(dict.fromkeys(r.estimator for r in results))
     means = []
     if len({r.dataset for r in results}) >= 2:
@@ -128,7 +127,7 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
                 if not mine:
                     continue
                 mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
-                us = np.mean([r.us_per_sample for r in mine])
+                us = np.mean([r.us_per_sample for r in mine if r.error is None] or [np.nan])
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
                 means.append([name, label, *mean, "", f"{us:.1f}"])
     if any(r.panorama for r in results):
@@ -146,15 +145,18 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
            + (ALIGN_NOTE if align else "no alignment"),
            line(header), line(["-" * w for w in widths])]
     scored_rows = [row for row, r in zip(rows, results) if r.rmse_deg]
-    unscored_rows = [row for row, r in zip(rows, results) if not r.rmse_deg]
+    unscored_rows = [row for row, r in zip(rows, results) if not r.rmse_deg and not r.error]
+    failed_rows = [row for row, r in zip(rows, results) if r.error]
     if means:
         out += [line(r) for r in means]
         out.append(line(["-" * w for w in widths]))
     out += [line(r) for r in scored_rows]
     if unscored_rows:
         if scored_rows or means:
-            out += [f"without ground truth (not scored): {len({r.dataset for r in results if not r.rmse_deg})} recordings"]
+            out += [f"without ground truth (not scored): {len({r.dataset for r in results if not r.rmse_deg and not r.error})} recordings"]
         out += [line(r) for r in unscored_rows]
+    if failed_rows:
+        out += [f"failed (no result; the errors say why): {len(failed_rows)} rows"] + [line(r) for r in failed_rows]
     if any(r.low_coverage for r in results):
         out += [LOW_COVERAGE_NOTE]
     if any(r.alignment for r in results):

@@ -1,24 +1,27 @@
-"""One job: one recording x one estimator spec, estimated, timed and scored, and the `Result`
-it gives. The layer below `fusion.evaluation.runner` (which schedules jobs) and
-`fusion.evaluation.compare` (which runs them and formats their tables).
+"""One job: one recording x one estimator, estimated, timed and scored, and the `Result` it gives.
+The layer below `fusion.evaluation.runner` (which schedules jobs on processes or a cluster).
 
     from fusion import datasets
     from fusion.evaluation.job import run_one
     result = run_one(datasets.load("sim"), "ukf:R=1e-3")
+
+`run_one` is the single-job API: it returns the whole result (trajectory and per-sample errors)
+and raises on failure. A run's jobs go through `run_job` instead, which returns the row only
+(`Result.summary`: scores, timings, coverage; what a sweep of hundreds of jobs can keep in
+memory), the job's plot data when asked (`fusion.evaluation.series.job_part`), and turns a
+failure into a row that says what went wrong, so the other rows are still computed.
 """
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, replace
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
-from fusion import estimators
-from fusion.estimators.base import Estimator
-from fusion.estimators.params import EstimatorSpec, make_params, parse_specs
 from fusion.datasets import initial_orientation
+from fusion.estimators import ResolvedSpec, resolve
+from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording, Trajectory
 
 from .align import Alignment, fit_alignment
@@ -32,6 +35,9 @@ class Result:
     scored_samples, coverage: how many samples were scored and their fraction of what the
     protocol scores (`fusion.evaluation.metrics.Score.coverage`); None without ground truth (or
     from an older results.json). Below `MIN_COVERAGE` the row is flagged and left out of means.
+    trajectory, score: the estimate and its per-sample errors (`run_one`); None in a run's rows.
+    error: why the job failed (its estimator raised, returned garbage, ran too long); None if it
+        did not. A failed row has no scores.
     """
 
     dataset: str
@@ -46,6 +52,7 @@ class Result:
     alignment: dict[str, Any] | None = None  # with --align: the recording's `fusion.evaluation.align.Alignment.to_json`
     scored_samples: int | None = None
     coverage: float | None = None
+    error: str | None = None
 
     @property
     def us_per_sample(self) -> float:
@@ -60,9 +67,14 @@ class Result:
     def in_means(self) -> bool:
         return bool(self.rmse_deg) and not self.low_coverage
 
+    def summary(self) -> "Result":
+        """The row without its arrays (trajectory, per-sample errors)."""
+        return replace(self, trajectory=None, score=None)
+
     def to_json(self) -> dict[str, Any]:
         """The row of `results.json` (the keys are a documented format: see README; `panorama`
-        only with `--panorama`; `alignment` null unless the row was scored with `--align`)."""
+        only with `--panorama`; `alignment` null unless the row was scored with `--align`;
+        `error` only on a failed row)."""
         row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
@@ -76,42 +88,16 @@ class Result:
         }
         if self.panorama is not None:
             row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
+        if self.error is not None:
+            row["error"] = self.error
         return row
 
-
-def as_specs(specs: Iterable[EstimatorSpec | str] | str) -> list[EstimatorSpec]:
-    """Estimator specs from specs or spec texts (`["dr", "ukf:R=1e-3,Q=1e-5"]`, or one text)."""
-    if isinstance(specs, str):
-        specs = [specs]
-    out: list[EstimatorSpec] = []
-    for spec in specs:
-        out.extend(parse_specs(spec) if isinstance(spec, str) else [spec])
-    return out
-
-
-def expand_all(specs: list[EstimatorSpec]) -> list[EstimatorSpec]:
-    """Replace the name `all` with every registered estimator (registry order).
-
-    `all` leaves out peers whose optional library is not installed (with a warning);
-    naming such a peer explicitly is an error that says what to install.
-    """
-    out: list[EstimatorSpec] = []
-    for spec in specs:
-        if spec.name != "all":
-            out.append(spec)
-            continue
-        missing = []
-        for name in estimators.ESTIMATORS:
-            try:
-                estimators.build(EstimatorSpec(name))
-            except ImportError:
-                missing.append(name)
-                continue
-            out.append(EstimatorSpec(name, spec.overrides))
-        if missing:
-            warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
-                          f"(pip install -e '.[peers]')", stacklevel=2)
-    return out
+    @classmethod
+    def from_json(cls, r: dict[str, Any]) -> "Result":
+        """A results.json row (as `to_json` wrote it) as a `Result` without arrays."""
+        return cls(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
+                   panorama=r.get("panorama"), alignment=r.get("alignment"), scored_samples=r.get("scored_samples"),
+                   coverage=r.get("coverage"), error=r.get("error"))
 
 
 def default_protocol(recording: Recording) -> str:
@@ -137,44 +123,21 @@ def aligned(recording: Recording, alignment: Alignment | None) -> Recording:
     return replace(recording, truth=alignment.apply(recording.truth))
 
 
-def resolve(spec: EstimatorSpec | str) -> type[Estimator]:
-    """The estimator class a spec names, from the registry `fusion.estimators.ESTIMATORS`; the spec
-    is built once here, so a bad name or parameter is an error before any work."""
-    if isinstance(spec, str):
-        (spec,) = parse_specs(spec)
-    estimators.build(spec)
-    return estimators.ESTIMATORS[spec.name]
+def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init: str | None = None,
+            protocol: str | None = None, align: bool | Alignment | None = False) -> Result:
+    """One job: estimate, time, score (`protocol` None: the recording's default). Raises ValueError
+    (naming the recording and the estimator) when the estimator fails.
 
-
-def build(spec: EstimatorSpec, estimator_class: type[Estimator] | None = None) -> Estimator:
-    """A fresh estimator for `spec`: of `estimator_class` when given (resolved by the caller,
-    `resolve`; a worker process then never looks the name up), else from the registry."""
-    if estimator_class is None:
-        return estimators.build(spec)
-    return estimator_class(make_params(estimator_class.Params, spec.overrides, owner=spec.name))
-
-
-def run_one(recording: Recording, spec: EstimatorSpec | str, init: str | None = None, protocol: str | None = None,
-            align: bool | Alignment | None = False, estimator_class: type[Estimator] | None = None) -> Result:
-    """One job: estimate, time, score (`protocol` None: the recording's default).
-
-    spec: an estimator spec or its text (`"ukf:R=1e-3"`).
-    estimator_class: the class `spec` names, when the caller resolved it (`resolve`); None looks it
-        up in the registry.
+    spec: a resolved spec (`fusion.estimators.resolve`), a spec, or its text (`"ukf:R=1e-3"`).
     align: score against the truth mapped into our frames (`fusion.evaluation.align`): True fits the
         recording's alignment here; an `Alignment` (fitted once per recording by the caller)
         is used as given. The initial orientation then comes from the aligned truth
         (`init` None or "truth"), so every estimator starts in our frames.
     """
-    if isinstance(spec, str):
-        (spec,) = parse_specs(spec)
-    alignment = None
-    if isinstance(align, Alignment):
-        alignment = align
-    elif align:
-        alignment = recording_alignment(recording)
+    entry = spec if isinstance(spec, ResolvedSpec) else resolve(spec)
+    alignment = align if isinstance(align, Alignment) else recording_alignment(recording) if align else None
     recording = aligned(recording, alignment)
-    estimator = build(spec, estimator_class)
+    estimator = entry.build()
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
     # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
@@ -184,11 +147,11 @@ def run_one(recording: Recording, spec: EstimatorSpec | str, init: str | None = 
         with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
             trajectory = estimator.estimate(recording.imu, q0)
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
-        raise ValueError(f"{recording.id}: estimator {spec.label!r} failed numerically ({type(exc).__name__}: "
+        raise ValueError(f"{recording.id}: estimator {entry.label!r} failed numerically ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())[:200]}); check its parameter values") from None
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
-        raise ValueError(f"{recording.id}: estimator {spec.label!r} produced non-finite orientations "
+        raise ValueError(f"{recording.id}: estimator {entry.label!r} produced non-finite orientations "
                          "(diverged or overflowed; check its parameter values)")
     protocol = protocol or default_protocol(recording)
     result_score = None
@@ -196,9 +159,9 @@ def run_one(recording: Recording, spec: EstimatorSpec | str, init: str | None = 
         try:
             result_score = score(recording.truth, trajectory, protocol, recording.movement)
         except ValueError as exc:
-            raise ValueError(f"{recording.id}, {spec.label}: {exc}") from None
+            raise ValueError(f"{recording.id}, {entry.label}: {exc}") from None
     return Result(
-        recording.id, spec.label, len(recording.imu), seconds,
+        recording.id, entry.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
         result_score.max_deg if result_score else None,
         trajectory, result_score, alignment=alignment.to_json() if alignment else None,
@@ -207,8 +170,74 @@ def run_one(recording: Recording, spec: EstimatorSpec | str, init: str | None = 
     )
 
 
+@dataclass(frozen=True)
+class Job:
+    """One recording x one estimator of a run, and what to return.
+
+    recording, estimator: indices into the run's recordings and resolved specs.
+    series: also return the job's plot data (`fusion.evaluation.series.job_part`), and with
+        `with_recording` its recording's (`series.recording_part`).
+    keep: return the whole `Result` (trajectory and per-sample errors) instead of its summary.
+    panorama_data_dir: when given, also stitch and score a panorama (`fusion.evaluation.panorama`).
+    """
+
+    recording: int
+    estimator: int
+    init: str | None = None
+    protocol: str | None = None
+    align: bool = False
+    series: bool = False
+    with_recording: bool = False
+    keep: bool = False
+    panorama_data_dir: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class JobOutput:
+    """What a job sends back: its row, and its plot data when asked (None otherwise)."""
+
+    result: Result
+    part: dict[str, np.ndarray] | None = None
+    recording_part: dict[str, np.ndarray] | None = None
+
+
+def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
+            truth_at_imu: Any = None) -> JobOutput:
+    """`run_one` as a run's job: a failure becomes a row with its `error` (one line naming the
+    estimator and the recording) instead of an exception; the row is a summary unless `job.keep`.
+
+    truth_at_imu: a callable giving the truth on the IMU stamps (for a filter's consistency plot
+        data; the caller keeps it once per recording), or None.
+    """
+    from . import series
+
+    shown = aligned(rec, alignment)
+    recording_part = series.recording_part(shown) if job.series and job.with_recording else None
+    try:
+        result = run_one(rec, entry, job.init, job.protocol, alignment)
+        if job.panorama_data_dir is not None:
+            from .panorama import panorama_scores
+
+            result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
+        part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None
+    except ValueError as exc:  # run_one's messages name the recording and the estimator
+        return JobOutput(failed(rec.id, entry.label, len(rec.imu), str(exc)), None, recording_part)
+    except Exception as exc:  # an estimator's own bug (a user's estimator above all): a row, not an abort
+        return JobOutput(failed(rec.id, entry.label, len(rec.imu),
+                                f"{rec.id}: estimator {entry.label!r} raised {type(exc).__name__}: "
+                                f"{' '.join(str(exc).split())[:300]}"), None, recording_part)
+    return JobOutput(result if job.keep else result.summary(), part, recording_part)
+
+
+def failed(dataset: str, label: str, samples: int, message: str) -> Result:
+    """The row of a job that failed: no scores, its error."""
+    return Result(dataset, label, samples, 0.0, None, None, error=message)
+
+
 def warn_low_coverage(results: list[Result]) -> None:
     """One warning per row scored on less than `MIN_COVERAGE` of its recording."""
+    import warnings
+
     for r in results:
         if r.low_coverage:
             warnings.warn(f"{r.dataset}, {r.estimator}: scored on {r.scored_samples} of the recording's samples "

@@ -33,7 +33,6 @@ import cv2
 import numpy as np
 
 from fusion.camera import CameraModel, CameraSource, load_camera
-from fusion.datasets import DROPOUTS_DEFAULT, data_dir_from
 from fusion.types import Trajectory
 
 from . import camsim
@@ -474,72 +473,3 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
     ref = Reference(camera, ref_pano, scene_grid, grid)
     _REFERENCES[key] = (recording, scene, ref)
     return ref
-
-
-# --------------------------------------------------------------------------- the command
-@dataclass(frozen=True, eq=False)
-class PanoramaRun:
-    """A finished `stitch_recording`: the recording and estimator, the estimate's panorama, its
-    scores (`panorama_scores`), the image written, and `text`, what `fusion panorama` prints."""
-
-    recording_id: str
-    estimator: str
-    panorama: Panorama
-    scores: dict[str, float]
-    out: Path
-
-    @property
-    def text(self) -> str:
-        s = self.scores
-        lines = [f"{self.recording_id} {self.estimator}: {self.panorama.frames_used} frames "
-                 f"({self.panorama.frames_skipped} skipped) -> {self.out}",
-                 f"PSNR {s['psnr_db']:.2f} dB, SSIM {s['ssim']:.4f} against the ground-truth panorama; "
-                 f"covered {s['covered_fraction']:.3f} of the sphere"]
-        if np.isfinite(s["scene_psnr_db"]):
-            lines.append(f"PSNR {s['scene_psnr_db']:.2f} dB, SSIM {s['scene_ssim']:.4f} against the scene")
-        return "\n".join(lines)
-
-
-def stitch_recording(dataset: str, estimator: str, out: Any, *, data_dir: Any = None, init: str | None = None,
-                     size: str = "1920x960", rate_hz: float = 10.0, scene: Any = None, blend: Blend = "feather",
-                     reference: bool = False, calibration: Any = None, dropouts: bool = DROPOUTS_DEFAULT,
-                     progress: bool = False) -> PanoramaRun:
-    """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
-    frames (its camera's, or frames rendered from a scene with the truth: `reference_panorama`)
-    into a panorama, score it and write the image to `out` (.png/.jpg).
-
-    dataset: names exactly one recording (`fusion.selection.load_selected`); estimator: one spec text.
-    size: the panorama's "WIDTHxHEIGHT" in px; rate_hz: the rendered frames' rate.
-    reference: write the estimate, the ground truth's panorama and their difference, stacked.
-    """
-    from fusion.estimators.params import parse_specs
-    from fusion.selection import load_selected
-
-    from .job import run_one
-
-    check_options(out, rate_hz)  # before any work: the image format and the frame rate
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
-    if len(recordings) != 1:
-        raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
-    (recording,) = recordings
-    specs = parse_specs(estimator)
-    if len(specs) != 1:
-        raise ValueError(f"--estimator {estimator!r}: give exactly one estimator")
-    if reference and recording.truth is None:
-        raise ValueError(f"{recording.id}: --reference needs ground truth, and this recording has none")
-    width, _, height = size.partition("x")
-    try:
-        grid = PanoramaGrid(int(width), int(height))
-    except ValueError as exc:
-        raise ValueError(f"--size {size!r}: expected WIDTHxHEIGHT in px, e.g. 1920x960 ({exc})") from exc
-    trajectory = run_one(recording, specs[0], init).trajectory
-    options = dict(data_dir=data_dir_from(data_dir), scene=scene, grid=grid, blend=blend, rate_hz=rate_hz)
-    pano, scores = estimate_panorama(recording, trajectory, progress=progress, **options)
-    image = pano.bgr()
-    if reference:
-        image = comparison_image(pano, reference_panorama(recording, **options).truth)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), image):
-        raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
-    return PanoramaRun(recording.id, specs[0].label, pano, scores, out)

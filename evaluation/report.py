@@ -29,7 +29,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -57,38 +57,37 @@ def git_commit() -> str:
         return "unknown"
 
 
-def write_run(out_dir: "str | Path | OutputFolder", doc: dict[str, Any], results: list[Result], infos: list,
-              jobs: int | None = 1, progress: bool = False, per_recording: bool = True) -> Path:
+def write_run(out_dir: "str | Path | OutputFolder", doc: dict[str, Any], series: Iterable[Any] | None = None,
+              journal: Any = None, jobs: int | None = 1, progress: bool = False) -> Path:
     """Write results.json, the series and the report of a run; returns report.html's path.
 
     out_dir: the folder, or an `OutputFolder` already held (`fusion compare --out` takes it
         before computing, so that a second run on the same folder is refused at once).
     doc: the results.json document (`fusion.evaluation.compare.results_json`).
-    results: the run's results with trajectories, recording-major.
-    infos: one `fusion.evaluation.runner.RecordingInfo` per recording (needed when per_recording).
+    series: one `fusion.evaluation.series.RecordingSeries` per recording, in run order (each is
+        written as soon as it is produced, so an iterator keeps one in memory), or None for a run
+        without per-recording figures.
+    journal: the run's `fusion.evaluation.journal.Journal`, committed with the other files.
 
     Everything is written into a staging folder first and moved in at the end (`OutputFolder`),
     results.json last; files the toolkit did not write are never removed.
     """
     if not isinstance(out_dir, OutputFolder):
         with OutputFolder(out_dir) as folder:
-            return write_run(folder, doc, results, infos, jobs, progress, per_recording)
+            return write_run(folder, doc, series, journal, jobs, progress)
     folder, stage = out_dir, out_dir.staging
     out = folder.path
     _atomic_text(stage / RESULTS, json.dumps(doc, indent=2) + "\n")
     command = doc.get("settings", {}).get("command", "")
     (stage / "command.txt").write_text(f"{command}\n# re-render the report from this folder without recomputing:\n"
                                        f"fusion report {out}\n")
-    if per_recording:
+    if series is not None:
         series_dir = stage / "series"
         series_dir.mkdir(exist_ok=True)
-        causal = {label: d.get("causal", True) for label, d in doc["settings"].get("estimator_details", {}).items()}
-        if len(results) % max(len(infos), 1):
-            raise ValueError(f"{len(results)} results do not split evenly over {len(infos)} recordings")
-        per = len(results) // max(len(infos), 1)
-        for n, info in enumerate(infos):
-            mine = results[n * per:(n + 1) * per]  # recording-major order
-            series_io.save(series_dir / f"{n:03d}.npz", series_io.from_results(info, mine, causal))
+        for n, recording_series in enumerate(series):
+            series_io.save(series_dir / f"{n:03d}.npz", recording_series)
+    if journal is not None:
+        journal.finish(stage)
     _render_into(stage, stage, jobs, progress)
     folder.commit(full=True)
     return out / "report.html"
@@ -177,7 +176,7 @@ class OutputFolder:
                                  "another output folder (nothing was changed)")
 
         def regenerated(rel: str) -> bool:
-            return full or not (rel == RESULTS or rel == "command.txt" or rel.startswith("series/"))
+            return full or not (rel in (RESULTS, "command.txt", "journal.jsonl") or rel.startswith("series/"))
 
         keep = [rel for rel in owned if not regenerated(rel) and (out / rel).is_file()]
         with _signals_held():
@@ -349,7 +348,7 @@ def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) ->
 def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> None:
     """Table, figures and both reports of the run in `source`, written into `dest`."""
     doc = read_results(source / RESULTS)
-    results = [_result(r) for r in doc["results"]]
+    results = [Result.from_json(r) for r in doc["results"]]
     table = format_table(results, align=bool(doc["settings"].get("align", False)))
     sweep = _sweep_text(doc)
     (dest / "table.txt").write_text(table + (f"\n\n{sweep}" if sweep else "") + "\n")
@@ -477,22 +476,18 @@ def _row_problem(r: Any) -> str | None:
     c = r.get("coverage")
     if c is not None and not (_number(c) and 0 <= c <= 1):
         return "'coverage' must be null or a number in [0, 1]"
+    if r.get("error") is not None and not (isinstance(r["error"], str) and r.get("rmse_deg") is None):
+        return "'error' must be a string, on a row without scores"
     if r.get("panorama") is not None and not (isinstance(r["panorama"], dict) and all(
             v is None or _number(v) for v in r["panorama"].values())):
         return "'panorama' must be null or an object of numbers"
     return _alignment_problem(r.get("alignment"))
 
 
-def _result(r: dict[str, Any]) -> Result:
-    """A results.json row (checked by `read_results`) as a `Result` without trajectory."""
-    return Result(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
-                  alignment=r.get("alignment"), scored_samples=r.get("scored_samples"), coverage=r.get("coverage"))
-
-
 def _run_tasks(tasks: list[tuple[Callable, tuple]], jobs: int | None, progress: bool) -> list[Any]:
     from tqdm import tqdm
 
-    from .runner import default_jobs, pool_context, quiet_worker, stop_pool
+    from .pool import WorkerPool, default_jobs
 
     jobs = min(default_jobs() if not jobs else jobs, len(tasks))
     bar = tqdm(total=len(tasks), disable=not progress, file=sys.stderr, unit="fig", desc="figures", leave=False)
@@ -503,23 +498,20 @@ def _run_tasks(tasks: list[tuple[Callable, tuple]], jobs: int | None, progress: 
                 outputs.append(fn(*args))
                 bar.update()
             return outputs
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
         from . import plots  # noqa: F401  (imported once here, inherited by forked workers)
 
         outputs: list[Any] = [None] * len(tasks)
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=pool_context(), initializer=quiet_worker) as pool:
-            futures = {pool.submit(fn, *args): n for n, (fn, args) in enumerate(tasks)}
-            try:
-                for future in as_completed(futures):
-                    outputs[futures[future]] = future.result()
-                    bar.update()
-            except BaseException:
-                stop_pool(pool)
-                raise
+        with WorkerPool(jobs) as pool:
+            for n, outcome in pool.imap_unordered(_call, tasks):
+                outputs[n] = outcome.result()
+                bar.update()
         return outputs
     finally:
         bar.close()
+
+
+def _call(fn: Callable, args: tuple) -> Any:
+    return fn(*args)
 
 
 # --- the documents ---
@@ -540,10 +532,10 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
         worst = [_fmt(r["max_deg"][k]) if r["max_deg"] else "-" for k in KINDS]
         scored_samples = r.get("scored_samples")
         body.append([r["dataset"], r["estimator"], str(r["samples"]), "-" if scored_samples is None else str(scored_samples),
-                     format_coverage(_result(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
+                     format_coverage(Result.from_json(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
     mean_header = ["estimator", "recordings scored", *(f"mean {k} RMSE" for k in KINDS), "mean us/sample"]
     means = []
-    for group, members in summary_groups([_result(r) for r in rows]):
+    for group, members in summary_groups([Result.from_json(r) for r in rows]):
         for label in dict.fromkeys(r["estimator"] for r in rows):
             mine = [r for r in members if r.estimator == label]
             scored = [r for r in mine if r.in_means]
@@ -557,7 +549,7 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
 
 def _coverage_text(doc: dict[str, Any]) -> str:
     """The note under the results table when a row was scored on too little of its recording."""
-    return LOW_COVERAGE_NOTE if any(_result(r).low_coverage for r in doc["results"]) else ""
+    return LOW_COVERAGE_NOTE if any(Result.from_json(r).low_coverage for r in doc["results"]) else ""
 
 
 ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg", "|B| deg",

@@ -6,9 +6,14 @@ Python the same run is two lines:
     from fusion.evaluation.runs import run_compare
     run = run_compare("dr,ukf", "sim", jobs=1)
 
-`run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.job.Result`),
-`run.document` the results document (README, "`--json` format"). Recordings are chosen and loaded
-as `fusion.selection` says (`dataset`, `data_dir`, `calibration`, `dropouts`).
+`run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.job.Result`,
+without trajectories: see `fusion.evaluation.runner`), `run.document` the results document
+(README, "`--json` format"). Recordings are chosen and loaded as `fusion.selection` says
+(`dataset`, `data_dir`, `calibration`, `dropouts`).
+
+With an output folder (`out`), every finished job is journalled there as it ends
+(`fusion.evaluation.journal`), so that a run stopped at any point continues with
+`run_resume(out)` (`fusion compare --resume DIR`), computing only the jobs not yet done.
 """
 from __future__ import annotations
 
@@ -16,18 +21,22 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
+
+import numpy as np
 
 from fusion import datasets
 from fusion.checks import RecordingCheck
+from fusion.estimators import ResolvedSpec, resolve_all
 from fusion.estimators.params import EstimatorSpec
-from fusion.selection import calibration_settings, load_options, load_selected, select_sources
+from fusion.selection import calibration_settings, load_options, load_selected, note, select_sources
 
 from . import ablate
-from .compare import format_table, results_json
-from .job import Result, as_specs, expand_all
+from .compare import format_table, results_json, versions
+from .job import JobOutput, Result
+from .journal import Journal, fingerprint, job_key
 from .report import OutputFolder, git_commit, write_run
-from .runner import describe_specs, run
+from .runner import run, source_paths
 
 PathLike = str | os.PathLike
 
@@ -36,7 +45,7 @@ PathLike = str | os.PathLike
 class Run:
     """A finished `run_compare`/`run_ablate`.
 
-    results: one row per recording x estimator, recording-major.
+    results: one row per recording x estimator, recording-major (a failed job's row has `error`).
     table: the table `fusion compare` prints (`fusion.evaluation.compare.format_table`).
     document: the results document written to `json_path` and `out` (None when neither was asked for).
     report: the written `report.html` (None without `out`).
@@ -47,34 +56,44 @@ class Run:
     document: dict[str, Any] | None = None
     report: Path | None = None
 
+    @property
+    def failed(self) -> list[Result]:
+        """The rows whose job failed (each `error` is one line naming the estimator and recording)."""
+        return [r for r in self.results if r.error is not None]
 
-def run_compare(estimators: str | Sequence[str | EstimatorSpec] = "all", dataset: str = "all",
+
+def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] = "all", dataset: str = "all",
                 data_dir: PathLike | None = None, *, init: str | None = None, protocol: str | None = None,
                 align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
-                scheduler: str | None = None, scatter: bool | None = None) -> Run:
+                scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
+                resume: bool = False) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
-    init, protocol, align: as `fusion.evaluation.compare.compare`.
+    init, protocol, align: as `fusion.evaluation.job.run_one`.
     jobs: worker processes (None or 0: all cores); results do not depend on it.
     scheduler: run the jobs on the dask.distributed cluster at this address instead
         (`tcp://10.0.0.5:8786`); scatter: how its workers get the recordings
         (`fusion.evaluation.runner.run`: False ships paths, True loaded recordings, None decides).
     panorama: also stitch and score a panorama per row (`fusion.evaluation.panorama.panorama_scores`).
     json_path: write the results document there; out: write the report folder there (locked before
-        any computation, written through a staging folder: `fusion.evaluation.report.OutputFolder`).
+        any computation, written through a staging folder: `fusion.evaluation.report.OutputFolder`),
+        journalling each job as it ends.
     command: the command line recorded in the document's settings (default: this call).
+    timeout_s: stop a job that runs longer than this; its row says so.
+    resume: continue the unfinished run in `out` (`run_resume` repeats its call for you).
     """
-    text = estimators if isinstance(estimators, str) else ",".join(
-        s if isinstance(s, str) else s.label for s in estimators)
-    specs = expand_all(as_specs(estimators))
-    settings = {"kind": "compare", "estimators": text}
+    entries = resolve_all(estimators)
+    text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries)
+    call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
+            "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s}
     command = command or f"run_compare({text!r}, {dataset!r})"
-    return _execute(specs, settings, dataset, data_dir, command, init=init, protocol=protocol, align=align,
-                    dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=panorama,
-                    json_path=json_path, out=out, per_recording=True, scheduler=scheduler, scatter=scatter)
+    return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
+                    init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
+                    progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
+                    scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -83,7 +102,7 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
                out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
-               scatter: bool | None = None) -> Run:
+               scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
@@ -95,45 +114,120 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     """
     if bool(preset) == bool(estimator):
         raise ValueError("ablate: give either --preset NAME or --estimator NAME with --param NAME=V1,V2,...")
+    grid: list[tuple[str, list[str]]] = []
     if preset:
         if params:
             raise ValueError("ablate: --param applies to --estimator, not to --preset")
         specs = ablate.preset_specs(preset)
-        settings = {"kind": "ablate", "preset": preset, "estimators": ",".join(s.label for s in specs)}
+        settings = {"kind": "ablate", "preset": preset}
     else:
         if not params:
             raise ValueError("ablate: --estimator needs at least one --param NAME=V1,V2,...")
         grid = [ablate.parse_param(p) if isinstance(p, str) else (p[0], list(p[1])) for p in params]
         specs = ablate.grid_specs(estimator, grid)
-        settings = {"kind": "ablate", "estimator": estimator, "params": dict(grid),
-                    "estimators": ",".join(s.label for s in specs)}
+        settings = {"kind": "ablate", "estimator": estimator, "params": dict(grid)}
+    entries = resolve_all(specs)
+    settings["estimators"] = ",".join(e.label for e in entries)
+    call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
+            "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
+            "timeout_s": timeout_s}
     command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
-    return _execute(specs, settings, dataset, data_dir, command, init=init, protocol=protocol, align=align,
+    return _execute(entries, settings, call, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
                     json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
-                    scatter=scatter)
+                    scatter=scatter, timeout_s=timeout_s, resume=resume)
 
 
-def _execute(specs: list[EstimatorSpec], settings: dict[str, Any], dataset: str, data_dir: PathLike | None,
-             command: str, *, out: PathLike | None, **options: Any) -> Run:
-    """Run and write; an `out` folder is taken (locked) before computing."""
-    if not out:
-        return _execute_in(None, specs, settings, dataset, data_dir, command, **options)
-    with OutputFolder(out) as folder:
-        return _execute_in(folder, specs, settings, dataset, data_dir, command, **options)
+def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
+               scatter: bool | None = None, json_path: PathLike | None = None) -> Run:
+    """`fusion compare --resume DIR` / `fusion ablate --resume DIR`: continue the unfinished run in
+    `out` with the call recorded in its journal (only how it runs may change: jobs, progress,
+    scheduler); the jobs already journalled are not computed again."""
+    header = Journal.read_header(Path(out))
+    call = dict(header["call"])
+    kind = call.pop("kind")
+    common = dict(data_dir=header["data_dir"], calibration=header.get("calibration"), jobs=jobs, progress=progress,
+                  scheduler=scheduler, scatter=scatter, json_path=json_path, out=out, command=header["command"],
+                  resume=True)
+    if kind == "compare":
+        return run_compare(call.pop("estimators"), call.pop("dataset"), **call, **common)
+    grid = [(name, values) for name, values in call.pop("params")]
+    return run_ablate(call.pop("estimator"), grid, call.pop("preset"), call.pop("dataset"), **call, **common)
 
 
-def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], settings: dict[str, Any], dataset: str,
-                data_dir: PathLike | None, command: str, *, init: str | None, protocol: str | None, align: bool,
-                dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
-                json_path: PathLike | None, per_recording: bool, scheduler: str | None,
-                scatter: bool | None) -> Run:
+def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[str, Any], dataset: str,
+             data_dir: PathLike | None, command: str, *, init: str | None, protocol: str | None, align: bool,
+             dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
+             json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
+             scatter: bool | None, timeout_s: float | None, resume: bool) -> Run:
+    """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
+    before computing."""
+    if resume and not out:
+        raise ValueError("--resume needs the output folder of the run to continue")
     sources = select_sources(dataset, data_dir, calibration)
     root = datasets.data_dir_from(data_dir)
-    results, infos = run(specs, sources, init, jobs=jobs, progress=progress, load=load_options(calibration, dropouts),
-                         panorama_data_dir=str(root) if panorama else None,
-                         with_info=folder is not None and per_recording, protocol=protocol, align=align,
-                         scheduler=scheduler, scatter=scatter)
+    load = load_options(calibration, dropouts)
+    options = dict(init=init, protocol=protocol, jobs=jobs, progress=progress, load=load, align=align,
+                   panorama_data_dir=str(root) if panorama else None, scheduler=scheduler, scatter=scatter,
+                   timeout_s=timeout_s)
+    if not out:
+        results = run(entries, sources, **options)
+        return _finish(None, None, entries, sources, results, settings, dataset, root, command, calibration,
+                       dropouts, init, align, protocol, json_path, jobs, progress, per_recording)
+    with OutputFolder(out) as folder:
+        header = {"call": call, "data_dir": str(root.resolve()),
+                  "calibration": str(Path(calibration).resolve()) if calibration else None, "command": command,
+                  "jobs_total": len(sources) * len(entries), "versions": versions(), "git_commit": git_commit()}
+        journal = Journal.resume(folder.path) if resume else Journal.start(folder.path, header)
+        try:
+            if resume:
+                _check_resumable(journal, header)
+            keys = _job_keys(entries, sources, load, call)
+            done = {n: Result.from_json(journal.done[key].row) for n, key in enumerate(keys) if key in journal.done}
+            if resume:
+                note(f"resuming {folder.path}: {len(done)} of {len(keys)} jobs done, {len(keys) - len(done)} to run")
+
+            def record(n: int, output: JobOutput) -> None:
+                part = dict(output.part or {})
+                part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
+                journal.record(keys[n], output.result.to_json(), output.result.error, part or None)
+
+            results = run(entries, sources, **options, series=per_recording, done=done, on_done=record)
+            return _finish(folder, journal, entries, sources, results, settings, dataset, root, command, calibration,
+                           dropouts, init, align, protocol, json_path, jobs, progress, per_recording, keys)
+        finally:
+            journal.close()
+
+
+def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, call: dict[str, Any]) -> list[str]:
+    """Each job's journal key (recording-major, as `fusion.evaluation.runner.run` numbers them)."""
+    options = {k: call.get(k) for k in ("init", "protocol", "align", "panorama")}
+    prints = [fingerprint(source_paths(s), what=s.id) for s in sources]
+    return [job_key(dataset=s.id, files=fp, estimator=e.label, origin=e.describe(), load=repr(load), **options)
+            for s, fp in zip(sources, prints) for e in entries]
+
+
+def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
+    """A resumed run must be the run that was started; a change of code is worth a warning."""
+    import warnings
+
+    before = journal.header
+    for key in ("call", "data_dir", "calibration"):
+        if json.loads(json.dumps(header[key])) != before.get(key):
+            raise ValueError(f"{journal.path}: was started with another {key} ({before.get(key)!r}); resume it with "
+                             "--resume DIR alone, or write this run to another folder")
+    if (before.get("git_commit"), before.get("versions")) != (header["git_commit"], header["versions"]):
+        warnings.warn(f"{journal.folder}: resumed with other code or packages than it was started with "
+                      f"(commit {header['git_commit']}, was {before.get('git_commit')}); rows computed before and "
+                      "after may differ", stacklevel=3)
+
+
+def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
+            results: list[Result], settings: dict[str, Any], dataset: str, root: Path, command: str,
+            calibration: PathLike | None, dropouts: bool, init: str | None, align: bool, protocol: str | None,
+            json_path: PathLike | None, jobs: int | None, progress: bool, per_recording: bool,
+            keys: list[str] = ()) -> Run:
+    """The table, the results document and the report folder of a finished run."""
     table = format_table(results, align=align)
     sweep = ablate.sweep_summary([r.to_json() for r in results]) if settings.get("kind") == "ablate" else None
     if sweep:
@@ -149,7 +243,7 @@ def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], setting
                                  else "default (truth where available, else accel)"),
                 "align": bool(align),
                 "protocol": protocol or "default (broad for recordings with a movement mask, else full)",
-                "estimator_details": describe_specs(specs),
+                "estimator_details": {e.label: e.describe() for e in entries},
                 "git_commit": git_commit()}
     doc = results_json(results, settings)
     if sweep:
@@ -158,8 +252,96 @@ def _execute_in(folder: OutputFolder | None, specs: list[EstimatorSpec], setting
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
     if folder is not None:
-        report = write_run(folder, doc, results, infos, jobs=jobs, progress=progress, per_recording=per_recording)
+        series = _series(journal, entries, len(sources), results, keys) if per_recording else None
+        report = write_run(folder, doc, series, journal, jobs=jobs, progress=progress)
+        journal.remove()
     return Run(results, table, doc, report)
+
+
+def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, results: list[Result],
+            keys: list[str]) -> Iterator[Any]:
+    """Each recording's series, assembled from its jobs' parts in the journal, one at a time (so
+    that at most one recording's plot data is in memory)."""
+    from . import series
+
+    per = len(entries)
+    for i in range(recordings):
+        shown = [j for j in range(per) if results[i * per + j].error is None]
+        first = journal.load_part(keys[i * per])  # the recording's arrays come with its first job
+        parts = [first if j == 0 else journal.load_part(keys[i * per + j]) for j in shown]
+        yield series.assemble({k[4:]: v for k, v in first.items() if k.startswith("rec_")},
+                              [entries[j].label for j in shown], [bool(entries[j].cls.causal) for j in shown], parts)
+
+
+@dataclass(frozen=True, eq=False)
+class PanoramaRun:
+    """A finished `run_panorama`: the recording and estimator, the estimate's panorama
+    (`fusion.evaluation.panorama.Panorama`), its scores (`panorama.panorama_scores`), the image
+    written, and `text`, what `fusion panorama` prints."""
+
+    recording_id: str
+    estimator: str
+    panorama: Any
+    scores: dict[str, float]
+    out: Path
+
+    @property
+    def text(self) -> str:
+        s = self.scores
+        lines = [f"{self.recording_id} {self.estimator}: {self.panorama.frames_used} frames "
+                 f"({self.panorama.frames_skipped} skipped) -> {self.out}",
+                 f"PSNR {s['psnr_db']:.2f} dB, SSIM {s['ssim']:.4f} against the ground-truth panorama; "
+                 f"covered {s['covered_fraction']:.3f} of the sphere"]
+        if np.isfinite(s["scene_psnr_db"]):
+            lines.append(f"PSNR {s['scene_psnr_db']:.2f} dB, SSIM {s['scene_ssim']:.4f} against the scene")
+        return "\n".join(lines)
+
+
+def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, out: PathLike, *,
+                 data_dir: PathLike | None = None, init: str | None = None, size: str = "1920x960",
+                 rate_hz: float = 10.0, scene: Any = None, blend: str = "feather", reference: bool = False,
+                 calibration: PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
+                 progress: bool = False) -> PanoramaRun:
+    """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
+    frames (its camera's, or frames rendered from a scene with the truth:
+    `fusion.evaluation.panorama.reference_panorama`)
+    into a panorama, score it and write the image to `out` (.png/.jpg).
+
+    dataset: names exactly one recording (`fusion.selection.load_selected`); estimator: one spec text.
+    size: the panorama's "WIDTHxHEIGHT" in px; rate_hz: the rendered frames' rate.
+    reference: write the estimate, the ground truth's panorama and their difference, stacked.
+    """
+    import cv2
+
+    from .job import run_one
+    from .panorama import PanoramaGrid, check_options, comparison_image, estimate_panorama, reference_panorama
+
+    check_options(out, rate_hz)  # before any work: the image format and the frame rate
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
+    if len(recordings) != 1:
+        raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
+    (recording,) = recordings
+    entries = resolve_all(estimator)
+    if len(entries) != 1:
+        raise ValueError(f"--estimator {estimator!r}: give exactly one estimator")
+    if reference and recording.truth is None:
+        raise ValueError(f"{recording.id}: --reference needs ground truth, and this recording has none")
+    width, _, height = size.partition("x")
+    try:
+        grid = PanoramaGrid(int(width), int(height))
+    except ValueError as exc:
+        raise ValueError(f"--size {size!r}: expected WIDTHxHEIGHT in px, e.g. 1920x960 ({exc})") from exc
+    trajectory = run_one(recording, entries[0], init).trajectory
+    options = dict(data_dir=datasets.data_dir_from(data_dir), scene=scene, grid=grid, blend=blend, rate_hz=rate_hz)
+    pano, scores = estimate_panorama(recording, trajectory, progress=progress, **options)
+    image = pano.bgr()
+    if reference:
+        image = comparison_image(pano, reference_panorama(recording, **options).truth)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), image):
+        raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
+    return PanoramaRun(recording.id, entries[0].label, pano, scores, out)
 
 
 @dataclass(frozen=True, eq=False)

@@ -58,36 +58,76 @@ class RecordingSeries:
         return len(self.truth_t) > 0
 
 
-def from_results(info, results: list, causal: dict[str, bool]) -> RecordingSeries:
-    """Collect one recording's series from its `RecordingInfo` and `Result`s (with trajectories)."""
-    n = len(info.imu_t)
-    quat = np.empty((len(results), n, 4), np.float32)
-    err = np.full((len(results), len(KINDS), n), np.nan, np.float32)
+def recording_part(rec) -> dict[str, np.ndarray]:
+    """The arrays of one recording that its series needs besides the estimates: `id`, `imu_t`,
+    `gyr_valid`, `truth_t`, `truth_quat` (a `fusion.types.Recording`, its truth already mapped
+    into our frames with `--align`)."""
+    truth = rec.truth
+    return dict(id=np.array(rec.id), imu_t=np.asarray(rec.imu.t), gyr_valid=np.asarray(rec.imu.gyr_valid, bool),
+                truth_t=np.asarray(truth.t) if truth is not None else np.empty(0),
+                truth_quat=np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)))
+
+
+def job_part(trajectory, job_score, truth_at_imu) -> dict[str, np.ndarray]:
+    """What one estimate adds to its recording's series: `quat` (N, 4) float32, `err_deg` (3, N)
+    float32, `loss` where the estimator reports one, `belief_*` (without the estimator's index)
+    where it reports a covariance.
+
+    job_score: its `fusion.evaluation.metrics.Score` (None without truth); truth_at_imu: a callable
+    giving the truth slerped onto the IMU stamps (`consistency.truth_on`), called only for a filter
+    with a covariance, or None without truth.
+    """
+    n = len(trajectory)
+    err = np.full((len(KINDS), n), np.nan, np.float32)
+    if job_score is not None:
+        for k, kind in enumerate(KINDS):
+            err[k, job_score.mask] = np.degrees(job_score.errors_rad[kind])
+    part = {"quat": np.asarray(trajectory.quat_wxyz, np.float32), "err_deg": err}
+    loss = trajectory.diagnostics.get("loss") if trajectory.diagnostics else None
+    if loss is not None:
+        part["loss"] = np.asarray(loss, dtype=float).ravel()
+    if consistency.has_covariance(trajectory):
+        belief = consistency.from_trajectory(trajectory, truth_at_imu() if truth_at_imu else None)
+        for key, attr, dtype in _BELIEF_ARRAYS:
+            value = getattr(belief, attr)
+            if value is not None:
+                part[f"belief_{key}"] = np.asarray(value, dtype=dtype)
+    return part
+
+
+def from_results(rec, results: list, causal: dict[str, bool] | None = None) -> RecordingSeries:
+    """One recording's series from its recording (`fusion.types.Recording`, with `--align` its
+    aligned truth) and whole results of it (`fusion.evaluation.job.run_one`,
+    `fusion.evaluation.compare.compare`: with trajectories); causal: per label, False for
+    smoothers (default: all causal)."""
+    truth_at_imu = (lambda: consistency.truth_on(rec.truth, rec.imu.t)) if rec.truth is not None else None
+    for r in results:
+        if r.trajectory is None:
+            raise ValueError(f"{rec.id}: result {r.estimator!r} has no trajectory to plot")
+    labels = [r.estimator for r in results]
+    return assemble(recording_part(rec), labels, [(causal or {}).get(label, True) for label in labels],
+                    [job_part(r.trajectory, r.score, truth_at_imu) for r in results])
+
+
+def assemble(recording: dict[str, np.ndarray], labels: list[str], causal: list[bool],
+             parts: list[dict[str, np.ndarray]]) -> RecordingSeries:
+    """One recording's series from its `recording_part` and one `job_part` per estimator (in the
+    order of `labels`)."""
+    n = len(recording["imu_t"])
+    quat = np.empty((len(parts), n, 4), np.float32)
+    err = np.empty((len(parts), len(KINDS), n), np.float32)
     losses: dict[int, np.ndarray] = {}
     beliefs: dict[int, consistency.Belief] = {}
-    truth_at_imu = None  # the truth slerped onto the IMU stamps, once per recording, if a filter needs it
-    for e, r in enumerate(results):
-        if r.trajectory is None:
-            raise ValueError(f"{info.id}: result {r.estimator!r} has no trajectory to plot")
-        quat[e] = r.trajectory.quat_wxyz
-        if r.score is not None:
-            for k, kind in enumerate(KINDS):
-                err[e, k, r.score.mask] = np.degrees(r.score.errors_rad[kind])
-        loss = r.trajectory.diagnostics.get("loss") if r.trajectory.diagnostics else None
-        if loss is not None:
-            losses[e] = np.asarray(loss, dtype=float).ravel()
-        if consistency.has_covariance(r.trajectory):
-            if truth_at_imu is None and info.truth is not None:
-                truth_at_imu = consistency.truth_on(info.truth, r.trajectory.t)
-            beliefs[e] = consistency.from_trajectory(r.trajectory, truth_at_imu)
-    truth = info.truth
-    return RecordingSeries(
-        info.id, np.asarray(info.imu_t), np.asarray(info.gyr_valid, bool),
-        np.asarray(truth.t) if truth is not None else np.empty(0),
-        np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)),
-        [r.estimator for r in results], [causal.get(r.estimator, True) for r in results],
-        quat, err, losses, beliefs,
-    )
+    for e, part in enumerate(parts):
+        quat[e], err[e] = part["quat"], part["err_deg"]
+        if "loss" in part:
+            losses[e] = part["loss"]
+        if "belief_err" in part:
+            beliefs[e] = consistency.Belief(**{attr: (part[f"belief_{key}"].astype(float if dtype is np.float32 else bool)
+                                                      if f"belief_{key}" in part else None)
+                                               for key, attr, dtype in _BELIEF_ARRAYS})
+    return RecordingSeries(str(recording["id"]), recording["imu_t"], recording["gyr_valid"], recording["truth_t"],
+                           recording["truth_quat"], list(labels), list(causal), quat, err, losses, beliefs)
 
 
 _BELIEF_ARRAYS = (("err", "err_rad", np.float32), ("sigma", "sigma_rad", np.float32), ("nees", "nees", np.float32),

@@ -4,7 +4,7 @@
 
 Each `cmd_*` makes one library call with the parsed arguments and prints what it
 returns (`fusion.evaluation.runs.run_compare`, `run_ablate`, `run_inspect`, `run_calibrate`,
-`fusion.evaluation.panorama.stitch_recording`, `fusion.evaluation.report.render`). Bad input gives
+`run_panorama`, `fusion.evaluation.report.render`). Bad input gives
 one line `fusion: error: ...` and exit code 1, never a traceback; SIGTERM stops a run as Ctrl-C does.
 """
 from __future__ import annotations
@@ -15,6 +15,7 @@ import shlex
 import signal
 import sys
 import warnings
+from pathlib import Path
 
 from . import datasets
 from .selection import note
@@ -53,25 +54,48 @@ def _run_options(args: argparse.Namespace) -> dict:
     """The options of `compare` and `ablate`."""
     return dict(init=args.init, protocol=args.protocol, align=args.align, jobs=args.jobs, json_path=args.json,
                 out=args.out, command=_command(args), scheduler=args.scheduler,
-                scatter=True if args.scatter else None, **_data(args))
+                scatter=True if args.scatter else None, timeout_s=args.timeout, **_data(args))
 
 
 def _print_run(run) -> int:
+    """Print the table, then one line per failed job; exit status 1 if a job failed."""
     print(run.table)
     if run.report is not None:
         print(f"report: {run.report}", file=sys.stderr)
-    return 0
+    for r in run.failed:
+        print(f"fusion: error: {r.error}", file=sys.stderr)
+    return 1 if run.failed else 0
+
+
+# what `--resume DIR` may be combined with: how the run runs, not what it computes
+_RESUME_OPTIONS = ("jobs", "no_progress", "scheduler", "scatter", "json", "resume", "func", "command", "argv")
+
+
+def _resume(args: argparse.Namespace) -> int:
+    from fusion.evaluation.runs import run_resume
+
+    defaults = vars(build_parser().parse_args([args.command]))
+    given = [name for name, value in vars(args).items() if name not in _RESUME_OPTIONS and value != defaults.get(name)]
+    if given:
+        raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs, --scheduler, "
+                         f"--scatter, --json or --no-progress only (not --{given[0].replace('_', '-')})")
+    return _print_run(run_resume(args.resume, jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler,
+                                 scatter=True if args.scatter else None, json_path=args.json))
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
     from fusion.evaluation.runs import run_compare
 
+    if args.resume:
+        return _resume(args)
     return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, **_run_options(args)))
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
     from fusion.evaluation.runs import run_ablate
 
+    if args.resume:
+        return _resume(args)
     return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset,
                                  per_recording=args.per_recording, **_run_options(args)))
 
@@ -84,9 +108,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_panorama(args: argparse.Namespace) -> int:
-    from fusion.evaluation.panorama import stitch_recording
+    from fusion.evaluation.runs import run_panorama
 
-    print(stitch_recording(args.dataset, args.estimator, args.out, init=args.init, size=args.size, rate_hz=args.rate,
+    print(run_panorama(args.dataset, args.estimator, args.out, init=args.init, size=args.size, rate_hz=args.rate,
                            scene=args.scene, blend=args.blend, reference=args.reference, **_data(args)).text)
     return 0
 
@@ -119,6 +143,16 @@ def _jobs(text: str) -> int:
     return value
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text} is not a positive, finite number of seconds")
+    return value
+
+
 def _add_run_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--protocol", choices=("full", "broad"), default=None,
                         help="scoring: full (every sample with truth) or broad (movement phases only, mean heading "
@@ -128,6 +162,13 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
                         "report.md to DIR (re-render later with `fusion report DIR`)")
     parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                         help="worker processes; 0 = all cores (default); results do not depend on it")
+    parser.add_argument("--resume", metavar="DIR", default=None,
+                        help="continue the unfinished run in the --out folder DIR (stopped by Ctrl-C, SIGTERM, a kill "
+                             "or a crash): its jobs already done are read back from DIR/.fusion-run/journal.jsonl, "
+                             "the others computed; the run's other options come from the journal")
+    parser.add_argument("--timeout", type=_seconds, default=None, metavar="S",
+                        help="stop a job (one recording x one estimator) that runs longer than S seconds; its row "
+                             "says so, the other rows are computed, and the command exits with status 1")
     parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
                         help="run the jobs on a running dask.distributed scheduler's workers instead of local "
                              "processes, e.g. tcp://10.0.0.5:8786 (see README, 'Running on a Dask cluster')")
@@ -250,26 +291,45 @@ def _dispatch(args: argparse.Namespace) -> int:
     except ImportError as exc:  # an optional package (peers, h5py) is missing: the message says which
         print(f"fusion: error: {exc}", file=sys.stderr)
         return 1
+    except Terminated:
+        print(f"fusion: terminated (SIGTERM){_resume_hint(args)}", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
-        print("fusion: interrupted", file=sys.stderr)
-        return 130
+        print(f"fusion: interrupted{_resume_hint(args)}", file=sys.stderr)
+        return 128 + signal.SIGINT
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread as Ctrl-C raises KeyboardInterrupt."""
+
+
+def _resume_hint(args: argparse.Namespace) -> str:
+    folder = getattr(args, "resume", None) or getattr(args, "out", None)
+    if args.command not in ("compare", "ablate") or not folder:
+        return ""
+    from fusion.evaluation.journal import JOURNAL, RUN_DIR
+
+    if not (Path(folder) / RUN_DIR / JOURNAL).is_file():
+        return ""
+    return f"; continue with: fusion {args.command} --resume {shlex.quote(str(folder))}"
+
+
 def _terminate_as_interrupt():
-    """SIGTERM raises KeyboardInterrupt, as Ctrl-C does, so that worker processes are stopped
-    and an --out folder is left as it was (returns the previous handler; None off the main thread)."""
+    """SIGTERM raises `Terminated` (a KeyboardInterrupt), as Ctrl-C raises KeyboardInterrupt, so that
+    worker processes are stopped and an --out folder is left as it was, with its journal (returns
+    the previous handler; None off the main thread)."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return None
 
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
+    def terminate(signum, frame):
+        raise Terminated
 
-    return signal.signal(signal.SIGTERM, interrupt)
+    return signal.signal(signal.SIGTERM, terminate)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import pytest
 distributed = pytest.importorskip("distributed")
 
 from fusion.cli import main  # noqa: E402
+from fusion import datasets  # noqa: E402
 from fusion.datasets import Source  # noqa: E402
 from fusion.evaluation import runner  # noqa: E402
 from fusion.evaluation.runs import run_ablate, run_compare  # noqa: E402
@@ -53,15 +54,19 @@ def data(tmp_path_factory):
     return write_csv_dataset(tmp_path_factory.mktemp("dask") / "data", count=3, n=400)
 
 
-def _rows(run):
-    return [{k: v for k, v in r.to_json().items() if k != "seconds"} for r in run.results]
+def _rows(results):
+    return [{k: v for k, v in r.to_json().items() if k != "seconds"} for r in results]
 
 
 def _same(a, b):
+    """The same rows (and with whole results, the same trajectories), in the same order."""
+    a, b = getattr(a, "results", a), getattr(b, "results", b)
     assert _rows(a) == _rows(b)
-    for x, y in zip(a.results, b.results):
-        assert np.array_equal(x.trajectory.quat_wxyz, y.trajectory.quat_wxyz)
-        assert np.array_equal(x.trajectory.t, y.trajectory.t)
+    for x, y in zip(a, b):
+        assert (x.trajectory is None) == (y.trajectory is None)
+        if x.trajectory is not None:
+            assert np.array_equal(x.trajectory.quat_wxyz, y.trajectory.quat_wxyz)
+            assert np.array_equal(x.trajectory.t, y.trajectory.t)
 
 
 @pytest.mark.parametrize("scatter, align", [(None, False), (True, False), (None, True)])
@@ -73,7 +78,11 @@ def test_dask_rows_equal_serial(address, data, scatter, align):
     on_cluster = run_compare(specs, dataset, data, scheduler=address, scatter=scatter, align=align)
     assert len(serial.results) == (4 if align else 12) and len({r.dataset for r in serial.results[:4]}) == 1
     assert all(bool(r.alignment) == align for r in serial.results if r.dataset == "sim")
+    assert all(r.trajectory is None for r in on_cluster.results)  # the client gathers rows only
     _same(serial, on_cluster)
+    sources = datasets.select(dataset, data)
+    _same(runner.run(specs, sources, jobs=1, align=align, keep=True),
+          runner.run(specs, sources, scheduler=address, scatter=scatter, align=align, keep=True))
 
 
 def test_workers_check_the_shared_path(address, data, tmp_path):
@@ -122,15 +131,15 @@ def test_cli_scheduler_errors_are_one_line(data, capsys, monkeypatch):
     assert line.startswith("fusion: error: --scheduler tcp://127.0.0.1:1: cannot connect")
 
 
-def test_dask_bar_moves_as_each_job_finishes(address, data, monkeypatch):
-    bars = cluster_fixtures.record_progress(monkeypatch)
-    start = time.monotonic()
-    run = run_compare("sleepy:s=0.5,sleepy:s=0.51", "all", data, scheduler=address, progress=True)
+def test_dask_bar_moves_as_each_job_finishes(address, data, monkeypatch, tmp_path):
+    """Job k waits until the bar has shown k finished jobs (`cluster_fixtures.Gate`): a bar updated
+    only at the end would leave it waiting, and the job would fail."""
+    bars = cluster_fixtures.record_progress(monkeypatch, tmp_path)
+    specs = ",".join(["gate"] + [f"gate:wait_for={tmp_path / f'updated-{k}'}" for k in range(1, 4)])
+    run = run_compare(specs, "lab/rec1", data, scheduler=address, progress=True)
     (bar,) = bars
-    assert len(run.results) == 6 and len(bar.updates) == 6 and bar.updates == sorted(bar.updates)
-    # two workers, six 0.5 s jobs: three waves; the first update comes ~1 wave before the last
-    assert bar.updates[0] - start >= 0.4
-    assert bar.updates[-1] - bar.updates[0] >= 0.6
+    assert [r.error for r in run.results] == [None] * 4
+    assert len(bar.updates) == 4 and bar.updates == sorted(bar.updates)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -156,7 +165,7 @@ def test_sigterm_cancels_the_cluster_tasks_and_leaves_the_folder(address, data, 
         assert running() >= 2, "the jobs never started on the cluster"
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
-        assert proc.returncode == 130, err
+        assert proc.returncode == 143, err
         assert "Traceback" not in err
         deadline = time.time() + 10
         while time.time() < deadline and client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)):

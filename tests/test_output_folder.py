@@ -8,15 +8,13 @@ import hashlib
 import json
 import os
 import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fusion.evaluation import report
+from fusion.evaluation import journal, report
 from fusion.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,9 +32,11 @@ def compare(capsys, out: Path, estimators: str = "dr", *extra: str):
 
 
 def snapshot(folder: Path) -> dict[str, str]:
-    """Relative path -> md5 of every file, except the lock file (it holds the last run's PID)."""
+    """Relative path -> md5 of every file, except the lock file (it holds the last run's PID) and
+    the journal of a run in progress (`.fusion-run/`: what `--resume` continues)."""
     return {p.relative_to(folder).as_posix(): hashlib.md5(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != report.LOCK}
+            for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != report.LOCK and journal.RUN_DIR not in p.relative_to(folder).parts}
 
 
 @pytest.fixture(scope="module")
@@ -130,48 +130,32 @@ def test_interrupt_while_writing_leaves_the_folder_as_it_was(first_run, tmp_path
 
     monkeypatch.setattr(report.series_io, "save", interrupted)
     code, _, err = compare(capsys, out, "dr")
-    assert code == 130 and "interrupted" in err
+    assert code == 130 and err.strip().splitlines()[-1] == f"fusion: interrupted; continue with: fusion compare --resume {out}"
     assert snapshot(out) == before
     assert not list(out.glob(report.STAGING_PREFIX + "*"))
-
-
-def _children(pid: int) -> list[int]:
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            out.append(int(stat.parent.name))
-    return out
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigterm_stops_the_workers_and_leaves_the_folder_as_it_was(first_run, tmp_path):
+    from cluster_fixtures import alive, fusion_process, started_pids, wait_until
+
     out = copy_of(first_run, tmp_path / "run")
     before = snapshot(out)
-    proc = subprocess.Popen([sys.executable, "-m", "fusion", "compare", "--estimators",
-                             "gd:precond=none,iters=100000,tol=0,gd:precond=block,iters=100000,tol=0",
-                             "--dataset", "sim", "--no-progress", "--jobs", "2", "--out", str(out)],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    workers: list[int] = []
-    deadline = time.time() + 60
-    while time.time() < deadline and len(workers) < 2:  # unpreconditioned gd runs for minutes on sim
-        time.sleep(0.2)
-        workers = _children(proc.pid)
-    assert len(workers) >= 2, "the worker processes never started"
-    time.sleep(1.0)
+    started = tmp_path / "started"
+    started.mkdir()
+    hold = f"gate:started={started},wait_for={tmp_path / 'never'}"
+    proc = fusion_process("compare", "--estimators", f"{hold},{hold},dr", "--dataset", "sim", "--no-progress",
+                          "--jobs", "2", "--out", str(out))
+    wait_until(lambda: len(started_pids(started)) == 2, "both workers holding a job")
+    workers = started_pids(started)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    assert "Traceback" not in err
-    time.sleep(0.5)
-    alive = [w for w in workers if Path(f"/proc/{w}").exists()
-             and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
-    assert not alive, f"orphaned workers {alive}"
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not [w for w in workers if alive(w)], "orphaned workers"
     assert snapshot(out) == before
     assert not list(out.glob(report.STAGING_PREFIX + "*"))
+    assert (out / journal.RUN_DIR / journal.JOURNAL).is_file()  # for --resume
 
 
 @pytest.mark.parametrize("edit, message", [

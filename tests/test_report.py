@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.evaluation import plots, runner, series
-from fusion.evaluation.compare import as_specs
+from fusion.evaluation import plots, pool, runner, series
 from fusion.cli import main
 
 from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
@@ -38,13 +37,12 @@ def run_dir(toy, tmp_path_factory):
 
 
 def _series(specs=SPECS, **kwargs) -> series.RecordingSeries:
-    from fusion.evaluation.compare import as_specs
+    from fusion.estimators import resolve_all
 
     rec = recording(**kwargs)
-    spec_list = as_specs(specs)
-    results, infos = runner.run(spec_list, [rec], with_info=True)
-    causal = {label: d["causal"] for label, d in runner.describe_specs(spec_list).items()}
-    return series.from_results(infos[0], results, causal)
+    entries = resolve_all(specs)
+    results = runner.run(entries, [rec], keep=True)
+    return series.from_results(rec, results, {e.label: e.cls.causal for e in entries})
 
 
 def _lines(ax):
@@ -196,18 +194,18 @@ def test_library_compare_jobs_keeps_order(toy):
 
 
 def test_spawned_workers_run_what_the_parent_registered(toy, monkeypatch):
-    """Under 'spawn' a worker starts from the default registry, which has no `toy`: jobs carry
-    their estimator class, so the results are those of a serial run, and the registry is never
-    rewritten (`fusion.evaluation.runner`)."""
+    """Under 'spawn' a worker starts from the default registry, which has no `toy`: the workers get
+    the resolved specs (their classes), so the results are those of a serial run, and the registry
+    is never rewritten (`fusion.evaluation.runner`)."""
     import multiprocessing
 
     from fusion import estimators
 
     recs = [recording(seed=k, rid=f"toy/{k}") for k in range(2)]
     before = dict(estimators.ESTIMATORS)
-    serial, _ = runner.run(["toy:g=1.1", "dr"], recs, jobs=1)
-    monkeypatch.setattr(runner, "pool_context", lambda: multiprocessing.get_context("spawn"))
-    spawned, _ = runner.run(["toy:g=1.1", "dr"], recs, jobs=2)
+    serial = runner.run(["toy:g=1.1", "dr"], recs, jobs=1, keep=True)
+    monkeypatch.setattr(pool, "pool_context", lambda: multiprocessing.get_context("spawn"))
+    spawned = runner.run(["toy:g=1.1", "dr"], recs, jobs=2, keep=True)
     assert [(r.dataset, r.estimator) for r in spawned] == [(r.dataset, r.estimator) for r in serial]
     for a, b in zip(serial, spawned):
         np.testing.assert_array_equal(a.trajectory.quat_wxyz, b.trajectory.quat_wxyz)
@@ -314,8 +312,7 @@ def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
     from fusion import datasets
 
     rec = datasets.load("ece276a/6", data_dir / "ece276a")
-    results, infos = runner.run(as_specs(["dr"]), [rec], with_info=True)
-    s = series.from_results(infos[0], results, {"dr": True})
+    s = series.from_results(rec, runner.run(["dr"], [rec], keep=True))
     nan_rows = int((~np.all(np.isfinite(rec.truth.quat_wxyz), axis=1)).sum())
     inside = [(a, b) for a, b in plots.truth_gaps(s) if a > s.imu_t[0] and b < s.imu_t[-1]]
     assert 100 < nan_rows < 200 and len(inside) >= 1

@@ -16,8 +16,8 @@
 #
 # Everything here is the library behind the command line: `fusion.evaluation.runs.run_compare`
 # is `fusion compare`, `run_ablate` is `fusion ablate`. Each call returns the rows (one per
-# recording and estimator, with the trajectory and the per-sample errors) and the table the
-# command prints.
+# recording and estimator: its scores, timing and coverage; a sweep of hundreds of jobs keeps
+# rows, not trajectories) and the table the command prints.
 #
 # The estimators (`fusion.estimators.ESTIMATORS`):
 #
@@ -39,8 +39,7 @@
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fusion.estimators import ESTIMATORS
-from fusion.evaluation.compare import as_specs, expand_all
+from fusion.estimators import ESTIMATORS, resolve_all
 from fusion.evaluation.runs import run_ablate, run_compare
 from tutorial_data import course_recordings, load_recording
 
@@ -65,7 +64,7 @@ print("ablations on:", ABLATION)
 # --estimators all` runs them all; the README's "Results" section has the full table.
 
 # %%
-specs = [spec for spec in expand_all(as_specs("all")) if spec.name not in ("gd", "ukf-bias")]
+specs = [spec for spec in resolve_all("all") if spec.spec.name not in ("gd", "ukf-bias")]
 print("estimators:", ", ".join(spec.label for spec in specs))
 run = run_compare(specs, DATASETS, jobs=JOBS)
 print(run.table)
