@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Iterable
 
 from .base import Estimator, RecursiveEstimator
@@ -45,13 +46,21 @@ class ResolvedSpec:
 
     spec: the spec as given; cls: the `Estimator` class it names; params: its parameters,
     built and validated from the spec's overrides; label: the name of its rows in tables and
-    results.json (the spec's text for the registry's estimators).
+    results.json (the spec's text for the registry's estimators; `my_ukf.MyUKF:R=0.001` for
+    `./my_ukf.py:MyUKF:R=0.001`); origin: where a user's estimator comes from
+    (`fusion.estimators.user.Origin`), None for the registry's.
     """
 
     spec: EstimatorSpec
     cls: type[Estimator]
     params: Any
     label: str
+    origin: Any = None
+
+    @property
+    def user(self) -> bool:
+        """A user's estimator (a file, a module or an installed package's entry point)."""
+        return self.origin is not None
 
     def build(self) -> Estimator:
         """A fresh estimator (no state is shared between jobs)."""
@@ -59,25 +68,62 @@ class ResolvedSpec:
 
     def describe(self) -> dict[str, Any]:
         """For results.json's settings: the class, whether it is causal, every parameter's value
-        after the overrides (defaults included), so that a run can be repeated."""
+        after the overrides (defaults included), so that a run can be repeated, and where a user's
+        estimator comes from (its file's path and sha256)."""
         params = {f.name: getattr(self.params, f.name) for f in dataclasses.fields(self.params)}
-        return {"name": self.spec.name, "class": self.cls.__name__, "causal": bool(self.cls.causal),
-                "params": {k: v if isinstance(v, (bool, int, float, str)) or v is None else repr(v)
-                           for k, v in params.items()}}
+        out = {"name": self.spec.name, "class": self.cls.__name__, "causal": bool(self.cls.causal),
+               "params": {k: v if isinstance(v, (bool, int, float, str)) or v is None else repr(v)
+                          for k, v in params.items()}}
+        if self.origin is not None:
+            out["origin"] = self.origin.describe()
+        return out
+
+    def __reduce__(self):
+        """Sent to another process (spawned workers, Dask) as the spec to resolve there; a user's
+        file travels as its contents, so the workers need not see it."""
+        if self.origin is not None and self.origin.kind == "file":
+            return _resolve_file, (self.spec, self.origin.where, self.origin.source)
+        if self.origin is not None:
+            return resolve, (self.spec,)
+        return ResolvedSpec, (self.spec, self.cls, self.params, self.label)
 
 
-def resolve(spec: EstimatorSpec | str) -> ResolvedSpec:
-    """The `ResolvedSpec` of one spec (or spec text such as `"ukf:R=1e-3"`); an unknown name or a
-    bad parameter is a ValueError naming it, a missing optional library `PeerUnavailable`."""
+def resolve(spec: EstimatorSpec | str, file: tuple[str, bytes] | None = None) -> ResolvedSpec:
+    """The `ResolvedSpec` of one spec (or spec text such as `"ukf:R=1e-3"`): a registered name, an
+    installed package's entry point, or a user's `FILE.py:NAME` / `module:NAME`
+    (`fusion.estimators.user`). An unknown name or a bad parameter is a ValueError naming it, a
+    missing optional library `PeerUnavailable`. file: a user's file as (path, contents), read
+    elsewhere (another process's copy)."""
+    from . import user
+
     if isinstance(spec, str):
         (spec,) = parse_specs(spec)
-    try:
-        cls = ESTIMATORS[spec.name]
-    except KeyError:
-        raise ValueError(f"unknown estimator {spec.name!r}; available: {', '.join(ESTIMATORS)}") from None
+    origin = None
+    if spec.name in ESTIMATORS:
+        cls, label = ESTIMATORS[spec.name], spec.label
+    elif user.is_reference(spec.name):
+        target, _, part = spec.name.rpartition(":")
+        if target in ESTIMATORS:
+            raise ValueError(f"estimator {target!r}: expected key=value, got {part!r}")
+        obj, origin = user.load_reference(spec.name, file)
+        cls = user.estimator_class(obj, spec.name)
+        stem = Path(origin.where).stem if origin.kind == "file" else origin.where
+        label = EstimatorSpec(f"{stem}.{origin.attribute}", spec.overrides).label
+    elif spec.name in (plugins := user.entry_points()):
+        obj, origin = user.load_entry_point(plugins[spec.name])
+        cls, label = user.estimator_class(obj, spec.name), spec.label
+    else:
+        known = [*ESTIMATORS, *plugins]
+        raise ValueError(f"unknown estimator {spec.name!r}; available: {', '.join(known)}, or your own as "
+                         "FILE.py:NAME or package.module:NAME")
     params = make_params(cls.Params, spec.overrides, owner=spec.name)
     cls(params)  # a peer whose library is missing says so here, before any work
-    return ResolvedSpec(spec, cls, params, spec.label)
+    return ResolvedSpec(spec, cls, params, label, origin)
+
+
+def _resolve_file(spec: EstimatorSpec, path: str, source: bytes) -> ResolvedSpec:
+    """`resolve` in another process, from a user's file's path and contents (`ResolvedSpec.__reduce__`)."""
+    return resolve(spec, file=(path, source))
 
 
 def resolve_all(specs: str | Iterable[EstimatorSpec | str | ResolvedSpec]) -> list[ResolvedSpec]:
@@ -107,7 +153,27 @@ def resolve_all(specs: str | Iterable[EstimatorSpec | str | ResolvedSpec]) -> li
             if missing:
                 warnings.warn(f"'all' leaves out {', '.join(missing)}: optional packages not installed "
                               f"(pip install -e '.[peers]')", stacklevel=2)
+    labels = [e.label for e in out]
+    twice = [label for label in dict.fromkeys(labels) if labels.count(label) > 1]
+    if twice and any(out[labels.index(label)].user for label in twice):
+        raise ValueError(f"two estimators would both be named {twice[0]!r} in the table: rename one of the files or "
+                         "functions")
     return out
+
+
+def available() -> list[tuple[str, str, str]]:
+    """Every estimator a spec can name by itself, as (name, what it is, where it comes from): the
+    registry's, then those installed packages register in the entry-point group
+    `fusion.estimators` (not imported here)."""
+    from . import user
+
+    import re
+
+    rows = [(name, re.sub(r"^`[^`]+`:\s*", "", (cls.__doc__ or cls.__name__).strip().splitlines()[0]), "fusion")
+            for name, cls in ESTIMATORS.items()]
+    rows += [(name, ep.value, f"entry point of {user._package(ep)}") for name, ep in user.entry_points().items()
+             if name not in ESTIMATORS]
+    return rows
 
 
 def build(spec: EstimatorSpec | str) -> Estimator:
@@ -115,5 +181,5 @@ def build(spec: EstimatorSpec | str) -> Estimator:
     return resolve(spec).build()
 
 
-__all__ = ["ESTIMATORS", "Estimator", "RecursiveEstimator", "EstimatorSpec", "ResolvedSpec", "build", "resolve",
-           "resolve_all", "parse_specs", "make_params"]
+__all__ = ["ESTIMATORS", "Estimator", "RecursiveEstimator", "EstimatorSpec", "ResolvedSpec", "available", "build",
+           "resolve", "resolve_all", "parse_specs", "make_params"]

@@ -29,7 +29,12 @@ class EstimatorSpec:
 
 
 def parse_specs(text: str) -> list[EstimatorSpec]:
-    """Split `ukf:R=1e-3,Q=1e-5,gn` into specs (names are not checked here)."""
+    """Split `ukf:R=1e-3,Q=1e-5,gn` into specs (names are not checked here).
+
+    A name may refer to user code, `FILE.py:NAME` or `package.module:NAME`
+    (`fusion.estimators.user`): a part after the first `:` without `=` belongs to the name, so
+    `./my_ukf.py:MyUKF:R=1e-3` is the estimator `./my_ukf.py:MyUKF` with R=1e-3.
+    """
     specs: list[tuple[str, list[tuple[str, str]]]] = []
     for token in (tok.strip() for tok in text.split(",")):
         if not token:
@@ -40,6 +45,8 @@ def parse_specs(text: str) -> list[EstimatorSpec]:
                 raise ValueError(f"estimator list {text!r}: {token!r} has no estimator before it")
             pairs = [head, *pairs]
         else:
+            if pairs and "=" not in pairs[0]:  # FILE.py:NAME or module:NAME
+                head = f"{head.strip()}:{pairs.pop(0).strip()}"
             specs.append((head.strip(), []))
         for pair in pairs:
             key, sep, value = pair.partition("=")

@@ -13,14 +13,16 @@ failure into a row that says what went wrong, so the other rows are still comput
 """
 from __future__ import annotations
 
+import contextlib
 import time
+import warnings
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from fusion.datasets import initial_orientation
-from fusion.estimators import ResolvedSpec, resolve
+from fusion.estimators import ResolvedSpec, resolve, user
 from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording, Trajectory
 
@@ -143,16 +145,29 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
     # numpy's floating-point warnings are silenced here and the result judged by its finiteness,
     # and a numerical exception becomes one line naming the estimator and the recording.
+    where = f"{recording.id}: estimator {entry.label!r}"
     try:
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"), \
+                warnings.catch_warnings(record=True) if entry.user else contextlib.nullcontext([]) as caught:
+            if entry.user:
+                warnings.simplefilter("always")
             trajectory = estimator.estimate(recording.imu, q0)
+            if entry.user:  # what a user's estimator returns is checked (`fusion.estimators.user`)
+                trajectory = Trajectory(trajectory.t, user.check_output(trajectory.quat_wxyz, len(recording.imu)),
+                                        trajectory.diagnostics)
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
-        raise ValueError(f"{recording.id}: estimator {entry.label!r} failed numerically ({type(exc).__name__}: "
+        raise ValueError(f"{where} failed numerically ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())[:200]}); check its parameter values") from None
+    except ValueError as exc:
+        if not entry.user:
+            raise
+        raise ValueError(f"{where}: {' '.join(str(exc).split())[:300]}") from None
     seconds = time.perf_counter() - start
+    for warning in caught:  # a user's estimator's warnings, named: which estimator, which recording
+        warnings.warn_explicit(f"{where}: {warning.message}", warning.category, warning.filename, warning.lineno)
     if not np.all(np.isfinite(trajectory.quat_wxyz)):
-        raise ValueError(f"{recording.id}: estimator {entry.label!r} produced non-finite orientations "
-                         "(diverged or overflowed; check its parameter values)")
+        raise ValueError(f"{where} produced non-finite orientations (diverged or overflowed; check its parameter "
+                         "values)")
     protocol = protocol or default_protocol(recording)
     result_score = None
     if recording.truth is not None:
@@ -160,6 +175,13 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
             result_score = score(recording.truth, trajectory, protocol, recording.movement)
         except ValueError as exc:
             raise ValueError(f"{recording.id}, {entry.label}: {exc}") from None
+        if entry.user:
+            slip = user.convention_slip(
+                result_score.rmse_deg["total"],
+                lambda q: score(recording.truth, Trajectory(trajectory.t, q), protocol, recording.movement).rmse_deg["total"],
+                trajectory.quat_wxyz)
+            if slip:
+                raise ValueError(f"{where}: {slip}")
     return Result(
         recording.id, entry.label, len(recording.imu), seconds,
         result_score.rmse_deg if result_score else None,
@@ -194,11 +216,14 @@ class Job:
 
 @dataclass(frozen=True, eq=False)
 class JobOutput:
-    """What a job sends back: its row, and its plot data when asked (None otherwise)."""
+    """What a job sends back: its row, its plot data when asked (None otherwise), and the warnings
+    it raised (their texts, each once), which the process that runs the run shows: a worker's
+    stderr is not always the user's (a Dask worker's never is)."""
 
     result: Result
     part: dict[str, np.ndarray] | None = None
     recording_part: dict[str, np.ndarray] | None = None
+    warnings: tuple[str, ...] = ()
 
 
 def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
@@ -209,6 +234,14 @@ def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment 
     truth_at_imu: a callable giving the truth on the IMU stamps (for a filter's consistency plot
         data; the caller keeps it once per recording), or None.
     """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        output = _run_job(job, rec, entry, alignment, truth_at_imu)
+    return replace(output, warnings=tuple(dict.fromkeys(str(w.message) for w in caught)))
+
+
+def _run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
+             truth_at_imu: Any) -> JobOutput:
     from . import series
 
     shown = aligned(rec, alignment)

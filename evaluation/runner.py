@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -172,8 +173,14 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     bar.update(len(tasks) - len(todo))
     results: dict[int, Result] = dict(done)
 
+    shown: set[str] = set()
+
     def finished(n: int, output: JobOutput) -> None:
         results[n] = output.result
+        for message in output.warnings:  # each once per run, here, where the user reads them
+            if message not in shown:
+                shown.add(message)
+                warnings.warn(message, stacklevel=2)
         if on_done is not None:
             on_done(n, output)
         bar.set_postfix_str(f"{items[tasks[n].recording].id} {entries[tasks[n].estimator].label}")

@@ -115,6 +115,18 @@ def cmd_panorama(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_list(args: argparse.Namespace) -> int:
+    from fusion.estimators import available
+
+    rows = available()
+    width = max(len(name) for name, _, _ in rows)
+    for name, what, origin in rows:
+        print(f"{name:<{width}}  {what}" + ("" if origin == "fusion" else f"  [{origin}]"))
+    print("\nyour own: FILE.py:NAME or package.module:NAME, with parameters as for ours, e.g. "
+          "./my_ukf.py:MyUKF:R=1e-3 (README, 'Your estimator in the table')")
+    return 0
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     from fusion.evaluation.runs import run_inspect
 
@@ -193,9 +205,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fusion", description="Orientation estimation from gyro + accelerometer, scored against VICON.")
     sub = parser.add_subparsers(dest="command")
 
-    p = sub.add_parser("compare", help="run estimators on recordings and print a table of errors")
+    p = sub.add_parser("compare", help="run estimators on recordings and print a table of errors",
+                       epilog="examples:\n"
+                              "  fusion compare --estimators ukf,gd --dataset all\n"
+                              "  fusion compare --estimators ./student.py:complementary,ekf --dataset ece276a/1\n"
+                              "  fusion compare --estimators all --dataset 'broad/*' --out runs/broad --jobs 2\n"
+                              "  fusion compare --resume runs/broad",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--estimators", "--estimator", dest="estimators", default="all",
-                   help="comma-separated registry names with optional parameters, e.g. 'dr,ukf:R=1e-3' (default: all)")
+                   help="comma-separated estimators with optional parameters: names (`fusion list`), or your own as "
+                        "FILE.py:NAME or package.module:NAME, e.g. 'dr,ukf:R=1e-3,./my_ukf.py:MyUKF:R=0.5' "
+                        "(default: all)")
     _add_data_args(p)
     _add_run_args(p)
     p.add_argument("--panorama", action="store_true",
@@ -203,8 +223,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "ground truth) and score it against the ground truth's panorama (PSNR, SSIM)")
     p.set_defaults(func=cmd_compare)
 
-    p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings")
-    p.add_argument("--estimator", "--estimators", dest="estimator", help="the estimator to sweep, optionally with fixed parameters: 'ukf:Q=1e-5'")
+    p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",
+                       epilog="examples:\n"
+                              "  fusion ablate --estimator ukf --param R=1e-4,1e-3,1e-2 --param sigma=kraft,julier\n"
+                              "  fusion ablate --estimator ./student.py:complementary --param gain=0.01,0.02,0.05\n"
+                              "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
+                              "  fusion ablate --resume runs/sweep",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--estimator", "--estimators", dest="estimator",
+                   help="the estimator to sweep (ours or your own FILE.py:NAME), optionally with fixed parameters: "
+                        "'ukf:Q=1e-5'")
     p.add_argument("--param", action="append", default=[], metavar="NAME=V1,V2",
                    help="a parameter and its values; repeat for a grid, e.g. --param R=1e-4,1e-3 --param sigma=kraft,julier")
     p.add_argument("--preset", metavar="NAME", help=f"a named ablation: {', '.join(PRESETS)}")
@@ -213,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_data_args(p)
     _add_run_args(p)
     p.set_defaults(func=cmd_ablate)
+
+    p = sub.add_parser("list", help="the estimators a spec can name: ours and those installed packages register")
+    p.set_defaults(func=cmd_list)
 
     p = sub.add_parser("report", help="re-render the report of an --out folder from its results.json and series")
     p.add_argument("folder", metavar="DIR")

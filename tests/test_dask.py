@@ -132,14 +132,15 @@ def test_cli_scheduler_errors_are_one_line(data, capsys, monkeypatch):
 
 
 def test_dask_bar_moves_as_each_job_finishes(address, data, monkeypatch, tmp_path):
-    """Job k waits until the bar has shown k finished jobs (`cluster_fixtures.Gate`): a bar updated
-    only at the end would leave it waiting, and the job would fail."""
+    """The second job cannot finish until the bar has shown the first finished
+    (`cluster_fixtures.Gate`): a bar updated only at the end would leave it waiting, and the job
+    would fail. (Two jobs on two workers: the cluster may run its tasks in any order.)"""
     bars = cluster_fixtures.record_progress(monkeypatch, tmp_path)
-    specs = ",".join(["gate"] + [f"gate:wait_for={tmp_path / f'updated-{k}'}" for k in range(1, 4)])
-    run = run_compare(specs, "lab/rec1", data, scheduler=address, progress=True)
+    run = run_compare(f"gate,gate:wait_for={tmp_path / 'updated-1'}", "lab/rec1", data, scheduler=address,
+                      progress=True)
     (bar,) = bars
-    assert [r.error for r in run.results] == [None] * 4
-    assert len(bar.updates) == 4 and bar.updates == sorted(bar.updates)
+    assert [r.error for r in run.results] == [None, None]
+    assert len(bar.updates) == 2 and bar.postfixes == ["lab/rec1 gate", f"lab/rec1 gate:wait_for={tmp_path / 'updated-1'}"]
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -177,6 +178,24 @@ def test_sigterm_cancels_the_cluster_tasks_and_leaves_the_folder(address, data, 
     assert not (out / "results.json").exists() and (out / "mine.txt").read_text() == "not the toolkit's\n"
 
 
+def test_a_user_file_reaches_the_workers_as_its_contents(address, data, tmp_path, monkeypatch):
+    """A user's estimator file travels with the jobs: the workers run it even where they cannot
+    see it (here: deleted after the spec was resolved)."""
+    from fusion.estimators import resolve_all
+    from test_user_estimators import STUDENT
+
+    (tmp_path / "student.py").write_text(STUDENT)
+    monkeypatch.chdir(tmp_path)
+    entries = resolve_all("./student.py:complementary:gain=0.05,dr")
+    sources = datasets.select("all", data)
+    serial = runner.run(entries, sources, jobs=1)
+    (tmp_path / "student.py").unlink()
+    on_cluster = runner.run(entries, sources, scheduler=address, scatter=True)
+    assert [r.error for r in on_cluster] == [None] * 6
+    assert [r.estimator for r in on_cluster][:2] == ["student.complementary:gain=0.05", "dr"]
+    _same(serial, on_cluster)
+
+
 def test_a_killed_worker_costs_a_retry_not_a_row(address, data, tmp_path):
     """Last in this module: it kills one of the cluster's two worker processes (its nanny
     starts a new one)."""
@@ -188,3 +207,4 @@ def test_a_killed_worker_costs_a_retry_not_a_row(address, data, tmp_path):
     killed = cluster_fixtures.marker_pid(marker)
     assert not Path(f"/proc/{killed}").exists() or "Z" in Path(f"/proc/{killed}/stat").read_text().rsplit(")", 1)[1][:3]
     _same(serial, on_cluster)
+
