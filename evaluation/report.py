@@ -604,7 +604,12 @@ def _details_items(doc: dict[str, Any]) -> list[tuple[str, str]]:
     for label, d in doc.get("settings", {}).get("estimator_details", {}).items():
         params = ", ".join(f"{k}={v}" for k, v in d.get("params", {}).items()) or "(no parameters)"
         kind = "causal filter" if d.get("causal", True) else "smoother (non-causal: sees the future)"
-        out.append((label, f"{d.get('class', '')}: {kind}; {params}"))
+        origin = d.get("origin")
+        source = ""
+        if isinstance(origin, dict):  # a user's estimator: where its code comes from
+            source = f"; from {origin.get('kind', '')} {origin.get('where', '')}, {origin.get('attribute', '')}" + (
+                f" (sha256 {origin['sha256']})" if origin.get("sha256") else "")
+        out.append((label, f"{d.get('class', '')}: {kind}; {params}{source}"))
     return out
 
 

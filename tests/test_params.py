@@ -4,7 +4,8 @@ from typing import Literal
 
 import pytest
 
-from fusion.estimators.params import make_params, parse_specs
+from fusion.estimators import resolve
+from fusion.estimators.params import EstimatorSpec, make_params, parse_specs
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,10 @@ def test_make_params_converts_and_checks():
     with pytest.raises(ValueError, match="not a whole number"):
         make_params(P, {"iterations": "2.5"})
     with pytest.raises(ValueError, match="expected key=value"):
-        parse_specs("ukf:R")
+        parse_specs("ukf:Q=1:R")
+    assert parse_specs("ukf:R") == [EstimatorSpec("ukf:R")]  # FILE.py:NAME or module:NAME: `resolve` checks it
+    with pytest.raises(ValueError, match="estimator 'ukf': expected key=value, got 'R'"):
+        resolve("ukf:R")
 
 
 def test_filter_params_share_one_base_with_one_alias_per_field():

@@ -322,3 +322,30 @@ def test_a_filterpy_ukf_through_the_adapter_equals_its_own_loop(folder, monkeypa
         ukf.update(acc[k])
         by_hand.append(ukf.x / np.linalg.norm(ukf.x))
     np.testing.assert_allclose(row.trajectory.quat_wxyz, np.array(by_hand), rtol=0, atol=1e-12)
+
+
+def test_the_readme_function_runs_as_written(folder, monkeypatch):
+    """README, "Your estimator in the table": its complementary filter, copied into a file, runs
+    in the table and tracks the simulated recording's tilt."""
+    import re
+
+    readme = (HERE.parent / "README.md").read_text()
+    section = readme[readme.index("## Your estimator in the table"):]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    (folder / "readme_filter.py").write_text(code)
+    monkeypatch.chdir(folder)
+    (row,) = runner.run(["./readme_filter.py:complementary"], datasets.select("sim"))
+    (dr,) = runner.run(["dr"], datasets.select("sim"))
+    assert row.error is None and row.rmse_deg["inclination"] < 0.5 * dr.rmse_deg["inclination"]
+
+
+def test_reports_and_panoramas_take_a_user_estimator(folder, monkeypatch, capsys):
+    monkeypatch.chdir(folder)
+    assert main(["compare", "--estimators", "./student.py:complementary,dr", "--dataset", "sim", "--no-progress",
+                 "--out", "run"]) == 0
+    page = (folder / "run" / "report.html").read_text()
+    assert "student.complementary" in page and str(folder / "student.py") in page
+    capsys.readouterr()
+    assert main(["panorama", "--estimator", "./student.py:complementary", "--dataset", "sim", "--out", "p.png",
+                 "--size", "240x120", "--rate", "2", "--no-progress"]) == 0
+    assert capsys.readouterr().out.startswith("sim student.complementary: ") and (folder / "p.png").is_file()
