@@ -229,37 +229,33 @@ class JobOutput:
 def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
             truth_at_imu: Any = None) -> JobOutput:
     """`run_one` as a run's job: a failure becomes a row with its `error` (one line naming the
-    estimator and the recording) instead of an exception; the row is a summary unless `job.keep`.
+    estimator and the recording) instead of an exception; the row is a summary unless `job.keep`;
+    the warnings raised are returned (`JobOutput.warnings`), not shown.
 
     truth_at_imu: a callable giving the truth on the IMU stamps (for a filter's consistency plot
         data; the caller keeps it once per recording), or None.
     """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        output = _run_job(job, rec, entry, alignment, truth_at_imu)
-    return replace(output, warnings=tuple(dict.fromkeys(str(w.message) for w in caught)))
-
-
-def _run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
-             truth_at_imu: Any) -> JobOutput:
     from . import series
 
-    shown = aligned(rec, alignment)
-    recording_part = series.recording_part(shown) if job.series and job.with_recording else None
-    try:
-        result = run_one(rec, entry, job.init, job.protocol, alignment)
-        if job.panorama_data_dir is not None:
-            from .panorama import panorama_scores
+    with warnings.catch_warnings(record=True) as caught:  # shown by the process that runs the run
+        warnings.simplefilter("always")
+        shown = aligned(rec, alignment)
+        recording_part = series.recording_part(shown) if job.series and job.with_recording else None
+        try:
+            result = run_one(rec, entry, job.init, job.protocol, alignment)
+            if job.panorama_data_dir is not None:
+                from .panorama import panorama_scores
 
-            result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
-        part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None
-    except ValueError as exc:  # run_one's messages name the recording and the estimator
-        return JobOutput(failed(rec.id, entry.label, len(rec.imu), str(exc)), None, recording_part)
-    except Exception as exc:  # an estimator's own bug (a user's estimator above all): a row, not an abort
-        return JobOutput(failed(rec.id, entry.label, len(rec.imu),
-                                f"{rec.id}: estimator {entry.label!r} raised {type(exc).__name__}: "
-                                f"{' '.join(str(exc).split())[:300]}"), None, recording_part)
-    return JobOutput(result if job.keep else result.summary(), part, recording_part)
+                result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
+            part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None
+            output = JobOutput(result if job.keep else result.summary(), part, recording_part)
+        except ValueError as exc:  # run_one's messages name the recording and the estimator
+            output = JobOutput(failed(rec.id, entry.label, len(rec.imu), str(exc)), None, recording_part)
+        except Exception as exc:  # an estimator's own bug (a user's estimator above all): a row, not an abort
+            output = JobOutput(failed(rec.id, entry.label, len(rec.imu),
+                                      f"{rec.id}: estimator {entry.label!r} raised {type(exc).__name__}: "
+                                      f"{' '.join(str(exc).split())[:300]}"), None, recording_part)
+    return replace(output, warnings=tuple(dict.fromkeys(str(w.message) for w in caught)))
 
 
 def failed(dataset: str, label: str, samples: int, message: str) -> Result:
@@ -269,8 +265,6 @@ def failed(dataset: str, label: str, samples: int, message: str) -> Result:
 
 def warn_low_coverage(results: list[Result]) -> None:
     """One warning per row scored on less than `MIN_COVERAGE` of its recording."""
-    import warnings
-
     for r in results:
         if r.low_coverage:
             warnings.warn(f"{r.dataset}, {r.estimator}: scored on {r.scored_samples} of the recording's samples "

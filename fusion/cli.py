@@ -308,14 +308,10 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["compare", *argv]
         args = parser.parse_args(argv)
     args.argv = argv
-    with one_line_warnings():
-        return _dispatch(args)
-
-
-def _dispatch(args: argparse.Namespace) -> int:
     previous = _terminate_as_interrupt()
     try:
-        return args.func(args)
+        with one_line_warnings():
+            return args.func(args)
     except (ValueError, OSError) as exc:  # bad input: one line, exit 1
         print(f"fusion: error: {exc}", file=sys.stderr)
         return 1
