@@ -87,7 +87,7 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
     root = course_root(data_dir_from(data_dir))
     found: dict[str, Source] = {}
     if root.is_dir():
-        for source in _found(root, sorted(root.rglob("*"))):
+        for source in _found(root, [root, *sorted(root.rglob("*"))]):  # root: a folder that is one recording
             found.setdefault(source.id, source)
     ordered = {k: found[k] for k in sorted(found, key=_natural_key)}
     ordered[SIM_ID] = Source(SIM_ID, "sim")

@@ -560,6 +560,14 @@ def check_overlap(truth: Trajectory | None, imu_t: np.ndarray, path: Path | str 
         raise ValueError(f"{path}: {problem}")
 
 
+def seconds_since(sec: np.ndarray, nsec: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """Integer time stamps (seconds and nanoseconds, as ROS and nanosecond clocks give them) as
+    float64 seconds since `origin` (sec, nsec), subtracted in integers first: converting a unix
+    time in ns to float64 seconds would round every stamp to 0.24 us."""
+    sec, nsec = np.asarray(sec, np.int64), np.asarray(nsec, np.int64)
+    return (sec - origin[0]).astype(float) + (nsec - origin[1]).astype(float) * 1e-9
+
+
 # Names that moved to their format's module in `fusion.formats`, still importable from here
 # (imported when asked for: the format modules import this one).
 def __getattr__(name: str) -> Any:

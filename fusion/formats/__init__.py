@@ -15,11 +15,13 @@ Order matters only for a path a user names: the first format whose `find` takes 
 """
 from __future__ import annotations
 
-from . import broad, course, generic_csv, sim
+from . import asl, broad, course, generic_csv, rosbag, sim
 from .base import Format, Holds, Source, recording_id
 
 FORMATS: dict[str, Format] = {
     "course": course.FORMAT,  # ECE276A pickles, ESE650 .mat, with VICON
+    "asl": asl.FORMAT,  # EuRoC / TUM-VI folders (mav0/imu0/data.csv)
+    "rosbag": rosbag.FORMAT,  # ROS 1 .bag, ROS 2 folders (.db3, .mcap)
     "broad": broad.FORMAT,  # BROAD trials (.hdf5, .mat)
     "csv": generic_csv.FORMAT,  # t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]
     "sim": sim.FORMAT,  # the built-in simulated recording
