@@ -57,7 +57,10 @@ LAYOUTS: dict[str, tuple[Any, ...]] = {
     "geometry_msgs/msg/TransformStamped": ("str", 7),  # child_frame_id; translation (3), rotation x y z w (4)
     "nav_msgs/msg/Odometry": ("str", 7 + 36 + 6 + 36),  # child_frame_id; pose (3 + 4), covariance, twist, covariance
 }
-GYRO, ACC, ORIENTATION = slice(13, 16), slice(25, 28), slice(3, 7)  # in the float64 block (ORIENTATION: truth types)
+# Where the fields read are in the float64 block: angular_velocity, linear_acceleration (Imu), and
+# the orientation x y z w (the truth types: after the position or translation).
+GYRO_ACC = [13, 14, 15, 25, 26, 27]
+ORIENTATION = [3, 4, 5, 6]
 MAX_MESSAGE_BYTES = 1 << 16  # these messages are a few hundred bytes (two short strings)
 BATCH = 1 << 16  # messages decoded at once (bounds the raw bytes held: some 20 MB)
 SUFFIXES = (".bag", ".mcap")
@@ -204,9 +207,10 @@ def decode(raws: Sequence[bytes | memoryview], msgtype: str, ros1: bool, what: s
     return stamps, block
 
 
-def read_topic(reader, topic: str, msgtype: str, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """`decode` of every message of `topic`, in batches of `BATCH` (the raw bytes of one batch
-    at a time); refused beyond `MAX_SAMPLES` messages, declared or read."""
+def read_topic(reader, topic: str, msgtype: str, what: str, columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """`(stamps_ns, block[:, columns])` of `decode` for every message of `topic`, in batches of
+    `BATCH` (the raw bytes and whole fields of one batch at a time); refused beyond
+    `MAX_SAMPLES` messages, declared or read."""
     declared = reader.topics[topic].msgcount
     if declared > MAX_SAMPLES:
         raise ValueError(f"{what}: {declared} messages declared, more than the {MAX_SAMPLES:.3g} samples of any recording")
@@ -221,10 +225,10 @@ def read_topic(reader, topic: str, msgtype: str, what: str) -> tuple[np.ndarray,
         if len(batch) == BATCH:
             ns, block = decode(batch, msgtype, ros1, what)
             stamps.append(ns)
-            blocks.append(block)
+            blocks.append(block[:, columns])
             batch = []
     ns, block = decode(batch, msgtype, ros1, what)
-    return np.concatenate([*stamps, ns]), np.concatenate([*blocks, block])
+    return np.concatenate([*stamps, ns]), np.concatenate([*blocks, block[:, columns]])
 
 
 def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
@@ -240,16 +244,16 @@ def read_bag(path: Path, imu_topic: str | None = None, truth_topic: str | None =
         imu_topic = choose_topic(path, topics, imu_topic, (IMU_TYPE,), "--imu-topic", required=True)
         truth_topic = choose_topic(path, topics, truth_topic, TRUTH_TYPES, "--truth-topic", required=False)
         what = f"{path} [{imu_topic}]"
-        ns, block = read_topic(reader, imu_topic, IMU_TYPE, what)
+        ns, gyr_acc = read_topic(reader, imu_topic, IMU_TYPE, what, GYRO_ACC)
         origin_ns = int(ns[0]) if len(ns) else 0
         names = tuple(f"{imu_topic} {field}.{axis}" for field in ("angular_velocity", "linear_acceleration")
                       for axis in "xyz")
-        (imu,) = physical_samples(what, _seconds(ns, origin_ns), block[:, GYRO], block[:, ACC], names, "end")
+        (imu,) = physical_samples(what, _seconds(ns, origin_ns), gyr_acc[:, :3], gyr_acc[:, 3:], names, "end")
         if truth_topic is None:
             return imu, None
         what = f"{path} [{truth_topic}]"
-        ns, block = read_topic(reader, truth_topic, topics[truth_topic], what)
-    quat = block[:, ORIENTATION][:, [3, 0, 1, 2]]  # x y z w -> w x y z
+        ns, xyzw = read_topic(reader, truth_topic, topics[truth_topic], what, ORIENTATION)
+    quat = xyzw[:, [3, 0, 1, 2]]  # x y z w -> w x y z
     t, quat = repair_time(_seconds(ns, origin_ns), what, quat)
     quat = unit_quaternions(what, quat, "orientations (x, y, z, w)", 1e-2)
     if quat is None:
