@@ -566,17 +566,3 @@ def seconds_since(sec: np.ndarray, nsec: np.ndarray, origin: tuple[int, int]) ->
     time in ns to float64 seconds would round every stamp to 0.24 us."""
     sec, nsec = np.asarray(sec, np.int64), np.asarray(nsec, np.int64)
     return (sec - origin[0]).astype(float) + (nsec - origin[1]).astype(float) * 1e-9
-
-
-# Names that moved to their format's module in `fusion.formats`, still importable from here
-# (imported when asked for: the format modules import this one).
-def __getattr__(name: str) -> Any:
-    if name in ("load_imu_pickle", "load_imu_mat", "load_vicon"):
-        from .formats import course
-
-        return getattr(course, name)
-    if name in ("load_csv", "CSV_COLUMNS", "CSV_TRUTH"):
-        from .formats import generic_csv
-
-        return getattr(generic_csv, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -8,7 +8,6 @@ the messages are checked on their own.
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -16,7 +16,7 @@ Order matters only for a path a user names: the first format whose `find` takes 
 from __future__ import annotations
 
 from . import asl, broad, course, generic_csv, rosbag, sim
-from .base import Format, Holds, Source, recording_id
+from .base import Format, Holds, ReadOptions, Source, recording_id
 
 FORMATS: dict[str, Format] = {
     "course": course.FORMAT,  # ECE276A pickles, ESE650 .mat, with VICON
@@ -27,4 +27,4 @@ FORMATS: dict[str, Format] = {
     "sim": sim.FORMAT,  # the built-in simulated recording
 }
 
-__all__ = ["FORMATS", "Format", "Holds", "Source", "recording_id"]
+__all__ = ["FORMATS", "Format", "Holds", "ReadOptions", "Source", "recording_id"]

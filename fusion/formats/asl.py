@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -43,10 +42,7 @@ from scipy.spatial.transform import Rotation
 from ..loaders import (check_file, check_overlap, matrices_to_quat, one_line, parse_rows, physical_samples,
                        repair_time, seconds_since, text_lines, unit_quaternions)
 from ..types import Recording, Trajectory
-from .base import Format, Holds, Source, recording_id
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
+from .base import Format, Holds, ReadOptions, Source, recording_id
 
 IMU_COLUMNS = ("w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
 TRUTH_COLUMNS = ("q_RS_w", "q_RS_x", "q_RS_y", "q_RS_z")
@@ -175,7 +171,7 @@ class AslFormat(Format):
                 mav0 = path.parent.parent
                 yield Source(recording_id(root, mav0.parent, strip_suffix=False), self.kind, mav0)
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         imu, imu_path, origin_ns = read_imu(source.imu)
         found = read_truth(source.imu, origin_ns)
         truth = None

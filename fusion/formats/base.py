@@ -6,12 +6,19 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+from ..calibration import BoardModel
 from ..types import GyrTiming, Recording
 
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
+
+class ReadOptions(Protocol):
+    """What a format's `read` may use of `fusion.datasets.LoadOptions` (see there)."""
+
+    board: BoardModel
+    dropouts: bool
+    imu_topic: str | None
+    truth_topic: str | None
 
 
 @dataclass(frozen=True)
@@ -76,7 +83,7 @@ class Format(ABC):
         """
 
     @abstractmethod
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         """Read, check and (for raw counts) calibrate one recording."""
 
     @abstractmethod

@@ -26,17 +26,14 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..loaders import MAX_STEP_S, MIN_STEP_S, check_declared, physical_samples, read_isolated, read_mat, unit_quaternions
 from ..types import ImuSamples, Recording, Trajectory
-from .base import Format, Holds, Source, recording_id
+from .base import Format, Holds, ReadOptions, Source, recording_id
 from .course import is_course_file
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
 
 SUFFIXES = (".hdf5", ".h5", ".mat")
 REQUIRED = ("imu_gyr", "imu_acc", "opt_quat", "sampling_rate")
@@ -159,7 +156,7 @@ class BroadFormat(Format):
             if path.suffix.lower() in SUFFIXES and not is_course_file(path) and path.is_file():
                 yield Source(recording_id(root, path), self.kind, path)
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         imu, truth, movement = load_broad(source.imu)
         return Recording(source.id, imu, truth, movement=movement)
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,10 +43,7 @@ from ..calibration import BoardModel, Calibration, calibrate
 from ..loaders import (ADC_LIMIT_COUNTS, check_overlap, field_array, matrices_to_quat, numeric_array, read_mat,
                        read_pickle, repair_time, time_row)
 from ..types import ImuSamples, RawImu, Recording, Trajectory
-from .base import Format, Holds, Source
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
+from .base import Format, Holds, ReadOptions, Source
 
 IMU_FILE = re.compile(r"imuRaw(\d+)\.(p|mat)$")
 COURSE_FILE = re.compile(r"(imuRaw|viconRot|cam)\d+\.(p|mat)$")
@@ -179,7 +175,7 @@ class CourseFormat(Format):
                          vicon=_sibling(path.parent, "vicon", "viconRot", number, path.suffix),
                          cam=_sibling(path.parent, "cam", "cam", number, path.suffix))
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         raw = load_imu(source.imu)
         truth = load_vicon(source.vicon) if source.vicon else None
         check_overlap(truth, raw.t, source.vicon, f"VICON time span does not overlap the IMU file {source.imu}")

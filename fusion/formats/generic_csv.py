@@ -13,16 +13,12 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..loaders import check_file, parse_rows, physical_samples, text_lines, unit_quaternions
 from ..types import Recording, Trajectory
-from .base import Format, Holds, Source, recording_id
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
+from .base import Format, Holds, ReadOptions, Source, recording_id
 
 CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 CSV_TRUTH = ("qw", "qx", "qy", "qz")
@@ -83,7 +79,7 @@ class CsvFormat(Format):
             if path.suffix.lower() == ".csv" and path.is_file():
                 yield Source(recording_id(root, path), self.kind, path)
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         imu, truth, movement = load_csv(source.imu, with_movement=True)
         return Recording(source.id, imu, truth, movement=movement)
 

@@ -33,17 +33,14 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..loaders import (MAX_SAMPLES, check_overlap, one_line, physical_samples, repair_time, seconds_since,
                        unit_quaternions)
 from ..types import Recording, Trajectory
-from .base import Format, Holds, Source, recording_id
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
+from .base import Format, Holds, ReadOptions, Source, recording_id
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 TRUTH_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped", "nav_msgs/msg/Odometry")
@@ -281,7 +278,7 @@ class RosbagFormat(Format):
             elif path.suffix.lower() in SUFFIXES and path.is_file():
                 yield Source(recording_id(root, path), self.kind, path)
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         imu, truth = read_bag(Path(source.imu), options.imu_topic, options.truth_topic)
         return Recording(source.id, imu, truth)
 

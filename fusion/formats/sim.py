@@ -5,15 +5,11 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from ..sim import SimSettings, simulate
 from ..types import Recording
-from .base import Format, Holds, Source
+from .base import Format, Holds, ReadOptions, Source
 from .course import calibrated_recording
-
-if TYPE_CHECKING:
-    from ..datasets import LoadOptions
 
 SIM_ID = "sim"
 
@@ -25,7 +21,7 @@ class SimFormat(Format):
     def find(self, root: Path | None, paths: Sequence[Path]) -> Iterator[Source]:
         return iter(())  # `fusion.datasets.discover` lists `sim` with every folder
 
-    def read(self, source: Source, options: "LoadOptions") -> Recording:
+    def read(self, source: Source, options: ReadOptions) -> Recording:
         # The simulated hardware is the nominal board (with the sim's own sensitivity errors);
         # `options.board` is the user's model of it, used only to calibrate, as for a real file.
         raw, truth = simulate()
