@@ -270,3 +270,17 @@ def test_decoding_refuses_malformed_messages():
     huge_frame = raw[:12] + (10**6).to_bytes(4, "little") + raw[16:]
     with pytest.raises(ValueError, match=r"x.bag: a message of 324 bytes does not match its layout \(1000316 bytes\)"):
         rosbag.decode([huge_frame], rosbag.IMU_TYPE, False, "x.bag")
+
+
+def test_missing_libraries_are_one_line_saying_what_to_install(tmp_path, monkeypatch):
+    """Without rosbags (an optional extra) or PyYAML, reading says which package to install."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # import fails as if not installed
+    (tmp_path / "a.bag").write_bytes(b"#ROSBAG V2.0\n")
+    with pytest.raises(ImportError, match=r"a.bag: reading ROS bags needs rosbags: pip install -e '.\[ros\]'"):
+        datasets.load(str(tmp_path / "a.bag"))
+    monkeypatch.setitem(sys.modules, "yaml", None)
+    (tmp_path / "sensor.yaml").write_text("T_BS: {data: []}\n")
+    with pytest.raises(ImportError, match=r"sensor.yaml: reading ASL sensor.yaml files needs PyYAML: pip install pyyaml"):
+        asl.sensor_rotation(tmp_path / "sensor.yaml")
