@@ -1,16 +1,19 @@
 """Finding recordings in a data directory, selecting them by id, and loading them.
 
-A data directory is laid out like the course releases, possibly nested:
+A data directory holds recordings of every format in `fusion.formats` (one module each, and
+the registry `FORMATS`), possibly nested:
 
     <data>/ece276a/imu/imuRaw3.p     <data>/ece276a/vicon/viconRot3.p    [<data>/ece276a/cam/cam3.p]
     <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
-    <data>/mylab/walk.csv            (generic CSV, see `fusion.loaders.load_csv`)
-    <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.broad`)
+    <data>/mylab/walk.csv            (generic CSV, see `fusion.formats.generic_csv`)
+    <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.formats.broad`)
 
-Each recording gets an id: its folder relative to the data directory (or, for recordings
-directly in it, the data directory's own name) plus its number, e.g. `ece276a/3`; a CSV
-file's or BROAD trial's id is its path without the suffix. A `.mat` file that is not a
-course file (imuRawN/viconRotN/camN) is taken for a BROAD trial. The built-in simulated recording is always `sim`.
+Each recording gets an id: for the course files, their folder relative to the data directory
+(or, for recordings directly in it, the data directory's own name) plus their number, e.g.
+`ece276a/3`; for a file of another format, its path without the suffix; for a format that is
+a folder, the folder's path. A `.mat` file that is not a course file (imuRawN/viconRotN/camN)
+is taken for a BROAD trial; files inside a folder that is itself a recording belong to it. The
+built-in simulated recording is always `sim`.
 
 The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`. A course's `imu/`
 (or `vicon/`, `cam/`) folder given as the data directory stands for its parent.
@@ -19,8 +22,12 @@ The same session may be present in several formats (`ece276a/3`, `ese650/3` and 
 `ece276a-2018/3` hold identical raw samples). `select` counts each recording once: course
 recordings whose loaded time stamps and counts are bit-identical are merged (`merge_identical`,
 a hash of the loaded arrays: some 0.1 s for 27 files), keeping the id with ground truth; the
-kept `Source` lists the others in `aliases`. CSV files and BROAD trials are not hashed (they
-are not raw counts of the course board and would need a full load; each file counts as one).
+kept `Source` lists the others in `aliases`. Recordings of other formats are not hashed (they
+are not raw counts of the course board and would need a full load; each counts as one).
+
+Loading (`LoadOptions.load`, `load_source`) reads a recording through its format's `read`,
+then marks the gyro samples standing for time gaps invalid (`fusion.loaders.invalidate_gaps`)
+and moves the truth by a measured clock offset, the same for every format.
 """
 from __future__ import annotations
 
@@ -33,29 +40,19 @@ from pathlib import Path
 
 import numpy as np
 
-from . import loaders
-from .calibration import BoardModel, calibrate
-from .types import Recording
+from .calibration import BoardModel, Calibration
+from .formats import FORMATS, Source
+from .formats import course
+from .formats.course import load_imu
+from .formats.sim import SIM_ID
+from .loaders import invalidate_gaps
+from .types import ImuSamples, RawImu, Recording, Trajectory
 
-SIM_ID = "sim"
-_IMU_FILE = re.compile(r"imuRaw(\d+)\.(p|mat)$")
-_COURSE_FILE = re.compile(r"(imuRaw|viconRot|cam)\d+\.(p|mat)$")
-_BROAD_SUFFIXES = (".hdf5", ".h5", ".mat")
+__all__ = ["COURSE_SUBFOLDERS", "DROPOUTS_DEFAULT", "INIT_MODES", "SIM_ID", "LoadOptions", "Source", "calibrated_samples",
+           "course_root", "data_dir_from", "describe_merged", "discover", "fingerprint", "initial_orientation", "load",
+           "load_imu", "load_source", "merge_identical", "merged_ids", "select"]
 
-
-@dataclass(frozen=True)
-class Source:
-    """Where one recording's files are. `kind` is "course", "csv", "broad" or "sim"."""
-
-    id: str
-    kind: str
-    imu: Path | None = None
-    vicon: Path | None = None
-    cam: Path | None = None
-    aliases: tuple[str, ...] = ()  # ids of identical recordings merged into this one (`merge_identical`)
-
-
-COURSE_SUBFOLDERS = ("imu", "vicon", "cam")
+COURSE_SUBFOLDERS = course.SUBFOLDERS
 
 
 def data_dir_from(arg: str | os.PathLike | None = None) -> Path:
@@ -73,12 +70,13 @@ def _natural_key(text: str) -> list:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
 
 
-def _sibling(imu_dir: Path, folder: str, stem: str, number: str, suffix: str) -> Path | None:
-    for ext in (suffix, ".p", ".mat"):
-        path = imu_dir.parent / folder / f"{stem}{number}{ext}"
-        if path.is_file():
-            return path
-    return None
+def _found(root: Path | None, paths: list[Path]) -> list[Source]:
+    """Every format's recordings among `paths` (`Format.find`), in registry order; a recording
+    inside a folder that is itself a recording (an ASL `mav0/`, a rosbag2 folder) belongs to it
+    and is left out."""
+    sources = [s for fmt in FORMATS.values() for s in fmt.find(root, paths)]
+    folders = {s.imu for s in sources if s.imu is not None and s.imu.is_dir()}
+    return [s for s in sources if s.imu is None or not folders.intersection(s.imu.parents)]
 
 
 def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
@@ -89,28 +87,8 @@ def discover(data_dir: str | os.PathLike | None = None) -> dict[str, Source]:
     root = course_root(data_dir_from(data_dir))
     found: dict[str, Source] = {}
     if root.is_dir():
-        for path in sorted(root.rglob("*")):
-            if not path.is_file():
-                continue
-            match = _IMU_FILE.match(path.name)
-            if match and path.parent.name == "imu":
-                folder = path.parent.parent.relative_to(root).as_posix()
-                prefix = root.resolve().name if folder == "." else folder
-                number, suffix = match.group(1), path.suffix
-                rid = f"{prefix}/{number}"
-                if rid in found:  # imuRaw3.p and imuRaw3.mat in one folder: keep the first
-                    continue
-                found[rid] = Source(
-                    rid, "course", path,
-                    vicon=_sibling(path.parent, "vicon", "viconRot", number, suffix),
-                    cam=_sibling(path.parent, "cam", "cam", number, suffix),
-                )
-            elif path.suffix.lower() == ".csv":
-                rid = path.relative_to(root).with_suffix("").as_posix()
-                found[rid] = Source(rid, "csv", path)
-            elif path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
-                rid = path.relative_to(root).with_suffix("").as_posix()
-                found[rid] = Source(rid, "broad", path)
+        for source in _found(root, [root, *sorted(root.rglob("*"))]):  # root: a folder that is one recording
+            found.setdefault(source.id, source)
     ordered = {k: found[k] for k in sorted(found, key=_natural_key)}
     ordered[SIM_ID] = Source(SIM_ID, "sim")
     return ordered
@@ -241,79 +219,45 @@ def _ranges(numbers: list[str]) -> str:
 
 
 def _source_for_file(path: Path) -> Source:
-    match = _IMU_FILE.match(path.name)
-    if path.suffix.lower() == ".csv":
-        return Source(path.with_suffix("").as_posix(), "csv", path)
-    if path.suffix.lower() in _BROAD_SUFFIXES and not _COURSE_FILE.match(path.name):
-        return Source(path.with_suffix("").as_posix(), "broad", path)
-    if match:
-        number = match.group(1)
-        return Source(
-            f"{path.parent.parent.name}/{number}", "course", path,
-            vicon=_sibling(path.parent, "vicon", "viconRot", number, path.suffix),
-            cam=_sibling(path.parent, "cam", "cam", number, path.suffix),
-        )
-    raise ValueError(f"{path}: not a recording this toolkit reads (imuRawN.p/.mat, .csv, or a BROAD .hdf5/.mat trial)")
-
-
-def load_imu(path: Path):
-    """Raw counts from a course IMU file, whichever release it comes from."""
-    return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
+    found = _found(None, [path])
+    if found:
+        return found[0]
+    kinds = "; ".join(fmt.describe for kind, fmt in FORMATS.items() if kind != "sim")
+    raise ValueError(f"{path}: not a recording this toolkit reads ({kinds})")
 
 
 DROPOUTS_DEFAULT = True  # detected gyro freezes and ADC saturation are sensor faults: never integrate them
 
 
-def calibrated_samples(raw, calib, dropouts: bool = DROPOUTS_DEFAULT):
+def calibrated_samples(raw: RawImu, calib: Calibration, dropouts: bool = DROPOUTS_DEFAULT) -> ImuSamples:
     """`calib.apply(raw)`, with `gyr_valid` from `fusion.checks.dropout_mask` when `dropouts`."""
-    imu = calib.apply(raw)
-    if dropouts:
-        from .checks import dropout_mask
-
-        imu = imu.replace(gyr_valid=dropout_mask(raw, calib.board))
-    return imu
+    return course.calibrated_samples(raw, calib, dropouts)
 
 
 def load_source(source: Source, board: BoardModel = BoardModel(), dropouts: bool = DROPOUTS_DEFAULT,
-                truth_offset_s: float = 0.0) -> Recording:
-    """Read and calibrate one recording.
+                truth_offset_s: float = 0.0, imu_topic: str | None = None, truth_topic: str | None = None) -> Recording:
+    """Read and calibrate one recording (`LoadOptions` says what the arguments mean).
 
-    dropouts: the one switch of dropout handling: mark detected gyro freezes and saturated
-        samples invalid (`ImuSamples.gyr_valid`, see `fusion.checks`); off for ablations.
     truth_offset_s: a measured clock offset (truth stamp minus IMU stamp, s, see
         `fusion.checks.clock_offset`); the truth's stamps are moved by `-truth_offset_s`.
     """
-    if source.kind == "sim":
-        from .sim import simulate
-
-        # The simulated hardware is the nominal board (with the sim's own sensitivity errors);
-        # `board` is the user's model of it, used only to calibrate, as for a real file.
-        raw, truth = simulate()
-        calib = calibrate(raw, board)
-        return Recording(SIM_ID, calibrated_samples(raw, calib, dropouts), _shift(truth, truth_offset_s), raw, calib)
-    if source.kind == "csv":
-        imu, truth, movement = loaders.load_csv(source.imu, with_movement=True)
-        return Recording(source.id, loaders.invalidate_gaps(imu), _shift(truth, truth_offset_s), movement=movement)
-    if source.kind == "broad":
-        from .broad import load_broad
-
-        imu, truth, movement = load_broad(source.imu)
-        return Recording(source.id, imu, _shift(truth, truth_offset_s), movement=movement)
-    raw = load_imu(source.imu)
-    calib = calibrate(raw, board)
-    truth = loaders.load_vicon(source.vicon) if source.vicon else None
-    if truth is not None and not (truth.t[0] < raw.t[-1] and raw.t[0] < truth.t[-1]):
-        raise ValueError(f"{source.vicon}: VICON time span does not overlap the IMU file {source.imu}")
-    # Gyro samples before a time gap are marked invalid too (see `fusion.loaders`, time stamps).
-    imu = loaders.invalidate_gaps(calibrated_samples(raw, calib, dropouts))
-    return Recording(source.id, imu, _shift(truth, truth_offset_s), raw, calib, camera=source.cam)
+    return _load(source, LoadOptions(board, dropouts, imu_topic=imu_topic, truth_topic=truth_topic), truth_offset_s)
 
 
-def _shift(truth, offset_s: float):
+def _load(source: Source, options: "LoadOptions", truth_offset_s: float) -> Recording:
+    fmt = FORMATS.get(source.kind)
+    if fmt is None:
+        raise ValueError(f"{source.id}: unknown recording kind {source.kind!r} (known: {', '.join(FORMATS)})")
+    rec = fmt.read(source, options)
+    # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
+    imu = invalidate_gaps(rec.imu)
+    truth = _shift(rec.truth, truth_offset_s)
+    return rec if imu is rec.imu and truth is rec.truth else replace(rec, imu=imu, truth=truth)
+
+
+def _shift(truth: Trajectory | None, offset_s: float) -> Trajectory | None:
     if truth is None or offset_s == 0.0:
         return truth
-    from .types import Trajectory
-
     return Trajectory(truth.t - offset_s, truth.quat_wxyz, truth.diagnostics)
 
 
@@ -328,17 +272,24 @@ def load(dataset_id: str, data_dir: str | os.PathLike | None = None, board: Boar
 class LoadOptions:
     """How recordings are loaded, in one picklable value (worker processes load their own).
 
-    board: the sensor model (a calibration file's gyro scale factors go here).
-    dropouts: mark detected gyro freezes and saturation invalid (see `load_source`).
-    truth_offsets_s: per recording id, a measured truth clock offset, s.
+    board: the sensor model of recordings in raw counts (a calibration file's gyro scale
+        factors go here).
+    dropouts: the one switch of dropout handling: mark detected gyro freezes and saturated
+        samples invalid (`ImuSamples.gyr_valid`, see `fusion.checks`); off for ablations.
+    truth_offsets_s: per recording id, a measured truth clock offset, s (see `load_source`).
+    imu_topic, truth_topic: the topics of a ROS bag to read the IMU and the truth from (None:
+        the one topic of the type, see `fusion.formats.rosbag`); other formats ignore them.
     """
 
     board: BoardModel = BoardModel()
     dropouts: bool = DROPOUTS_DEFAULT
     truth_offsets_s: tuple[tuple[str, float], ...] = ()
+    imu_topic: str | None = None
+    truth_topic: str | None = None
 
     def load(self, source: Source) -> Recording:
-        return load_source(source, self.board, self.dropouts, dict(self.truth_offsets_s).get(source.id, 0.0))
+        """Read one recording through its format (`fusion.formats.FORMATS`), checked and calibrated."""
+        return _load(source, self, dict(self.truth_offsets_s).get(source.id, 0.0))
 
 
 INIT_MODES = ("truth", "accel", "identity")

@@ -1,41 +1,16 @@
-"""Readers for every file format of the course recordings, and a generic CSV.
-
-Each loader turns one file layout into the canonical types of `fusion.types` and nothing
-else: IMU files become `RawImu` (native ADC counts, order ax ay az wx wy wz, no sign flip)
-or, for files in physical units, `ImuSamples`; VICON files become a `Trajectory`. Raw layouts
-(`7 x T`, `6 x T`, `3 x 3 x K`) are converted here and nowhere else.
-
-Formats (see `../shared/data/README.md`):
-- ECE276A `imuRawN.p`: float 7 x T; row 0 unix time, rows 1-6 ax ay az wx wy wz, with ax and
-  ay already negated by the course (`-raw`); undone here so all formats give the same counts.
-- ECE276A-2018 `imuRawN.p`: dict `vals` uint16 6 x T (ax ay az wz wx wy, not negated), `ts` 1 x T.
-- ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy, not negated), `ts` 1 x T.
-- VICON `viconRotN.p` / `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
-- Generic CSV (`load_csv`): a header line and columns `t` (s), `gx gy gz` (rad/s),
-  `ax ay az` (m/s^2), optionally `qw qx qy qz` (ground truth `R_world_body`). Gyro timing
-  "end": the gyro values on row k are the rate over (t[k-1], t[k]], as VQF, Madgwick, Mahony,
-  Fusion and BROAD take them.
-
-Gyro timing of the course files (`ImuSamples.gyr_timing`): "start", gyro sample k is the rate
-over [t[k], t[k+1]) (gyro k, then accelerometer k + 1). Evidence on ece276a 1-9
-(`python benchmarks/timing_evidence.py`), ambiguous at the level of the scores:
-- Gyro against accelerometer on the IMU's own clock (gravity in the body frame turns as
-  `-w x a`): gyro sample k matches the accelerometer's turn rate at t[k] + 9.2 ms (pooled;
-  +2 to +14 ms, all nine positive). A mean over [t[k], t[k+1]] predicts +5 ms, over
-  (t[k-1], t[k]] -5 ms (the method gives +5.6 / -4.4 ms on `fusion.sim`): "start" fits.
-- Against VICON the pairing is not identifiable by itself: a one-sample gyro shift equals a
-  VICON clock shift. With each pairing's own measured clock offset (VICON lags by -5..+21 ms
-  with "start", +5..+31 ms with "end"), mean RMSEs differ by at most 0.16 deg: dr 11.68 vs
-  11.67 total, gn inclination 1.47 vs 1.49, ekf 1.91 vs 1.86, vqf 4.41 vs 4.34 ("start" vs
-  "end"). The filters lean slightly to "end", by less than their recording-to-recording spread.
-
-Pickles can run code when loaded: only open pickle files you trust. As a guard, pickles are
-read with a restricted unpickler that only builds numpy arrays and plain containers and
-refuses any other class.
+"""What every file format shares: safe readers, resource bounds, time-stamp repairs and
+plausibility checks. The formats themselves are in `fusion.formats` (one module each); each one
+reads its layout with the functions here, so that every file goes through the same checks.
 
 Every problem raises `ValueError` (or `FileNotFoundError`) naming the file, in one line
-(exception texts from pickle/SciPy are folded onto that line). `tests/test_fuzz_loaders.py`
-feeds thousands of broken files through every loader and the CLI to keep it so.
+(exception texts from pickle/SciPy/HDF5/rosbags are folded onto that line, `one_line`).
+`tests/test_fuzz_loaders.py` feeds thousands of broken files of every format through the
+loaders and the CLI to keep it so.
+
+Resource bounds (`MAX_SAMPLES`, `MAX_VALUES`, `MAX_BYTES`, `MAX_NESTING`) are checked on what a
+file *declares* before anything is allocated: array shapes in HDF5/MATLAB headers
+(`check_declared`), the structure of unpickled containers (`check_structure`), the row count of
+a text table (`read_table`), the message counts of a ROS bag's index.
 
 Time stamps (`repair_time` then `check_sampling`, applied by every loader):
 - not strictly increasing (NaN/Inf, duplicated, backwards): the offending samples are
@@ -49,10 +24,15 @@ Time stamps (`repair_time` then `check_sampling`, applied by every loader):
   across the gap instead of integrating a stale rate over it (see `invalidate_gaps`). If the
   gaps cover more than half of the recording's span, the file is rejected (broken stamps).
 
-Values: NaN or Inf IMU values are rejected (VICON NaN matrices are tracking gaps and kept);
-complex, string, object or structured arrays are rejected; VICON matrices must be proper
-rotations (orthonormal, determinant +1). MATLAB files are read in a forked child process
-(`read_isolated`): a corrupt file can crash SciPy's C reader, and a crash must stay an error.
+Values: NaN or Inf IMU values are rejected (NaN truth rows are tracking gaps and kept);
+complex, string, object or structured arrays are rejected; values in physical units must be
+physically plausible (`check_physical`, `physical_samples`); truth quaternions must be unit
+quaternions (`unit_quaternions`), rotation matrices proper rotations (`matrices_to_quat`).
+MATLAB and HDF5 files are read in a forked child process (`read_isolated`): a corrupt file can
+crash SciPy's or HDF5's C reader, and a crash must stay an error.
+
+The gyro timing of each format (`ImuSamples.gyr_timing`) is said, with its evidence, in its
+module: `fusion.formats.course` for the course boards ("start"), the others "end".
 """
 from __future__ import annotations
 
@@ -70,7 +50,7 @@ from typing import Any, BinaryIO, Callable, Iterable
 
 import numpy as np
 
-from .types import STANDARD_GRAVITY_M_S2, ImuSamples, RawImu, Trajectory
+from .types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 ADC_LIMIT_COUNTS = 65535  # raw IMU values are ADC counts (10-bit here; any 16-bit ADC fits)
 GAP_S = 0.5  # a time step longer than this is a gap (warned about; see the module docstring)
@@ -84,14 +64,10 @@ MAX_VALUES = 16 * MAX_SAMPLES  # per array, all values (16 channels of MAX_SAMPL
 MAX_BYTES = 2 * 1024**3  # all arrays of one file together, as float64 (what loading makes of them)
 MAX_NESTING = 8  # nested lists/tuples/dicts in a pickle (a 3 x 3 x K list in a dict is 4)
 
-# Physical plausibility of files in physical units (CSV, BROAD): see `check_physical`.
+# Physical plausibility of files in physical units (CSV, BROAD, ASL, ROS bags): see `check_physical`.
 GYRO_LIMIT_RAD_S = 70.0  # 4000 deg/s: the widest range of common MEMS gyros
 GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-1 rad/s; BROAD up to 5.3)
 ACC_LIMIT_M_S2 = 200 * STANDARD_GRAVITY_M_S2  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
-
-# Canonical channel order ax ay az wx wy wz from the (ax ay az wz wx wy) layout of the
-# .mat and 2018 files.
-_FROM_AZ_WZ_WX_WY = [0, 1, 2, 4, 5, 3]
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
@@ -119,7 +95,7 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"refusing to load {module}.{name} (only numpy arrays and plain containers)")
 
 
-def _one_line(exc: BaseException, limit: int = 200) -> str:
+def one_line(exc: BaseException, limit: int = 200) -> str:
     """`Type: message` of an exception on one line, shortened (SciPy messages can hold matrices)."""
     text = " ".join(str(exc).split())
     text = text if len(text) <= limit else text[: limit - 3] + "..."
@@ -130,12 +106,12 @@ def read_pickle(path: Path, kind: str = "pickle", max_values: int = MAX_VALUES) 
     """The object of a pickle file, built by the restricted unpickler (numpy arrays and plain
     containers only: a pickle cannot run code here) and checked by `check_structure` with
     `max_values`. Any failure is one ValueError naming the file; `kind` names the format."""
-    _check_file(path)
+    check_file(path)
     try:
         with open(path, "rb") as f:  # streamed: a camera pickle is hundreds of MB
             obj = _RestrictedUnpickler(f, encoding="latin1").load()
     except Exception as exc:  # pickle raises many types for corrupt input; report them all in one line
-        raise ValueError(f"{path}: not a readable {kind} ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: not a readable {kind} ({one_line(exc)})") from None
     check_structure(obj, path, max_values)
     return obj
 
@@ -212,14 +188,14 @@ def read_mat(path: Path, kind: str = "MATLAB", variable_names: list[str] | None 
     one ValueError naming the file; `kind` names the format."""
     import scipy.io  # noqa: F401  (imported here, so the child never imports: no import lock held across fork)
 
-    _check_file(path)
+    check_file(path)
     return read_isolated(path, partial(_loadmat, kind=kind, variable_names=variable_names, v73=v73,
                                        max_values=max_values, max_bytes=max_bytes), kind)
 
 
 def read_isolated(path: Path, reader: Callable[[Path], dict[str, Any]], kind: str) -> dict[str, np.ndarray]:
     """`reader(path)`'s arrays: numeric ones as they are, anything else as an empty object
-    array (which `_numeric` rejects). `reader` raises `ValueError` (or `ImportError`) for files
+    array (which `numeric_array` rejects). `reader` raises `ValueError` (or `ImportError`) for files
     it cannot read; `kind` names the format in messages.
 
     SciPy's MATLAB reader (and h5py's HDF5 library) are C code that a corrupt file can crash
@@ -346,12 +322,12 @@ def _loadmat(path: Path, kind: str, variable_names: list[str] | None, v73: Calla
     except ValueError as exc:
         if str(exc).startswith(f"{path}:"):
             raise
-        raise ValueError(f"{path}: not a readable {kind} file ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: not a readable {kind} file ({one_line(exc)})") from None
     except Exception as exc:  # scipy raises ValueError, TypeError, OSError... for broken files
-        raise ValueError(f"{path}: not a readable {kind} file ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: not a readable {kind} file ({one_line(exc)})") from None
 
 
-def _check_file(path: Path) -> None:
+def check_file(path: Path) -> None:
     """A clear error for a missing or empty file."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
@@ -359,24 +335,53 @@ def _check_file(path: Path) -> None:
         raise ValueError(f"{path}: file is empty")
 
 
-def _read_bytes(path: Path) -> bytes:
-    _check_file(path)
+def read_bytes(path: Path) -> bytes:
+    """The bytes of a file (`check_file` first)."""
+    check_file(path)
     return path.read_bytes()
 
 
-def _field(obj: Any, key: str, path: Path) -> np.ndarray:
+def text_lines(path: Path, max_bytes: int = MAX_BYTES) -> list[str]:
+    """The lines of a text file (UTF-8, a byte-order mark dropped, undecodable bytes replaced),
+    refused when larger than `max_bytes` (before reading) or longer than `MAX_SAMPLES` rows
+    after its header line."""
+    check_file(path)
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise ValueError(f"{path}: {size / 1024**3:.3g} GiB, more than the {max_bytes / 1024**3:.3g} GiB limit of one file")
+    lines = path.read_bytes().decode("utf-8-sig", errors="replace").splitlines()  # -sig: drop a BOM
+    if len(lines) - 1 > MAX_SAMPLES:
+        raise ValueError(f"{path}: {len(lines) - 1} rows, more than the {MAX_SAMPLES:.3g} samples of any recording")
+    return lines
+
+
+def parse_rows(path: Path, rows: list[str], delimiter: str = ",") -> np.ndarray:
+    """(R, C) float table of comma-separated numeric rows (blank lines skipped); one line naming
+    the file for a row that is not numbers."""
+    if not any(line.strip() for line in rows):
+        raise ValueError(f"{path}: no data rows after the header")
+    try:
+        return np.loadtxt(rows, delimiter=delimiter, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: unreadable CSV row ({exc})") from None
+
+
+def field_array(obj: Any, key: str, path: Path) -> np.ndarray:
+    """`obj[key]` as a float array (`numeric_array`); `obj` must be a dict holding `key`."""
     if not isinstance(obj, dict) or key not in obj:
         have = (sorted((k for k in obj if not str(k).startswith("__")), key=str) if isinstance(obj, dict)
                 else type(obj).__name__)  # key=str: keys of mixed types do not compare
         raise ValueError(f"{path}: expected a field {key!r}, found {have}")
-    return _numeric(obj[key], path, key)
+    return numeric_array(obj[key], path, key)
 
 
-def _numeric(value: Any, path: Path, what: str) -> np.ndarray:
+def numeric_array(value: Any, path: Path, what: str) -> np.ndarray:
+    """`value` as a float array; refused when ragged, not numeric (strings, objects,
+    structured) or complex; `what` names it in messages."""
     try:
         arr = np.asarray(value)
     except (ValueError, TypeError) as exc:  # ragged nested lists
-        raise ValueError(f"{path}: {what} is not a numeric array ({_one_line(exc)})") from None
+        raise ValueError(f"{path}: {what} is not a numeric array ({one_line(exc)})") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
         raise ValueError(f"{path}: {what} is not numeric (dtype {arr.dtype})")
     if np.issubdtype(arr.dtype, np.complexfloating):
@@ -384,7 +389,8 @@ def _numeric(value: Any, path: Path, what: str) -> np.ndarray:
     return arr.astype(float)
 
 
-def _time_row(ts: np.ndarray, n: int, path: Path) -> np.ndarray:
+def time_row(ts: np.ndarray, n: int, path: Path) -> np.ndarray:
+    """(n,) time stamps from a `1 x n` (or any shape of n values) array."""
     t = np.ravel(ts)
     if len(t) != n:
         raise ValueError(f"{path}: {len(t)} time stamps for {n} samples")
@@ -490,64 +496,6 @@ def invalidate_gaps(imu: ImuSamples) -> ImuSamples:
     return imu.replace(gyr_valid=imu.gyr_valid & ~gap)
 
 
-def _raw_imu(t: np.ndarray, counts: np.ndarray, path: Path) -> RawImu:
-    if counts.ndim != 2 or counts.shape[1] != 6:
-        raise ValueError(f"{path}: IMU values must be a 6 x T array, got shape {counts.shape[::-1]}")
-    if counts.shape[0] < 2:
-        raise ValueError(f"{path}: {counts.shape[0]} IMU samples; need at least 2")
-    if not np.all(np.isfinite(counts)):
-        raise ValueError(f"{path}: IMU values contain NaN or Inf")
-    if np.abs(counts).max() > ADC_LIMIT_COUNTS:
-        raise ValueError(f"{path}: IMU values up to {np.abs(counts).max():.3g} are not ADC counts (|value| <= {ADC_LIMIT_COUNTS})")
-    t, counts = repair_time(t, path, counts)
-    return RawImu(t, counts, source=str(path), gyr_timing="start")  # the evidence: see the module docstring
-
-
-def load_imu_pickle(path: str | Path) -> RawImu:
-    """ECE276A `imuRawN.p`, either release (7 x T array, or the 2018 dict `vals`/`ts`)."""
-    path = Path(path)
-    obj = read_pickle(path)
-    if isinstance(obj, dict):  # 2018 release: same layout as the .mat files
-        vals = _field(obj, "vals", path)
-        if vals.ndim != 2 or vals.shape[0] != 6:
-            raise ValueError(f"{path}: 'vals' must be 6 x T, got shape {vals.shape}")
-        return _raw_imu(_time_row(_field(obj, "ts", path), vals.shape[1], path), vals[_FROM_AZ_WZ_WX_WY].T, path)
-    if not isinstance(obj, np.ndarray):
-        raise ValueError(f"{path}: expected a 7 x T array or a dict with 'vals' and 'ts', found {type(obj).__name__}")
-    arr = _numeric(obj, path, "the array")
-    if arr.ndim != 2 or arr.shape[0] != 7:
-        raise ValueError(f"{path}: expected a 7 x T array (time + 6 channels), got shape {arr.shape}")
-    counts = arr[1:].T.copy()
-    counts[:, :2] *= -1.0  # this release negated ax and ay; back to native counts
-    return _raw_imu(arr[0], counts, path)
-
-
-def load_imu_mat(path: str | Path) -> RawImu:
-    """ESE650 `imuRawN.mat`: `vals` 6 x T (ax ay az wz wx wy), `ts` 1 x T."""
-    path = Path(path)
-    mat = read_mat(path)
-    vals = _field(mat, "vals", path)
-    if vals.ndim != 2 or vals.shape[0] != 6:
-        raise ValueError(f"{path}: 'vals' must be 6 x T, got shape {vals.shape}")
-    return _raw_imu(_time_row(_field(mat, "ts", path), vals.shape[1], path), vals[_FROM_AZ_WZ_WX_WY].T, path)
-
-
-def load_vicon(path: str | Path) -> Trajectory:
-    """VICON `viconRotN.p` or `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
-
-    Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them.
-    """
-    path = Path(path)
-    obj = read_mat(path) if path.suffix == ".mat" else read_pickle(path)
-    rots = _field(obj, "rots", path)
-    if rots.ndim != 3 or rots.shape[:2] != (3, 3):
-        raise ValueError(f"{path}: 'rots' must be 3 x 3 x K, got shape {rots.shape}")
-    t = _time_row(_field(obj, "ts", path), rots.shape[2], path)
-    matrices = np.moveaxis(rots, 2, 0)  # (K, 3, 3)
-    t, matrices = repair_time(t, path, matrices)
-    return Trajectory(t, matrices_to_quat(matrices, path))
-
-
 def matrices_to_quat(matrices: np.ndarray, path: Path | str) -> np.ndarray:
     """(K, 3, 3) rotation matrices -> (K, 4) wxyz; non-finite rows stay NaN.
 
@@ -569,64 +517,52 @@ def matrices_to_quat(matrices: np.ndarray, path: Path | str) -> np.ndarray:
     return quat
 
 
-CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
-CSV_TRUTH = ("qw", "qx", "qy", "qz")
-
-
-def load_csv(path: str | Path, with_movement: bool = False):
-    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
-
-    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; gyro
-    row k is the angular rate over (t[k-1], t[k]] (`ImuSamples.gyr_timing` "end", the common
-    convention of IMU drivers and of VQF, Madgwick, Mahony and Fusion; a file whose gyro
-    rows cover [t[k], t[k+1]) instead can be loaded and then declared with
-    `imu.replace(gyr_timing="start")`); the
-    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
-    the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
-    Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
-    without the column).
-    """
-    path = Path(path)
-    text = _read_bytes(path).decode("utf-8-sig", errors="replace").splitlines()  # -sig: drop a BOM
-    header = [h.strip().strip("\"'").strip().lower() for h in text[0].split(",")]
-    repeated = sorted({h for h in header if header.count(h) > 1 and h})
-    if repeated:
-        raise ValueError(f"{path}: the header names column {', '.join(repr(h) for h in repeated)} more than once")
-    if len(text) - 1 > MAX_SAMPLES:
-        raise ValueError(f"{path}: {len(text) - 1} rows, more than the {MAX_SAMPLES:.3g} samples of any recording")
-    missing = [c for c in CSV_COLUMNS if c not in header]
-    if missing:
-        raise ValueError(f"{path}: missing CSV columns {', '.join(missing)} (need {','.join(CSV_COLUMNS)}[,{','.join(CSV_TRUTH)}])")
-    if not any(line.strip() for line in text[1:]):
-        raise ValueError(f"{path}: no data rows after the header")
-    try:
-        table = np.loadtxt(text[1:], delimiter=",", ndmin=2)
-    except ValueError as exc:
-        raise ValueError(f"{path}: unreadable CSV row ({exc})") from None
-    if table.shape[0] < 2 or table.shape[1] != len(header):
-        raise ValueError(f"{path}: need at least 2 rows of {len(header)} columns, got shape {table.shape}")
-    col = {name: table[:, i] for i, name in enumerate(header)}
-    gyr = np.column_stack([col[c] for c in ("gx", "gy", "gz")])
-    acc = np.column_stack([col[c] for c in ("ax", "ay", "az")])
-    if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
-        raise ValueError(f"{path}: gyro or accelerometer columns contain NaN or Inf")
-    check_physical(path, gyr, acc, ("gx", "gy", "gz"), ("ax", "ay", "az"))
-    acc = acc / STANDARD_GRAVITY_M_S2  # CSV files are in m/s^2
-    has_truth = all(c in header for c in CSV_TRUTH)
-    quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
-    movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
-    t, gyr, acc, quat, movement = repair_time(col["t"], path, gyr, acc, quat, movement)
-    imu = ImuSamples(t, gyr, acc, source=str(path), gyr_timing="end")  # the common convention
-    extra = (movement if "movement" in col else None,) if with_movement else ()
-    if not has_truth:
-        return (imu, None, *extra)
+def unit_quaternions(path: Path | str, quat_wxyz: np.ndarray, what: str, tolerance: float) -> np.ndarray | None:
+    """(N, 4) truth quaternions, rows normalised, rows that are not finite (tracking lost) NaN;
+    None when no row is finite. Refused when a finite row's norm is more than `tolerance` from 1
+    (a wrong layout or unit); `what` names them in the message."""
     with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
-        norm = np.linalg.norm(quat, axis=1)
+        norm = np.linalg.norm(quat_wxyz, axis=1)
     ok = np.isfinite(norm)
     if not np.any(ok):
-        warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
-        return (imu, None, *extra)
-    if np.any(np.abs(norm[ok] - 1.0) > 1e-3):
-        raise ValueError(f"{path}: truth quaternions (qw,qx,qy,qz) are not unit quaternions")
-    quat[ok] /= norm[ok, None]
-    return (imu, Trajectory(t, quat), *extra)
+        return None
+    if np.any(np.abs(norm[ok] - 1.0) > tolerance):
+        raise ValueError(f"{path}: {what} are not unit quaternions")
+    out = np.array(quat_wxyz, dtype=float)
+    out[ok] /= norm[ok, None]
+    out[~ok] = np.nan
+    return out
+
+
+def physical_samples(path: Path | str, t: np.ndarray, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray,
+                     names: tuple[str, ...], gyr_timing: str, *arrays: np.ndarray) -> tuple[Any, ...]:
+    """`ImuSamples` from values in physical units, through the shared checks: finite values,
+    `check_physical` (`names`: the six gyro and accelerometer columns, for messages), then
+    `repair_time`, which drops the same rows of `arrays` (per-sample extras: truth, a mask).
+
+    t: (N,) s; gyr_rad_s: (N, 3) rad/s; acc_m_s2: (N, 3) m/s^2 (returned in g), body frame.
+    Returns `(imu, *arrays)`.
+    """
+    if len(t) < 2:
+        raise ValueError(f"{path}: {len(t)} samples; need at least 2")
+    if not (np.all(np.isfinite(gyr_rad_s)) and np.all(np.isfinite(acc_m_s2))):
+        raise ValueError(f"{path}: the gyro or accelerometer values contain NaN or Inf")
+    check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:])
+    t, gyr_rad_s, acc_m_s2, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, *arrays)
+    imu = ImuSamples(t, gyr_rad_s, acc_m_s2 / STANDARD_GRAVITY_M_S2, source=str(path), gyr_timing=gyr_timing)
+    return (imu, *arrays)
+
+
+def check_overlap(truth: Trajectory | None, imu_t: np.ndarray, path: Path | str | None, problem: str) -> None:
+    """Refuse a truth whose time span does not overlap the IMU's (`problem` says so, after the
+    truth's `path`)."""
+    if truth is not None and not (truth.t[0] < imu_t[-1] and imu_t[0] < truth.t[-1]):
+        raise ValueError(f"{path}: {problem}")
+
+
+def seconds_since(sec: np.ndarray, nsec: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """Integer time stamps (seconds and nanoseconds, as ROS and nanosecond clocks give them) as
+    float64 seconds since `origin` (sec, nsec), subtracted in integers first: converting a unix
+    time in ns to float64 seconds would round every stamp to 0.24 us."""
+    sec, nsec = np.asarray(sec, np.int64), np.asarray(nsec, np.int64)
+    return (sec - origin[0]).astype(float) + (nsec - origin[1]).astype(float) * 1e-9

@@ -55,23 +55,25 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
     return sources
 
 
-def load_options(calibration: str | os.PathLike | None = None,
-                 dropouts: bool = datasets.DROPOUTS_DEFAULT) -> datasets.LoadOptions:
-    """A calibration file and the dropout switch as the loading options every command uses."""
+def load_options(calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
+                 imu_topic: str | None = None, truth_topic: str | None = None) -> datasets.LoadOptions:
+    """A calibration file, the dropout switch and a ROS bag's topics (`--imu-topic`,
+    `--truth-topic`; None: the one topic of the type) as the loading options every command uses."""
+    topics = dict(imu_topic=imu_topic, truth_topic=truth_topic)
     if not calibration:
-        return datasets.LoadOptions(dropouts=dropouts)
+        return datasets.LoadOptions(dropouts=dropouts, **topics)
     calib_file = gyro_fit.read(calibration)
-    return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())))
+    return datasets.LoadOptions(calib_file.board(), dropouts, tuple(sorted(calib_file.clock_offset_s.items())), **topics)
 
 
 def load_selected(dataset: str = "all", data_dir: str | os.PathLike | None = None,
                   calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                  progress: bool = False) -> list[Recording]:
+                  progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> list[Recording]:
     """The recordings `dataset` names (`select_sources`), loaded and calibrated (`load_options`);
     progress: a progress bar on stderr, one step per recording."""
     from tqdm import tqdm
 
-    options = load_options(calibration, dropouts)
+    options = load_options(calibration, dropouts, imu_topic, truth_topic)
     return [options.load(source) for source in tqdm(select_sources(dataset, data_dir, calibration), desc="loading",
                                                      disable=not progress, file=sys.stderr, leave=False)]
 

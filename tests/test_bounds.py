@@ -20,6 +20,7 @@ import pytest
 import scipy.io
 
 from fusion import loaders
+from fusion.formats import course, generic_csv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -59,13 +60,13 @@ def test_pickle_bomb_is_tiny_and_refused_by_structure(tmp_path):
     assert len(pickle.dumps(shared_list_bomb())) < 700
     path = write_pickle_bomb(tmp_path / "imuRaw1.p")
     with pytest.raises(ValueError, match=r"imuRaw1\.p: containers nested more than 8 deep"):
-        loaders.load_imu_pickle(path)
+        course.load_imu_pickle(path)
 
 
 def test_pickle_bomb_within_depth_is_refused_by_count(tmp_path):
     path = write_pickle_bomb(tmp_path / "imuRaw1.p", levels=6, width=40)  # 4e9 values, depth 7
     with pytest.raises(ValueError, match=r"imuRaw1\.p: nested containers hold 4.1e\+09 values"):
-        loaders.load_imu_pickle(path)
+        course.load_imu_pickle(path)
 
 
 def test_check_structure_shared_references_counted_once_per_reference():
@@ -104,7 +105,7 @@ def test_mat_declaring_huge_shapes_is_refused_from_the_header(tmp_path):
     path = write_mat_bomb(tmp_path / "imuRaw1.mat")
     assert path.stat().st_size < 200_000
     with pytest.raises(ValueError, match=r"imuRaw1\.mat: 'vals' declares shape \(6, 12000000\)"):
-        loaders.load_imu_mat(path)
+        course.load_imu_mat(path)
 
 
 def test_check_declared_total_bytes():
@@ -129,8 +130,8 @@ def test_bombs_refused_under_a_memory_limit(tmp_path):
             import h5py
         except ImportError:
             pass
-        from fusion import loaders
         from fusion.broad import load_broad
+        from fusion.formats import course
         limit = {int(1.5 * 1024**3)}
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
         try:  # the limit is real: a 2 GB array cannot be had
@@ -139,7 +140,7 @@ def test_bombs_refused_under_a_memory_limit(tmp_path):
         except MemoryError:
             pass
         for path in sys.argv[1:]:
-            fn = load_broad if path.endswith(".hdf5") else (loaders.load_imu_mat if path.endswith(".mat") else loaders.load_imu_pickle)
+            fn = load_broad if path.endswith(".hdf5") else (course.load_imu_mat if path.endswith(".mat") else course.load_imu_pickle)
             try:
                 fn(path)
                 print("LOADED", path)
@@ -172,7 +173,7 @@ def csv_text(n: int = 300, gyr_scale: float = 1.0, acc_scale: float = 1.0, t=Non
 def load(tmp_path, text: str):
     path = tmp_path / "walk.csv"
     path.write_text(text)
-    return loaders.load_csv(path)
+    return generic_csv.load_csv(path)
 
 
 def test_plausible_csv_loads_without_warning(tmp_path):

@@ -108,3 +108,49 @@ def test_shared_data_counts_the_nine_course_sessions_once(data_dir):
         n = s.id.split("/")[1]
         assert s.aliases == (f"ece276a-2018/{n}", f"ese650/{n}")
     assert [s.id for s in datasets.select("5", data_dir)] == ["ece276a/5"]
+
+
+def test_a_new_format_is_one_class_and_one_registry_line(tmp_path, monkeypatch):
+    """A format registered in `fusion.formats.FORMATS` is found, selected, loaded (through the
+    shared post-step: a time gap marks its gyro sample invalid) and described like the others."""
+    from fusion.formats import FORMATS, Format, Holds, Source, recording_id
+    from fusion.types import ImuSamples, Recording
+
+    class Npz(Format):
+        kind = "npz"
+        describe = ".npz (t, gyr, acc)"
+
+        def find(self, root, paths):
+            return (Source(recording_id(root, p), self.kind, p) for p in paths if p.suffix == ".npz")
+
+        def read(self, source, options):
+            data = np.load(source.imu)
+            return Recording(source.id, ImuSamples(data["t"], data["gyr"], data["acc"], source=str(source.imu)))
+
+        def holds(self, source):
+            return Holds(truth=False, movement=False, magnetometer=False, gyr_timing="end", raw_counts=False)
+
+    monkeypatch.setitem(FORMATS, "npz", Npz())
+    t = np.concatenate([np.arange(100) * 0.01, 5.0 + np.arange(100) * 0.01])  # a 4 s gap after sample 99
+    (tmp_path / "lab").mkdir()
+    np.savez(tmp_path / "lab" / "run.npz", t=t, gyr=np.zeros((200, 3)), acc=np.tile([0, 0, 1.0], (200, 1)))
+    (source,) = datasets.select("all", tmp_path)
+    assert (source.id, source.kind) == ("lab/run", "npz")
+    rec = datasets.LoadOptions().load(source)
+    assert np.flatnonzero(~rec.imu.gyr_valid).tolist() == [100]  # gyr_timing "end": the sample after the gap
+    assert datasets.select(str(tmp_path / "lab" / "run.npz"))[0].kind == "npz"
+    (tmp_path / "x.txt").write_text("hello")
+    with pytest.raises(ValueError, match=r"x.txt: not a recording this toolkit reads \(.*\.npz \(t, gyr, acc\)\)"):
+        datasets.select(str(tmp_path / "x.txt"))
+
+
+def test_what_each_format_holds(three_formats):
+    from fusion.formats import FORMATS
+
+    found = datasets.discover(three_formats)
+    holds = {rid: FORMATS[s.kind].holds(s) for rid, s in found.items()}
+    assert holds["new/1"].truth and not holds["old/1"].truth
+    assert all(h.raw_counts and h.gyr_timing == "start" and not h.magnetometer for h in holds.values())
+    (three_formats / "walk.csv").write_text("t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz,movement\n")
+    csv = FORMATS["csv"].holds(datasets.discover(three_formats)["walk"])
+    assert (csv.truth, csv.movement, csv.raw_counts, csv.gyr_timing) == (True, True, False, "end")

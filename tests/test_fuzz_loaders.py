@@ -6,10 +6,13 @@ Two parts:
   resource bombs (nested shared-reference pickles, HDF5/.mat headers declaring huge shapes),
   implausible physical values and duplicate CSV columns,
   empty arrays, NaN/Inf, non-monotonic and duplicated stamps, time gaps, a VICON file with no
-  overlap, pickles of the wrong structure, CSVs with junk), each with its expected outcome,
-  run through the loaders and through `fusion compare` in-process;
-- hypothesis-generated cases: random bytes, random mutations of valid files of every format,
-  random CSV text, and whole recordings (IMU + VICON) through `fusion.datasets.load` and the CLI.
+  overlap, pickles of the wrong structure, CSVs with junk; EuRoC/TUM-VI folders with broken
+  stamps, values, truth and sensor.yaml files (YAML bombs and tags included); ROS 1 and ROS 2
+  bags with ambiguous or missing topics, wrong message bytes, broken stamps, truncated storage),
+  each with its expected outcome, run through the loaders and through `fusion compare` in-process;
+- hypothesis-generated cases: random bytes, random mutations of valid files of every format
+  (bags: their .bag/.db3/.mcap bytes), random CSV and ASL text, and whole recordings (IMU + VICON)
+  through `fusion.datasets.load` and the CLI.
 
 Every case is counted; the terminal summary prints `fuzz: N cases, M tracebacks` (conftest.py).
 A case "tracebacks" when it raises anything else, or an error without the file name or on
@@ -32,6 +35,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fusion import datasets, loaders
+from fusion.formats import course, generic_csv
 from fusion.cli import main
 from fusion.types import ImuSamples, RawImu, Recording, Trajectory
 
@@ -119,10 +123,10 @@ def load_file(path: Path):
 
         return load_broad(path)
     if path.suffix == ".csv":
-        return loaders.load_csv(path)
+        return generic_csv.load_csv(path)
     if path.name.startswith("viconRot"):
-        return loaders.load_vicon(path)
-    return loaders.load_imu_mat(path) if path.suffix == ".mat" else loaders.load_imu_pickle(path)
+        return course.load_vicon(path)
+    return course.load_imu_mat(path) if path.suffix == ".mat" else course.load_imu_pickle(path)
 
 
 # --- the judge ----------------------------------------------------------------------------
@@ -409,7 +413,7 @@ def test_corpus_file(root, fuzz_stats, fname, obj, vicon, expect, code):
 @pytest.mark.parametrize("text, expect, code", _csv_corpus())
 def test_corpus_csv(root, fuzz_stats, text, expect, code):
     path = write(fresh_dir(root) / "walk.csv", text)
-    judge(fuzz_stats, lambda: loaders.load_csv(path), [path], expect=expect)
+    judge(fuzz_stats, lambda: generic_csv.load_csv(path), [path], expect=expect)
     run_cli(fuzz_stats, cli_args(path), [path], expect_code=code)
 
 
@@ -586,7 +590,7 @@ def test_generated_csv(root, fuzz_stats, data, header, n, junk, stamps):
         rows[r][ci] = data.draw(st.sampled_from(CSV_TOKENS))
     text = header + "\n" + "\n".join(",".join(r) for r in rows)
     path = write(fresh_dir(root) / "walk.csv", text.encode("utf-8", errors="surrogatepass"))
-    judge(fuzz_stats, lambda: loaders.load_csv(path), [path])
+    judge(fuzz_stats, lambda: generic_csv.load_csv(path), [path])
 
 
 @settings(FUZZ, max_examples=200)
@@ -694,3 +698,231 @@ def test_mutated_broad_trials(root, fuzz_stats, data, n, key, hdf5):
     if key == "bytes":
         write(path, mutate_bytes(data, path.read_bytes()))
     judge(fuzz_stats, lambda: load_file(path), [path])
+
+
+# --- EuRoC / TUM-VI folders (fusion.formats.asl) ------------------------------------------
+
+ASL_IMU_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+                  "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
+ASL_TRUTH_HEADER = "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []"
+T_BS_ROTATED = "T_BS:\n  cols: 4\n  rows: 4\n  data: [0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n"
+
+
+def asl_tables(n: int, seed: int = 0) -> tuple[list[list[str]], list[list[str]]]:
+    """Rows (as text fields) of a valid imu0/data.csv and truth data.csv: 200 Hz, ns stamps."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    ns = 1_403_636_579_758_555_392 + np.arange(n, dtype=np.int64) * 5_000_000
+    rot = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.01, (n, 3)), axis=0))
+    gyr, acc = rng.normal(0, 0.2, (n, 3)), rot.inv().apply([0, 0, 9.81])
+    imu = [[str(s), *(repr(float(x)) for x in (*g, *a))] for s, g, a in zip(ns, gyr, acc)]
+    truth = [[str(s), "0", "0", "0", *(repr(float(x)) for x in q)] for s, q in zip(ns, rot.as_quat(scalar_first=True))]
+    return imu, truth
+
+
+def write_asl_folder(folder: Path, imu_rows, truth_rows=None, imu_header=ASL_IMU_HEADER, truth_header=ASL_TRUTH_HEADER,
+                     truth_yaml: str | bytes | None = None, truth_folder: str = "state_groundtruth_estimate0") -> Path:
+    mav0 = folder / "mav0"
+    (mav0 / "imu0").mkdir(parents=True)
+    (mav0 / "imu0" / "data.csv").write_text(imu_header + "\n" + "\n".join(",".join(r) for r in imu_rows) + "\n")
+    if truth_rows is not None:
+        (mav0 / truth_folder).mkdir()
+        (mav0 / truth_folder / "data.csv").write_text(truth_header + "\n" + "\n".join(",".join(r) for r in truth_rows) + "\n")
+        if truth_yaml is not None:
+            write(mav0 / truth_folder / "sensor.yaml", truth_yaml if isinstance(truth_yaml, bytes) else truth_yaml.encode())
+    return folder
+
+
+def _asl_corpus():
+    imu, truth = asl_tables(300)
+
+    def edit(rows, row, col, value):
+        rows = [list(r) for r in rows]
+        rows[row][col] = value
+        return rows
+
+    billion_laughs = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [{', '.join(['*' + p] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi")) + "T_BS:\n  data: *i\n"
+    return [
+        pytest.param(imu, truth, {}, "ok", 0, id="asl-valid"),
+        pytest.param(imu, None, {}, "ok", 0, id="asl-no-truth"),
+        pytest.param(imu, truth, {"truth_yaml": T_BS_ROTATED}, "ok", 0, id="asl-truth-t-bs"),
+        pytest.param(imu, truth, {"truth_yaml": "%YAML:1.0\n" + T_BS_ROTATED}, "ok", 0, id="asl-opencv-yaml"),
+        pytest.param(imu, truth, {"truth_folder": "mocap0"}, "ok", 0, id="asl-tumvi-mocap0"),
+        pytest.param(imu, truth, {"imu_header": "t,gx,gy,gz,ax,ay,az"}, "error:missing ASL columns", 1, id="asl-generic-header"),
+        pytest.param(imu[:1], truth, {}, "error:need at least 2 rows", 1, id="asl-one-row"),
+        pytest.param([], truth, {}, "error:no data rows", 1, id="asl-header-only"),
+        pytest.param([[str(k * 5), *r[1:]] for k, r in enumerate(imu)], None, {}, "error:integer nanoseconds", 1, id="asl-stamps-not-ns"),
+        pytest.param(edit(imu, 10, 0, "1.4e18"), None, {}, "error:must hold integer nanoseconds", 1, id="asl-float-stamp"),
+        pytest.param(edit(imu, 10, 0, "99999999999999999999"), None, {}, "error:integer nanoseconds", 1, id="asl-stamp-overflow"),
+        pytest.param(edit(imu, 10, 2, "nan"), None, {}, "error:NaN or Inf", 1, id="asl-nan-gyro"),
+        pytest.param(edit(imu, 10, 4, "1e6"), None, {}, "error:beyond any accelerometer range", 1, id="asl-acc-1e6"),
+        pytest.param(edit(imu, 10, 3, "abc"), None, {}, "error:unreadable CSV row", 1, id="asl-junk-value"),
+        pytest.param(edit(imu, 100, 0, imu[99][0]), truth, {}, "warn:dropped 1", 0, id="asl-duplicated-stamp"),
+        pytest.param(imu[::-1], None, {}, "error:not increasing", 1, id="asl-reversed"),
+        pytest.param(imu, edit(truth, 5, 4, "2.0"), {}, "error:not unit quaternions", 1, id="asl-truth-not-unit"),
+        pytest.param(imu, [[str(int(r[0]) + 10**13), *r[1:]] for r in truth], {}, "error:does not overlap", 1, id="asl-truth-no-overlap"),
+        pytest.param(imu, truth, {"truth_header": "#timestamp,x,y,z"}, "error:missing ASL columns q_RS_w", 1, id="asl-truth-no-quat"),
+        pytest.param(imu, truth, {"truth_yaml": "T_BS: [1, 2"}, "error:not a readable YAML file", 1, id="asl-yaml-broken"),
+        pytest.param(imu, truth, {"truth_yaml": "T_BS:\n  data: [1, 0, 0]\n"}, "error:T_BS must hold 16 numbers", 1, id="asl-t-bs-short"),
+        pytest.param(imu, truth, {"truth_yaml": "T_BS:\n  data: [2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 1]\n"},
+                     "error:are not rotation matrices", 1, id="asl-t-bs-not-rotation"),
+        pytest.param(imu, truth, {"truth_yaml": "T_BS:\n  data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, .nan, 0, 0, 0, 0, 1]\n"},
+                     "error:T_BS holds NaN or Inf", 1, id="asl-t-bs-nan"),
+        pytest.param(imu, truth, {"truth_yaml": "!!python/object/apply:os.system ['echo pwned']\n"},
+                     "error:not a readable YAML file", 1, id="asl-yaml-python-tag"),
+        pytest.param(imu, truth, {"truth_yaml": billion_laughs}, "error:T_BS must hold 16 numbers", 1, id="asl-yaml-billion-laughs"),
+        pytest.param(imu, truth, {"truth_yaml": b"T_BS: " + b"[" * 2_000_000}, "error:not a sensor.yaml", 1, id="asl-yaml-huge"),
+        pytest.param(imu, truth, {"truth_yaml": b"\xff\xfe\x00garbage: [\x00"}, "error:", 1, id="asl-yaml-binary"),
+    ]
+
+
+@pytest.mark.parametrize("imu, truth, options, expect, code", _asl_corpus())
+def test_corpus_asl(root, fuzz_stats, imu, truth, options, expect, code):
+    folder = write_asl_folder(fresh_dir(root) / "V1_01", imu, truth, **options)
+    judge(fuzz_stats, lambda: datasets.load(str(folder)), [folder], expect=expect)
+    run_cli(fuzz_stats, ["compare", "--estimators", "dr", "--no-progress", "--dataset", str(folder)], [folder], expect_code=code)
+
+
+@settings(FUZZ, max_examples=150)
+@given(data=st.data(), n=st.integers(2, 80), which=st.sampled_from(["imu", "truth"]), junk=st.integers(1, 5))
+def test_generated_asl_folders(root, fuzz_stats, data, n, which, junk):
+    imu, truth = asl_tables(n, seed=n)
+    rows = imu if which == "imu" else truth
+    for _ in range(junk):
+        r, c = data.draw(st.integers(0, n - 1)), data.draw(st.integers(0, len(rows[0]) - 1))
+        rows[r][c] = data.draw(st.sampled_from(CSV_TOKENS + ["-1", "0", "9223372036854775807", rows[max(r - 1, 0)][c]]))
+    folder = write_asl_folder(fresh_dir(root) / "V2_01", imu, truth)
+    judge(fuzz_stats, lambda: datasets.load(str(folder)), [folder])
+
+
+# --- ROS 1 and ROS 2 bags (fusion.formats.rosbag) -----------------------------------------
+
+def good_bag(path: Path, version: int, storage: str = "sqlite3", n: int = 300, **kwargs) -> Path:
+    from robotics_writers import write_bag
+
+    t, c = good_counts(n)  # only for a recognisable motion; the bag holds physical units
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(n)
+    rot = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.01, (n, 3)), axis=0))
+    tt = np.arange(n) / 200
+    return write_bag(path, version, tt, rng.normal(0, 0.2, (n, 3)), rot.inv().apply([0, 0, 1.0]), tt,
+                     rot.as_quat(scalar_first=True), storage=storage, **kwargs)
+
+
+def _bag_file(path: Path) -> Path:
+    """The file holding a bag's messages (the .bag, or a rosbag2 folder's .db3/.mcap)."""
+    return path if path.is_file() else next(p for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+
+
+def _raw_bag(path: Path, version: int, msgtype: str, raws: list[bytes], topic: str = "/imu0") -> Path:
+    """A bag whose `topic` claims `msgtype` but holds the bytes `raws` (stamps 5 ms apart)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS1_NOETIC if version == 1 else Stores.ROS2_HUMBLE)
+    if version == 1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(path)
+    else:
+        from rosbags.rosbag2 import Writer
+
+        writer = Writer(path, version=9)
+    with writer:
+        conn = writer.add_connection(topic, msgtype, typestore=typestore)
+        for k, raw in enumerate(raws):
+            writer.write(conn, 1_400_000_000_000_000_000 + k * 5_000_000, raw)
+    return path
+
+
+def _imu_raws(version: int, n: int, edit=None) -> list[bytes]:
+    from rosbags.typesys import Stores, get_typestore
+
+    from robotics_writers import imu_message
+
+    typestore = get_typestore(Stores.ROS1_NOETIC if version == 1 else Stores.ROS2_HUMBLE)
+    out = []
+    for k in range(n):
+        ns = 1_400_000_000_000_000_000 + k * 5_000_000
+        gyr, acc = np.array([0.1, -0.2, 0.05]), np.array([0.0, 0.0, 9.81])
+        if edit is not None:
+            ns, gyr, acc = edit(k, ns, gyr, acc)
+        msg = imu_message(typestore, ns, gyr, acc)
+        out.append(bytes(typestore.serialize_ros1(msg, "sensor_msgs/msg/Imu") if version == 1
+                         else typestore.serialize_cdr(msg, "sensor_msgs/msg/Imu")))
+    return out
+
+
+def _bag_corpus():
+    def nan_gyro(k, ns, g, a):
+        return ns, (g * np.nan if k == 7 else g), a
+
+    def backwards(k, ns, g, a):
+        return (ns - 10**9 if k == 50 else ns), g, a
+
+    def ms_apart(k, ns, g, a):
+        return 1_400_000_000_000_000_000 + k * 5_000, g, a
+
+    def far(k, ns, g, a):
+        return ns + (10**9 * 1000 if k > 100 else 0), g, a
+
+    cases = []
+    for version in (1, 2):
+        v = f"ros{version}"
+        cases += [
+            pytest.param(version, lambda p, v=version: good_bag(p, v), "ok", 0, id=f"{v}-valid"),
+            pytest.param(version, lambda p, v=version: good_bag(p, v, extra_topics=(("/imu1", "sensor_msgs/msg/Imu"),)),
+                         "error:2 topics of type sensor_msgs/msg/Imu: /imu0, /imu1; choose one with --imu-topic", 1,
+                         id=f"{v}-two-imu-topics"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "geometry_msgs/msg/PoseStamped", [b"\0" * 64] * 3,
+                                                                 topic="/pose"),
+                         "error:no sensor_msgs/msg/Imu topic; topics: /pose (geometry_msgs/msg/PoseStamped)", 1, id=f"{v}-no-imu"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", [b"\0\1\0\0" + b"\1" * 40] * 300),
+                         "error:", 1, id=f"{v}-wrong-bytes"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", _imu_raws(v, 300, nan_gyro)),
+                         "error:NaN or Inf", 1, id=f"{v}-nan-gyro"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", _imu_raws(v, 300, backwards)),
+                         "warn:dropped 1", 0, id=f"{v}-backwards-stamp"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", _imu_raws(v, 300, ms_apart)),
+                         "error:median time step 5e-06 s", 1, id=f"{v}-stamps-too-close"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", _imu_raws(v, 300, far)),
+                         "error:gaps cover more than half", 1, id=f"{v}-stamp-jump"),
+            pytest.param(version, lambda p, v=version: _raw_bag(p, v, "sensor_msgs/msg/Imu", _imu_raws(v, 1)),
+                         "error:1 samples; need at least 2", 1, id=f"{v}-one-message"),
+        ]
+    cases += [
+        pytest.param(1, lambda p: write(p, b"#ROSBAG V2.0\n" + bytes(range(256)) * 8), "error:not a readable ROS bag", 1,
+                     id="ros1-garbage"),
+        pytest.param(1, lambda p: write(p, good_bag(p.with_name("x.bag"), 1).read_bytes()[:5000]), "error:not a readable ROS bag",
+                     1, id="ros1-truncated"),
+        pytest.param(2, lambda p: (good_bag(p, 2), (p / "metadata.yaml").write_text("rosbag2_bagfile_information: [")) and p,
+                     "error:not a readable ROS bag", 1, id="ros2-broken-metadata"),
+        pytest.param(2, lambda p: (good_bag(p, 2), write(_bag_file(p), _bag_file(p).read_bytes()[:3000])) and p,
+                     "error:not a readable ROS bag", 1, id="ros2-truncated-db3"),
+        pytest.param(2, lambda p: (good_bag(p, 2, storage="mcap"), write(_bag_file(p), _bag_file(p).read_bytes()[:3000])) and p,
+                     "error:not a readable ROS bag", 1, id="ros2-truncated-mcap"),
+    ]
+    return cases
+
+
+@pytest.mark.parametrize("version, make, expect, code", _bag_corpus())
+def test_corpus_bags(root, fuzz_stats, version, make, expect, code):
+    pytest.importorskip("rosbags")
+    path = make(fresh_dir(root) / ("run.bag" if version == 1 else "run"))
+    judge(fuzz_stats, lambda: datasets.load(str(path)), [path], expect=expect)
+    run_cli(fuzz_stats, ["compare", "--estimators", "dr", "--no-progress", "--dataset", str(path)], [path], expect_code=code)
+
+
+@settings(FUZZ, max_examples=120)
+@given(data=st.data(), kind=st.sampled_from(["ros1", "sqlite3", "mcap"]))
+def test_mutated_bags(root, fuzz_stats, data, kind):
+    """Valid bags of each storage with their bytes truncated, flipped or extended."""
+    pytest.importorskip("rosbags")
+    lab = fresh_dir(root)
+    path = good_bag(lab / ("run.bag" if kind == "ros1" else "run"), 1 if kind == "ros1" else 2,
+                    storage="mcap" if kind == "mcap" else "sqlite3", n=60)
+    target = _bag_file(path)
+    write(target, mutate_bytes(data, target.read_bytes()))
+    judge(fuzz_stats, lambda: datasets.load(str(path)), [path])

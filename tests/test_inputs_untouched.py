@@ -35,7 +35,7 @@ def run(argv: list[str]) -> tuple[int, str, str]:
 
 
 def generated_data(root: Path) -> Path:
-    """A data folder with one recording of each format (IMU + VICON), written here."""
+    """A data folder with one recording of each format (IMU + truth), written here."""
     rng = np.random.default_rng(1)
     n = 600
     t = 1.3e9 + np.arange(n) * 0.01
@@ -54,6 +54,14 @@ def generated_data(root: Path) -> Path:
     scipy.io.savemat(root / "b/vicon/viconRot1.mat", {"rots": rots, "ts": t[None]})
     rows = np.column_stack([t - t[0], np.zeros((n, 3)), np.tile([0, 0, 9.80665], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1))])
     np.savetxt(root / "walk.csv", rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz", comments="")
+    # the robotics formats: an EuRoC folder, a ROS 1 bag and a ROS 2 bag of the same motion
+    from robotics_writers import write_asl, write_bag
+
+    rot = Rotation.from_matrix(np.moveaxis(rots, 2, 0))
+    motion = (t - t[0], rng.normal(0, 0.05, (n, 3)), rot.inv().apply([0, 0, 1.0]), t - t[0], rot.as_quat(scalar_first=True))
+    write_asl(root / "euroc" / "V1_01", *motion)
+    write_bag(root / "bags" / "flight.bag", 1, *motion)
+    write_bag(root / "bags" / "flight2", 2, *motion, truth_type="geometry_msgs/msg/TransformStamped", storage="mcap")
     return root
 
 

@@ -10,6 +10,7 @@ import pytest
 import scipy.io
 
 from fusion import datasets, loaders
+from fusion.formats import course, generic_csv
 
 NUMBERS = range(1, 10)
 
@@ -40,13 +41,13 @@ def test_discovery_ids_and_order(data_dir):
 
 @pytest.mark.parametrize("n", [6, 7])
 def test_vicon_gaps_are_kept_as_nan(data_dir, n):
-    truth = loaders.load_vicon(data_dir / f"ece276a/vicon/viconRot{n}.p")
+    truth = course.load_vicon(data_dir / f"ece276a/vicon/viconRot{n}.p")
     missing = (~truth.valid).sum()
     assert 100 < missing < 200  # the README: some 130 missing samples
 
 
 def test_canonical_counts_layout(data_dir):
-    raw = loaders.load_imu_mat(data_dir / "ese650/imu/imuRaw1.mat")
+    raw = course.load_imu_mat(data_dir / "ese650/imu/imuRaw1.mat")
     mat = scipy.io.loadmat(data_dir / "ese650/imu/imuRaw1.mat")
     np.testing.assert_array_equal(raw.counts[:, 3], mat["vals"][4])  # wx is the 5th row of vals
     np.testing.assert_array_equal(raw.counts[:, 5], mat["vals"][3])  # wz the 4th
@@ -67,7 +68,7 @@ def good_array(n=300):
 
 
 def test_good_synthetic_pickle_loads(tmp_path):
-    raw = loaders.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", good_array()))
+    raw = course.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", good_array()))
     assert raw.counts.shape == (300, 6)
     assert raw.counts[0, 0] == 511.0  # the release's negation undone
 
@@ -83,7 +84,7 @@ def test_good_synthetic_pickle_loads(tmp_path):
 def test_wrong_structure_pickles(tmp_path, obj, message):
     path = write_pickle(tmp_path / "imuRaw1.p", obj)
     with pytest.raises(ValueError, match=message) as info:
-        loaders.load_imu_pickle(path)
+        course.load_imu_pickle(path)
     assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
@@ -93,13 +94,13 @@ def test_truncated_and_empty_files(tmp_path):
     (tmp_path / "empty.p").write_bytes(b"")
     (tmp_path / "cut.mat").write_bytes(b"MATLAB 5.0 MAT-file" + b"\0" * 50)
     with pytest.raises(ValueError, match="not a readable pickle"):
-        loaders.load_imu_pickle(tmp_path / "cut.p")
+        course.load_imu_pickle(tmp_path / "cut.p")
     with pytest.raises(ValueError, match="file is empty"):
-        loaders.load_imu_pickle(tmp_path / "empty.p")
+        course.load_imu_pickle(tmp_path / "empty.p")
     with pytest.raises(ValueError, match="not a readable MATLAB file"):
-        loaders.load_imu_mat(tmp_path / "cut.mat")
+        course.load_imu_mat(tmp_path / "cut.mat")
     with pytest.raises(FileNotFoundError, match="no such file"):
-        loaders.load_imu_mat(tmp_path / "missing.mat")
+        course.load_imu_mat(tmp_path / "missing.mat")
 
 
 def test_restricted_unpickler_refuses_code(tmp_path):
@@ -109,18 +110,18 @@ def test_restricted_unpickler_refuses_code(tmp_path):
 
     path = write_pickle(tmp_path / "imuRaw1.p", Evil())
     with pytest.raises(ValueError, match="refusing to load builtins.print"):
-        loaders.load_imu_pickle(path)
+        course.load_imu_pickle(path)
 
 
 def test_nan_time_stamps_and_values(tmp_path):
     arr = good_array()
     arr[0, :] = np.nan
     with pytest.raises(ValueError, match="time stamps are not increasing"):
-        loaders.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
+        course.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
     arr = good_array()
     arr[3, 10] = np.inf
     with pytest.raises(ValueError, match="NaN or Inf"):
-        loaders.load_imu_pickle(write_pickle(tmp_path / "b.p", arr))
+        course.load_imu_pickle(write_pickle(tmp_path / "b.p", arr))
 
 
 @pytest.mark.parametrize("n, message", [(3, "median time step inf s is outside"),  # the median overflows
@@ -131,7 +132,7 @@ def test_stamps_at_the_float_limits_are_one_clear_error(tmp_path, n, message):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no RuntimeWarning on the way to the error
         with pytest.raises(ValueError, match=message):
-            loaders.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", arr))
+            course.load_imu_pickle(write_pickle(tmp_path / "imuRaw1.p", arr))
 
 
 def test_duplicate_and_backward_stamps_are_repaired_with_a_warning(tmp_path):
@@ -139,14 +140,14 @@ def test_duplicate_and_backward_stamps_are_repaired_with_a_warning(tmp_path):
     arr[0, 100] = arr[0, 99]  # duplicate
     arr[0, 200] = arr[0, 150]  # backwards
     with pytest.warns(UserWarning, match="dropped 2 samples"):
-        raw = loaders.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
+        raw = course.load_imu_pickle(write_pickle(tmp_path / "a.p", arr))
     assert len(raw.t) == 298 and np.all(np.diff(raw.t) > 0)
 
 
 def test_vicon_wrong_layout(tmp_path):
     path = write_pickle(tmp_path / "viconRot1.p", {"rots": np.random.default_rng(0).normal(size=(3, 3, 20)), "ts": 0.01 * np.arange(20.0)[None]})
     with pytest.raises(ValueError, match="not rotation matrices"):
-        loaders.load_vicon(path)
+        course.load_vicon(path)
 
 
 def test_csv_roundtrip_and_errors(tmp_path):
@@ -155,13 +156,13 @@ def test_csv_roundtrip_and_errors(tmp_path):
     rows = np.column_stack([t, np.full((n, 3), 0.1), np.tile([0, 0, 9.80665], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1))])
     path = tmp_path / "walk.csv"
     np.savetxt(path, rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz", comments="")
-    imu, truth = loaders.load_csv(path)
+    imu, truth = generic_csv.load_csv(path)
     np.testing.assert_allclose(imu.acc_g[:, 2], 1.0)
     assert truth is not None and len(truth) == n
     bad = tmp_path / "bad.csv"
     bad.write_text("time,gx\n0,1\n")
     with pytest.raises(ValueError, match="missing CSV columns t, gy"):
-        loaders.load_csv(bad)
+        generic_csv.load_csv(bad)
 
 
 def test_vicon_without_overlap(tmp_path):
@@ -196,7 +197,7 @@ def test_csv_gyro_rows_cover_the_interval_ending_at_their_stamp(tmp_path):
     gyr = np.column_stack([np.arange(5.0), np.zeros(5), np.zeros(5)])
     np.savetxt(path, np.column_stack([t, gyr, np.tile([0, 0, 9.80665], (5, 1))]), delimiter=",",
                header="t,gx,gy,gz,ax,ay,az", comments="")
-    imu, _ = loaders.load_csv(path)
+    imu, _ = generic_csv.load_csv(path)
     assert imu.gyr_timing == "end"
     np.testing.assert_array_equal(imu.interval_rates()[0][:, 0], [1.0, 2.0, 3.0, 4.0])
 

@@ -1,0 +1,94 @@
+"""The generic CSV, for anyone's IMU: one file per recording, in physical units.
+
+    t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]
+
+t in s, gyro in rad/s, accelerometer in m/s^2, all body frame; the optional quaternion is the
+ground truth `R_world_body`, scalar first (NaN rows = no truth); the optional `movement`
+column (0/1) marks the samples a BROAD-style score uses. A recording's id is its path relative
+to the data directory without `.csv` (`mylab/walk`). A `.csv` inside a folder that is a
+recording of another format (an ASL `mav0/` folder) belongs to that recording.
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..loaders import check_file, parse_rows, physical_samples, text_lines, unit_quaternions
+from ..types import Recording, Trajectory
+from .base import Format, Holds, ReadOptions, Source, recording_id
+
+CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
+CSV_TRUTH = ("qw", "qx", "qy", "qz")
+
+
+def _header(line: str) -> list[str]:
+    return [h.strip().strip("\"'").strip().lower() for h in line.split(",")]
+
+
+def load_csv(path: str | Path, with_movement: bool = False):
+    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
+
+    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; gyro
+    row k is the angular rate over (t[k-1], t[k]] (`ImuSamples.gyr_timing` "end", the common
+    convention of IMU drivers and of VQF, Madgwick, Mahony and Fusion; a file whose gyro
+    rows cover [t[k], t[k+1]) instead can be loaded and then declared with
+    `imu.replace(gyr_timing="start")`); the
+    optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
+    the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
+    Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
+    without the column).
+    """
+    path = Path(path)
+    text = text_lines(path)
+    header = _header(text[0])
+    repeated = sorted({h for h in header if header.count(h) > 1 and h})
+    if repeated:
+        raise ValueError(f"{path}: the header names column {', '.join(repr(h) for h in repeated)} more than once")
+    missing = [c for c in CSV_COLUMNS if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing CSV columns {', '.join(missing)} (need {','.join(CSV_COLUMNS)}[,{','.join(CSV_TRUTH)}])")
+    table = parse_rows(path, text[1:])
+    if table.shape[0] < 2 or table.shape[1] != len(header):
+        raise ValueError(f"{path}: need at least 2 rows of {len(header)} columns, got shape {table.shape}")
+    col = {name: table[:, i] for i, name in enumerate(header)}
+    gyr = np.column_stack([col[c] for c in ("gx", "gy", "gz")])
+    acc = np.column_stack([col[c] for c in ("ax", "ay", "az")])
+    has_truth = all(c in header for c in CSV_TRUTH)
+    quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
+    movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
+    imu, quat, movement = physical_samples(path, col["t"], gyr, acc, CSV_COLUMNS[1:], "end", quat, movement)
+    extra = (movement if "movement" in col else None,) if with_movement else ()
+    if not has_truth:
+        return (imu, None, *extra)
+    quat = unit_quaternions(path, quat, "truth quaternions (qw,qx,qy,qz)", 1e-3)
+    if quat is None:
+        warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
+        return (imu, None, *extra)
+    return (imu, Trajectory(imu.t, quat), *extra)
+
+
+class CsvFormat(Format):
+    kind = "csv"
+    describe = ".csv (generic: t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement])"
+
+    def find(self, root: Path | None, paths: Sequence[Path]) -> Iterator[Source]:
+        for path in paths:
+            if path.suffix.lower() == ".csv" and path.is_file():
+                yield Source(recording_id(root, path), self.kind, path)
+
+    def read(self, source: Source, options: ReadOptions) -> Recording:
+        imu, truth, movement = load_csv(source.imu, with_movement=True)
+        return Recording(source.id, imu, truth, movement=movement)
+
+    def holds(self, source: Source) -> Holds:
+        check_file(source.imu)
+        with open(source.imu, "rb") as f:
+            header = _header(f.readline(65536).decode("utf-8-sig", errors="replace"))
+        return Holds(truth=all(c in header for c in CSV_TRUTH), movement="movement" in header, magnetometer=False,
+                     gyr_timing="end", raw_counts=False)
+
+
+FORMAT = CsvFormat()
