@@ -68,7 +68,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
-                resume: bool = False) -> Run:
+                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -84,16 +84,19 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     command: the command line recorded in the document's settings (default: this call).
     timeout_s: stop a job that runs longer than this; its row says so.
     resume: continue the unfinished run in `out` (`run_resume` repeats its call for you).
+    imu_topic, truth_topic: the topics a ROS bag is read from (`fusion.selection.load_options`).
     """
     entries = resolve_all(estimators)
     text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries)
     call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
-            "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s}
+            "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
+            "imu_topic": imu_topic, "truth_topic": truth_topic}
     command = command or f"run_compare({text!r}, {dataset!r})"
     return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
                     init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
                     progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
-                    scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume)
+                    scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic,
+                    truth_topic=truth_topic)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -102,7 +105,8 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
                out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
-               scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False) -> Run:
+               scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False,
+               imu_topic: str | None = None, truth_topic: str | None = None) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
@@ -130,12 +134,12 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     settings["estimators"] = ",".join(e.label for e in entries)
     call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
             "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
-            "timeout_s": timeout_s}
+            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic}
     command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
     return _execute(entries, settings, call, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
                     json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
-                    scatter=scatter, timeout_s=timeout_s, resume=resume)
+                    scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic)
 
 
 def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
@@ -159,14 +163,15 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
              data_dir: PathLike | None, command: str, *, init: str | None, protocol: str | None, align: bool,
              dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
              json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
-             scatter: bool | None, timeout_s: float | None, resume: bool) -> Run:
+             scatter: bool | None, timeout_s: float | None, resume: bool, imu_topic: str | None,
+             truth_topic: str | None) -> Run:
     """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
     before computing."""
     if resume and not out:
         raise ValueError("--resume needs the output folder of the run to continue")
     sources = select_sources(dataset, data_dir, calibration)
     root = datasets.data_dir_from(data_dir)
-    load = load_options(calibration, dropouts)
+    load = load_options(calibration, dropouts, imu_topic, truth_topic)
     options = dict(init=init, protocol=protocol, jobs=jobs, progress=progress, load=load, align=align,
                    panorama_data_dir=str(root) if panorama else None, scheduler=scheduler, scatter=scatter,
                    timeout_s=timeout_s)
@@ -301,7 +306,7 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
                  data_dir: PathLike | None = None, init: str | None = None, size: str = "1920x960",
                  rate_hz: float = 10.0, scene: Any = None, blend: str = "feather", reference: bool = False,
                  calibration: PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                 progress: bool = False) -> PanoramaRun:
+                 progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> PanoramaRun:
     """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
     frames (its camera's, or frames rendered from a scene with the truth:
     `fusion.evaluation.panorama.reference_panorama`)
@@ -317,7 +322,7 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     from .panorama import PanoramaGrid, check_options, comparison_image, estimate_panorama, reference_panorama
 
     check_options(out, rate_hz)  # before any work: the image format and the frame rate
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
     if len(recordings) != 1:
         raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
     (recording,) = recordings
@@ -356,12 +361,13 @@ class Inspection:
 
 def run_inspect(dataset: str = "all", data_dir: PathLike | None = None, *, calibration: PathLike | None = None,
             dropouts: bool = datasets.DROPOUTS_DEFAULT, progress: bool = False, json_path: PathLike | None = None,
-            out: PathLike | None = None, command: str | None = None) -> Inspection:
+            out: PathLike | None = None, command: str | None = None, imu_topic: str | None = None,
+            truth_topic: str | None = None) -> Inspection:
     """`fusion inspect`: the sensor checks of every recording `dataset` names
     (`fusion.checks.check_recording`); json_path: write them as JSON; out: a figure per recording."""
     from fusion.checks import check_recording, format_check
 
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
     checks = [check_recording(rec) for rec in recordings]
     if json_path:
         doc = {"command": command or f"run_inspect({dataset!r})", "recordings": [c.to_json() for c in checks]}
@@ -396,7 +402,7 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
               clock_offset: bool = False, leave_one_out: bool = False, estimators: str = "dr",
               init: str | None = None, align: bool = False, calibration: PathLike | None = None,
               dropouts: bool = datasets.DROPOUTS_DEFAULT, progress: bool = False,
-              command: str | None = None) -> CalibrationRun:
+              command: str | None = None, imu_topic: str | None = None, truth_topic: str | None = None) -> CalibrationRun:
     """`fusion calibrate`: fit per-axis gyro scale factors against the truth (`fusion.gyro_fit`).
 
     out: the calibration file to write; clock_offset: also store each recording's clock offset.
@@ -405,7 +411,7 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
     """
     from fusion import gyro_fit
 
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
     lines, folds = [], []
     if leave_one_out:
         from .loo import format_folds, leave_one_out as folds_of

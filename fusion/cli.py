@@ -35,6 +35,11 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
                         help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
                              "integrates them (default: on; off for ablations)")
+    parser.add_argument("--imu-topic", metavar="TOPIC", default=None,
+                        help="ROS bags: the sensor_msgs/Imu topic to read (default: the bag's one Imu topic)")
+    parser.add_argument("--truth-topic", metavar="TOPIC", default=None,
+                        help="ROS bags: the PoseStamped, TransformStamped or Odometry topic holding the truth "
+                             "(default: the bag's one topic of those types, if any)")
     parser.add_argument("--calibration", metavar="FILE", default=None,
                         help="apply a calibration file written by 'fusion calibrate' (gyro scale factors, "
                              "and per-recording clock offsets if it holds them)")
@@ -43,7 +48,7 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
 def _data(args: argparse.Namespace) -> dict:
     """The options every command shares, as the library's keyword arguments."""
     return dict(data_dir=args.data_dir, calibration=args.calibration, dropouts=args.dropouts == "on",
-                progress=not args.no_progress)
+                progress=not args.no_progress, imu_topic=args.imu_topic, truth_topic=args.truth_topic)
 
 
 def _command(args: argparse.Namespace) -> str:

@@ -241,12 +241,15 @@ def warn_not_applied(path: str | Path, sources: Iterable[Any]) -> None:
     """Warn, per recording, that a calibration file's gyro scale factors are not applied to it.
 
     The factors multiply the nominal counts-to-rad/s scale of the course board (`BoardModel`);
-    CSV and BROAD recordings are already in rad/s, calibrated by whoever wrote them, so the
-    factors are not applied there (their clock offsets, if the file has one for the recording,
-    are). Applying a scale fitted on another sensor would be a silent wrong answer.
+    recordings in physical units (CSV, BROAD, EuRoC, ROS bags: `fusion.formats.Holds.raw_counts`
+    False) are already in rad/s, calibrated by whoever wrote them, so the factors are not applied
+    there (their clock offsets, if the file has one for the recording, are). Applying a scale
+    fitted on another sensor would be a silent wrong answer.
     """
+    from .formats import FORMATS
+
     for source in sources:
-        if getattr(source, "kind", None) in ("csv", "broad"):
-            warnings.warn(f"{source.id}: --calibration {path}: gyro scale factors not applied ({source.kind.upper()} "
-                          "recordings are already in rad/s; the factors are for the course board's raw counts)",
-                          stacklevel=2)
+        kind = getattr(source, "kind", None)
+        if kind in FORMATS and not FORMATS[kind].holds(source).raw_counts:
+            warnings.warn(f"{source.id}: --calibration {path}: gyro scale factors not applied ({kind} recordings "
+                          "are already in rad/s; the factors are for the course board's raw counts)", stacklevel=2)

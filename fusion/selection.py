@@ -46,7 +46,10 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
         gyro_fit.warn_not_applied(calibration, sources)
     if dataset == "all" and [s.id for s in sources] == [datasets.SIM_ID]:
         if user_dir:
-            raise ValueError(f"{root}: no recordings found (imu/imuRawN.p|.mat, .csv, or BROAD .hdf5/.mat trials); use --dataset sim for the simulated one")
+            from .formats import FORMATS
+
+            looked_for = "; ".join(f.describe for kind, f in FORMATS.items() if kind != "sim")
+            raise ValueError(f"{root}: no recordings found ({looked_for}); use --dataset sim for the simulated one")
         note(f"no recordings found in {root.resolve()}; running on the built-in simulated recording `sim` "
              "(--data-dir or $FUSION_DATA points at recordings)")
     merged = datasets.describe_merged(sources)
