@@ -8,6 +8,7 @@ Every later stage (the runner, its workers, the reports) uses that object.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
@@ -81,11 +82,12 @@ class ResolvedSpec:
     def __reduce__(self):
         """Sent to another process (spawned workers, Dask) as the spec to resolve there; a user's
         file travels as its contents, so the workers need not see it."""
-        if self.origin is not None and self.origin.kind == "file":
+        kind = self.origin.kind if self.origin is not None else None
+        if kind == "file":
             return _resolve_file, (self.spec, self.origin.where, self.origin.source)
-        if self.origin is not None:
+        if kind in ("module", "entry point"):
             return resolve, (self.spec,)
-        return ResolvedSpec, (self.spec, self.cls, self.params, self.label)
+        return ResolvedSpec, (self.spec, self.cls, self.params, self.label, self.origin)
 
 
 def resolve(spec: EstimatorSpec | str, file: tuple[str, bytes] | None = None) -> ResolvedSpec:
@@ -119,6 +121,23 @@ def resolve(spec: EstimatorSpec | str, file: tuple[str, bytes] | None = None) ->
     params = make_params(cls.Params, spec.overrides, owner=spec.name)
     cls(params)  # a peer whose library is missing says so here, before any work
     return ResolvedSpec(spec, cls, params, label, origin)
+
+
+def resolve_trajectory(name: str, path: str | Path) -> ResolvedSpec:
+    """A trajectory another program wrote (a file, or a folder with one file per recording:
+    `fusion.estimators.trajectory_file`) as an estimator whose rows are named `name`."""
+    from . import user
+    from .trajectory_file import TrajectoryFile, TrajectoryFileParams
+
+    if not name or any(c in name for c in ",:=/") or name in ESTIMATORS or name == "truth":
+        raise ValueError(f"--trajectory {name}=...: the name must be new, not 'truth', and hold no ',', ':', '=' or '/'")
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such trajectory file or folder (--trajectory {name}=...)")
+    sha = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    params = TrajectoryFileParams(str(path.resolve()))
+    return ResolvedSpec(EstimatorSpec(name), TrajectoryFile, params, name,
+                        user.Origin("trajectory", str(path.resolve()), "", sha))
 
 
 def _resolve_file(spec: EstimatorSpec, path: str, source: bytes) -> ResolvedSpec:
@@ -182,4 +201,4 @@ def build(spec: EstimatorSpec | str) -> Estimator:
 
 
 __all__ = ["ESTIMATORS", "Estimator", "RecursiveEstimator", "EstimatorSpec", "ResolvedSpec", "available", "build",
-           "resolve", "resolve_all", "parse_specs", "make_params"]
+           "resolve", "resolve_all", "resolve_trajectory", "parse_specs", "make_params"]

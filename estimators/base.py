@@ -29,11 +29,14 @@ class Estimator(ABC):
     """Estimates `R_world_body` for every IMU sample.
 
     Subclasses set `Params` (a frozen dataclass) and implement `estimate`.
-    `causal` is False for smoothers (they see the future); reports say so.
+    `causal` is False for smoothers (they see the future); reports say so. `partial` is True for
+    an estimate that may have no orientation (NaN rows) at some samples, which are then not scored
+    (a trajectory read from a file covers its own time span only).
     """
 
     Params: ClassVar[type] = NoParams
     causal: ClassVar[bool] = True
+    partial: ClassVar[bool] = False
 
     def __init__(self, params: Any = None) -> None:
         if params is None:
@@ -41,6 +44,11 @@ class Estimator(ABC):
         if not isinstance(params, self.Params):
             raise TypeError(f"{type(self).__name__} takes {self.Params.__name__}, got {type(params).__name__}")
         self.params = params
+
+    def for_recording(self, recording_id: str) -> "Estimator":
+        """The estimator to run on the recording `recording_id` (default: this one). An estimator
+        read from files, one per recording (`fusion.estimators.trajectory_file`), picks its file here."""
+        return self
 
     @abstractmethod
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:

@@ -60,10 +60,11 @@ def is_reference(name: str) -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class Origin:
-    """Where a user's estimator comes from: `kind` "file", "module" or "entry point"; `where` the
-    file's absolute path, the module's name, or the entry point's `module:attr` and package;
-    `sha256` of the file (None for modules); `source` the file's bytes (sent to Dask workers,
-    which need not see the file)."""
+    """Where a user's estimator comes from: `kind` "file", "module", "entry point" or "trajectory"
+    (a trajectory file or folder another program wrote: `fusion.estimators.trajectory_file`);
+    `where` the file's absolute path, the module's name, or the entry point's `module:attr` and
+    package; `sha256` of the file (None for modules and folders); `source` the file's bytes (sent
+    to Dask workers, which need not see the file)."""
 
     kind: str
     where: str

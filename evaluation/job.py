@@ -139,7 +139,7 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     entry = spec if isinstance(spec, ResolvedSpec) else resolve(spec)
     alignment = align if isinstance(align, Alignment) else recording_alignment(recording) if align else None
     recording = aligned(recording, alignment)
-    estimator = entry.build()
+    estimator = entry.build().for_recording(recording.id)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
     # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
@@ -152,7 +152,7 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
             if entry.user:
                 warnings.simplefilter("always")
             trajectory = estimator.estimate(recording.imu, q0)
-            if entry.user:  # what a user's estimator returns is checked (`fusion.estimators.user`)
+            if entry.user and not entry.cls.partial:  # a user's estimator's output is checked (`fusion.estimators.user`)
                 trajectory = Trajectory(trajectory.t, user.check_output(trajectory.quat_wxyz, len(recording.imu)),
                                         trajectory.diagnostics)
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
@@ -165,20 +165,21 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     seconds = time.perf_counter() - start
     for warning in caught:  # a user's estimator's warnings, named: which estimator, which recording
         warnings.warn_explicit(f"{where}: {warning.message}", warning.category, warning.filename, warning.lineno)
-    if not np.all(np.isfinite(trajectory.quat_wxyz)):
+    if not entry.cls.partial and not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{where} produced non-finite orientations (diverged or overflowed; check its parameter "
                          "values)")
     protocol = protocol or default_protocol(recording)
     result_score = None
     if recording.truth is not None:
         try:
-            result_score = score(recording.truth, trajectory, protocol, recording.movement)
+            result_score = score(recording.truth, trajectory, protocol, recording.movement, partial=entry.cls.partial)
         except ValueError as exc:
             raise ValueError(f"{recording.id}, {entry.label}: {exc}") from None
         if entry.user:
             slip = user.convention_slip(
                 result_score.rmse_deg["total"],
-                lambda q: score(recording.truth, Trajectory(trajectory.t, q), protocol, recording.movement).rmse_deg["total"],
+                lambda q: score(recording.truth, Trajectory(trajectory.t, q), protocol, recording.movement,
+                                partial=entry.cls.partial).rmse_deg["total"],
                 trajectory.quat_wxyz)
             if slip:
                 raise ValueError(f"{where}: {slip}")
@@ -240,7 +241,7 @@ def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment 
     with warnings.catch_warnings(record=True) as caught:  # shown by the process that runs the run
         warnings.simplefilter("always")
         shown = aligned(rec, alignment)
-        recording_part = series.recording_part(shown) if job.series and job.with_recording else None
+        recording_part = series.recording_part(shown, truth_at_imu) if job.series and job.with_recording else None
         try:
             result = run_one(rec, entry, job.init, job.protocol, alignment)
             if job.panorama_data_dir is not None:

@@ -93,11 +93,15 @@ def mean_heading_offset(r_true: Rotation, r_est: Rotation) -> float:
     return float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
 
 
-def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None) -> Score:
+def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None,
+          partial: bool = False) -> Score:
     """Score `estimate` against `truth` (see the module docstring for the protocols).
 
     protocol: "full" (every sample with truth) or "broad".
     movement: (N,) bool over the estimate's samples, the samples "broad" scores (None: all).
+    partial: the estimate may have no orientation (NaN rows) at some samples, which are then not
+        scored (and count against its coverage); otherwise a NaN row where the truth has one is an
+        error (a diverged estimate).
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown scoring protocol {protocol!r}; use one of {', '.join(PROTOCOLS)}")
@@ -116,7 +120,10 @@ def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movem
     if r_true is None or not np.any(mask & finite):
         raise ValueError("the estimate and the ground truth share no valid time stamp")
     keep = finite[mask]  # a diverged estimate (NaN rows) would otherwise poison the RMSE
-    if not keep.all():
+    if partial and not keep.all():
+        r_true = r_true[keep]
+        mask = mask & finite
+    elif not keep.all():
         raise ValueError(f"the estimate has {int((~keep).sum())} non-finite orientations inside the scored span")
     r_est = Rotation.from_quat(estimate.quat_wxyz[mask], scalar_first=True)
     if protocol == "broad":  # remove the mean heading offset (6-D: heading is unobservable)

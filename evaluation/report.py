@@ -607,8 +607,9 @@ def _details_items(doc: dict[str, Any]) -> list[tuple[str, str]]:
         origin = d.get("origin")
         source = ""
         if isinstance(origin, dict):  # a user's estimator: where its code comes from
-            source = f"; from {origin.get('kind', '')} {origin.get('where', '')}, {origin.get('attribute', '')}" + (
-                f" (sha256 {origin['sha256']})" if origin.get("sha256") else "")
+            source = (f"; from {origin.get('kind', '')} {origin.get('where', '')}"
+                      + (f", {origin['attribute']}" if origin.get("attribute") else "")
+                      + (f" (sha256 {origin['sha256']})" if origin.get("sha256") else ""))
         out.append((label, f"{d.get('class', '')}: {kind}; {params}{source}"))
     return out
 

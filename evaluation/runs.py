@@ -27,7 +27,7 @@ import numpy as np
 
 from fusion import datasets
 from fusion.checks import RecordingCheck
-from fusion.estimators import ResolvedSpec, resolve_all
+from fusion.estimators import ResolvedSpec, resolve_all, resolve_trajectory
 from fusion.estimators.params import EstimatorSpec
 from fusion.selection import calibration_settings, load_options, load_selected, note, select_sources
 
@@ -68,7 +68,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
-                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> Run:
+                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
+                trajectories: Sequence[tuple[str, PathLike]] = ()) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -85,12 +86,16 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     timeout_s: stop a job that runs longer than this; its row says so.
     resume: continue the unfinished run in `out` (`run_resume` repeats its call for you).
     imu_topic, truth_topic: the topics a ROS bag is read from (`fusion.selection.load_options`).
+    trajectories: (name, path) pairs: trajectories other programs wrote, in the table as rows
+        named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
+        folder with one file per recording).
     """
-    entries = resolve_all(estimators)
-    text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries)
+    entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
+    text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries if not e.cls.partial)
     call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
             "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
-            "imu_topic": imu_topic, "truth_topic": truth_topic}
+            "imu_topic": imu_topic, "truth_topic": truth_topic,
+            "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories]}
     command = command or f"run_compare({text!r}, {dataset!r})"
     return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
                     init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
@@ -154,6 +159,7 @@ def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, s
                   scheduler=scheduler, scatter=scatter, json_path=json_path, out=out, command=header["command"],
                   resume=True)
     if kind == "compare":
+        call["trajectories"] = [tuple(pair) for pair in call.get("trajectories", [])]
         return run_compare(call.pop("estimators"), call.pop("dataset"), **call, **common)
     grid = [(name, values) for name, values in call.pop("params")]
     return run_ablate(call.pop("estimator"), grid, call.pop("preset"), call.pop("dataset"), **call, **common)
@@ -170,6 +176,11 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
     if resume and not out:
         raise ValueError("--resume needs the output folder of the run to continue")
     sources = select_sources(dataset, data_dir, calibration)
+    files = [e for e in entries if e.cls.partial and not Path(e.params.path).is_dir()]
+    if files and len(sources) != 1:
+        raise ValueError(f"--trajectory {files[0].label}={files[0].params.path}: a file is one recording's "
+                         f"trajectory, and --dataset {dataset!r} selects {len(sources)}; select one, or give a "
+                         "folder with one file per recording")
     root = datasets.data_dir_from(data_dir)
     load = load_options(calibration, dropouts, imu_topic, truth_topic)
     options = dict(init=init, protocol=protocol, jobs=jobs, progress=progress, load=load, align=align,
@@ -257,16 +268,19 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
     if folder is not None:
-        series = _series(journal, entries, len(sources), results, keys) if per_recording else None
+        series = _series(journal, entries, len(sources), results, keys, folder.staging) if per_recording else None
         report = write_run(folder, doc, series, journal, jobs=jobs, progress=progress)
         journal.remove()
     return Run(results, table, doc, report)
 
 
 def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, results: list[Result],
-            keys: list[str]) -> Iterator[Any]:
+            keys: list[str], stage: Path) -> Iterator[Any]:
     """Each recording's series, assembled from its jobs' parts in the journal, one at a time (so
-    that at most one recording's plot data is in memory)."""
+    that at most one recording's plot data is in memory); on the way, each estimate and the truth
+    it was scored against are written as TUM files into `stage/trajectories/<recording>/`."""
+    from fusion.trajectory_files import write_tum
+
     from . import series
 
     per = len(entries)
@@ -274,8 +288,15 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
         shown = [j for j in range(per) if results[i * per + j].error is None]
         first = journal.load_part(keys[i * per])  # the recording's arrays come with its first job
         parts = [first if j == 0 else journal.load_part(keys[i * per + j]) for j in shown]
-        yield series.assemble({k[4:]: v for k, v in first.items() if k.startswith("rec_")},
-                              [entries[j].label for j in shown], [bool(entries[j].cls.causal) for j in shown], parts)
+        recording = {k[4:]: v for k, v in first.items() if k.startswith("rec_")}
+        folder = stage / "trajectories" / str(recording["id"])
+        folder.mkdir(parents=True, exist_ok=True)
+        if "truth_at_imu" in recording:
+            write_tum(folder / "truth.tum", recording["imu_t"], recording["truth_at_imu"])
+        for j, part in zip(shown, parts):
+            write_tum(folder / f"{entries[j].label.replace('/', '_')}.tum", recording["imu_t"], part["quat_wxyz"])
+        yield series.assemble(recording, [entries[j].label for j in shown], [bool(entries[j].cls.causal) for j in shown],
+                              parts)
 
 
 @dataclass(frozen=True, eq=False)

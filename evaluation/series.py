@@ -58,20 +58,26 @@ class RecordingSeries:
         return len(self.truth_t) > 0
 
 
-def recording_part(rec) -> dict[str, np.ndarray]:
+def recording_part(rec, truth_at_imu=None) -> dict[str, np.ndarray]:
     """The arrays of one recording that its series needs besides the estimates: `id`, `imu_t`,
     `gyr_valid`, `truth_t`, `truth_quat` (a `fusion.types.Recording`, its truth already mapped
-    into our frames with `--align`)."""
+    into our frames with `--align`), and `truth_at_imu` (N, 4) float64, the truth slerped onto the
+    IMU stamps (what the estimates are scored against; NaN rows where there is none), when
+    `truth_at_imu` (a callable giving it) is given."""
     truth = rec.truth
-    return dict(id=np.array(rec.id), imu_t=np.asarray(rec.imu.t), gyr_valid=np.asarray(rec.imu.gyr_valid, bool),
+    part = dict(id=np.array(rec.id), imu_t=np.asarray(rec.imu.t), gyr_valid=np.asarray(rec.imu.gyr_valid, bool),
                 truth_t=np.asarray(truth.t) if truth is not None else np.empty(0),
                 truth_quat=np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)))
+    if truth_at_imu is not None:
+        part["truth_at_imu"] = np.asarray(truth_at_imu(), dtype=float)
+    return part
 
 
 def job_part(trajectory, job_score, truth_at_imu) -> dict[str, np.ndarray]:
     """What one estimate adds to its recording's series: `quat` (N, 4) float32, `err_deg` (3, N)
     float32, `loss` where the estimator reports one, `belief_*` (without the estimator's index)
-    where it reports a covariance.
+    where it reports a covariance; and `quat_wxyz` (N, 4) float64, the estimate itself (exported as
+    a TUM file, not kept in the series).
 
     job_score: its `fusion.evaluation.metrics.Score` (None without truth); truth_at_imu: a callable
     giving the truth slerped onto the IMU stamps (`consistency.truth_on`), called only for a filter
@@ -82,7 +88,8 @@ def job_part(trajectory, job_score, truth_at_imu) -> dict[str, np.ndarray]:
     if job_score is not None:
         for k, kind in enumerate(KINDS):
             err[k, job_score.mask] = np.degrees(job_score.errors_rad[kind])
-    part = {"quat": np.asarray(trajectory.quat_wxyz, np.float32), "err_deg": err}
+    part = {"quat": np.asarray(trajectory.quat_wxyz, np.float32), "err_deg": err,
+            "quat_wxyz": np.asarray(trajectory.quat_wxyz, dtype=float)}  # full precision, for the TUM export
     loss = trajectory.diagnostics.get("loss") if trajectory.diagnostics else None
     if loss is not None:
         part["loss"] = np.asarray(loss, dtype=float).ravel()

@@ -93,7 +93,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     if args.resume:
         return _resume(args)
-    return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, **_run_options(args)))
+    return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, trajectories=args.trajectory,
+                                  **_run_options(args)))
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
@@ -160,6 +161,13 @@ def _jobs(text: str) -> int:
     return value
 
 
+def _trajectory(text: str) -> tuple[str, str]:
+    name, sep, path = text.partition("=")
+    if not sep or not name.strip() or not path.strip():
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=PATH, e.g. orbslam=runs/orb.tum")
+    return name.strip(), path.strip()
+
+
 def _seconds(text: str) -> float:
     try:
         value = float(text)
@@ -223,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: all)")
     _add_data_args(p)
     _add_run_args(p)
+    p.add_argument("--trajectory", action="append", default=[], type=_trajectory, metavar="NAME=PATH",
+                   help="a trajectory another program wrote, in the table as the row NAME: a TUM (.tum, .txt: "
+                        "t tx ty tz qx qy qz qw) or CSV (t,qw,qx,qy,qz) file with one recording selected, or a folder "
+                        "with one file per recording named by its id (FOLDER/ece276a/3.tum); repeatable")
     p.add_argument("--panorama", action="store_true",
                    help="also stitch a panorama per estimate (camera frames, or frames rendered from a scene with the "
                         "ground truth) and score it against the ground truth's panorama (PSNR, SSIM)")

@@ -397,11 +397,13 @@ def time_row(ts: np.ndarray, n: int, path: Path) -> np.ndarray:
     return t
 
 
-def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray, sampling: bool = True) -> tuple[np.ndarray, ...]:
     """Keep the samples whose stamp is finite and later than every earlier kept stamp.
 
     Returns `(t, *arrays)` restricted to those samples; warns with the count it dropped.
-    Raises if fewer than half the samples (or fewer than 2) survive.
+    Raises if fewer than half the samples (or fewer than 2) survive. sampling: also check that
+    the steps are those of a sensor (`check_sampling`); False for a trajectory, which may be
+    sparse (keyframes) or have gaps.
     """
     t = np.asarray(t, dtype=float)
     if len(t) < 2:
@@ -416,7 +418,8 @@ def repair_time(t: np.ndarray, path: Path | str, *arrays: np.ndarray) -> tuple[n
     if dropped:
         warnings.warn(f"{path}: dropped {dropped} samples with non-finite, duplicate or backwards time stamps", stacklevel=2)
     t = t[keep]
-    check_sampling(t, path)
+    if sampling:
+        check_sampling(t, path)
     return (t, *(a[keep] for a in arrays))
 
 
