@@ -68,7 +68,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
-                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
+                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True,
                 trajectories: Sequence[tuple[str, PathLike]] = ()) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
@@ -86,6 +86,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     timeout_s: stop a job that runs longer than this; its row says so.
     resume: continue the unfinished run in `out` (`run_resume` repeats its call for you).
     imu_topic, truth_topic: the topics a ROS bag is read from (`fusion.selection.load_options`).
+    mag: use the magnetometer where a recording has one (9-D estimation; False: 6-D).
     trajectories: (name, path) pairs: trajectories other programs wrote, in the table as rows
         named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
         folder with one file per recording).
@@ -94,14 +95,14 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries if not e.cls.partial)
     call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
             "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
-            "imu_topic": imu_topic, "truth_topic": truth_topic,
+            "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag,
             "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories]}
     command = command or f"run_compare({text!r}, {dataset!r})"
     return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
                     init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
                     progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
                     scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic,
-                    truth_topic=truth_topic)
+                    truth_topic=truth_topic, mag=mag)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -111,7 +112,7 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
                out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
                scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False,
-               imu_topic: str | None = None, truth_topic: str | None = None) -> Run:
+               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
@@ -139,12 +140,13 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     settings["estimators"] = ",".join(e.label for e in entries)
     call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
             "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
-            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic}
+            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag}
     command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
     return _execute(entries, settings, call, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
                     json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
-                    scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic)
+                    scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic,
+                    mag=mag)
 
 
 def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
@@ -170,7 +172,7 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
              dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
              json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
              scatter: bool | None, timeout_s: float | None, resume: bool, imu_topic: str | None,
-             truth_topic: str | None) -> Run:
+             truth_topic: str | None, mag: bool) -> Run:
     """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
     before computing."""
     if resume and not out:
@@ -182,7 +184,7 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
                          f"trajectory, and --dataset {dataset!r} selects {len(sources)}; select one, or give a "
                          "folder with one file per recording")
     root = datasets.data_dir_from(data_dir)
-    load = load_options(calibration, dropouts, imu_topic, truth_topic)
+    load = load_options(calibration, dropouts, imu_topic, truth_topic, mag)
     options = dict(init=init, protocol=protocol, jobs=jobs, progress=progress, load=load, align=align,
                    panorama_data_dir=str(root) if panorama else None, scheduler=scheduler, scatter=scatter,
                    timeout_s=timeout_s)
@@ -327,7 +329,7 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
                  data_dir: PathLike | None = None, init: str | None = None, size: str = "1920x960",
                  rate_hz: float = 10.0, scene: Any = None, blend: str = "feather", reference: bool = False,
                  calibration: PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                 progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> PanoramaRun:
+                 progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> PanoramaRun:
     """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
     frames (its camera's, or frames rendered from a scene with the truth:
     `fusion.evaluation.panorama.reference_panorama`)
@@ -343,7 +345,7 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     from .panorama import PanoramaGrid, check_options, comparison_image, estimate_panorama, reference_panorama
 
     check_options(out, rate_hz)  # before any work: the image format and the frame rate
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic, mag)
     if len(recordings) != 1:
         raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
     (recording,) = recordings
@@ -388,7 +390,7 @@ def run_inspect(dataset: str = "all", data_dir: PathLike | None = None, *, calib
     (`fusion.checks.check_recording`); json_path: write them as JSON; out: a figure per recording."""
     from fusion.checks import check_recording, format_check
 
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic, mag)
     checks = [check_recording(rec) for rec in recordings]
     if json_path:
         doc = {"command": command or f"run_inspect({dataset!r})", "recordings": [c.to_json() for c in checks]}
@@ -423,7 +425,7 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
               clock_offset: bool = False, leave_one_out: bool = False, estimators: str = "dr",
               init: str | None = None, align: bool = False, calibration: PathLike | None = None,
               dropouts: bool = datasets.DROPOUTS_DEFAULT, progress: bool = False,
-              command: str | None = None, imu_topic: str | None = None, truth_topic: str | None = None) -> CalibrationRun:
+              command: str | None = None, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> CalibrationRun:
     """`fusion calibrate`: fit per-axis gyro scale factors against the truth (`fusion.gyro_fit`).
 
     out: the calibration file to write; clock_offset: also store each recording's clock offset.
@@ -432,7 +434,7 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
     """
     from fusion import gyro_fit
 
-    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic)
+    recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic, mag)
     lines, folds = [], []
     if leave_one_out:
         from .loo import format_folds, leave_one_out as folds_of

@@ -35,6 +35,10 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
                         help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
                              "integrates them (default: on; off for ablations)")
+    parser.add_argument("--mag", choices=("on", "off"), default="on",
+                        help="use the magnetometer where a recording has one (9-D estimation: heading is observable; "
+                             "BROAD's protocol then scores the total error without removing a heading offset); off: "
+                             "6-D, gyro and accelerometer only (default: on)")
     parser.add_argument("--imu-topic", metavar="TOPIC", default=None,
                         help="ROS bags: the sensor_msgs/Imu topic to read (default: the bag's one Imu topic)")
     parser.add_argument("--truth-topic", metavar="TOPIC", default=None,
@@ -48,7 +52,8 @@ def _add_data_args(parser: argparse.ArgumentParser) -> None:
 def _data(args: argparse.Namespace) -> dict:
     """The options every command shares, as the library's keyword arguments."""
     return dict(data_dir=args.data_dir, calibration=args.calibration, dropouts=args.dropouts == "on",
-                progress=not args.no_progress, imu_topic=args.imu_topic, truth_topic=args.truth_topic)
+                progress=not args.no_progress, imu_topic=args.imu_topic, truth_topic=args.truth_topic,
+                mag=args.mag == "on")
 
 
 def _command(args: argparse.Namespace) -> str:

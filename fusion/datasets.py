@@ -251,6 +251,8 @@ def _load(source: Source, options: "LoadOptions", truth_offset_s: float) -> Reco
     rec = fmt.read(source, options)
     # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
     imu = invalidate_gaps(rec.imu)
+    if not options.mag and imu.mag_ut is not None:  # --mag off: 6-D estimation
+        imu = imu.replace(mag_ut=None)
     truth = _shift(rec.truth, truth_offset_s)
     return rec if imu is rec.imu and truth is rec.truth else replace(rec, imu=imu, truth=truth)
 
@@ -279,6 +281,8 @@ class LoadOptions:
     truth_offsets_s: per recording id, a measured truth clock offset, s (see `load_source`).
     imu_topic, truth_topic: the topics of a ROS bag to read the IMU and the truth from (None:
         the one topic of the type, see `fusion.formats.rosbag`); other formats ignore them.
+    mag: use the magnetometer of recordings that have one (`ImuSamples.mag_ut`; `--mag off`
+        drops it: 6-D estimation).
     """
 
     board: BoardModel = BoardModel()
@@ -286,6 +290,7 @@ class LoadOptions:
     truth_offsets_s: tuple[tuple[str, float], ...] = ()
     imu_topic: str | None = None
     truth_topic: str | None = None
+    mag: bool = True
 
     def load(self, source: Source) -> Recording:
         """Read one recording through its format (`fusion.formats.FORMATS`), checked and calibrated."""

@@ -538,22 +538,55 @@ def unit_quaternions(path: Path | str, quat_wxyz: np.ndarray, what: str, toleran
 
 
 def physical_samples(path: Path | str, t: np.ndarray, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray,
-                     names: tuple[str, ...], gyr_timing: str, *arrays: np.ndarray) -> tuple[Any, ...]:
+                     names: tuple[str, ...], gyr_timing: str, *arrays: np.ndarray, mag_ut: np.ndarray | None = None,
+                     mag_name: str = "magnetometer") -> tuple[Any, ...]:
     """`ImuSamples` from values in physical units, through the shared checks: finite values,
-    `check_physical` (`names`: the six gyro and accelerometer columns, for messages), then
-    `repair_time`, which drops the same rows of `arrays` (per-sample extras: truth, a mask).
+    `check_physical` (`names`: the six gyro and accelerometer columns, for messages),
+    `check_magnetometer`, then `repair_time`, which drops the same rows of `arrays` (per-sample
+    extras: truth, a mask) and of the magnetometer.
 
-    t: (N,) s; gyr_rad_s: (N, 3) rad/s; acc_m_s2: (N, 3) m/s^2 (returned in g), body frame.
-    Returns `(imu, *arrays)`.
+    t: (N,) s; gyr_rad_s: (N, 3) rad/s; acc_m_s2: (N, 3) m/s^2 (returned in g), body frame;
+    mag_ut: (N, 3) uT, body frame, NaN rows where there is no sample, or None (`mag_name` names
+    its columns in messages). Returns `(imu, *arrays)`.
     """
     if len(t) < 2:
         raise ValueError(f"{path}: {len(t)} samples; need at least 2")
     if not (np.all(np.isfinite(gyr_rad_s)) and np.all(np.isfinite(acc_m_s2))):
         raise ValueError(f"{path}: the gyro or accelerometer values contain NaN or Inf")
     check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:])
-    t, gyr_rad_s, acc_m_s2, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, *arrays)
-    imu = ImuSamples(t, gyr_rad_s, acc_m_s2 / STANDARD_GRAVITY_M_S2, source=str(path), gyr_timing=gyr_timing)
+    if mag_ut is not None:
+        mag_ut = check_magnetometer(path, mag_ut, mag_name)
+        t, gyr_rad_s, acc_m_s2, mag_ut, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, mag_ut, *arrays)
+    else:
+        t, gyr_rad_s, acc_m_s2, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, *arrays)
+    imu = ImuSamples(t, gyr_rad_s, acc_m_s2 / STANDARD_GRAVITY_M_S2, source=str(path), gyr_timing=gyr_timing,
+                     mag_ut=mag_ut)
     return (imu, *arrays)
+
+
+# The Earth's field is 22-67 uT at the surface (IGRF); a sensor beside iron or a magnet reads more.
+MAG_NORM_UT = (5.0, 2000.0)  # plausible median norm of a magnetometer's samples, uT
+
+
+def check_magnetometer(path: Path | str, mag: np.ndarray, name: str) -> np.ndarray | None:
+    """(N, 3) magnetometer samples in uT, infinite rows made NaN (no sample); refused, naming the
+    file and the columns, when their median norm says they are in another unit (gauss: 1 G =
+    100 uT; tesla; nanotesla) or nothing like a magnetic field. None when no row is finite."""
+    mag = np.array(mag, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = np.linalg.norm(mag, axis=1)
+    finite = np.isfinite(norm)
+    mag[~finite] = np.nan
+    if not finite.any():
+        return None
+    median = float(np.median(norm[finite]))
+    if not MAG_NORM_UT[0] <= median <= MAG_NORM_UT[1]:
+        hint = ("; in gauss? (1 G = 100 uT)" if 0.05 <= median < MAG_NORM_UT[0] else
+                "; in tesla? (1 T = 1e6 uT)" if 1e-7 <= median < 1e-3 else
+                "; in nanotesla? (1 uT = 1000 nT)" if 1e4 <= median <= 1e6 else "")
+        raise ValueError(f"{path}: the {name} reads {median:.3g} (median norm); it must be in uT (the Earth's field is "
+                         f"22-67 uT){hint}")
+    return mag
 
 
 def check_overlap(truth: Trajectory | None, imu_t: np.ndarray, path: Path | str | None, problem: str) -> None:

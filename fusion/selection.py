@@ -59,10 +59,11 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
 
 
 def load_options(calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                 imu_topic: str | None = None, truth_topic: str | None = None) -> datasets.LoadOptions:
-    """A calibration file, the dropout switch and a ROS bag's topics (`--imu-topic`,
-    `--truth-topic`; None: the one topic of the type) as the loading options every command uses."""
-    topics = dict(imu_topic=imu_topic, truth_topic=truth_topic)
+                 imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> datasets.LoadOptions:
+    """A calibration file, the dropout switch, a ROS bag's topics (`--imu-topic`, `--truth-topic`;
+    None: the one topic of the type) and the magnetometer switch (`--mag`) as the loading options
+    every command uses."""
+    topics = dict(imu_topic=imu_topic, truth_topic=truth_topic, mag=mag)
     if not calibration:
         return datasets.LoadOptions(dropouts=dropouts, **topics)
     calib_file = gyro_fit.read(calibration)
@@ -71,12 +72,13 @@ def load_options(calibration: str | os.PathLike | None = None, dropouts: bool = 
 
 def load_selected(dataset: str = "all", data_dir: str | os.PathLike | None = None,
                   calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                  progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None) -> list[Recording]:
+                  progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
+                  mag: bool = True) -> list[Recording]:
     """The recordings `dataset` names (`select_sources`), loaded and calibrated (`load_options`);
     progress: a progress bar on stderr, one step per recording."""
     from tqdm import tqdm
 
-    options = load_options(calibration, dropouts, imu_topic, truth_topic)
+    options = load_options(calibration, dropouts, imu_topic, truth_topic, mag)
     return [options.load(source) for source in tqdm(select_sources(dataset, data_dir, calibration), desc="loading",
                                                      disable=not progress, file=sys.stderr, leave=False)]
 

@@ -82,6 +82,10 @@ class ImuSamples:
         saturation detected by `fusion.checks`). Estimators must not integrate those samples.
         All True unless a detector marked them.
     source: where the samples came from, for messages.
+    mag_ut: (N, 3) magnetic field, uT, body frame, or None: the recording has no magnetometer (the
+        course board), or it is not used (`--mag off`). NaN rows where there is no sample.
+    mag_valid: (N,) bool, False where the magnetometer sample is missing (NaN) or known to be
+        wrong; None without a magnetometer.
     gyr_timing: which interval gyro sample k stands for, a property of the recording set by
         its loader from evidence. "end" (the common convention, that of VQF, Madgwick,
         Mahony, Fusion, BROAD and the generic CSV): the rate over (t[k-1], t[k]], so the
@@ -96,6 +100,8 @@ class ImuSamples:
     gyr_valid: np.ndarray | None = None
     source: str = ""
     gyr_timing: GyrTiming = "end"
+    mag_ut: np.ndarray | None = None
+    mag_valid: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t", _frozen(self.t))
@@ -111,6 +117,22 @@ class ImuSamples:
                 raise ValueError(f"{self.source}: {name} must be (N, 3) with N = {n}, got {getattr(self, name).shape}")
         if self.gyr_valid.shape != (n,):
             raise ValueError(f"{self.source}: gyr_valid must be (N,) with N = {n}, got {self.gyr_valid.shape}")
+        if self.mag_ut is None:
+            if self.mag_valid is not None:
+                raise ValueError(f"{self.source}: mag_valid without mag_ut")
+            return
+        object.__setattr__(self, "mag_ut", _frozen(self.mag_ut))
+        if self.mag_ut.shape != (n, 3):
+            raise ValueError(f"{self.source}: mag_ut must be (N, 3) with N = {n}, got {self.mag_ut.shape}")
+        finite = np.all(np.isfinite(self.mag_ut), axis=1)
+        object.__setattr__(self, "mag_valid", _frozen(finite if self.mag_valid is None else self.mag_valid & finite, bool))
+        if self.mag_valid.shape != (n,):
+            raise ValueError(f"{self.source}: mag_valid must be (N,) with N = {n}, got {self.mag_valid.shape}")
+
+    @property
+    def has_mag(self) -> bool:
+        """Whether there is a magnetometer to use (9-D estimation)."""
+        return self.mag_ut is not None and bool(self.mag_valid.any())
 
     def __len__(self) -> int:
         return len(self.t)
@@ -134,8 +156,10 @@ class ImuSamples:
     def replace(self, **changes: Any) -> "ImuSamples":
         """A copy with some fields changed (the original is untouched)."""
         fields = dict(t=self.t, gyr_rad_s=self.gyr_rad_s, acc_g=self.acc_g, gyr_valid=self.gyr_valid,
-                      source=self.source, gyr_timing=self.gyr_timing)
+                      source=self.source, gyr_timing=self.gyr_timing, mag_ut=self.mag_ut, mag_valid=self.mag_valid)
         fields.update(changes)
+        if "mag_ut" in changes and "mag_valid" not in changes:
+            fields["mag_valid"] = None  # recomputed from the new samples
         return ImuSamples(**fields)
 
 

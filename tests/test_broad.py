@@ -38,7 +38,7 @@ def trial_arrays(seed: int = 0) -> dict[str, np.ndarray]:
     opt[500:550] = np.nan
     movement = np.zeros(N, np.uint8)
     movement[300:900] = 1
-    mag = np.tile([0.3, 0.0, -0.4], (N, 1))
+    mag = Rotation.from_quat(q, scalar_first=True).inv().apply([0.0, 19.0, -45.0])  # uT, an ENU field dipping down
     return {"imu_gyr": w, "imu_acc": acc, "imu_mag": mag, "opt_quat": opt, "movement": movement,
             "sampling_rate": np.array(RATE_HZ)}
 

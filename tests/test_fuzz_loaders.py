@@ -98,7 +98,8 @@ def broad_trial(n: int, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     rot = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.002, (n, 3)), axis=0))
     return {"imu_gyr": rng.normal(0, 0.1, (n, 3)), "imu_acc": rot.inv().apply([0, 0, 9.81]),
-            "imu_mag": rng.normal(0, 1, (n, 3)), "opt_quat": rot.as_quat(scalar_first=True),
+            "imu_mag": rot.inv().apply([0.0, 19.0, -45.0]) + rng.normal(0, 1, (n, 3)),  # uT
+            "opt_quat": rot.as_quat(scalar_first=True),
             "movement": (np.arange(n) > n // 3).astype(np.uint8), "sampling_rate": 286.0}
 
 

@@ -5,7 +5,7 @@ BROAD (Berlin Robust Orientation estimation Assessment Dataset; Laidig, Caruso, 
 
     imu_gyr        (N, 3) rad/s, IMU frame
     imu_acc        (N, 3) m/s^2, IMU frame (specific force: +9.81 on the up axis at rest)
-    imu_mag        (N, 3) magnetometer (not used: 6-D estimation)
+    imu_mag        (N, 3) magnetometer, uT (optional; `ImuSamples.mag_ut`)
     opt_quat       (N, 4) w, x, y, z ground truth `R_world_imu`, world z up; NaN rows where
                    the optical tracking was lost
     movement       (N,) bool/0-1: the movement phases, the only samples BROAD scores
@@ -112,8 +112,9 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     """One BROAD trial: `(imu, truth, movement)`.
 
     imu: `ImuSamples` on `t = k / sampling_rate` s (k = 0..N-1), gyro rad/s, accelerometer
-        in g (`imu_acc / 9.80665`), body = IMU frame; `gyr_timing` "end" (gyro sample k is the
-        rate over (t[k-1], t[k]], as VQF, which BROAD's authors wrote, integrates it).
+        in g (`imu_acc / 9.80665`), magnetometer uT (`imu_mag`, when the trial has it), body =
+        IMU frame; `gyr_timing` "end" (gyro sample k is the rate over (t[k-1], t[k]], as VQF,
+        which BROAD's authors wrote, integrates it).
     truth: `Trajectory` of `opt_quat` (wxyz, `R_world_imu`, z up) on the same stamps, NaN
         rows kept (tracking lost), other rows normalised.
     movement: (N,) bool, the samples BROAD scores (all True if the file has no mask).
@@ -139,8 +140,10 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     else:
         movement = np.ones(n, bool)
     names = ("imu_gyr x", "imu_gyr y", "imu_gyr z", "imu_acc x", "imu_acc y", "imu_acc z")
+    mag = _columns(data, "imu_mag", 3, n, path) if "imu_mag" in data else None
     # BROAD: gyro k covers (t[k-1], t[k]]
-    imu, quat, movement = physical_samples(path, np.arange(n) / rate[0], gyr, acc, names, "end", quat, movement)
+    imu, quat, movement = physical_samples(path, np.arange(n) / rate[0], gyr, acc, names, "end", quat, movement,
+                                           mag_ut=mag, mag_name="'imu_mag'")
     quat = unit_quaternions(path, quat, "'opt_quat' rows (w, x, y, z)", 1e-2)
     if quat is None:
         raise ValueError(f"{path}: 'opt_quat' has no finite row")

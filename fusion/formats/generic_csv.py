@@ -1,8 +1,9 @@
 """The generic CSV, for anyone's IMU: one file per recording, in physical units.
 
-    t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]
+    t,gx,gy,gz,ax,ay,az[,mx,my,mz][,qw,qx,qy,qz][,movement]
 
-t in s, gyro in rad/s, accelerometer in m/s^2, all body frame; the optional quaternion is the
+t in s, gyro in rad/s, accelerometer in m/s^2, the optional magnetometer in uT (NaN
+where there is no sample), all body frame; the optional quaternion is the
 ground truth `R_world_body`, scalar first (NaN rows = no truth); the optional `movement`
 column (0/1) marks the samples a BROAD-style score uses. A recording's id is its path relative
 to the data directory without `.csv` (`mylab/walk`). A `.csv` inside a folder that is a
@@ -22,6 +23,7 @@ from .base import Format, Holds, ReadOptions, Source, recording_id
 
 CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 CSV_TRUTH = ("qw", "qx", "qy", "qz")
+CSV_MAG = ("mx", "my", "mz")
 
 
 def _header(line: str) -> list[str]:
@@ -29,9 +31,10 @@ def _header(line: str) -> list[str]:
 
 
 def load_csv(path: str | Path, with_movement: bool = False):
-    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]`.
+    """Generic CSV in physical units: header `t,gx,gy,gz,ax,ay,az[,mx,my,mz][,qw,qx,qy,qz][,movement]`.
 
-    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), all body frame; gyro
+    t in s, gyro in rad/s, accelerometer in m/s^2 (converted to g), magnetometer in uT, all
+    body frame; gyro
     row k is the angular rate over (t[k-1], t[k]] (`ImuSamples.gyr_timing` "end", the common
     convention of IMU drivers and of VQF, Madgwick, Mahony and Fusion; a file whose gyro
     rows cover [t[k], t[k+1]) instead can be loaded and then declared with
@@ -59,7 +62,9 @@ def load_csv(path: str | Path, with_movement: bool = False):
     has_truth = all(c in header for c in CSV_TRUTH)
     quat = np.column_stack([col[c] for c in CSV_TRUTH]) if has_truth else np.zeros((len(gyr), 4))
     movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
-    imu, quat, movement = physical_samples(path, col["t"], gyr, acc, CSV_COLUMNS[1:], "end", quat, movement)
+    mag = np.column_stack([col[c] for c in CSV_MAG]) if all(c in header for c in CSV_MAG) else None
+    imu, quat, movement = physical_samples(path, col["t"], gyr, acc, CSV_COLUMNS[1:], "end", quat, movement,
+                                           mag_ut=mag, mag_name="columns mx,my,mz")
     extra = (movement if "movement" in col else None,) if with_movement else ()
     if not has_truth:
         return (imu, None, *extra)
@@ -72,7 +77,7 @@ def load_csv(path: str | Path, with_movement: bool = False):
 
 class CsvFormat(Format):
     kind = "csv"
-    describe = ".csv (generic: t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement])"
+    describe = ".csv (generic: t,gx,gy,gz,ax,ay,az[,mx,my,mz][,qw,qx,qy,qz][,movement])"
 
     def find(self, root: Path | None, paths: Sequence[Path]) -> Iterator[Source]:
         for path in paths:
@@ -87,7 +92,8 @@ class CsvFormat(Format):
         check_file(source.imu)
         with open(source.imu, "rb") as f:
             header = _header(f.readline(65536).decode("utf-8-sig", errors="replace"))
-        return Holds(truth=all(c in header for c in CSV_TRUTH), movement="movement" in header, magnetometer=False,
+        return Holds(truth=all(c in header for c in CSV_TRUTH), movement="movement" in header,
+                     magnetometer=all(c in header for c in CSV_MAG),
                      gyr_timing="end", raw_counts=False)
 
 
