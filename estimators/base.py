@@ -31,12 +31,15 @@ class Estimator(ABC):
     Subclasses set `Params` (a frozen dataclass) and implement `estimate`.
     `causal` is False for smoothers (they see the future); reports say so. `partial` is True for
     an estimate that may have no orientation (NaN rows) at some samples, which are then not scored
-    (a trajectory read from a file covers its own time span only).
+    (a trajectory read from a file covers its own time span only). `magnetometer` is True for an
+    estimator that fuses the magnetometer where the recording has one (9-D estimation; its rows
+    say so, and BROAD's protocol scores them without removing a heading offset).
     """
 
     Params: ClassVar[type] = NoParams
     causal: ClassVar[bool] = True
     partial: ClassVar[bool] = False
+    magnetometer: ClassVar[bool] = False  # fuses `ImuSamples.mag_ut` when the recording has one (9-D)
 
     def __init__(self, params: Any = None) -> None:
         if params is None:

@@ -129,7 +129,13 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
                 mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
                 us = np.mean([r.us_per_sample for r in mine if r.error is None] or [np.nan])
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
-                means.append([name, label, *mean, "", f"{us:.1f}"])
+                means.append([name, label, *mean, "", f"{us:.1f}", _sensors(scored or mine)])
+    for row, r in zip(rows, results):
+        row.append(_sensors([r]))
+    if any(r.magnetometer for r in results):  # 9-D rows: a column says which rows used the magnetometer
+        header.append("imu")
+    else:
+        rows, means = [row[:-1] for row in rows], [row[:-1] for row in means]
     if any(r.panorama for r in results):
         header += ["pano PSNR dB", "SSIM"]
         for row, r in zip(rows, results):
@@ -159,11 +165,21 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
         out += [f"failed (no result; the errors say why): {len(failed_rows)} rows"] + [line(r) for r in failed_rows]
     if any(r.low_coverage for r in results):
         out += [LOW_COVERAGE_NOTE]
+    if any(r.magnetometer for r in results):
+        out += [NINE_D_NOTE]
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
     return "\n".join(out)
 
 
+def _sensors(results: list[Result]) -> str:
+    """"9-D" when the rows used a magnetometer, "6-D" when none did, "mixed" otherwise."""
+    used = {r.magnetometer for r in results}
+    return "9-D" if used == {True} else "6-D" if used == {False} else "mixed"
+
+
+NINE_D_NOTE = ("imu 9-D: the row used the magnetometer (heading observable; BROAD's protocol scores its total error "
+               "with no heading offset removed); 6-D: gyro and accelerometer only (heading offset removed)")
 LOW_COVERAGE_NOTE = (f"LOW: scored on less than {MIN_COVERAGE:.0%} of the recording (the truth covers too little of it); "
                      "left out of the means")
 

@@ -40,6 +40,7 @@ class Result:
     trajectory, score: the estimate and its per-sample errors (`run_one`); None in a run's rows.
     error: why the job failed (its estimator raised, returned garbage, ran too long); None if it
         did not. A failed row has no scores.
+    magnetometer: the estimate used a magnetometer (9-D); False for 6-D (gyro and accelerometer).
     """
 
     dataset: str
@@ -55,6 +56,7 @@ class Result:
     scored_samples: int | None = None
     coverage: float | None = None
     error: str | None = None
+    magnetometer: bool = False
 
     @property
     def us_per_sample(self) -> float:
@@ -87,6 +89,7 @@ class Result:
             "scored_samples": self.scored_samples,
             "coverage": self.coverage,
             "alignment": self.alignment,
+            "magnetometer": self.magnetometer,
         }
         if self.panorama is not None:
             row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
@@ -99,7 +102,7 @@ class Result:
         """A results.json row (as `to_json` wrote it) as a `Result` without arrays."""
         return cls(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
                    panorama=r.get("panorama"), alignment=r.get("alignment"), scored_samples=r.get("scored_samples"),
-                   coverage=r.get("coverage"), error=r.get("error"))
+                   coverage=r.get("coverage"), error=r.get("error"), magnetometer=bool(r.get("magnetometer", False)))
 
 
 def default_protocol(recording: Recording) -> str:
@@ -169,17 +172,19 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         raise ValueError(f"{where} produced non-finite orientations (diverged or overflowed; check its parameter "
                          "values)")
     protocol = protocol or default_protocol(recording)
+    nine_d = bool(entry.cls.magnetometer and recording.imu.has_mag)
     result_score = None
     if recording.truth is not None:
         try:
-            result_score = score(recording.truth, trajectory, protocol, recording.movement, partial=entry.cls.partial)
+            result_score = score(recording.truth, trajectory, protocol, recording.movement, partial=entry.cls.partial,
+                                 nine_d=nine_d)
         except ValueError as exc:
             raise ValueError(f"{recording.id}, {entry.label}: {exc}") from None
         if entry.user:
             slip = user.convention_slip(
                 result_score.rmse_deg["total"],
                 lambda q: score(recording.truth, Trajectory(trajectory.t, q), protocol, recording.movement,
-                                partial=entry.cls.partial).rmse_deg["total"],
+                                partial=entry.cls.partial, nine_d=nine_d).rmse_deg["total"],
                 trajectory.quat_wxyz)
             if slip:
                 raise ValueError(f"{where}: {slip}")
@@ -189,7 +194,7 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         result_score.max_deg if result_score else None,
         trajectory, result_score, alignment=alignment.to_json() if alignment else None,
         scored_samples=result_score.samples if result_score else None,
-        coverage=result_score.coverage if result_score else None,
+        coverage=result_score.coverage if result_score else None, magnetometer=nine_d,
     )
 
 

@@ -25,7 +25,10 @@ Protocol:
 heading offset is removed first: the estimate is turned about world z by the circular mean,
 over the scored samples, of the heading (twist) of the world-frame error `R_gt R_est^-1`.
 Inclination is unchanged by that; heading is what remains after it, total the geodesic
-angle after it. Without a `movement` mask every sample with truth is scored.
+angle after it. Without a `movement` mask every sample with truth is scored. A 9-D estimate
+(one that used a magnetometer, `nine_d`) is scored as BROAD scores those: on the movement
+samples, with no heading offset removed (the truth's heading agrees with magnetic north, so a
+magnetometer makes the heading observable and its error is the estimator's).
 """
 from __future__ import annotations
 
@@ -94,7 +97,7 @@ def mean_heading_offset(r_true: Rotation, r_est: Rotation) -> float:
 
 
 def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movement: np.ndarray | None = None,
-          partial: bool = False) -> Score:
+          partial: bool = False, nine_d: bool = False) -> Score:
     """Score `estimate` against `truth` (see the module docstring for the protocols).
 
     protocol: "full" (every sample with truth) or "broad".
@@ -102,6 +105,7 @@ def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movem
     partial: the estimate may have no orientation (NaN rows) at some samples, which are then not
         scored (and count against its coverage); otherwise a NaN row where the truth has one is an
         error (a diverged estimate).
+    nine_d: the estimate used a magnetometer: "broad" removes no heading offset (module docstring).
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown scoring protocol {protocol!r}; use one of {', '.join(PROTOCOLS)}")
@@ -126,7 +130,7 @@ def score(truth: Trajectory, estimate: Trajectory, protocol: str = "full", movem
     elif not keep.all():
         raise ValueError(f"the estimate has {int((~keep).sum())} non-finite orientations inside the scored span")
     r_est = Rotation.from_quat(estimate.quat_wxyz[mask], scalar_first=True)
-    if protocol == "broad":  # remove the mean heading offset (6-D: heading is unobservable)
+    if protocol == "broad" and not nine_d:  # remove the mean heading offset (6-D: heading is unobservable)
         r_est = Rotation.from_rotvec([0.0, 0.0, mean_heading_offset(r_true, r_est)]) * r_est
     errors = error_angles(r_true, r_est)
     rmse = {k: float(np.degrees(np.sqrt(np.mean(v**2)))) for k, v in errors.items()}

@@ -476,6 +476,8 @@ def _row_problem(r: Any) -> str | None:
     c = r.get("coverage")
     if c is not None and not (_number(c) and 0 <= c <= 1):
         return "'coverage' must be null or a number in [0, 1]"
+    if not isinstance(r.get("magnetometer", False), bool):
+        return "'magnetometer' must be true or false"
     if r.get("error") is not None and not (isinstance(r["error"], str) and r.get("rmse_deg") is None):
         return "'error' must be a string, on a row without scores"
     if r.get("panorama") is not None and not (isinstance(r["panorama"], dict) and all(

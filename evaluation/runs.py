@@ -68,8 +68,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 jobs: int | None = 1, progress: bool = False, panorama: bool = False,
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
-                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True,
-                trajectories: Sequence[tuple[str, PathLike]] = ()) -> Run:
+                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
+                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = ()) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -329,7 +329,8 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
                  data_dir: PathLike | None = None, init: str | None = None, size: str = "1920x960",
                  rate_hz: float = 10.0, scene: Any = None, blend: str = "feather", reference: bool = False,
                  calibration: PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                 progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> PanoramaRun:
+                 progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
+                 mag: bool = True) -> PanoramaRun:
     """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
     frames (its camera's, or frames rendered from a scene with the truth:
     `fusion.evaluation.panorama.reference_panorama`)
@@ -385,7 +386,7 @@ class Inspection:
 def run_inspect(dataset: str = "all", data_dir: PathLike | None = None, *, calibration: PathLike | None = None,
             dropouts: bool = datasets.DROPOUTS_DEFAULT, progress: bool = False, json_path: PathLike | None = None,
             out: PathLike | None = None, command: str | None = None, imu_topic: str | None = None,
-            truth_topic: str | None = None) -> Inspection:
+            truth_topic: str | None = None, mag: bool = True) -> Inspection:
     """`fusion inspect`: the sensor checks of every recording `dataset` names
     (`fusion.checks.check_recording`); json_path: write them as JSON; out: a figure per recording."""
     from fusion.checks import check_recording, format_check
@@ -425,7 +426,8 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
               clock_offset: bool = False, leave_one_out: bool = False, estimators: str = "dr",
               init: str | None = None, align: bool = False, calibration: PathLike | None = None,
               dropouts: bool = datasets.DROPOUTS_DEFAULT, progress: bool = False,
-              command: str | None = None, imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> CalibrationRun:
+              command: str | None = None, imu_topic: str | None = None, truth_topic: str | None = None,
+              mag: bool = True) -> CalibrationRun:
     """`fusion calibrate`: fit per-axis gyro scale factors against the truth (`fusion.gyro_fit`).
 
     out: the calibration file to write; clock_offset: also store each recording's clock offset.

@@ -9,7 +9,8 @@ import pytest
 
 from fusion.cli import main
 
-KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "scored_samples", "coverage", "alignment"}
+KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "scored_samples", "coverage", "alignment",
+        "magnetometer"}
 
 
 def run(capsys, *argv):
