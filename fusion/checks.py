@@ -135,6 +135,33 @@ class ViconCheck:
 
 
 @dataclass(frozen=True)
+class MagnetometerCheck:
+    """The magnetometer against the field it should see. The recording's median field stands for
+    the local Earth field (its norm and dip; the toolkit does not know where the recording was
+    made, so no model such as the IGRF is used); a sample is disturbed where its norm or dip
+    departs from it by more than `MAG_NORM_TOLERANCE` or `MAG_DIP_TOLERANCE_DEG`, for at least
+    `MAG_MIN_DISTURBANCE_S`. The dip (inclination of the field below the horizontal, positive
+    downwards as in the northern hemisphere) is measured where the accelerometer reads 1 g (within
+    `MAG_DIP_ACC_TOLERANCE_G`), which then points up."""
+
+    samples: int  # valid magnetometer samples
+    norm_median_ut: float
+    norm_p5_ut: float
+    norm_p95_ut: float
+    dip_median_deg: float | None  # None: the accelerometer never read 1 g
+    dip_std_deg: float | None
+    disturbed: list[Interval]
+    disturbed_fraction: float
+
+
+MAG_NORM_TOLERANCE = 0.1  # relative
+MAG_DIP_TOLERANCE_DEG = 5.0
+MAG_MIN_DISTURBANCE_S = 0.2
+MAG_DIP_ACC_TOLERANCE_G = 0.05
+EARTH_FIELD_UT = (22.0, 67.0)  # the Earth's field at its surface (IGRF): outside, the sensor sees more than the Earth
+
+
+@dataclass(frozen=True)
 class RecordingCheck:
     id: str
     samples: int
@@ -146,6 +173,7 @@ class RecordingCheck:
     timing: TimingCheck
     vicon: ViconCheck | None
     notes: list[str] = field(default_factory=list)
+    magnetometer: MagnetometerCheck | None = None
 
     def to_json(self) -> dict[str, Any]:
         return to_jsonable(self)
@@ -431,6 +459,32 @@ def check_vicon(imu: ImuSamples, truth: Trajectory, t0: float) -> ViconCheck:
 
 # ------------------------------------------------------------------ the report
 
+def check_magnetometer(imu: Any) -> MagnetometerCheck | None:
+    """The magnetometer's norm and dip, and where it is disturbed (`MagnetometerCheck`); None
+    without a magnetometer."""
+    if not imu.has_mag:
+        return None
+    valid = imu.mag_valid
+    mag = np.asarray(imu.mag_ut)
+    norm = np.full(len(imu), np.nan)
+    norm[valid] = np.linalg.norm(mag[valid], axis=1)
+    median = float(np.nanmedian(norm))
+    acc_norm = np.linalg.norm(imu.acc_g, axis=1)
+    level = valid & (np.abs(acc_norm - 1.0) < MAG_DIP_ACC_TOLERANCE_G)
+    dip = np.full(len(imu), np.nan)
+    up = imu.acc_g[level] / acc_norm[level, None]
+    dip[level] = np.degrees(np.arcsin(np.clip(-np.einsum("ij,ij->i", mag[level], up) / norm[level], -1.0, 1.0)))
+    dip_median = float(np.nanmedian(dip)) if level.any() else None
+    off = valid & (np.abs(norm - median) > MAG_NORM_TOLERANCE * median)
+    if dip_median is not None:
+        off |= level & (np.abs(dip - dip_median) > MAG_DIP_TOLERANCE_DEG)
+    dt = float(np.median(np.diff(imu.t)))
+    disturbed = [_interval(imu.t, imu.t[0], a, b) for a, b in runs(off) if (b - a) * dt >= MAG_MIN_DISTURBANCE_S]
+    return MagnetometerCheck(int(valid.sum()), median, float(np.nanpercentile(norm, 5)), float(np.nanpercentile(norm, 95)),
+                             dip_median, float(np.nanstd(dip)) if level.any() else None, disturbed,
+                             sum(iv.samples for iv in disturbed) / max(int(valid.sum()), 1))
+
+
 def check_recording(recording: Recording, freeze_detector: FreezeDetector = FreezeDetector()) -> RecordingCheck:
     """Every check on one recording (raw-count checks only when it has raw counts)."""
     imu, raw = recording.imu, recording.raw
@@ -455,8 +509,13 @@ def check_recording(recording: Recording, freeze_detector: FreezeDetector = Free
     if recording.truth is None:
         notes.append("no ground truth: VICON checks skipped")
     vicon = check_vicon(imu, recording.truth, t0) if recording.truth is not None else None
+    mag = check_magnetometer(imu)
+    if mag is not None and not EARTH_FIELD_UT[0] <= mag.norm_median_ut <= EARTH_FIELD_UT[1]:
+        notes.append(f"magnetometer norm {mag.norm_median_ut:.1f} uT is outside the Earth's {EARTH_FIELD_UT[0]:.0f}-"
+                     f"{EARTH_FIELD_UT[1]:.0f} uT: a hard-iron offset (iron or a magnet carried with the sensor), or an "
+                     "uncalibrated magnetometer")
     return RecordingCheck(recording.id, len(imu), float(imu.t[-1] - t0), rests, drift, freezes, rng,
-                          check_timing(imu.t), vicon, notes)
+                          check_timing(imu.t), vicon, notes, mag)
 
 
 def _fmt_intervals(intervals: list[Interval], limit: int = 4) -> str:
@@ -501,6 +560,11 @@ def format_check(c: RecordingCheck) -> str:
         row("truth stamps", f"jitter vs a regular {1e3 / v.rate_hz:.2f} ms base: std {v.stamp_jitter_std_s * 1e3:.2f} ms, "
             f"max {v.stamp_jitter_max_s * 1e3:.1f} ms; {v.near_duplicate_stamps} near-duplicate stamps")
         row("truth gaps (s)", f"{v.missing_samples} NaN rows: {_fmt_intervals(v.gaps)}")
+    m = c.magnetometer
+    if m is not None:
+        dip = f"dip {m.dip_median_deg:+.1f} deg (std {m.dip_std_deg:.1f})" if m.dip_median_deg is not None else "dip n/a"
+        row("magnetometer", f"|m| median {m.norm_median_ut:.1f} uT (5-95 %: {m.norm_p5_ut:.1f}-{m.norm_p95_ut:.1f}), "
+            f"{dip}; disturbed {100 * m.disturbed_fraction:.1f} % of the samples: {_fmt_intervals(m.disturbed)}")
     for note in c.notes:
         row("note", note)
     return "\n".join(lines)

@@ -72,3 +72,21 @@ def test_broad_trials_read_imu_mag(data_dir):
     assert 25 < np.median(norm) < 65  # the Earth's field in Berlin, about 50 uT (IGRF), in uT
     course = datasets.load("ece276a/1", data_dir)
     assert course.imu.mag_ut is None and not course.imu.has_mag
+
+
+def test_inspect_reports_norm_dip_and_the_disturbed_span(tmp_path, capsys):
+    from fusion.checks import check_recording
+    from fusion.cli import main
+
+    rec = recording(600, gap=None)
+    mag = earth_field(rec)
+    mag[300:360] += [30.0, 0.0, 0.0]  # a magnet passing by for 0.6 s (100 Hz)
+    path = write_csv(tmp_path / "walk.csv", rec, mag)
+    check = check_recording(datasets.load_source(datasets.select(str(path))[0])).magnetometer
+    assert check.norm_median_ut == pytest.approx(np.hypot(19.0, 45.0), rel=1e-6)
+    assert check.dip_median_deg == pytest.approx(np.degrees(np.arctan2(45.0, 19.0)), abs=1e-6)  # 67.1 deg, down
+    (span,) = check.disturbed
+    assert (span.first, span.stop) == (300, 360) and check.disturbed_fraction == pytest.approx(0.1)
+    assert main(["inspect", "--dataset", str(path), "--no-progress"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "magnetometer" in ln)
+    assert "|m| median 48.8 uT" in line and "dip +67.1 deg" in line and "disturbed 10.0 %" in line
