@@ -7,7 +7,8 @@
     DIR/figures/*.png    per recording: Euler angles over VICON, errors, smoother cost, and per
                          filter with a covariance its consistency (`plots.consistency_figure`);
                          summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter
-    DIR/report.html      one self-contained page (images embedded as base64 PNG), readable offline
+    DIR/report.html      one page, readable offline: the summary figures embedded (base64 PNG), the
+                         per-recording ones linked from figures/ and loaded as the reader scrolls
     DIR/report.md        the same for a repository (links to figures/)
 
 Only files the toolkit wrote are ever replaced or removed: they are listed in
@@ -728,10 +729,16 @@ def _html_table(head: list[str], rows: list[list[str]], table_id: str, numeric_f
     return "\n".join(out) + "</tbody></table>"
 
 
-def _img(fig_dir: Path, caption: str, name: str) -> str:
-    data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
-    return (f'<figure><img alt="{html.escape(caption)}" data-file="{html.escape(name)}" '
-            f'src="data:image/png;base64,{data}"><figcaption>{html.escape(caption)}</figcaption></figure>')
+def _img(fig_dir: Path, caption: str, name: str, embed: bool = True) -> str:
+    """A figure: embedded (base64 PNG: the page alone shows it) or linked from `figures/` and loaded
+    when scrolled to (`loading="lazy"`), so that a report with a hundred figures opens at once."""
+    if embed:
+        src = "data:image/png;base64," + base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
+    else:
+        src = "figures/" + name
+    lazy = "" if embed else ' loading="lazy"'
+    return (f'<figure><img alt="{html.escape(caption)}" data-file="{html.escape(name)}"{lazy} '
+            f'src="{html.escape(src)}"><figcaption>{html.escape(caption)}</figcaption></figure>')
 
 
 def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path,
@@ -758,14 +765,15 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
     ]
     if per_recording:
-        parts += ["<h2>Per recording</h2><p>Grey: no VICON (gaps, outside its span); red: gyro marked invalid.</p>",
-                  *(_img(fig_dir, c, n) for c, n in per_recording)]
+        parts += ["<h2>Per recording</h2><p>Grey: no VICON (gaps, outside its span); red: gyro marked invalid. The "
+                  "figures are the files in <code>figures/</code> beside this page.</p>",
+                  *(_img(fig_dir, c, n, embed=False) for c, n in per_recording)]
     if beliefs:
         parts += ['<h2 id="consistency">Filter consistency</h2>', f"<p>{html.escape(CONSISTENCY_TEXT)}</p>"]
         for n, (dataset, entries) in enumerate(_by_recording(list(beliefs))):
             parts += [f"<h3>{html.escape(dataset)}</h3>",
                       _html_table(CONSISTENCY_HEADER, _consistency_rows(entries), f"consistency-{n:03d}", 1),
-                      *(_img(fig_dir, e["caption"], e["file"]) for e in entries)]
+                      *(_img(fig_dir, e["caption"], e["file"], embed=False) for e in entries)]
     parts += ["<h2>Settings</h2>", _html_table(["setting", "value"], [[k, str(v)] for k, v in _settings_items(doc)],
                                                "settings", 9)]
     if _details_items(doc):

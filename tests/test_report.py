@@ -138,7 +138,9 @@ def test_compare_out_writes_everything_and_figures_are_not_blank(run_dir):
     md = (out / "report.md").read_text()
     assert all(f"figures/{name}" in md for name in figures)
     page = (out / "report.html").read_text()
-    assert page.count('src="data:image/png;base64,') == len(figures)
+    summary = [name for name in figures if name.startswith("summary-")]
+    assert page.count('src="data:image/png;base64,') == len(summary)  # the summary is in the page itself
+    assert all(f'loading="lazy" src="figures/{name}"' in page for name in figures if name not in summary)
     assert "http://" not in page and "https://" not in page  # nothing to fetch: readable offline
 
 
@@ -235,6 +237,7 @@ def test_fusion_package_never_imports_matplotlib(tmp_path):
 # --- the page in a real browser ---
 
 CHECK_SCRIPT = """<script>
+document.querySelectorAll('img').forEach(function (i) { i.loading = 'eager'; });  // load what a reader scrolls to
 window.addEventListener('load', function () {
   var imgs = Array.prototype.map.call(document.images, function (i) {
     return {file: i.getAttribute('data-file'), w: i.naturalWidth, h: i.naturalHeight, complete: i.complete};
@@ -274,7 +277,8 @@ def test_report_html_in_headless_chromium(run_dir, tmp_path):
     out = run_dir
     doc = json.loads((out / "results.json").read_text())
     page = (out / "report.html").read_text()
-    checked = tmp_path / "check.html"
+    copy = shutil.copytree(out, tmp_path / "run")
+    checked = copy / "check.html"  # beside figures/, which the page links to
     checked.write_text(page.replace("</body>", CHECK_SCRIPT + "</body>"))
     proc = _chromium_run(exe, tmp_path / "profile", "--virtual-time-budget=10000", "--dump-dom", checked.as_uri())
     match = re.search(r'<pre id="check-result">(.*?)</pre>', proc.stdout, re.S)
@@ -414,7 +418,7 @@ def test_consistency_section_only_for_filters_with_a_covariance(tmp_path, monkey
     page = (out / "report.html").read_text()
     assert page.count('<h2 id="consistency">Filter consistency</h2>') == 1 and "Bar-Shalom" in page
     assert page.index("<h2>Per recording</h2>") < page.index('id="consistency"') < page.index("<h2>Settings</h2>")
-    assert page.count('src="data:image/png;base64,') == len(list((out / "figures").glob("*.png")))
+    assert page.count('src="figures/rec-') == len(list((out / "figures").glob("rec-*.png")))
     for n in range(2):
         s = series.load(out / "series" / f"{n:03d}.npz")
         assert list(s.beliefs) == [1]  # dr (0) and vqf (2) have none
