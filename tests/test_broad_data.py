@@ -18,6 +18,8 @@ from fusion.broad import load_broad
 from fusion.cli import main
 from fusion.types import Trajectory
 
+from optional_helpers import require_module
+
 TRIALS = {  # name: format, as published
     "01_undisturbed_slow_rotation_A": "mat",
     "03_undisturbed_slow_rotation_C": "hdf5",
@@ -49,7 +51,7 @@ def broad_dir(data_dir) -> Path:
 def _raw_rate(path: Path) -> float:
     """The sampling rate where BROAD keeps it: a file attribute (.hdf5), a variable (.mat)."""
     if path.suffix == ".hdf5":
-        h5py = pytest.importorskip("h5py")
+        h5py = require_module("h5py")
         with h5py.File(path, "r") as f:
             assert "sampling_rate" not in f.keys()  # not a dataset
             return float(f.attrs["sampling_rate"])
@@ -62,7 +64,7 @@ def _raw_rate(path: Path) -> float:
 def test_real_trial_loads_as_published(broad_dir, name):
     path = broad_dir / f"{name}.{TRIALS[name]}"
     if TRIALS[name] == "hdf5":
-        pytest.importorskip("h5py")
+        require_module("h5py")
     assert _raw_rate(path) == pytest.approx(RATE_HZ, rel=1e-9)
     imu, truth, movement = load_broad(path)
     n = len(imu)
@@ -97,7 +99,7 @@ def test_dataset_all_runs_through_the_broad_trials(data_dir, broad_dir, capsys):
 
 
 def test_missing_sampling_rate_is_one_line_naming_the_file(tmp_path):
-    h5py = pytest.importorskip("h5py")
+    h5py = require_module("h5py")
     n = 50
     arrays = {"imu_gyr": np.zeros((n, 3)), "imu_acc": np.tile([0, 0, 9.81], (n, 1)),
               "opt_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "movement": np.ones(n, bool)}
@@ -122,7 +124,7 @@ def test_vqf_rows_equal_vqf_run_directly(broad_dir, peer):
     """Our `vqf`/`vqf-offline` inclination RMSE (BROAD protocol) on a real trial equals the
     library's own `VQF(Ts).updateBatch(gyr, acc)` / `offlineVQF(gyr, acc, None, Ts, params)`
     on the file's arrays, scored the same way (5e-7 deg apart measured)."""
-    vqf = pytest.importorskip("vqf")
+    vqf = require_module("vqf")
     rec = datasets.load(str(broad_dir / "01_undisturbed_slow_rotation_A.mat"))
     imu = rec.imu
     ts = 1.0 / RATE_HZ

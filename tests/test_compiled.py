@@ -21,6 +21,8 @@ from fusion import quaternion as quat
 from fusion.estimators import build
 from fusion.types import ImuSamples
 
+from optional_helpers import require_module
+
 TOL = 1e-10
 
 SPECS = (
@@ -111,7 +113,7 @@ def broad(data_dir):
     path = data_dir / "broad" / "25_disturbed_tapping_B.hdf5"
     if not path.is_file():
         pytest.fail(f"FUSION_DATA={data_dir} is set but {path} is missing")
-    pytest.importorskip("h5py")
+    require_module("h5py")
     return window(datasets.load(str(path)), 11500, 14500)
 
 
