@@ -123,7 +123,7 @@ def test_missing_sampling_rate_is_one_line_naming_the_file(tmp_path):
 def test_vqf_rows_equal_vqf_run_directly(broad_dir, peer):
     """Our `vqf`/`vqf-offline` inclination RMSE (BROAD protocol) on a real trial equals the
     library's own `VQF(Ts).updateBatch(gyr, acc)` / `offlineVQF(gyr, acc, None, Ts, params)`
-    on the file's arrays, scored the same way (5e-7 deg apart measured)."""
+    on the file's arrays, scored the same way (the README says: to 1e-6 deg)."""
     vqf = require_module("vqf")
     rec = datasets.load(str(broad_dir / "01_undisturbed_slow_rotation_A.mat"))
     imu = rec.imu
@@ -138,4 +138,7 @@ def test_vqf_rows_equal_vqf_run_directly(broad_dir, peer):
     a = score(rec.truth, ours, "broad", rec.movement).rmse_deg["inclination"]
     b = score(rec.truth, Trajectory(imu.t, direct), "broad", rec.movement).rmse_deg["inclination"]
     assert 0.2 < b < 1.0
-    assert a == pytest.approx(b, abs=0.01)
+    # The README's claim, 1e-6 deg. Measured: 4.1e-7 (vqf, which starts from the truth here and
+    # from identity when run directly, until its accelerometer low-pass settles) and 3.7e-10 deg
+    # (vqf-offline, whose first gyro sample is ours zeroed by the interval convention).
+    assert a == pytest.approx(b, abs=1e-6)

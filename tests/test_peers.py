@@ -214,6 +214,11 @@ def test_ahrs_ekf_enu_frame_would_be_upside_down():
     assert np.degrees(final.magnitude()) > 170.0
 
 
+# Reference figures measured with the libraries themselves, given to 0.1 deg with a target of 0.3 deg
+# (mean over ece276a 1-9, --init truth, defaults, 330 mV/g and the datasheet gyro scale, no dropout
+# handling). Measured through the adapters: vqf 6.67, vqf-offline 3.24, madgwick 6.13, mahony 3.25,
+# fusion-ahrs 4.53. The tolerance stays at that 0.3 because vqf-offline is 0.26 below its figure (the
+# others are within 0.07).
 REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defaults
     "vqf": 6.7,
     "vqf-offline": 3.5,
@@ -224,7 +229,7 @@ REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defau
 
 
 def test_reference_figures_on_the_course_recordings(data_dir):
-    """The adapters reproduce the published figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
+    """The adapters reproduce the reference figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
     for lib in ("vqf", "ahrs", "imufusion"):
         require_module(lib)
     from fusion.evaluation.metrics import score

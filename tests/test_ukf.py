@@ -301,13 +301,13 @@ def test_covariance_stays_spd_on_every_real_recording(real_runs, spec):
 
 # Regression on the real recordings with the gyro freezes integrated as if valid (dropout
 # detection off). The filters' first defaults measured 2.11 / 17.4 (ukf) and 2.10 / 17.2
-# (ukf-bias, ekf) here. The disturbance-robust defaults measure 4.20 / 3.65 / 3.65 deg
-# inclination: an undetected freeze (the gyro reads zero while the board turns) looks to
+# (ukf-bias, ekf) here. The disturbance-robust defaults measure 4.20 / 3.95 / 3.72 deg
+# inclination (ukf / ukf-bias / ekf; total 16.5 / 15.7 / 15.4): an undetected freeze (the gyro reads zero while the board turns) looks to
 # them like a long linear acceleration, so they distrust the accelerometer that would repair
 # the tilt. A known regression, kept visible: with dropout detection on (the default, next
 # test) the freezes are masked and the filters are better than before.
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason="undetected gyro freezes look like linear acceleration to the "
-                                       "disturbance model (dropouts off: 3.6-4.2 deg inclination)")
+                                       "disturbance model (dropouts off: 3.7-4.2 deg inclination)")
 @pytest.mark.parametrize("spec,inclination,total", [("ukf", 3.0, 18.0), ("ukf-bias", 2.2, 18.0), ("ekf", 2.2, 18.0)])
 def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
     inc = [real_runs[spec, n][1].rmse_deg["inclination"] for n in range(1, 10)]
@@ -333,8 +333,9 @@ def default_runs(data_dir):
 
 
 # The course targets for filters whose defaults must also hold on BROAD: no worse than the
-# course-tuned filters were (ekf 1.95 / 6.86). Measured: ekf and ukf-bias 1.61 / 5.33,
-# ukf 1.92 / 6.78 (inclination / total, deg).
+# course-tuned filters were (ekf 1.95 / 6.86): the bounds are that target, not a margin on a
+# measurement. Measured: ekf 1.55 / 5.34, ukf-bias 1.59 / 5.38, ukf 1.92 / 6.78 (inclination /
+# total, deg).
 @pytest.mark.parametrize("spec,inclination,total", [("ukf", 2.0, 7.0), ("ukf-bias", 1.95, 6.86), ("ekf", 1.95, 6.86)])
 def test_mean_rmse_on_real_recordings_with_default_loading(default_runs, spec, inclination, total):
     assert np.mean([default_runs[spec, n].rmse_deg["inclination"] for n in range(1, 10)]) <= inclination
@@ -348,11 +349,11 @@ def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
 
 # Bounds on the built-in simulated recording (exact truth, 180 s, sustained ~0.07 g hand
 # accelerations). Measured: dr 14.2 / 19.7, ukf 1.48 / 17.2 (heading random walk under linear
-# acceleration), ukf:hf=true 2.22 / 13.4, ukf-bias and ekf 0.96 / 6.5 deg (inclination / total
-# RMSE); the bounds add about 15 %.
+# acceleration), ukf:hf=true 2.22 / 13.4, ukf-bias 0.95 / 6.49, ekf 0.88 / 6.18 deg (inclination /
+# total RMSE); the bounds add about 15 % (ekf's were ukf-bias's, 1.1 / 7.5).
 @pytest.mark.parametrize(
     "spec,inclination,total",
-    [("ukf", 1.7, 19.5), ("ukf:hf=true", 2.55, 15.5), ("ukf-bias", 1.1, 7.5), ("ekf", 1.1, 7.5)],
+    [("ukf", 1.7, 19.5), ("ukf:hf=true", 2.55, 15.5), ("ukf-bias", 1.1, 7.5), ("ekf", 1.02, 7.12)],
 )
 def test_bounds_on_the_simulated_recording(spec, inclination, total):
     from fusion.evaluation.metrics import score
