@@ -235,11 +235,14 @@ def test_lean_step_equals_filterpy_reference(cls, n, noise, cov_atol):
         assert a.diagnostics["acc_lowpassed"].sum() > n // 4
 
 
-@pytest.mark.parametrize("spec", ["ukf", "ukf:sigma=julier", "ukf:sigma=merwe,kappa=1", "ukf-bias", "ukf:Q=1e-2,R=1e-4"])
-def test_tracks_synthetic_motion(spec):
+# Inclination RMSE bounds: measured 0.526 deg (ukf, any sigma points), 1.03 (ukf-bias), 0.395
+# (ukf:Q=1e-2,R=1e-4), + 15 % (was 1.5 for all).
+@pytest.mark.parametrize("spec,bound", [("ukf", 0.61), ("ukf:sigma=julier", 0.61), ("ukf:sigma=merwe,kappa=1", 0.61),
+                                        ("ukf-bias", 1.19), ("ukf:Q=1e-2,R=1e-4", 0.46)])
+def test_tracks_synthetic_motion(spec, bound):
     imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
     est = build(spec).estimate(imu, truth[0])
-    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.5
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < bound
     assert np.all(np.isfinite(est.quat_wxyz))
     assert np.allclose(np.linalg.norm(est.quat_wxyz, axis=1), 1.0, atol=1e-12)
 
@@ -249,12 +252,16 @@ def test_ukf_bias_learns_a_gyro_bias():
     imu, truth = synthetic(3000, noise=0.005, bias=bias, seed=6)
     est = UKFBias(UKFBiasParams(bias_walk_rad2_s3=1e-5)).estimate(imu, truth[0])
     b = est.diagnostics["gyr_bias_rad_s"][-500:].mean(axis=0)
-    # Gravity makes the two horizontal-in-world components observable; check the norm part.
-    assert np.linalg.norm(b - bias) < 0.5 * np.linalg.norm(bias)
+    # Gravity makes the two horizontal-in-world components observable, and the turning body shows
+    # each body axis horizontal in turn: the bias error is 6.0 % of the bias (measured), + 15 %
+    # (was 50 %).
+    assert np.linalg.norm(b - bias) < 0.07 * np.linalg.norm(bias)
 
 
-@pytest.mark.parametrize("spec", ["ukf", "ukf-bias"])
-def test_recovers_after_nan_and_saturated_stretch(spec):
+# Inclination RMSE over the last 300 samples: measured 0.074 (ukf) and 0.605 deg (ukf-bias), + 15 %
+# (was 2.0 for both).
+@pytest.mark.parametrize("spec,bound", [("ukf", 0.085), ("ukf-bias", 0.70)])
+def test_recovers_after_nan_and_saturated_stretch(spec, bound):
     imu, truth = synthetic(1500, noise=0.005, seed=7)
     gyr, acc = imu.gyr_rad_s.copy(), imu.acc_g.copy()
     gyr[500:600] = np.nan
@@ -263,7 +270,7 @@ def test_recovers_after_nan_and_saturated_stretch(spec):
     est = build(spec).estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
     assert np.all(np.isfinite(est.quat_wxyz))
     assert np.all(np.isfinite(est.diagnostics["cov"][1:]))
-    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 2.0
+    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < bound
 
 
 # ---------------------------------------------------------------- real and simulated recordings
