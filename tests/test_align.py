@@ -276,6 +276,7 @@ def test_cli_degenerate_truth_is_one_line_error_or_a_row_without_scores(tmp_path
     assert row["rmse_deg"] is None and row["alignment"] is None and doc["alignments"] == []
 
 
+@pytest.mark.slow
 def test_report_rerender_keeps_the_alignment(tmp_path, capsys):
     from fusion.evaluation.report import render
 

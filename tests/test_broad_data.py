@@ -87,6 +87,7 @@ def test_trials_get_their_ids_and_a_glob_finds_all_fourteen(data_dir, broad_dir)
     assert set(ids) <= {s.id for s in datasets.select("all", data_dir)}
 
 
+@pytest.mark.slow
 def test_dataset_all_runs_through_the_broad_trials(data_dir, broad_dir, capsys):
     """`--dataset all` over the shared data directory: every trial gets a dr row, nothing aborts."""
     code = main(["compare", "--estimators", "dr", "--dataset", "all", "--data-dir", str(data_dir),

@@ -117,6 +117,7 @@ def broad(data_dir):
     return window(datasets.load(str(path)), 11500, 14500)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_the_simulator(sim, spec):
     imu, q0 = sim
@@ -128,6 +129,7 @@ def wrong_start(q0: np.ndarray) -> np.ndarray:
     return quat.multiply(q0, quat.from_rotvec(np.radians([30.0, -20.0, 0.0])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_with_broken_samples_from_a_wrong_start(sim, spec):
     imu, q0 = sim
@@ -139,12 +141,14 @@ def test_compiled_equals_reference_with_broken_samples_from_a_wrong_start(sim, s
         assert np.isnan(a.diagnostics["acc_var_g2"]).sum() > 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_a_course_recording(course, spec):
     imu, q0 = course
     assert_same(build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_a_broad_trial(broad, spec):
     imu, q0 = broad

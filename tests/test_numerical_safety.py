@@ -115,6 +115,7 @@ def _cases():
             yield pytest.param(name, kind, id=f"{name}-{kind}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, kind", list(_cases()))
 def test_recovers_after_a_broken_stretch(name, kind):
     imu, truth = sim()

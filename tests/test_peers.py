@@ -228,6 +228,7 @@ REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defau
 }
 
 
+@pytest.mark.slow
 def test_reference_figures_on_the_course_recordings(data_dir):
     """The adapters reproduce the reference figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
     for lib in ("vqf", "ahrs", "imufusion"):

@@ -62,6 +62,7 @@ def timings(request):
                                 + f"; total {sum(seen.values()):.0f} s")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(source, tutorial_data, timings, tmp_path, record_property):
     built = build_tutorial.execute(source, TIMEOUT_S, tutorial_data, out_dir=tmp_path)
