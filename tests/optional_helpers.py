@@ -35,7 +35,8 @@ def under_ci() -> bool:
 def unavailable(reason: str) -> None:
     """Skip the test for something optional that is missing, or fail it under CI."""
     if under_ci():
-        pytest.fail(f"{reason} (CI=true: CI installs every optional package and sets FUSION_DATA)")
+        pytest.fail(f"{reason}; under CI (CI=true) this fails instead of skipping: CI installs every optional "
+                    "package and sets FUSION_DATA")
     pytest.skip(reason)
 
 
@@ -85,7 +86,7 @@ def real_data_dir() -> Path:
     has no data; failed under CI), failed when it is set but the course recordings are missing."""
     value = os.environ.get("FUSION_DATA")
     if not value:
-        unavailable("FUSION_DATA is not set: real-recording tests skipped")
+        unavailable("FUSION_DATA is not set: no real recordings")
     path = Path(value).resolve()
     if not (path / COURSE_FILE).is_file():
         pytest.fail(f"FUSION_DATA={value} is set but holds no {COURSE_FILE.as_posix()}")

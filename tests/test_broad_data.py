@@ -90,6 +90,7 @@ def test_trials_get_their_ids_and_a_glob_finds_all_fourteen(data_dir, broad_dir)
 @pytest.mark.slow
 def test_dataset_all_runs_through_the_broad_trials(data_dir, broad_dir, capsys):
     """`--dataset all` over the shared data directory: every trial gets a dr row, nothing aborts."""
+    require_module("h5py")  # nine of the trials are .hdf5
     code = main(["compare", "--estimators", "dr", "--dataset", "all", "--data-dir", str(data_dir),
                  "--no-progress", "--jobs", "1"])
     out, err = capsys.readouterr()
