@@ -10,6 +10,7 @@ from fusion.estimators.params import EstimatorSpec
 from fusion import quaternion as quat
 
 from motion_helpers import turning_body
+from optional_helpers import require_module
 from test_ukf import inclination_deg
 
 
@@ -107,6 +108,8 @@ def test_ekf_on_broad_trials_beats_gyro_integration(data_dir, trial, bound):
     path = data_dir / "broad"
     if not path.is_dir():
         pytest.fail(f"FUSION_DATA={data_dir} holds no broad/ folder")
+    if (path / f"{trial}.hdf5").is_file():
+        require_module("h5py")
     rec = datasets.load(f"broad/{trial}", data_dir)
     ekf = run_one(rec, EstimatorSpec("ekf"))
     dr = run_one(rec, EstimatorSpec("dr"))
