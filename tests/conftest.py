@@ -1,26 +1,23 @@
 """Shared fixtures.
 
 Real-data tests use `data_dir`: the course recordings at `$FUSION_DATA`. Without the
-variable they are skipped (a fresh clone has no data); with it set but the files missing
-they *fail*, so CI (which sets FUSION_DATA=../shared/data) cannot silently skip them.
+variable they are skipped (a fresh clone has no data), except under CI (`CI=true`, which
+`.ci/run` exports), where that is a failure; with the variable set but the files missing they
+*fail*, so CI (which sets FUSION_DATA=../shared/data) cannot silently skip them. The rules are
+`optional_helpers.real_data_dir`'s.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
+from optional_helpers import real_data_dir
+
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
-    value = os.environ.get("FUSION_DATA")
-    if not value:
-        pytest.skip("FUSION_DATA is not set: real-recording tests skipped")
-    path = Path(value).resolve()
-    if not (path / "ece276a" / "imu" / "imuRaw1.p").is_file():
-        pytest.fail(f"FUSION_DATA={value} is set but holds no ece276a/imu/imuRaw1.p")
-    return path
+    return real_data_dir()
 
 
 # --- fuzzing statistics (tests/test_fuzz_loaders.py), printed at the end for the CI log --------

@@ -21,6 +21,8 @@ from fusion import datasets
 from fusion.cli import main
 from fusion.types import ImuSamples, Recording, Trajectory
 
+from optional_helpers import require_module
+
 A_TRUE = Rotation.from_rotvec([np.radians(20.0), 0.0, 0.0])  # truth world tilted 20 deg about x
 B_TRUE = Rotation.from_rotvec(np.radians(30.0) * np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5]))
 SWAP = Rotation.from_euler("ZX", [90.0, 180.0], degrees=True)  # IMU x -> marker y, z -> -z
@@ -276,6 +278,7 @@ def test_cli_degenerate_truth_is_one_line_error_or_a_row_without_scores(tmp_path
     assert row["rmse_deg"] is None and row["alignment"] is None and doc["alignments"] == []
 
 
+@pytest.mark.slow
 def test_report_rerender_keeps_the_alignment(tmp_path, capsys):
     from fusion.evaluation.report import render
 
@@ -316,6 +319,7 @@ def test_real_recordings_frames_already_agree(data_dir):
     assert al.world.magnitude() < np.radians(1.0) and al.body.magnitude() < np.radians(2.0)
     plain, fitted = run_one(rec, EstimatorSpec("gn")), run_one(rec, EstimatorSpec("gn"), align=al)
     assert fitted.rmse_deg["inclination"] < plain.rmse_deg["inclination"] + 0.2
+    require_module("h5py")  # the trial is an .hdf5 file
     rec = datasets.load("broad/03_undisturbed_slow_rotation_C", data_dir)
     al = recording_alignment(rec)
     assert al.world.magnitude() < np.radians(1.0) and al.body.magnitude() < np.radians(1.0)

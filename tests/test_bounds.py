@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 import subprocess
 import sys
 import textwrap
@@ -21,6 +22,8 @@ import scipy.io
 
 from fusion import loaders
 from fusion.formats import course, generic_csv
+
+from optional_helpers import optional_module, require_module
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -42,7 +45,7 @@ def write_pickle_bomb(path: Path, levels: int = 30, width: int = 10) -> Path:
 
 def write_hdf5_bomb(path: Path, rows: int = 30_000_000) -> Path:
     """A ~2 KB BROAD trial declaring `rows` compressed (never written) rows per array."""
-    h5py = pytest.importorskip("h5py")
+    h5py = require_module("h5py")
     with h5py.File(path, "w") as f:
         for key, cols in (("imu_gyr", 3), ("imu_acc", 3), ("opt_quat", 4)):
             f.create_dataset(key, shape=(rows, cols), dtype="f8", chunks=(100_000, cols), compression="gzip")
@@ -71,7 +74,10 @@ def test_pickle_bomb_within_depth_is_refused_by_count(tmp_path):
 
 def test_check_structure_shared_references_counted_once_per_reference():
     inner = [1.0, 2.0, 3.0]
-    loaders.check_structure({"vals": [inner] * 6, "ts": [inner] * 2}, "x.p")  # 24 values: fine
+    doc = {"vals": [inner] * 6, "ts": [inner] * 2}  # 24 values once materialised
+    loaders.check_structure(doc, "x.p", max_values=24)  # exactly at the limit: accepted
+    with pytest.raises(ValueError, match=r"x\.p: nested containers hold 24 values, .* \(limit 23\)"):
+        loaders.check_structure(doc, "x.p", max_values=23)
     with pytest.raises(ValueError, match="x.p: nested containers hold 1.8e\\+08"):
         loaders.check_structure([np.zeros(3_000_000)] * 60, "x.p")  # arrays count their size
 
@@ -88,8 +94,28 @@ def test_check_structure_refuses_cycles_and_deep_chains():
         loaders.check_structure(deep, "d.p")
 
 
-def test_real_layouts_pass_the_structure_check():
-    loaders.check_structure({"rots": np.zeros((3, 3, 5000)).tolist(), "ts": [list(range(5000))]}, "v.p")
+def nested(obj, levels: int):
+    for _ in range(levels):
+        obj = [obj]
+    return obj
+
+
+@pytest.mark.parametrize("layout, depth, values", [
+    ({"rots": np.zeros((3, 3, 5000)).tolist(), "ts": [list(range(5000))]}, 4, 50_000),  # VICON pickle as lists
+    ({"vals": np.zeros((6, 5000)).tolist(), "ts": [list(range(5000))]}, 3, 35_000),  # 2018 IMU dict as lists
+])
+def test_real_layouts_pass_the_structure_check(layout, depth, values):
+    """A real layout is accepted, and sits where the limits say: `depth` levels deep (accepted up
+    to MAX_NESTING when wrapped in more lists, refused one level beyond) and `values` values
+    (accepted with exactly that limit, refused one below)."""
+    loaders.check_structure(layout, "v.p")
+    margin = loaders.MAX_NESTING - depth
+    loaders.check_structure(nested(layout, margin), "v.p")
+    with pytest.raises(ValueError, match=f"v.p: containers nested more than {loaders.MAX_NESTING} deep"):
+        loaders.check_structure(nested(layout, margin + 1), "v.p")
+    loaders.check_structure(layout, "v.p", max_values=values)
+    with pytest.raises(ValueError, match=re.escape(f"v.p: nested containers hold {values:.3g} values")):
+        loaders.check_structure(layout, "v.p", max_values=values - 1)
 
 
 def test_hdf5_declaring_huge_shapes_is_refused_from_the_header(tmp_path):
@@ -108,8 +134,22 @@ def test_mat_declaring_huge_shapes_is_refused_from_the_header(tmp_path):
         course.load_imu_mat(path)
 
 
-def test_check_declared_total_bytes():
-    loaders.check_declared("f", [("a", (100_000, 3)), ("b", (100_000, 4))])
+def test_check_declared_limits_are_exact():
+    """Each limit accepts its value and refuses one more: samples along an axis, values per
+    array, and bytes (as float64) over all of a file's arrays."""
+    n = loaders.MAX_SAMPLES
+    loaders.check_declared("f", [("a", (n, 3))])
+    with pytest.raises(ValueError, match=rf"f: 'a' declares shape \({n + 1}, 3\)"):
+        loaders.check_declared("f", [("a", (n + 1, 3))])
+    cols = loaders.MAX_VALUES // n  # 16 channels of MAX_SAMPLES
+    loaders.check_declared("f", [("a", (n, cols))])
+    with pytest.raises(ValueError, match=rf"f: 'a' declares shape \(2, {loaders.MAX_VALUES // 2 + 1}\)"):
+        loaders.check_declared("f", [("a", (2, loaders.MAX_VALUES // 2 + 1))])  # short axes, too many values
+    half = loaders.MAX_BYTES // 8 // 2  # values in half the byte limit
+    two_halves = [("a", (half // 16, 16)), ("b", (half // 16, 16))]
+    loaders.check_declared("f", two_halves)  # exactly MAX_BYTES
+    with pytest.raises(ValueError, match="f: the arrays declare 2 GiB, more than the 2 GiB limit"):
+        loaders.check_declared("f", [*two_halves, ("c", (1,))])
     with pytest.raises(ValueError, match="f: the arrays declare .* GiB"):
         loaders.check_declared("f", [(f"a{i}", (9_000_000, 16)) for i in range(3)])
 
@@ -117,19 +157,15 @@ def test_check_declared_total_bytes():
 def test_bombs_refused_under_a_memory_limit(tmp_path):
     """Refused, not survived by luck: under a 1.5 GiB address-space limit (the HDF5 bomb alone
     would take 2.4 GB, the pickle 10**30 values), each file gives its one-line error."""
-    resource = pytest.importorskip("resource")
+    require_module("resource")  # POSIX only
     paths = [write_pickle_bomb(tmp_path / "imuRaw1.p"), write_mat_bomb(tmp_path / "imuRaw2.mat")]
-    try:
+    if optional_module("h5py") is not None:  # BROAD's .hdf5 needs the optional h5py (a failure under CI without it)
         paths.append(write_hdf5_bomb(tmp_path / "trial01.hdf5"))
-    except pytest.skip.Exception:
-        pass
     script = textwrap.dedent(f"""
-        import resource, sys
+        import importlib.util, resource, sys
         import numpy, scipy.io
-        try:
+        if importlib.util.find_spec("h5py"):  # its libraries loaded before the limit, as numpy's are
             import h5py
-        except ImportError:
-            pass
         from fusion.broad import load_broad
         from fusion.formats import course
         limit = {int(1.5 * 1024**3)}

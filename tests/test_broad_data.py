@@ -18,6 +18,8 @@ from fusion.broad import load_broad
 from fusion.cli import main
 from fusion.types import Trajectory
 
+from optional_helpers import require_module
+
 TRIALS = {  # name: format, as published
     "01_undisturbed_slow_rotation_A": "mat",
     "03_undisturbed_slow_rotation_C": "hdf5",
@@ -49,7 +51,7 @@ def broad_dir(data_dir) -> Path:
 def _raw_rate(path: Path) -> float:
     """The sampling rate where BROAD keeps it: a file attribute (.hdf5), a variable (.mat)."""
     if path.suffix == ".hdf5":
-        h5py = pytest.importorskip("h5py")
+        h5py = require_module("h5py")
         with h5py.File(path, "r") as f:
             assert "sampling_rate" not in f.keys()  # not a dataset
             return float(f.attrs["sampling_rate"])
@@ -62,7 +64,7 @@ def _raw_rate(path: Path) -> float:
 def test_real_trial_loads_as_published(broad_dir, name):
     path = broad_dir / f"{name}.{TRIALS[name]}"
     if TRIALS[name] == "hdf5":
-        pytest.importorskip("h5py")
+        require_module("h5py")
     assert _raw_rate(path) == pytest.approx(RATE_HZ, rel=1e-9)
     imu, truth, movement = load_broad(path)
     n = len(imu)
@@ -85,8 +87,10 @@ def test_trials_get_their_ids_and_a_glob_finds_all_fourteen(data_dir, broad_dir)
     assert set(ids) <= {s.id for s in datasets.select("all", data_dir)}
 
 
+@pytest.mark.slow
 def test_dataset_all_runs_through_the_broad_trials(data_dir, broad_dir, capsys):
     """`--dataset all` over the shared data directory: every trial gets a dr row, nothing aborts."""
+    require_module("h5py")  # nine of the trials are .hdf5
     code = main(["compare", "--estimators", "dr", "--dataset", "all", "--data-dir", str(data_dir),
                  "--no-progress", "--jobs", "1"])
     out, err = capsys.readouterr()
@@ -97,7 +101,7 @@ def test_dataset_all_runs_through_the_broad_trials(data_dir, broad_dir, capsys):
 
 
 def test_missing_sampling_rate_is_one_line_naming_the_file(tmp_path):
-    h5py = pytest.importorskip("h5py")
+    h5py = require_module("h5py")
     n = 50
     arrays = {"imu_gyr": np.zeros((n, 3)), "imu_acc": np.tile([0, 0, 9.81], (n, 1)),
               "opt_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "movement": np.ones(n, bool)}
@@ -121,8 +125,8 @@ def test_missing_sampling_rate_is_one_line_naming_the_file(tmp_path):
 def test_vqf_rows_equal_vqf_run_directly(broad_dir, peer):
     """Our `vqf`/`vqf-offline` inclination RMSE (BROAD protocol) on a real trial equals the
     library's own `VQF(Ts).updateBatch(gyr, acc)` / `offlineVQF(gyr, acc, None, Ts, params)`
-    on the file's arrays, scored the same way (5e-7 deg apart measured)."""
-    vqf = pytest.importorskip("vqf")
+    on the file's arrays, scored the same way (the README says: to 1e-6 deg)."""
+    vqf = require_module("vqf")
     rec = datasets.load(str(broad_dir / "01_undisturbed_slow_rotation_A.mat"))
     imu = rec.imu
     ts = 1.0 / RATE_HZ
@@ -136,4 +140,7 @@ def test_vqf_rows_equal_vqf_run_directly(broad_dir, peer):
     a = score(rec.truth, ours, "broad", rec.movement).rmse_deg["inclination"]
     b = score(rec.truth, Trajectory(imu.t, direct), "broad", rec.movement).rmse_deg["inclination"]
     assert 0.2 < b < 1.0
-    assert a == pytest.approx(b, abs=0.01)
+    # The README's claim, 1e-6 deg. Measured: 4.1e-7 (vqf, which starts from the truth here and
+    # from identity when run directly, until its accelerometer low-pass settles) and 3.7e-10 deg
+    # (vqf-offline, whose first gyro sample is ours zeroed by the interval convention).
+    assert a == pytest.approx(b, abs=1e-6)

@@ -21,6 +21,8 @@ from fusion import quaternion as quat
 from fusion.estimators import build
 from fusion.types import ImuSamples
 
+from optional_helpers import require_module
+
 TOL = 1e-10
 
 SPECS = (
@@ -111,10 +113,11 @@ def broad(data_dir):
     path = data_dir / "broad" / "25_disturbed_tapping_B.hdf5"
     if not path.is_file():
         pytest.fail(f"FUSION_DATA={data_dir} is set but {path} is missing")
-    pytest.importorskip("h5py")
+    require_module("h5py")
     return window(datasets.load(str(path)), 11500, 14500)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_the_simulator(sim, spec):
     imu, q0 = sim
@@ -126,6 +129,7 @@ def wrong_start(q0: np.ndarray) -> np.ndarray:
     return quat.multiply(q0, quat.from_rotvec(np.radians([30.0, -20.0, 0.0])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_with_broken_samples_from_a_wrong_start(sim, spec):
     imu, q0 = sim
@@ -137,12 +141,14 @@ def test_compiled_equals_reference_with_broken_samples_from_a_wrong_start(sim, s
         assert np.isnan(a.diagnostics["acc_var_g2"]).sum() > 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_a_course_recording(course, spec):
     imu, q0 = course
     assert_same(build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SPECS)
 def test_compiled_equals_reference_on_a_broad_trial(broad, spec):
     imu, q0 = broad

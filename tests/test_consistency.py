@@ -18,6 +18,7 @@ from fusion.evaluation import plots, series
 from fusion.types import Trajectory
 
 from motion_helpers import turning_body
+from optional_helpers import require_module
 
 RATE_HZ = 100.0
 GYR_STD_RAD_S = 0.01  # white gyro noise per sample
@@ -331,6 +332,7 @@ def test_a_broad_trial_is_decimated_and_counted(data_dir):
     from fusion import datasets
     from fusion.evaluation.job import run_one
 
+    require_module("h5py")
     path = data_dir / "broad" / "25_disturbed_tapping_B.hdf5"
     if not path.is_file():
         pytest.fail(f"FUSION_DATA={data_dir} is set but holds no {path.relative_to(data_dir)}")

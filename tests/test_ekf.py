@@ -43,11 +43,14 @@ def test_measurement_jacobian_matches_finite_differences():
     assert np.allclose(H, num, atol=1e-6)
 
 
-@pytest.mark.parametrize("spec", ["ekf", "ekf:bias=false,scale=false", "ekf:gate=skip", "ekf:gate=off"])
-def test_tracks_synthetic_motion(spec):
+# Inclination RMSE bounds: measured 1.03 deg (ekf, gate=skip, gate=off: the gate never acts on this
+# noise) and 1.11 (no bias or scale states), + 15 % (was 1.5 for all).
+@pytest.mark.parametrize("spec,bound", [("ekf", 1.19), ("ekf:bias=false,scale=false", 1.28), ("ekf:gate=skip", 1.19),
+                                        ("ekf:gate=off", 1.19)])
+def test_tracks_synthetic_motion(spec, bound):
     imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
     est = build(spec).estimate(imu, truth[0])
-    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.5
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < bound
     assert np.allclose(np.linalg.norm(est.quat_wxyz, axis=1), 1.0, atol=1e-12)
     cov = est.diagnostics["cov"]
     assert np.allclose(cov, np.swapaxes(cov, 1, 2))
@@ -59,7 +62,9 @@ def test_ekf_and_ukf_bias_agree_closely():
     a = build("ekf").estimate(imu, truth[0])
     b = build("ukf-bias").estimate(imu, truth[0])
     angle = np.degrees(np.linalg.norm(quat.relative_rotvec(a.quat_wxyz, b.quat_wxyz), axis=1))
-    assert angle.max() < 0.5
+    # The same model and densities, covariance propagated by Jacobians or sigma points: 0.016 deg
+    # apart at most (measured), + 25 % (was 0.5 deg).
+    assert angle.max() < 0.02
 
 
 def test_recovers_after_nan_and_saturated_stretch():
@@ -70,7 +75,8 @@ def test_recovers_after_nan_and_saturated_stretch():
     acc[560:600] = 8.0
     est = build("ekf").estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
     assert np.all(np.isfinite(est.quat_wxyz))
-    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 2.0
+    # 0.351 deg measured over the last 300 samples, + 15 % (was 2.0)
+    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 0.41
 
 
 @pytest.mark.parametrize("spec", ["ekf:Q=-1", "ekf:R=0", "ekf:Qb=-1e-6", "ekf:Pb0=inf", "ekf:gate=maybe", "ekf:gate_g=-1", "ekf:sigma=kraft"])
@@ -111,9 +117,12 @@ def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec):
     imu, truth = _fast_turning_with_translation()
     est = build(spec).estimate(imu, truth[0])
     second_half = slice(len(imu) // 2, None)
+    # Measured: the low-passed sample on every update of the second half (1.0), 0.140 / 0.153 deg
+    # inclination RMSE and a largest scale estimate of 2.0e-4 / 1.8e-4 (ekf / ukf-bias). The bounds
+    # add 15 % to the larger (they were 0.22 deg and 2e-3).
     assert est.diagnostics["acc_lowpassed"][second_half].mean() > 0.9
-    assert np.sqrt(np.mean(inclination_deg(truth[second_half], est.quat_wxyz[second_half]) ** 2)) < 0.22
-    assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < 2e-3
+    assert np.sqrt(np.mean(inclination_deg(truth[second_half], est.quat_wxyz[second_half]) ** 2)) < 0.18
+    assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < 2.4e-4
 
 
 @pytest.mark.parametrize("impl", ["compiled", "numpy"])
@@ -152,7 +161,7 @@ def _slow_rocking_with_translation(seconds=150.0, rate_hz=200.0, seed=2):
                         source="slow rocking with translation")
 
 
-@pytest.mark.xfail(strict=True, reason="the scale factors absorb translation that shares the frequencies of a "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="the scale factors absorb translation that shares the frequencies of a "
                    "slow rocking motion: with the 10 % prior, ekf fits a scale error of 13 % to a calibrated "
                    "gyro and loses degrees of inclination (known limitation, see the ekf module docstring)")
 @pytest.mark.parametrize("spec", ["ekf", "ukf-bias"])
@@ -163,11 +172,13 @@ def test_slow_rocking_with_translation_invents_no_scale(spec):
     assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.0
 
 
-@pytest.mark.parametrize("spec", ["ekf:scale=false", "ukf-bias:scale=false", "gd"])
-def test_slow_rocking_with_translation_without_scale_states(spec):
+# Inclination RMSE measured 0.548 / 0.560 / 0.048 deg, + 15 % (was 1.0 for all); with scale
+# states, above: 1.75 / 1.86 deg, and scale estimates of 13 / 15 %.
+@pytest.mark.parametrize("spec,bound", [("ekf:scale=false", 0.63), ("ukf-bias:scale=false", 0.65), ("gd", 0.056)])
+def test_slow_rocking_with_translation_without_scale_states(spec, bound):
     # The same motion without scale states in the filters: the limitation above is the scale's,
     # not the disturbance model's. The smoothers keep a scale error only where it lowers their
     # cost significantly (`BatchSmoother.significant_scales`), and here it does not.
     imu, truth = _slow_rocking_with_translation()
     est = build(spec).estimate(imu, truth[0])
-    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.0
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < bound

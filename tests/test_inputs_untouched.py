@@ -12,6 +12,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import scipy.io
 
 from fusion.cli import main
@@ -90,6 +91,7 @@ def test_generated_inputs_untouched(tmp_path):
     check_untouched(data, tmp_path / "out")
 
 
+@pytest.mark.slow
 def test_real_inputs_untouched(data_dir, tmp_path):
     """Copies of a few real recordings (into tmp_path, never the repository)."""
     data = tmp_path / "data"

@@ -307,6 +307,7 @@ def test_find_camera_file(tmp_path):
     assert find_camera_file(tmp_path, "ece276a/4") is None and find_camera_file(tmp_path, "sim") is None
 
 
+@pytest.mark.slow
 def test_panorama_cli_writes_the_image_and_scores(tmp_path, capsys, monkeypatch):
     from fusion.cli import main
 
@@ -325,6 +326,7 @@ def test_panorama_cli_writes_the_image_and_scores(tmp_path, capsys, monkeypatch)
     assert code == 1 and "unknown estimator 'nope'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_compare_panorama_scores_rank_estimators(data_dir, tmp_path, capsys):
     """`compare --panorama` adds panorama scores per row; a better trajectory stitches a panorama
     closer to the ground truth's (gn: 1.4 deg total error, dr: 4.5 deg on ece276a/1)."""

@@ -5,7 +5,8 @@ samples, jittered time stamps): the board upside down, a pure yaw, and a sequenc
 quarter turns about each axis. A wrong quaternion order, frame (NED/ENU), unit
 (deg/s vs rad/s) or rotation direction gives errors of tens of degrees; the adapters
 must stay within a degree (the ahrs and Fusion filters integrate to first order, hence
-not 1e-6). Skipped per peer when its library is not installed (`pip install -e '.[peers]'`).
+not 1e-6). Skipped per peer when its library is not installed (`pip install -e '.[peers]'`;
+a failure under CI, `optional_helpers.require_module`).
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from fusion.estimators.peers import PeerUnavailable, align_heading
 from fusion.evaluation.metrics import error_angles
 from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
+
+from optional_helpers import require_module
 
 LIBRARY = {
     "vqf": "vqf",
@@ -71,7 +74,7 @@ def errors_deg(truth: Trajectory, est: Trajectory) -> dict[str, np.ndarray]:
 
 
 def need(peer: str) -> None:
-    pytest.importorskip(LIBRARY[peer])
+    require_module(LIBRARY[peer])
 
 
 def test_every_peer_is_registered():
@@ -153,7 +156,7 @@ def test_declared_gyro_timing_is_honoured(peer):
 
 def test_parameters_use_the_library_names_as_aliases():
     for lib in ("vqf", "ahrs", "imufusion"):
-        pytest.importorskip(lib)
+        require_module(lib)
     assert build("vqf:tauAcc=1.5").params.tau_acc_s == 1.5
     assert build("vqf-offline:restBiasEstEnabled=false").params.rest_bias_est is False
     assert build("madgwick:beta=0.1").params.gain == 0.1
@@ -168,7 +171,7 @@ def test_parameters_use_the_library_names_as_aliases():
 
 def test_parameters_reach_the_library():
     """A different gain gives a different estimate (the parameter is not silently dropped)."""
-    pytest.importorskip("ahrs")
+    require_module("ahrs")
     imu, truth = simulate([(5.0, D([10, 0, 5]))], euler("x", 30))
     seed = euler("x", 40)
     a = build("madgwick").estimate(imu, seed)
@@ -201,7 +204,7 @@ def test_align_heading_turns_about_the_vertical_only():
 def test_ahrs_ekf_enu_frame_would_be_upside_down():
     """Why the adapter keeps ahrs's default frame "NED": with "ENU" the EKF expects the
     accelerometer to read -1 g when level, so fed real specific force it turns over."""
-    ahrs = pytest.importorskip("ahrs.filters")
+    ahrs = require_module("ahrs.filters")
     imu, truth = simulate([(8.0, D([20, -10, 30]))], euler("x", 20))
     q = euler("yx", [5, 20])
     ekf = ahrs.EKF(frame="ENU", magnetic_ref=0.0)
@@ -211,6 +214,11 @@ def test_ahrs_ekf_enu_frame_would_be_upside_down():
     assert np.degrees(final.magnitude()) > 170.0
 
 
+# Reference figures measured with the libraries themselves, given to 0.1 deg with a target of 0.3 deg
+# (mean over ece276a 1-9, --init truth, defaults, 330 mV/g and the datasheet gyro scale, no dropout
+# handling). Measured through the adapters: vqf 6.67, vqf-offline 3.24, madgwick 6.13, mahony 3.25,
+# fusion-ahrs 4.53. The tolerance stays at that 0.3 because vqf-offline is 0.26 below its figure (the
+# others are within 0.07).
 REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defaults
     "vqf": 6.7,
     "vqf-offline": 3.5,
@@ -220,10 +228,11 @@ REFERENCE_INCLINATION_RMSE_DEG = {  # mean over ece276a 1-9, --init truth, defau
 }
 
 
+@pytest.mark.slow
 def test_reference_figures_on_the_course_recordings(data_dir):
-    """The adapters reproduce the published figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
+    """The adapters reproduce the reference figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
     for lib in ("vqf", "ahrs", "imufusion"):
-        pytest.importorskip(lib)
+        require_module(lib)
     from fusion.evaluation.metrics import score
     from fusion import datasets
     from fusion.calibration import BoardModel

@@ -43,7 +43,7 @@ def test_dead_reckoning_on_exact_rates_tracks_the_truth():
     imu = calibrate(raw).apply(raw)
     q0, _ = truth.interpolate(imu.t[:1])
     est = build("dr").estimate(imu, q0.as_quat(scalar_first=True)[0])
-    assert score(truth, est).rmse_deg["total"] < 1.5  # 0.7 deg measured
+    assert score(truth, est).rmse_deg["total"] < 0.82  # 0.716 deg measured, + 15 % (was 1.5)
 
 
 def _exact(timing: str, duration_s: float = 30.0) -> SimSettings:
@@ -78,7 +78,8 @@ def test_dead_reckoning_is_exact_when_the_declared_timing_matches(timing):
     truth = _Motion(_exact(timing)).rotation(imu.t - T0_S)
     q0 = truth[0].as_quat(scalar_first=True)
     est = build("dr").estimate(imu, q0)
-    assert (truth.inv() * est.rotation()).magnitude().max() < 1e-9  # 1e-12 measured
+    # Rounding only: 3,000 steps of ~eps each, accumulated, make ~7e-13 rad; 1.04e-12 measured (was 1e-9)
+    assert (truth.inv() * est.rotation()).magnitude().max() < 1e-11
     other = {"start": "end", "end": "start"}[timing]
     wrong = build("dr").estimate(imu.replace(gyr_timing=other), q0)
     assert np.degrees((truth.inv() * wrong.rotation()).magnitude().max()) > 1.0  # 1.9 deg measured

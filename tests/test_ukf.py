@@ -152,10 +152,15 @@ def test_parameter_ignored_by_the_chosen_option_raises(spec, match):
         build(spec)
 
 
-@pytest.mark.parametrize("spec", ["ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2", "ukf:sigma=julier,kappa=2",
-                                  "ukf:kappa=1", "ukf-bias:gate=inflate,gate_g=0.3", "ukf-bias:scale=false"])
-def test_parameters_of_the_chosen_option_are_accepted(spec):
-    build(spec)
+@pytest.mark.parametrize("spec,expected", [
+    ("ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2", UKFParams(sigma="merwe", alpha=0.9, beta=2.0, kappa=2.0)),
+    ("ukf:sigma=julier,kappa=2", UKFParams(sigma="julier", kappa=2.0)),
+    ("ukf:kappa=1", UKFParams()),  # kraft's value, the default: accepted, and nothing changes
+    ("ukf-bias:gate=inflate,gate_g=0.3", UKFBiasParams(gate="inflate", gate_g=0.3)),
+    ("ukf-bias:scale=false", UKFBiasParams(estimate_scale=False)),
+])
+def test_parameters_of_the_chosen_option_are_accepted(spec, expected):
+    assert build(spec).params == expected
 
 
 def test_registry_and_aliases():
@@ -230,11 +235,14 @@ def test_lean_step_equals_filterpy_reference(cls, n, noise, cov_atol):
         assert a.diagnostics["acc_lowpassed"].sum() > n // 4
 
 
-@pytest.mark.parametrize("spec", ["ukf", "ukf:sigma=julier", "ukf:sigma=merwe,kappa=1", "ukf-bias", "ukf:Q=1e-2,R=1e-4"])
-def test_tracks_synthetic_motion(spec):
+# Inclination RMSE bounds: measured 0.526 deg (ukf, any sigma points), 1.03 (ukf-bias), 0.395
+# (ukf:Q=1e-2,R=1e-4), + 15 % (was 1.5 for all).
+@pytest.mark.parametrize("spec,bound", [("ukf", 0.61), ("ukf:sigma=julier", 0.61), ("ukf:sigma=merwe,kappa=1", 0.61),
+                                        ("ukf-bias", 1.19), ("ukf:Q=1e-2,R=1e-4", 0.46)])
+def test_tracks_synthetic_motion(spec, bound):
     imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=5)
     est = build(spec).estimate(imu, truth[0])
-    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.5
+    assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < bound
     assert np.all(np.isfinite(est.quat_wxyz))
     assert np.allclose(np.linalg.norm(est.quat_wxyz, axis=1), 1.0, atol=1e-12)
 
@@ -244,12 +252,16 @@ def test_ukf_bias_learns_a_gyro_bias():
     imu, truth = synthetic(3000, noise=0.005, bias=bias, seed=6)
     est = UKFBias(UKFBiasParams(bias_walk_rad2_s3=1e-5)).estimate(imu, truth[0])
     b = est.diagnostics["gyr_bias_rad_s"][-500:].mean(axis=0)
-    # Gravity makes the two horizontal-in-world components observable; check the norm part.
-    assert np.linalg.norm(b - bias) < 0.5 * np.linalg.norm(bias)
+    # Gravity makes the two horizontal-in-world components observable, and the turning body shows
+    # each body axis horizontal in turn: the bias error is 6.0 % of the bias (measured), + 15 %
+    # (was 50 %).
+    assert np.linalg.norm(b - bias) < 0.07 * np.linalg.norm(bias)
 
 
-@pytest.mark.parametrize("spec", ["ukf", "ukf-bias"])
-def test_recovers_after_nan_and_saturated_stretch(spec):
+# Inclination RMSE over the last 300 samples: measured 0.074 (ukf) and 0.605 deg (ukf-bias), + 15 %
+# (was 2.0 for both).
+@pytest.mark.parametrize("spec,bound", [("ukf", 0.085), ("ukf-bias", 0.70)])
+def test_recovers_after_nan_and_saturated_stretch(spec, bound):
     imu, truth = synthetic(1500, noise=0.005, seed=7)
     gyr, acc = imu.gyr_rad_s.copy(), imu.acc_g.copy()
     gyr[500:600] = np.nan
@@ -258,7 +270,7 @@ def test_recovers_after_nan_and_saturated_stretch(spec):
     est = build(spec).estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
     assert np.all(np.isfinite(est.quat_wxyz))
     assert np.all(np.isfinite(est.diagnostics["cov"][1:]))
-    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 2.0
+    assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < bound
 
 
 # ---------------------------------------------------------------- real and simulated recordings
@@ -296,13 +308,13 @@ def test_covariance_stays_spd_on_every_real_recording(real_runs, spec):
 
 # Regression on the real recordings with the gyro freezes integrated as if valid (dropout
 # detection off). The filters' first defaults measured 2.11 / 17.4 (ukf) and 2.10 / 17.2
-# (ukf-bias, ekf) here. The disturbance-robust defaults measure 4.20 / 3.65 / 3.65 deg
-# inclination: an undetected freeze (the gyro reads zero while the board turns) looks to
+# (ukf-bias, ekf) here. The disturbance-robust defaults measure 4.20 / 3.95 / 3.72 deg
+# inclination (ukf / ukf-bias / ekf; total 16.5 / 15.7 / 15.4): an undetected freeze (the gyro reads zero while the board turns) looks to
 # them like a long linear acceleration, so they distrust the accelerometer that would repair
 # the tilt. A known regression, kept visible: with dropout detection on (the default, next
 # test) the freezes are masked and the filters are better than before.
-@pytest.mark.xfail(strict=True, reason="undetected gyro freezes look like linear acceleration to the "
-                                       "disturbance model (dropouts off: 3.6-4.2 deg inclination)")
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="undetected gyro freezes look like linear acceleration to the "
+                                       "disturbance model (dropouts off: 3.7-4.2 deg inclination)")
 @pytest.mark.parametrize("spec,inclination,total", [("ukf", 3.0, 18.0), ("ukf-bias", 2.2, 18.0), ("ekf", 2.2, 18.0)])
 def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
     inc = [real_runs[spec, n][1].rmse_deg["inclination"] for n in range(1, 10)]
@@ -328,8 +340,9 @@ def default_runs(data_dir):
 
 
 # The course targets for filters whose defaults must also hold on BROAD: no worse than the
-# course-tuned filters were (ekf 1.95 / 6.86). Measured: ekf and ukf-bias 1.61 / 5.33,
-# ukf 1.92 / 6.78 (inclination / total, deg).
+# course-tuned filters were (ekf 1.95 / 6.86): the bounds are that target, not a margin on a
+# measurement. Measured: ekf 1.55 / 5.34, ukf-bias 1.59 / 5.38, ukf 1.92 / 6.78 (inclination /
+# total, deg).
 @pytest.mark.parametrize("spec,inclination,total", [("ukf", 2.0, 7.0), ("ukf-bias", 1.95, 6.86), ("ekf", 1.95, 6.86)])
 def test_mean_rmse_on_real_recordings_with_default_loading(default_runs, spec, inclination, total):
     assert np.mean([default_runs[spec, n].rmse_deg["inclination"] for n in range(1, 10)]) <= inclination
@@ -343,11 +356,11 @@ def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
 
 # Bounds on the built-in simulated recording (exact truth, 180 s, sustained ~0.07 g hand
 # accelerations). Measured: dr 14.2 / 19.7, ukf 1.48 / 17.2 (heading random walk under linear
-# acceleration), ukf:hf=true 2.22 / 13.4, ukf-bias and ekf 0.96 / 6.5 deg (inclination / total
-# RMSE); the bounds add about 15 %.
+# acceleration), ukf:hf=true 2.22 / 13.4, ukf-bias 0.95 / 6.49, ekf 0.88 / 6.18 deg (inclination /
+# total RMSE); the bounds add about 15 % (ekf's were ukf-bias's, 1.1 / 7.5).
 @pytest.mark.parametrize(
     "spec,inclination,total",
-    [("ukf", 1.7, 19.5), ("ukf:hf=true", 2.55, 15.5), ("ukf-bias", 1.1, 7.5), ("ekf", 1.1, 7.5)],
+    [("ukf", 1.7, 19.5), ("ukf:hf=true", 2.55, 15.5), ("ukf-bias", 1.1, 7.5), ("ekf", 1.02, 7.12)],
 )
 def test_bounds_on_the_simulated_recording(spec, inclination, total):
     from fusion.evaluation.metrics import score
