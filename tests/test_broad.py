@@ -19,6 +19,7 @@ from fusion import datasets, quaternion as quat
 from fusion.broad import load_broad
 from fusion.cli import main
 from fusion.types import Trajectory
+from optional_helpers import require_module
 
 RATE_HZ = 200.0
 N = 1200
@@ -44,7 +45,7 @@ def trial_arrays(seed: int = 0) -> dict[str, np.ndarray]:
 
 
 def write_hdf5(path, arrays):
-    h5py = pytest.importorskip("h5py")
+    h5py = require_module("h5py")
     with h5py.File(path, "w") as f:
         for key, value in arrays.items():
             f.create_dataset(key, data=value)
@@ -186,7 +187,7 @@ def test_csv_movement_column_gets_the_broad_protocol(tmp_path):
 
 
 def test_cli_runs_peers_on_a_broad_folder(tmp_path, capsys):
-    pytest.importorskip("vqf")
+    require_module("vqf")
     folder = tmp_path / "broad"
     folder.mkdir()
     write_mat(folder / "01_trial.mat", trial_arrays(0))

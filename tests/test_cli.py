@@ -101,6 +101,7 @@ def test_python_dash_m_entry_point(tmp_path):
     assert "sim" in proc.stdout and "RMSE in degrees" in proc.stdout
 
 
+@pytest.mark.slow
 def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_path, capsys):
     code, out, err = run(capsys, "compare", "--estimators", "dr", "--dataset", "all", "--data-dir", str(data_dir),
                          "--json", str(tmp_path / "r.json"), "--no-progress")

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion import datasets
 from fusion.formats import FORMATS, Holds, asl, rosbag
+from optional_helpers import require_module
 from robotics_writers import EPOCH_NS, write_asl, write_bag
 
 BROAD_TRIAL = "broad/01_undisturbed_slow_rotation_A.mat"
@@ -71,7 +72,7 @@ def test_broad_trial_as_asl_folder(trial, tmp_path):
     (2, "mcap", "nav_msgs/msg/Odometry"),
 ])
 def test_broad_trial_as_ros_bag(trial, tmp_path, version, storage, truth_type):
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     name = "trial01.bag" if version == 1 else "trial01"
     path = write_bag(tmp_path / "bags" / name, version, *_trial_arrays(trial), truth_type=truth_type,
                      storage=storage or "sqlite3")
@@ -147,7 +148,7 @@ def _small(n=400):
 
 @pytest.mark.parametrize("version", [1, 2])
 def test_bag_uses_header_stamps_not_receive_times(tmp_path, version):
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     t, gyr, acc, tt, q = _small()
     # receive times lag by a varying delay, out of order with the stamps: header stamps must win
     path = write_bag(tmp_path / ("a.bag" if version == 1 else "a"), version, t, gyr, acc, tt, q, receive_delay_ns=40_000_000)
@@ -158,7 +159,7 @@ def test_bag_uses_header_stamps_not_receive_times(tmp_path, version):
 
 
 def test_bag_topics_chosen_found_or_listed(tmp_path):
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     t, gyr, acc, tt, q = _small()
     path = write_bag(tmp_path / "two", 2, t, gyr, acc, tt, q, extra_topics=(("/imu1", "sensor_msgs/msg/Imu"),
                                                                            ("/odom", "nav_msgs/msg/Odometry")))
@@ -182,7 +183,7 @@ def test_bag_topics_chosen_found_or_listed(tmp_path):
 
 
 def test_bag_without_truth_topic_has_no_truth(tmp_path):
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     t, gyr, acc, _, _ = _small()
     path = write_bag(tmp_path / "imu_only.bag", 1, t, gyr, acc)
     source = datasets.select(str(path))[0]
@@ -237,7 +238,7 @@ def _flat(msg, msgtype: str) -> np.ndarray:
 def test_vectorised_decoding_equals_rosbags_deserialiser(ros1, msgtype):
     """Many messages at once with frame ids of different lengths (so different paddings),
     both byte orders of CDR: `decode` equals rosbags' own deserialiser field by field."""
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     from rosbags.typesys import Stores, get_typestore
 
     typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -257,7 +258,7 @@ def test_vectorised_decoding_equals_rosbags_deserialiser(ros1, msgtype):
 
 
 def test_decoding_refuses_malformed_messages():
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     from rosbags.typesys import Stores, get_typestore
 
     typestore = get_typestore(Stores.ROS2_HUMBLE)

@@ -38,6 +38,7 @@ from fusion import datasets, loaders
 from fusion.formats import course, generic_csv
 from fusion.cli import main
 from fusion.types import ImuSamples, RawImu, Recording, Trajectory
+from optional_helpers import require_module
 
 FUZZ = settings(derandomize=True, database=None, deadline=None, print_blob=False,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
@@ -512,6 +513,7 @@ def test_random_bytes(root, fuzz_stats, blob, suffix):
 @settings(FUZZ, max_examples=800)
 @given(data=st.data(), n=st.integers(2, 200), layout=st.sampled_from(["276a", "2018", "mat"]),
        corrupt=st.sampled_from(["array", "ts", "bytes"]))
+@pytest.mark.slow
 def test_mutated_imu_files(root, fuzz_stats, data, n, layout, corrupt):
     t, c = good_counts(n)
     suffix = ".mat" if layout == "mat" else ".p"
@@ -540,6 +542,7 @@ def test_mutated_imu_files(root, fuzz_stats, data, n, layout, corrupt):
 @settings(FUZZ, max_examples=400)
 @given(data=st.data(), n=st.integers(2, 100), part=st.sampled_from(["rots", "ts", "bytes", "keys"]),
        mat=st.booleans())
+@pytest.mark.slow
 def test_mutated_vicon_files(root, fuzz_stats, data, n, part, mat):
     t, _ = good_counts(n)
     obj = vicon_dict(t)
@@ -658,7 +661,7 @@ def _broad_corpus():
 ])
 def test_corpus_broad_hdf5_declared_shapes(root, fuzz_stats, rows, cols, expect):
     """A ~2 KB .hdf5 declaring 30 million compressed (never written) rows is refused from its header."""
-    h5py = pytest.importorskip("h5py")
+    h5py = require_module("h5py")
     path = fresh_dir(root) / "trial01.hdf5"
     with h5py.File(path, "w") as f:
         f.create_dataset("imu_gyr", shape=(rows, cols), dtype="f8", chunks=(min(rows, 50_000), cols), compression="gzip")
@@ -680,8 +683,9 @@ def test_corpus_broad(root, fuzz_stats, obj, expect, code):
 @settings(FUZZ, max_examples=250)
 @given(data=st.data(), n=st.integers(2, 120), key=st.sampled_from(["imu_gyr", "imu_acc", "opt_quat", "movement", "sampling_rate", "bytes"]),
        hdf5=st.booleans())
+@pytest.mark.slow
 def test_mutated_broad_trials(root, fuzz_stats, data, n, key, hdf5):
-    h5py = pytest.importorskip("h5py") if hdf5 else None
+    h5py = require_module("h5py") if hdf5 else None
     trial = broad_trial(n)
     if key != "bytes":
         value = np.atleast_2d(trial[key]).astype(float)
@@ -910,7 +914,7 @@ def _bag_corpus():
 
 @pytest.mark.parametrize("version, make, expect, code", _bag_corpus())
 def test_corpus_bags(root, fuzz_stats, version, make, expect, code):
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     path = make(fresh_dir(root) / ("run.bag" if version == 1 else "run"))
     judge(fuzz_stats, lambda: datasets.load(str(path)), [path], expect=expect)
     run_cli(fuzz_stats, ["compare", "--estimators", "dr", "--no-progress", "--dataset", str(path)], [path], expect_code=code)
@@ -920,7 +924,7 @@ def test_corpus_bags(root, fuzz_stats, version, make, expect, code):
 @given(data=st.data(), kind=st.sampled_from(["ros1", "sqlite3", "mcap"]))
 def test_mutated_bags(root, fuzz_stats, data, kind):
     """Valid bags of each storage with their bytes truncated, flipped or extended."""
-    pytest.importorskip("rosbags")
+    require_module("rosbags")
     lab = fresh_dir(root)
     path = good_bag(lab / ("run.bag" if kind == "ros1" else "run"), 1 if kind == "ros1" else 2,
                     storage="mcap" if kind == "mcap" else "sqlite3", n=60)

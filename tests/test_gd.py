@@ -78,6 +78,7 @@ def test_gd_variants_reach_gn_s_cost(options):
     assert np.max(gd["norm_error"]) < 1e-12
 
 
+@pytest.mark.slow
 def test_iterations_do_not_grow_with_the_length():
     """10x the samples, (about) the same number of iterations: the chain preconditioner passes
     a correction along the whole recording in one step. Measured 30 s -> 300 s: 6 -> 8

@@ -401,6 +401,7 @@ def _table_cells(page: str, table_id: str) -> list[list[str]]:
             for row in re.findall(r"<tr>(.*?)</tr>", match.group(1), re.S)]
 
 
+@pytest.mark.slow
 def test_consistency_section_only_for_filters_with_a_covariance(tmp_path, monkeypatch):
     """ekf reports a covariance: its figure and table row appear, with the numbers of
     `consistency.summarize`; dr and the peer vqf do not. The section re-renders from the folder."""

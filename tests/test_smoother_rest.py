@@ -88,6 +88,7 @@ def test_axis_without_bias_variable_takes_the_rest_reading():
     assert heading["rest"] < 0.25 * heading["no rest"], heading
 
 
+@pytest.mark.slow
 def test_implausible_scale_error_is_held_at_zero(sim):
     """A scale error estimated beyond `scale_max` is rejected and its axis solved again
     without it; a plausible one is kept."""

@@ -234,6 +234,7 @@ def test_gd_solves_the_velocity_model_like_gn():
 
 
 # ----------------------------------------------------------------------------- real data
+@pytest.mark.slow
 def test_broad_fast_translation_regression(data_dir):
     """BROAD trial 15 (fast translation: 45 % of accelerometer samples > 0.2 g off 1 g),
     BROAD protocol. Measured: gn with bias and velocity model 0.578 deg inclination; without

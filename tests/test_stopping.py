@@ -79,6 +79,7 @@ def _resume_and_compare(sweep, tmp_path, before: list[dict]) -> None:
     assert len((sweep["out"] / "journal.jsonl").read_text().splitlines()) == 7  # header + every job
 
 
+@pytest.mark.slow
 def test_sigterm_ends_the_run_keeps_the_journal_and_resume_finishes_it(sweep, tmp_path):
     proc = fusion_process(*sweep["args"], "--out", str(sweep["out"]))
     workers = _held(sweep)
@@ -96,6 +97,7 @@ def test_sigterm_ends_the_run_keeps_the_journal_and_resume_finishes_it(sweep, tm
     _resume_and_compare(sweep, tmp_path, journal)
 
 
+@pytest.mark.slow
 def test_sigkill_leaves_no_worker_and_resume_finishes_it(sweep, tmp_path):
     proc = fusion_process(*sweep["args"], "--out", str(sweep["out"]))
     workers = _held(sweep)

@@ -60,6 +60,7 @@ from dataclasses import dataclass
 
 from fusion.estimators import Estimator
 from fusion.types import Trajectory
+from optional_helpers import require_module
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,7 @@ def contract_inputs(rec) -> tuple[np.ndarray, ...]:
     return np.array(imu.t), gyro, np.asarray(imu.acc_g) * STANDARD_GRAVITY_M_S2, q0
 
 
+@pytest.mark.slow
 def test_a_student_file_beside_ours_from_any_folder(folder, data_dir):
     proc = fusion_in(folder, "compare", "--estimators", "./student.py:complementary,ekf", "--dataset", "ece276a/1",
                      "--no-progress", "--json", "r.json", data_dir=data_dir)
@@ -175,6 +177,7 @@ def test_the_row_equals_the_function_run_by_hand(folder, data_dir, monkeypatch):
         assert row.rmse_deg[kind] == pytest.approx(direct[kind], abs=1e-12)
 
 
+@pytest.mark.slow
 def test_a_class_in_a_file_is_swept_by_ablate(folder, data_dir, monkeypatch):
     proc = fusion_in(folder, "ablate", "--estimator", "./student_class.py:Complementary", "--param",
                      "gain=0.01,0.02,0.05", "--dataset", "ece276a/1,ece276a/3", "--no-progress", "--json", "a.json",
@@ -222,6 +225,7 @@ def test_two_files_with_one_label_are_refused(folder, monkeypatch):
         resolve_all("./student.py:complementary,./other/student.py:complementary")
 
 
+@pytest.mark.slow
 def test_bad_user_code_fails_its_rows_only(folder, monkeypatch, capsys):
     """An exception, a wrong shape, NaN output, a scalar-last or inverted trajectory, a hang past
     --timeout: each one line naming the estimator and the recording, the other rows computed,
@@ -307,7 +311,6 @@ def test_a_spawned_worker_gets_the_file_it_cannot_see(folder, monkeypatch):
 
 def test_a_filterpy_ukf_through_the_adapter_equals_its_own_loop(folder, monkeypatch):
     """The adapter runs the student's FilterPy filter exactly as a hand-written loop would."""
-    pytest.importorskip("filterpy")
     (folder / "my_ukf.py").write_text((HERE / "user_fixtures" / "my_ukf.py").read_text())
     monkeypatch.chdir(folder)
     rec = recording(300)
@@ -339,6 +342,7 @@ def test_the_readme_function_runs_as_written(folder, monkeypatch):
     assert row.error is None and row.rmse_deg["inclination"] < 0.5 * dr.rmse_deg["inclination"]
 
 
+@pytest.mark.slow
 def test_reports_and_panoramas_take_a_user_estimator(folder, monkeypatch, capsys):
     monkeypatch.chdir(folder)
     assert main(["compare", "--estimators", "./student.py:complementary,dr", "--dataset", "sim", "--no-progress",
