@@ -76,7 +76,7 @@ class Result:
         return replace(self, trajectory=None, score=None)
 
     def to_json(self) -> dict[str, Any]:
-        """The row of `results.json` (the keys are a documented format: see README; `panorama`
+        """The row of `results.json` (the keys are a documented format: docs/json-format.md; `panorama`
         only with `--panorama`; `alignment` null unless the row was scored with `--align`;
         `error` only on a failed row)."""
         row = {

@@ -8,7 +8,7 @@ Python the same run is two lines:
 
 `run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.job.Result`,
 without trajectories: see `fusion.evaluation.runner`), `run.document` the results document
-(README, "`--json` format"). Recordings are chosen and loaded as `fusion.selection` says
+(`docs/json-format.md`). Recordings are chosen and loaded as `fusion.selection` says
 (`dataset`, `data_dir`, `calibration`, `dropouts`).
 
 With an output folder (`out`), every finished job is journalled there as it ends
@@ -265,7 +265,7 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
                 "git_commit": git_commit()}
     doc = results_json(results, settings)
     if sweep:
-        doc["sweep"] = sweep  # README, "`--json` format"
+        doc["sweep"] = sweep  # docs/json-format.md
     if json_path:
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None

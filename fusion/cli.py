@@ -187,7 +187,7 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--protocol", choices=("full", "broad"), default=None,
                         help="scoring: full (every sample with truth) or broad (movement phases only, mean heading "
                              "offset removed); default: broad for recordings with a movement mask (BROAD trials), else full")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON (format: see README)")
+    parser.add_argument("--json", metavar="PATH", help="write the results as JSON (format: docs/json-format.md)")
     parser.add_argument("--out", metavar="DIR", help="write results.json, table, figures, report.html and "
                         "report.md to DIR (re-render later with `fusion report DIR`)")
     parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
@@ -201,7 +201,7 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
                              "says so, the other rows are computed, and the command exits with status 1")
     parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
                         help="run the jobs on a running dask.distributed scheduler's workers instead of local "
-                             "processes, e.g. tcp://10.0.0.5:8786 (see README, 'Running on a Dask cluster')")
+                             "processes, e.g. tcp://10.0.0.5:8786 (see docs/dask.md)")
     parser.add_argument("--scatter", action="store_true",
                         help="with --scheduler: load the recordings here and send them to the workers (no shared "
                              "file system needed); default: workers read the files themselves when every worker "

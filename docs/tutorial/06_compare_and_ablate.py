@@ -61,7 +61,7 @@ print("ablations on:", ABLATION)
 # left out with a warning) on every recording. To keep this notebook under two minutes we leave
 # out two: `gd` (a millisecond per sample; notebook 5 compares it with `gn`) and `ukf-bias`
 # (within hundredths of a degree of `ekf` at twice its cost, notebook 4). `fusion compare
-# --estimators all` runs them all; the README's "Results" section has the full table.
+# --estimators all` runs them all; `docs/results.md` has the full tables.
 
 # %%
 specs = [spec for spec in resolve_all("all") if spec.spec.name not in ("gd", "ukf-bias")]
@@ -135,7 +135,7 @@ plt.show()
 #   of the plot.
 #
 # The same comparison on the nine BROAD trials (another IMU at 286 Hz, with BROAD's own protocol,
-# README "Results") is the command below. It takes several minutes, so it is not run here:
+# `docs/results.md`) is the command below. It takes several minutes, so it is not run here:
 #
 #     fusion compare --estimators all --dataset 'broad/*' --jobs 2
 #
