@@ -4,8 +4,9 @@ Per recording (`check_recording`):
 - rest periods (every stationary run, `fusion.calibration.stationary_mask`), the calibrated
   |a| at each rest (a check of the accelerometer scale) and the gyro bias there; the bias
   drift between the first and the last rest;
-- gyro freezes (`detect_freezes`): all three gyro channels flat within a couple of counts
-  while the accelerometer shows motion (the real recordings 1, 2, 4, 5, 8, 9 have one each);
+- gyro freezes (`detect_freezes`): all three gyro channels flat while the accelerometer shows
+  motion, judged against the gyro's own resolution and noise as measured on the recording, so
+  for any IMU (the course recordings 1, 2, 4, 5, 8, 9 have one each);
 - samples at the ADC rails (`saturated`: the reading is clipped, so wrong) and samples beyond
   the gyros' nominal +-300 deg/s (reported only: on this board they are not clipped, the
   ADC reaches about +-490 deg/s and the values stay smooth);
@@ -14,9 +15,10 @@ Per recording (`check_recording`):
   cross-correlation of the angular speed measured by the gyro and derived from VICON.
 
 Times in reports are seconds after the first IMU sample (as in `../shared/data/README.md`).
-Detection runs on the raw counts (`RawImu`), so it does not depend on the scale factors.
-`dropout_mask` turns freezes and saturated samples into `ImuSamples.gyr_valid`; it is
-applied by `fusion.datasets.load_source(..., dropouts=True)`, the one switch.
+Freezes are found on the calibrated samples (any recording); saturation and the range checks on
+the raw counts of recordings that have them. `dropout_mask` turns freezes (and saturated samples,
+with raw counts) into `ImuSamples.gyr_valid`; the loader applies it (`fusion.datasets.LoadOptions`
+`dropouts`, the one switch).
 """
 from __future__ import annotations
 
@@ -36,8 +38,14 @@ NOMINAL_GYRO_RANGE_DEG_S = 300.0  # LPR530AL / LY530ALH on the 4x outputs
 
 @dataclass(frozen=True)
 class FreezeDetector:
-    """A window is a freeze candidate when every gyro channel's peak-to-peak stays within
-    `gyro_p2p_counts` while some accelerometer channel moves by more than `acc_p2p_g`.
+    """A window (`window_s`) is a freeze candidate when every gyro channel is flat in it while some
+    accelerometer channel moves by more than `acc_p2p_g` (peak to peak, g). A channel is flat
+    when its peak-to-peak stays within the larger of `gyro_p2p_steps` steps of its resolution
+    (the smallest difference between two of its distinct values: one ADC count on the course
+    board, 0.97 deg/s) and `noise_ratio` times its noise floor (the `noise_percentile`-th
+    percentile of the peak-to-peak of its windows that are not within those steps: a real gyro is
+    never that quiet for long), both measured on the recording itself. A gyro without noise (a
+    simulation with exact rates: second differences of zero) is not judged.
 
     A freeze is a maximal run of gyro-flat windows that contains at least one such window
     and lasts at least `min_duration_s` (the run may extend into a rest: recording 8 freezes
@@ -45,12 +53,14 @@ class FreezeDetector:
     """
 
     window_s: float = 0.2
-    gyro_p2p_counts: float = 2.0
-    acc_p2p_g: float = 0.08  # about 8 counts; rest noise stays within about 4
+    gyro_p2p_steps: float = 2.0
+    noise_ratio: float = 0.1
+    noise_percentile: float = 10.0
+    acc_p2p_g: float = 0.08  # about 8 counts on the course board; its rest noise stays within about 4
     min_duration_s: float = 0.2
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "gyro_p2p_counts", "acc_p2p_g", "min_duration_s"):
+        for name in ("window_s", "gyro_p2p_steps", "noise_ratio", "noise_percentile", "acc_p2p_g", "min_duration_s"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FreezeDetector.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -81,8 +91,9 @@ class RestPeriod:
 @dataclass(frozen=True)
 class Freeze:
     interval: Interval
-    level_counts: tuple[float, float, float]  # mean gyro counts during the freeze
-    offset_from_bias_counts: tuple[float, float, float]  # level minus the start-rest bias
+    level_deg_s: tuple[float, float, float]  # mean calibrated gyro during the freeze
+    level_counts: tuple[float, float, float]  # mean gyro counts during the freeze (NaN without raw counts)
+    offset_from_bias_counts: tuple[float, float, float]  # level minus the start-rest bias (NaN without)
     acc_p2p_g: float  # largest accelerometer peak-to-peak inside (how much it moved)
 
 
@@ -229,18 +240,38 @@ def _windows_to_samples(flag: np.ndarray, n: int, w: int) -> np.ndarray:
 
 # ------------------------------------------------------------------- detectors
 
-def detect_freezes(raw: RawImu, board: BoardModel = BoardModel(), detector: FreezeDetector = FreezeDetector(),
+def resolution(values: np.ndarray) -> np.ndarray:
+    """(C,) the smallest difference between two distinct values of each column of (N, C)
+    `values` (an ADC's step, in the values' unit); 0 for a constant column."""
+    out = np.zeros(values.shape[1])
+    for c in range(values.shape[1]):
+        steps = np.diff(np.unique(values[:, c]))
+        steps = steps[steps > 0]
+        out[c] = steps.min() if steps.size else 0.0
+    return out
+
+
+def detect_freezes(imu: ImuSamples, detector: FreezeDetector = FreezeDetector(), raw: RawImu | None = None,
                    bias_counts: np.ndarray | None = None) -> list[Freeze]:
-    """Gyro freezes: all three gyro channels flat while the accelerometer moves (see `FreezeDetector`)."""
-    t, counts = raw.t, raw.counts
+    """Gyro freezes: all three gyro channels flat while the accelerometer moves (see
+    `FreezeDetector`), from the calibrated samples alone; raw: the counts they came from, for the
+    freezes' levels in counts (and `bias_counts`, the start-rest bias, for their offsets)."""
+    t, gyr = imu.t, np.asarray(imu.gyr_rad_s)
     n = len(t)
     w = _window(t, detector.window_s)
     if n < w:
         return []
-    view = sliding_window_view(counts, w, axis=0)  # (N - w + 1, 6, w)
-    p2p = view.max(axis=-1) - view.min(axis=-1)
-    gyro_flat = p2p[:, 3:].max(axis=1) <= detector.gyro_p2p_counts
-    acc_p2p_g = (p2p[:, :3] * np.abs(board.scale[:3])).max(axis=1)
+    if not np.any(np.median(np.abs(np.diff(gyr, 2, axis=0)), axis=0) > 0):
+        return []  # exact rates (a simulation): no noise to judge a freeze against
+    gyr_view = sliding_window_view(gyr, w, axis=0)  # (N - w + 1, 3, w)
+    gyr_p2p = gyr_view.max(axis=-1) - gyr_view.min(axis=-1)
+    steps = detector.gyro_p2p_steps * resolution(gyr) * (1 + 1e-9)
+    noise = np.array([np.percentile(p[p > s], detector.noise_percentile) if np.any(p > s) else 0.0
+                      for p, s in zip(gyr_p2p.T, steps)])  # the noise floor of the windows that are not stuck
+    tolerance = np.maximum(steps, detector.noise_ratio * noise)
+    gyro_flat = np.all(gyr_p2p <= tolerance, axis=1)
+    acc_view = sliding_window_view(np.asarray(imu.acc_g), w, axis=0)
+    acc_p2p_g = (acc_view.max(axis=-1) - acc_view.min(axis=-1)).max(axis=1)
     moving = acc_p2p_g > detector.acc_p2p_g
     flat_samples = _windows_to_samples(gyro_flat, n, w)
     moving_flat = _windows_to_samples(gyro_flat & moving, n, w)
@@ -248,10 +279,11 @@ def detect_freezes(raw: RawImu, board: BoardModel = BoardModel(), detector: Free
     for first, stop in runs(flat_samples):
         if not moving_flat[first:stop].any() or t[stop - 1] - t[first] < detector.min_duration_s:
             continue
-        level = counts[first:stop, 3:].mean(axis=0)
+        level = raw.counts[first:stop, 3:].mean(axis=0) if raw is not None else np.full(3, np.nan)
         offset = level - bias_counts[3:] if bias_counts is not None else np.full(3, np.nan)
         win = slice(first, max(first + 1, stop - w + 1))
-        out.append(Freeze(_interval(t, t[0], first, stop), tuple(level), tuple(offset), float(acc_p2p_g[win].max())))
+        out.append(Freeze(_interval(t, t[0], first, stop), tuple(np.degrees(gyr[first:stop].mean(axis=0))),
+                          tuple(level), tuple(offset), float(acc_p2p_g[win].max())))
     return out
 
 
@@ -261,10 +293,14 @@ def saturated_mask(raw: RawImu, board: BoardModel = BoardModel(), rail_counts: f
     return np.any((g <= rail_counts) | (g >= board.adc_full_scale_counts - rail_counts), axis=1)
 
 
-def dropout_mask(raw: RawImu, board: BoardModel = BoardModel(), detector: FreezeDetector = FreezeDetector()) -> np.ndarray:
-    """(N,) bool `gyr_valid`: False inside detected freezes and at saturated samples."""
-    valid = ~saturated_mask(raw, board)
-    for freeze in detect_freezes(raw, board, detector):
+def dropout_mask(imu: ImuSamples, raw: RawImu | None = None, board: BoardModel = BoardModel(),
+                 detector: FreezeDetector = FreezeDetector()) -> np.ndarray:
+    """(N,) bool `gyr_valid`: `imu.gyr_valid`, and False inside detected freezes and (with raw
+    counts) at saturated samples."""
+    valid = np.array(imu.gyr_valid)
+    if raw is not None:
+        valid &= ~saturated_mask(raw, board)
+    for freeze in detect_freezes(imu, detector):
         valid[freeze.interval.first:freeze.interval.stop] = False
     return valid
 
@@ -496,9 +532,9 @@ def check_recording(recording: Recording, freeze_detector: FreezeDetector = Free
     freezes: list[Freeze] = []
     rng = None
     drift = None
+    freezes = detect_freezes(imu, freeze_detector, raw, calib.bias_counts if calib is not None else None)
     if raw is not None:
         detector = calib.detector if calib is not None else RestDetector()
-        freezes = detect_freezes(raw, board, freeze_detector, calib.bias_counts if calib is not None else None)
         rests = [r for r in rest_periods(raw, imu, board, detector)
                  if not any(r.interval.first < f.interval.stop and f.interval.first < r.interval.stop for f in freezes)]
         if len(rests) >= 2:
@@ -525,6 +561,12 @@ def _fmt_intervals(intervals: list[Interval], limit: int = 4) -> str:
     return text + (f" (+{len(intervals) - limit})" if len(intervals) > limit else "")
 
 
+def _freeze_level(f: Freeze) -> str:
+    if np.all(np.isfinite(f.level_counts)):
+        return f"[{', '.join(f'{v:.0f}' for v in f.level_counts)}] counts"
+    return f"[{', '.join(f'{v:+.2f}' for v in f.level_deg_s)}] deg/s"
+
+
 def format_check(c: RecordingCheck) -> str:
     """A short human-readable table of one recording's checks."""
     lines = [f"{c.id}: {c.samples} samples, {c.duration_s:.1f} s"]
@@ -545,10 +587,9 @@ def format_check(c: RecordingCheck) -> str:
                 + f"] deg/s (last rest at {last.interval.start_s:.1f} s minus first)")
     elif c.range is not None:
         row("rests", "none found")
+    row("gyro freezes (s)", ", ".join(f"{f.interval.start_s:.2f}-{f.interval.stop_s:.2f} ({f.interval.duration_s:.2f} s at "
+                                      + _freeze_level(f) + ")" for f in c.freezes) or "none")
     if c.range is not None:
-        row("gyro freezes (s)", ", ".join(
-            f"{f.interval.start_s:.2f}-{f.interval.stop_s:.2f} ({f.interval.duration_s:.2f} s at "
-            f"[{', '.join(f'{v:.0f}' for v in f.level_counts)}] counts)" for f in c.freezes) or "none")
         r = c.range
         row("gyro range", f"|rate| max [{', '.join(f'{v:.0f}' for v in r.max_abs_deg_s)}] deg/s; "
             f"beyond +-{NOMINAL_GYRO_RANGE_DEG_S:.0f}: {sum(r.beyond_nominal_samples)} axis-samples; "

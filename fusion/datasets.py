@@ -251,6 +251,10 @@ def _load(source: Source, options: "LoadOptions", truth_offset_s: float) -> Reco
     rec = fmt.read(source, options)
     # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
     imu = invalidate_gaps(rec.imu)
+    if options.dropouts and rec.raw is None:  # recordings in physical units: gyro freezes found from the data
+        from .checks import dropout_mask  # (raw counts: the format's calibration does it, with saturation)
+
+        imu = imu.replace(gyr_valid=dropout_mask(imu))
     if not options.mag and imu.mag_ut is not None:  # --mag off: 6-D estimation
         imu = imu.replace(mag_ut=None)
     truth = _shift(rec.truth, truth_offset_s)

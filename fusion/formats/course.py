@@ -128,7 +128,7 @@ def calibrated_samples(raw: RawImu, calib: Calibration, dropouts: bool) -> ImuSa
     if dropouts:
         from ..checks import dropout_mask
 
-        imu = imu.replace(gyr_valid=dropout_mask(raw, calib.board))
+        imu = imu.replace(gyr_valid=dropout_mask(imu, raw, calib.board))
     return imu
 
 
