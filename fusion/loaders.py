@@ -67,6 +67,9 @@ MAX_NESTING = 8  # nested lists/tuples/dicts in a pickle (a 3 x 3 x K list in a 
 # Physical plausibility of files in physical units (CSV, BROAD, ASL, ROS bags): see `check_physical`.
 GYRO_LIMIT_RAD_S = 70.0  # 4000 deg/s: the widest range of common MEMS gyros
 GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-1 rad/s; BROAD up to 5.3)
+# median |a| over a recording, m/s^2: near gravity's 9.81 (BROAD's fourteen trials 9.84-9.95, the course's 9.79-9.81,
+# even in fast translation); a free fall or a spin would need most of the recording to leave it
+ACC_MEDIAN_M_S2 = (4.0, 30.0)
 ACC_LIMIT_M_S2 = 200 * STANDARD_GRAVITY_M_S2  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
 
 
@@ -456,7 +459,10 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
     """Plausibility of IMU values in physical units (finite (N, 3) arrays; names for messages).
 
     Errors: a gyro value beyond `GYRO_LIMIT_RAD_S` (4000 deg/s; deg/s or scaled values, e.g.
-    x1e6, end up here) or an accelerometer value beyond `ACC_LIMIT_M_S2` (200 g; 1e308 too).
+    x1e6, end up here), an accelerometer value beyond `ACC_LIMIT_M_S2` (200 g; 1e308 too), or an
+    accelerometer whose median |a| is not near 1 g in m/s^2 (`ACC_MEDIAN_M_S2`: a recording of
+    anything that moves by hand, on a vehicle or a robot spends most of its time near 9.81; 1
+    is g, 1000 mg, and the message says so).
     Warning: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion).
     """
     for values, names, limit, unit, fix in (
@@ -469,6 +475,12 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
         worst = int(np.argmax(peak))
         if peak[worst] > limit:
             raise ValueError(f"{path}: column {names[worst]!r} reaches {peak[worst]:.3g} {unit}, {fix}")
+    acc_median = float(np.median(np.sqrt(np.sum(acc_m_s2**2, axis=1))))
+    if not ACC_MEDIAN_M_S2[0] <= acc_median <= ACC_MEDIAN_M_S2[1]:
+        hint = ("in g? multiply by 9.80665" if 0.3 <= acc_median <= 3.0 else
+                "in mg? multiply by 0.00980665" if 300.0 <= acc_median <= 3000.0 else "the columns must be in m/s^2")
+        raise ValueError(f"{path}: columns {','.join(acc_names)}: the median |a| is {acc_median:.3g}, where gravity "
+                         f"alone reads 9.81 m/s^2: {hint}")
     median = float(np.median(np.sqrt(np.sum(gyr_rad_s**2, axis=1))))
     if median > GYRO_MEDIAN_WARN_RAD_S:
         warnings.warn(f"{path}: columns {','.join(gyr_names)}: the median angular rate is {median:.3g} rad/s "

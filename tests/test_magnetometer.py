@@ -90,3 +90,17 @@ def test_inspect_reports_norm_dip_and_the_disturbed_span(tmp_path, capsys):
     assert main(["inspect", "--dataset", str(path), "--no-progress"]) == 0
     line = next(ln for ln in capsys.readouterr().out.splitlines() if "magnetometer" in ln)
     assert "|m| median 48.8 uT" in line and "dip +67.1 deg" in line and "disturbed 10.0 %" in line
+
+
+@pytest.mark.parametrize("scale, hint", [(1 / 9.80665, "in g? multiply by 9.80665"), (1000 / 9.80665, "in mg?")])
+def test_an_accelerometer_in_g_is_one_line_naming_the_file_and_columns(tmp_path, scale, hint):
+    """The units checked from the data: an accelerometer whose median |a| is near 1 (g) or 1000
+    (mg) instead of 9.81 m/s^2 is refused, naming the file and the columns."""
+    rec = recording(300, gap=None)
+    table = np.column_stack([rec.imu.t, rec.imu.gyr_rad_s, rec.imu.acc_g * 9.80665 * scale])
+    path = tmp_path / "walk.csv"
+    path.write_text("t,gx,gy,gz,ax,ay,az\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    with pytest.raises(ValueError) as err:
+        datasets.load_source(datasets.select(str(path))[0])
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{path}: columns ax,ay,az: the median |a| is ") and hint in message
