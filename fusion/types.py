@@ -176,6 +176,7 @@ class Trajectory:
     t: np.ndarray
     quat_wxyz: np.ndarray
     diagnostics: Mapping[str, Any] = field(default_factory=dict)
+    _last_interpolation: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t", _frozen(self.t))
@@ -206,9 +207,20 @@ class Trajectory:
         Returns `(rotation, mask)`: `mask` (N,) bool marks the query times inside the span
         whose two neighbouring rows are both valid (a query inside a NaN gap is *not*
         interpolated across the gap); `rotation` holds the slerped orientations at
-        `t[mask]` (None if the mask is empty).
+        `t[mask]` (None if the mask is empty; `mask` is read-only). The last answer is kept for
+        the same time stamps: every estimate of a recording lives on its IMU stamps, so the truth
+        is slerped onto them once, not once per estimator.
         """
         t = np.asarray(t, dtype=float)
+        last = self._last_interpolation
+        if last is not None and len(last[0]) == len(t) and np.array_equal(last[0], t):
+            return last[1], last[2]
+        rotation, mask = self._interpolate(t)
+        mask.setflags(write=False)
+        object.__setattr__(self, "_last_interpolation", (_frozen(t), rotation, mask))
+        return rotation, mask
+
+    def _interpolate(self, t: np.ndarray) -> tuple[Rotation | None, np.ndarray]:
         valid = self.valid
         # The row at or before each query, and the one after it.
         right = np.searchsorted(self.t, t, side="right")
