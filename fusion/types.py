@@ -153,6 +153,13 @@ class ImuSamples:
         stop = first + len(self.t) - 1
         return np.array(self.gyr_rad_s[first:stop]), np.array(self.gyr_valid[first:stop])
 
+    def window(self, start: int = 0, stop: int | None = None) -> "ImuSamples":
+        """The samples `start:stop` (every per-sample array sliced alike; a new object)."""
+        sl = slice(start, stop)
+        return self.replace(t=self.t[sl], gyr_rad_s=self.gyr_rad_s[sl], acc_g=self.acc_g[sl],
+                            gyr_valid=self.gyr_valid[sl], mag_ut=None if self.mag_ut is None else self.mag_ut[sl],
+                            mag_valid=None if self.mag_valid is None else self.mag_valid[sl])
+
     def replace(self, **changes: Any) -> "ImuSamples":
         """A copy with some fields changed (the original is untouched)."""
         fields = dict(t=self.t, gyr_rad_s=self.gyr_rad_s, acc_g=self.acc_g, gyr_valid=self.gyr_valid,

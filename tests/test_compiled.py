@@ -69,8 +69,7 @@ def assert_same(a, b) -> None:
 def window(rec, start: int, stop: int) -> tuple[ImuSamples, np.ndarray]:
     """Samples start..stop of a recording and the true orientation at the first one."""
     imu = rec.imu
-    part = imu.replace(t=imu.t[start:stop], gyr_rad_s=imu.gyr_rad_s[start:stop], acc_g=imu.acc_g[start:stop],
-                       gyr_valid=imu.gyr_valid[start:stop])
+    part = imu.window(start, stop)
     rot, mask = rec.truth.interpolate(part.t[:1])
     return part, (rot.as_quat(scalar_first=True)[0] if mask[0] else quat.IDENTITY)
 

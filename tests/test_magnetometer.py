@@ -104,3 +104,12 @@ def test_an_accelerometer_in_g_is_one_line_naming_the_file_and_columns(tmp_path,
         datasets.load_source(datasets.select(str(path))[0])
     message = str(err.value)
     assert "\n" not in message and message.startswith(f"{path}: columns ax,ay,az: the median |a| is ") and hint in message
+
+
+def test_a_window_of_the_samples_slices_the_magnetometer_too():
+    rec = recording(100, gap=None)
+    imu = rec.imu.replace(mag_ut=earth_field(rec))
+    part = imu.window(10, 40)
+    assert len(part) == 30 and part.mag_ut.shape == (30, 3) and part.mag_valid.shape == (30,)
+    np.testing.assert_array_equal(part.mag_ut, imu.mag_ut[10:40])
+    np.testing.assert_array_equal(part.gyr_valid, imu.gyr_valid[10:40])

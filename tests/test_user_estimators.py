@@ -60,7 +60,6 @@ from dataclasses import dataclass
 
 from fusion.estimators import Estimator
 from fusion.types import Trajectory
-from optional_helpers import require_module
 
 
 @dataclass(frozen=True)

@@ -105,7 +105,7 @@ t_rel = imu.t - imu.t[0]
 fast = (t_rel[:-1] > 11.0) & (np.linalg.norm(gyr, axis=1) > 1.0) & valid
 k = int(np.argmax(fast)) if fast.any() else len(imu) // 2
 m = k + 2  # samples 0 .. k+1: the filter's state at k, and its own result at k+1 to compare with
-head = imu.replace(t=imu.t[:m], gyr_rad_s=imu.gyr_rad_s[:m], acc_g=imu.acc_g[:m], gyr_valid=imu.gyr_valid[:m])
+head = imu.window(0, m)
 run = filt.estimate(head, q0)
 q_k, P_k = run.quat_wxyz[k], run.diagnostics["cov"][k]
 dt, w, a = imu.dt[k], gyr[k], imu.acc_g[k + 1]

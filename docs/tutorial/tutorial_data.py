@@ -77,5 +77,4 @@ def first_seconds(imu: ImuSamples, seconds: float) -> ImuSamples:
     if stop >= len(imu):
         return imu
     print(f"trimmed to the first {seconds:g} s: {stop} of {len(imu)} samples")
-    return imu.replace(t=imu.t[:stop], gyr_rad_s=imu.gyr_rad_s[:stop], acc_g=imu.acc_g[:stop],
-                       gyr_valid=imu.gyr_valid[:stop])
+    return imu.window(0, stop)
