@@ -35,7 +35,8 @@ from . import ablate
 from .compare import format_table, results_json, versions
 from .job import JobOutput, Result
 from .journal import Journal, fingerprint, job_key
-from .report import OutputFolder, git_commit, write_run
+from .output import OutputFolder
+from .report import git_commit, write_run
 from .runner import run, source_paths
 
 PathLike = str | os.PathLike
@@ -80,7 +81,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         (`fusion.evaluation.runner.run`: False ships paths, True loaded recordings, None decides).
     panorama: also stitch and score a panorama per row (`fusion.evaluation.panorama.panorama_scores`).
     json_path: write the results document there; out: write the report folder there (locked before
-        any computation, written through a staging folder: `fusion.evaluation.report.OutputFolder`),
+        any computation, written through a staging folder: `fusion.evaluation.output.OutputFolder`),
         journalling each job as it ends.
     command: the command line recorded in the document's settings (default: this call).
     timeout_s: stop a job that runs longer than this; its row says so.

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.evaluation import journal, report
+from fusion.evaluation import journal, output, report
 from fusion.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,7 +36,7 @@ def snapshot(folder: Path) -> dict[str, str]:
     the journal of a run in progress (`.fusion-run/`: what `--resume` continues)."""
     return {p.relative_to(folder).as_posix(): hashlib.md5(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.name != report.LOCK and journal.RUN_DIR not in p.relative_to(folder).parts}
+            if p.is_file() and p.name != output.LOCK and journal.RUN_DIR not in p.relative_to(folder).parts}
 
 
 @pytest.fixture(scope="module")
@@ -55,11 +55,11 @@ def copy_of(src: Path, dst: Path) -> Path:
 
 
 def test_manifest_lists_what_was_written(first_run):
-    files = report.read_manifest(first_run)
+    files = output.read_manifest(first_run)
     assert "results.json" in files and "series/000.npz" in files and "figures/rec-000-sim-loss.png" in files
     on_disk = {p.relative_to(first_run).as_posix() for p in first_run.rglob("*") if p.is_file()}
-    assert on_disk - set(files) == {report.MANIFEST, report.LOCK}
-    assert not list(first_run.glob(report.STAGING_PREFIX + "*"))
+    assert on_disk - set(files) == {output.MANIFEST, output.LOCK}
+    assert not list(first_run.glob(output.STAGING_PREFIX + "*"))
 
 
 def test_rerun_removes_only_its_own_files(first_run, tmp_path, capsys):
@@ -95,15 +95,15 @@ def test_user_file_in_the_way_is_refused_and_nothing_changes(tmp_path, capsys):
 
 def test_folder_in_use_is_refused_and_a_dead_holder_does_not_block(tmp_path, capsys):
     out = tmp_path / "run"
-    with report.OutputFolder(out):  # another live run holds it
+    with output.OutputFolder(out):  # another live run holds it
         code, _, err = compare(capsys, out)
     assert code == 1 and f"fusion: error: {out}: in use by another fusion run (pid {os.getpid()})" in err
     assert len(err.strip().splitlines()) == 1
-    (out / report.LOCK).write_text("999999999\n")  # a crashed run's lock file: no process holds the flock
-    (out / (report.STAGING_PREFIX + "dead")).mkdir()  # and its staging folder
+    (out / output.LOCK).write_text("999999999\n")  # a crashed run's lock file: no process holds the flock
+    (out / (output.STAGING_PREFIX + "dead")).mkdir()  # and its staging folder
     code, _, err = compare(capsys, out)
     assert code == 0, err
-    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+    assert not list(out.glob(output.STAGING_PREFIX + "*"))
 
 
 def test_results_json_is_moved_in_last(first_run, tmp_path, capsys, monkeypatch):
@@ -115,10 +115,10 @@ def test_results_json_is_moved_in_last(first_run, tmp_path, capsys, monkeypatch)
         moved.append(Path(dst).name)
         return real(src, dst)
 
-    monkeypatch.setattr(report.os, "replace", spy)
+    monkeypatch.setattr(output.os, "replace", spy)
     code, _, err = compare(capsys, out)
     assert code == 0, err
-    assert moved[-1] == "results.json" and moved[-2] == report.MANIFEST
+    assert moved[-1] == "results.json" and moved[-2] == output.MANIFEST
 
 
 def test_interrupt_while_writing_leaves_the_folder_as_it_was(first_run, tmp_path, capsys, monkeypatch):
@@ -132,7 +132,7 @@ def test_interrupt_while_writing_leaves_the_folder_as_it_was(first_run, tmp_path
     code, _, err = compare(capsys, out, "dr")
     assert code == 130 and err.strip().splitlines()[-1] == f"fusion: interrupted; continue with: fusion compare --resume {out}"
     assert snapshot(out) == before
-    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+    assert not list(out.glob(output.STAGING_PREFIX + "*"))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -154,7 +154,7 @@ def test_sigterm_stops_the_workers_and_leaves_the_folder_as_it_was(first_run, tm
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not [w for w in workers if alive(w)], "orphaned workers"
     assert snapshot(out) == before
-    assert not list(out.glob(report.STAGING_PREFIX + "*"))
+    assert not list(out.glob(output.STAGING_PREFIX + "*"))
     assert (out / journal.RUN_DIR / journal.JOURNAL).is_file()  # for --resume
 
 
