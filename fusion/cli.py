@@ -220,7 +220,16 @@ def _add_align_arg(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from fusion.evaluation.ablate import PRESETS
 
-    parser = argparse.ArgumentParser(prog="fusion", description="Orientation estimation from gyro + accelerometer, scored against VICON.")
+    parser = argparse.ArgumentParser(
+        prog="fusion", description="Orientation estimation from gyroscope, accelerometer and magnetometer, estimators "
+                                   "side by side (ours, the community's and yours) against motion-capture truth.",
+        epilog="examples:\n"
+               "  fusion compare --estimators ukf,gd --dataset all      # the main job (the simulated recording without data)\n"
+               "  fusion compare --estimators ./my_ukf.py:MyUKF,ekf --dataset ece276a/1\n"
+               "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
+               "  fusion inspect --dataset ece276a/1\n"
+               "  fusion list\n"
+               "`fusion COMMAND --help` for each command's options.", formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command")
 
     p = sub.add_parser("compare", help="run estimators on recordings and print a table of errors",
@@ -267,13 +276,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("list", help="the estimators a spec can name: ours and those installed packages register")
     p.set_defaults(func=cmd_list)
 
-    p = sub.add_parser("report", help="re-render the report of an --out folder from its results.json and series")
+    p = sub.add_parser("report", help="re-render the report of an --out folder from its results.json and series",
+                       epilog="example:\n  fusion report runs/all      # no estimator runs", formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("folder", metavar="DIR")
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N", help="worker processes; 0 = all cores (default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_report)
 
-    p = sub.add_parser("panorama", help="stitch camera frames (or frames rendered from a scene) into a panorama")
+    p = sub.add_parser("panorama", help="stitch camera frames (or frames rendered from a scene) into a panorama",
+                       epilog="examples:\n  fusion panorama --dataset ece276a/1 --estimator ukf --out pano.png --reference\n"
+                              "  fusion panorama --dataset sim --estimator ./student.py:complementary --out pano.png",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--estimator", "--estimators", dest="estimator", default="dr", help="one estimator spec, e.g. 'ukf:R=1e-3' (default: dr)")
     _add_data_args(p)
     p.add_argument("--out", required=True, help="output image (.png, .jpg)")
@@ -287,15 +300,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_panorama)
 
     p = sub.add_parser("inspect", help="sensor checks per recording: rests, bias drift, gyro freezes, range, "
-                                       "time stamps, VICON gaps and clock offset")
+                                       "time stamps, magnetometer, truth gaps and clock offset",
+                       epilog="examples:\n  fusion inspect --dataset ece276a/1\n"
+                              "  fusion inspect --dataset 'broad/*' --data-dir ../shared/data --json checks.json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_data_args(p)
     p.add_argument("--json", metavar="PATH", help="write the checks as JSON")
     p.add_argument("--out", metavar="DIR", help="write a figure per recording into DIR")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("calibrate", help="fit gyro scale factors (and clock offsets) against VICON")
+    p = sub.add_parser("calibrate", help="fit gyro scale factors (and clock offsets) against the truth",
+                       epilog="examples:\n  fusion calibrate --dataset ece276a --out calib.json\n"
+                              "  fusion compare --estimators ekf --dataset all --calibration calib.json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_data_args(p)
-    p.add_argument("--out", metavar="FILE", help="write the calibration file (JSON, see README)")
+    p.add_argument("--out", metavar="FILE", help="write the calibration file (JSON, see README, Commands)")
     p.add_argument("--clock-offset", action="store_true",
                    help="also store each recording's measured IMU-VICON clock offset (applied to that recording's truth)")
     p.add_argument("--leave-one-out", action="store_true",
