@@ -26,8 +26,11 @@ kept `Source` lists the others in `aliases`. Recordings of other formats are not
 are not raw counts of the course board and would need a full load; each counts as one).
 
 Loading (`LoadOptions.load`, `load_source`) reads a recording through its format's `read`,
-then marks the gyro samples standing for time gaps invalid (`fusion.loaders.invalidate_gaps`)
-and moves the truth by a measured clock offset, the same for every format.
+then, the same for every format: marks the gyro samples standing for time gaps invalid
+(`fusion.loaders.invalidate_gaps`) and, with `dropouts`, those of gyro freezes found in the data
+(`fusion.checks.dropout_mask`; a format in raw counts does that in its calibration, with
+saturation); drops the magnetometer when `mag` is off; and moves the truth by a measured clock
+offset.
 """
 from __future__ import annotations
 
