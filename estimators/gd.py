@@ -85,10 +85,9 @@ from typing import Literal
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
-from fusion import quaternion as quat
 
-from .gn import released_scales, theta_posterior_std
-from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, solution_diagnostics
+from .gn import released_scales
+from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, retract, solution_diagnostics
 from .smoother_cost import Linearization, SmootherProblem, banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
@@ -172,6 +171,19 @@ class Preconditioner:
         return x.reshape(T, B), d_theta
 
 
+class KernelChain:
+    """The chain preconditioner by the compiled kernels (`_compiled_smoother.CompiledOps`):
+    p = -M^-1 g with M the Gauss-Newton matrix at lin's point, its diagonal times 1 + RIDGE, for
+    the free calibration variables (the others get no step), as `Preconditioner` "chain"."""
+
+    def __init__(self, ops, lin: Linearization, free: np.ndarray):
+        self.ops, self.lin, self.free = ops, lin, free
+
+    def direction(self, grad_q: np.ndarray, grad_theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        grad = None if grad_q is self.lin.grad_q and grad_theta is self.lin.grad_theta else (grad_q, grad_theta)
+        return self.ops.solve(self.lin, RIDGE, self.free, grad=grad)
+
+
 class GradientDescentSmoother(BatchSmoother):
     """Whole-trajectory smoother by preconditioned projected gradient descent (analytic gradients)."""
 
@@ -179,11 +191,16 @@ class GradientDescentSmoother(BatchSmoother):
     name = "gd"
 
     def retract(self, q: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        """Move q (T, 4) by the tangent steps delta (T, 3) rad, body frame, and stay on the sphere."""
-        if self.params.update == "geodesic":
-            return quat.retract(q, delta)  # q * exp([0, delta / 2])
-        tangent = 0.5 * quat.multiply(q, np.concatenate([np.zeros((len(q), 1)), delta], axis=1))
-        return quat.normalize(q + tangent)
+        """Move q (T, 4) by the tangent steps delta (T, 3) rad, body frame, and stay on the sphere
+        (`smoother.retract` with this smoother's `update`)."""
+        return retract(q, delta, self.params.update)
+
+    def preconditioner(self, ops, lin: Linearization, free: np.ndarray):
+        """M for the linearisation `lin`: `Preconditioner`, or with the compiled kernels and the
+        chain, their elimination of the same matrix (`KernelChain`)."""
+        if self.params.precond == "chain" and self.params.impl == "compiled":
+            return KernelChain(ops, lin, free)
+        return Preconditioner(lin, self.params.precond, free)
 
     def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
         """Preconditioned gradient descent from q (T, 4) unit quaternions (velocities and
@@ -201,8 +218,9 @@ class GradientDescentSmoother(BatchSmoother):
         stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
 
         hessian = p.precond != "none"
-        lin = problem.linearize(q, theta, v=v, hessian=hessian)  # always at the current point
-        M = Preconditioner(lin, p.precond, free)
+        ops = self.operations(problem, blocks=p.precond == "block")
+        lin = ops.linearize(q, theta, v, hessian=hessian, shift=RIDGE, free=free)  # always at the current point
+        M = self.preconditioner(ops, lin, free)
         age, builds = 0, 1  # age: steps taken since M was built (0: M is from the current point)
         cost = lin.cost
         log, steps = SolverLog(cost, q), []
@@ -222,10 +240,7 @@ class GradientDescentSmoother(BatchSmoother):
                 alpha = 1.0 if p.precond == "chain" else min(1.0, 2.0 * alpha)
                 accepted = False
                 for _ in range(MAX_HALVINGS):
-                    q_new = self.retract(q, alpha * d_q[:, :3])
-                    v_new = v + alpha * d_q[:, 3:]
-                    theta_new = theta + alpha * d_theta
-                    cost_new = problem.cost(q_new, theta_new, v_new)
+                    q_new, v_new, theta_new, cost_new = ops.trial(q, v, theta, d_q, d_theta, alpha, p.update)
                     if cost_new <= cost + ARMIJO_C1 * alpha * slope:  # Armijo, N&W eq. 3.4
                         accepted = True
                         break
@@ -249,20 +264,20 @@ class GradientDescentSmoother(BatchSmoother):
                 # Rebuild M at the current point: every `precond_every` steps, after a shortened
                 # step (M's model was poor), when a lagged M stalls, and for the stage change.
                 if small or stage_end or age >= p.precond_every or (alpha < 1.0 and p.precond == "chain"):
-                    lin = problem.linearize(q, theta, v=v, hessian=hessian or stage_end)
+                    lin = ops.linearize(q, theta, v, hessian=hessian or stage_end, shift=RIDGE, free=free)
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False
-                        std = theta_posterior_std(lin)
+                        std = ops.theta_std(q, theta, v, lin)
                         stage1 = (q, theta, v, cost, std)
                         released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
-                    M = Preconditioner(lin, p.precond, free)
+                    M = self.preconditioner(ops, lin, free)
                 else:
-                    lin = problem.linearize(q, theta, v=v, hessian=False)
+                    lin = ops.linearize(q, theta, v, hessian=False)
         finally:
             bar.close()
-        theta_std = theta_posterior_std(problem.linearize(q, theta, v=v)) if problem.n_theta else np.zeros(0)
+        theta_std = ops.theta_std(q, theta, v) if problem.n_theta else np.zeros(0)
         diagnostics = {
             **log.diagnostics(iterations, converged),
             "step": np.array(steps),

@@ -24,51 +24,10 @@ its prior std. A variable the data cannot see keeps a posterior std near the pri
 """
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
-from scipy.linalg import solveh_banded
-
-from fusion.quaternion import retract
 
 from .smoother import BatchSmoother, SolverLog, progress_bar, solution_diagnostics
-from .smoother_cost import SmootherProblem, banded_lower
-
-
-def solve_normal_equations(lin, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Solve (H + damping diag(H)) [delta; dtheta] = -[g_q; g_theta] in O(T).
-
-    H is block-tridiagonal in the per-sample variables (B = 3 rotation + V velocity) with a
-    dense border for the P calibration variables; the border is eliminated by a Schur
-    complement. Returns ((T, B), (P,)).
-    """
-    T, B = lin.diag.shape[:2]
-    diag = lin.diag.copy()
-    idx = np.arange(B)
-    diag[:, idx, idx] *= 1.0 + damping
-    ab = banded_lower(diag, lin.off)
-    P = lin.cross.shape[2]
-    rhs = np.concatenate([-lin.grad_q.reshape(-1, 1), lin.cross.reshape(B * T, P)], axis=1)
-    sol = solveh_banded(ab, rhs, lower=True, check_finite=False)
-    x0, X1 = sol[:, 0], sol[:, 1:]
-    if P == 0:
-        return x0.reshape(T, B), np.zeros(0)
-    G = lin.theta_block.copy()
-    G[np.arange(P), np.arange(P)] *= 1.0 + damping
-    C = lin.cross.reshape(B * T, P)
-    schur = G - C.T @ X1
-    dtheta = np.linalg.solve(schur, -lin.grad_theta - C.T @ x0)
-    return (x0 - X1 @ dtheta).reshape(T, B), dtheta
-
-
-def theta_posterior_std(lin) -> np.ndarray:
-    """(P,) marginal std of the calibration variables: sqrt(diag((G - C^T A^-1 C)^-1))."""
-    P = lin.cross.shape[2]
-    if P == 0:
-        return np.zeros(0)
-    C = lin.cross.reshape(-1, P)
-    X1 = solveh_banded(banded_lower(lin.diag, lin.off), C, lower=True, check_finite=False)
-    return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))
+from .smoother_cost import SmootherProblem, solve_normal_equations, theta_posterior_std  # noqa: F401 (their home until now)
 
 
 def released_scales(posterior_std: np.ndarray, prior_std: np.ndarray, ratio: float) -> np.ndarray:
@@ -98,8 +57,7 @@ class GaussNewtonSmoother(BatchSmoother):
         p = self.params
         theta = np.zeros(problem.n_theta)
         v = problem.zero_velocity()
-        lin = problem.linearize(q, theta, v=v)
-        log = SolverLog(lin.cost, q)
+        ops = self.operations(problem)
         damping = 1e-6
         converged = False
         iterations = 0
@@ -114,21 +72,14 @@ class GaussNewtonSmoother(BatchSmoother):
         stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
         # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
         limit = p.max_iter + (stage1_iter if staged else 0)
+        lin = ops.linearize(q, theta, v, shift=damping, free=free)  # always at the current point
+        log = SolverLog(lin.cost, q)
         bar = progress_bar(p.progress, limit, self.name)
         try:
             for iterations in range(1, limit + 1):
                 while True:
-                    if free is None:
-                        delta, dtheta = solve_normal_equations(lin, damping)
-                    else:
-                        delta, dtheta = np.zeros((len(q), lin.diag.shape[1])), np.zeros(problem.n_theta)
-                        sub = dataclasses.replace(lin, grad_theta=lin.grad_theta[free], cross=lin.cross[:, :, free],
-                                                  theta_block=lin.theta_block[np.ix_(free, free)])
-                        delta, dtheta[free] = solve_normal_equations(sub, damping)
-                    q_new = retract(q, delta[:, :3])
-                    v_new = v + delta[:, 3:]
-                    theta_new = theta + dtheta
-                    cost_new = problem.cost(q_new, theta_new, v_new)
+                    delta, dtheta = ops.solve(lin, damping, free)
+                    q_new, v_new, theta_new, cost_new = ops.trial(q, v, theta, delta, dtheta, 1.0)
                     if cost_new <= lin.cost or damping > 1e12:
                         break
                     damping *= 10.0
@@ -136,16 +87,16 @@ class GaussNewtonSmoother(BatchSmoother):
                 if not stage_done:
                     decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
                     q, theta, v = q_new, theta_new, v_new
-                    lin = problem.linearize(q, theta, v=v)
-                    log.record(lin.cost, q)
                     damping = max(damping / 10.0, 1e-12)
+                    lin = ops.linearize(q, theta, v, shift=damping, free=free)
+                    log.record(lin.cost, q)
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")
                     stage_done = decrease < p.tol or (staged and iterations >= stage1_iter)
                 if stage_done:
                     if staged:
                         staged = False
-                        std = theta_posterior_std(lin)
+                        std = ops.theta_std(q, theta, v, lin)
                         stage1 = (q, theta, v, lin.cost, std)
                         released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
@@ -158,7 +109,7 @@ class GaussNewtonSmoother(BatchSmoother):
             bar.close()
         diagnostics = {
             **log.diagnostics(iterations, converged),
-            **solution_diagnostics(problem, theta, theta_posterior_std(lin), released, v),
+            **solution_diagnostics(problem, theta, ops.theta_std(q, theta, v, lin), released, v),
             "stage1": stage1,
         }
         return q, diagnostics
