@@ -820,11 +820,15 @@ class CompiledOps:
 
     def theta_std(self, q, theta, v, lin: Linearization | None = None) -> np.ndarray:
         """(P,) the calibration variables' posterior std at (q, theta, v): sqrt(diag((G - C^T
-        A^-1 C)^-1)) (`theta_posterior_std`); lin is not needed."""
+        A^-1 C)^-1)) (`theta_posterior_std`), from lin's elimination if it was made there with
+        no shift and every variable free, else from one of its own."""
         if self.P == 0:
             return np.zeros(0)
-        theta = np.asarray(theta, float)
         P = self.P
+        held = self._held
+        if lin is not None and held is not None and held[0] is lin and held[1] == 0.0 and held[2] == self._free_index(None).tobytes():
+            return np.sqrt(np.diag(np.linalg.inv(self._schur[0])))
+        theta = np.asarray(theta, float)
         storage = np.empty((2, 5, 5)), np.empty((2, 5)), np.empty((2, 5, P))  # the running rows only
         schur = np.empty((P, P)), np.empty(P)
         cost = self._kernel(q, v, theta, ELIMINATE, np.empty((self.T, self.B)), np.empty(P),

@@ -14,9 +14,12 @@ step if the cost decreases (lambda /= 10), otherwise reject it (lambda *= 10). S
 the relative cost decrease of an accepted step is below `tol` or after `max_iter` iterations.
 
 Per-sample variables are the rotation increment and, with the velocity model, the two
-horizontal velocities (5x5 blocks). Scale-error variables are released only after the rest
-has converged with them at zero, and only those the recording determines (`released_scales`);
-they are kept only if they lower the cost significantly (`BatchSmoother.significant_scales`).
+horizontal velocities (5x5 blocks). Scale-error variables are released only after a first
+stage with them at zero (to `tol`, or cut at half of `max_iter`), and only those the recording
+determines (`released_scales`); they are kept only if they lower the cost significantly
+(`BatchSmoother.significant_scales`). The second stage has at least `max_iter` iterations; if
+it releases nothing after a first stage that was cut, it goes on with the same variables.
+`converged` says that the cost stopped decreasing (by `tol`), not that a budget ran out.
 
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
@@ -83,16 +86,19 @@ class GaussNewtonSmoother(BatchSmoother):
                     if cost_new <= lin.cost or damping > 1e12:
                         break
                     damping *= 10.0
-                stage_done = cost_new > lin.cost  # no descent even with heavy damping: at the minimum
-                if not stage_done:
+                at_minimum = cost_new > lin.cost  # no descent even with heavy damping
+                stage_done = at_minimum
+                if not at_minimum:
                     decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
+                    at_minimum = decrease < p.tol
+                    stage_done = at_minimum or (staged and iterations >= stage1_iter)
                     q, theta, v = q_new, theta_new, v_new
                     damping = max(damping / 10.0, 1e-12)
-                    lin = ops.linearize(q, theta, v, shift=damping, free=free)
+                    # At a stage's end the linearisation serves the posterior std (undamped, every variable).
+                    lin = ops.linearize(q, theta, v, shift=0.0 if stage_done else damping, free=None if stage_done else free)
                     log.record(lin.cost, q)
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")
-                    stage_done = decrease < p.tol or (staged and iterations >= stage1_iter)
                 if stage_done:
                     if staged:
                         staged = False
@@ -100,8 +106,10 @@ class GaussNewtonSmoother(BatchSmoother):
                         stage1 = (q, theta, v, lin.cost, std)
                         released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
-                        damping = 1e-6
                         if released.any():
+                            damping = 1e-6
+                            continue
+                        if not at_minimum:  # stage 1 was cut at its cap: stage 2 goes on with the same variables
                             continue
                     converged = True
                     break
