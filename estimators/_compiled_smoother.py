@@ -113,6 +113,10 @@ def load() -> None:
     ops.trial(q, v, theta, d_q, d_theta, 1.0)
     ops.theta_std(q, theta, v)
     ops.cost(q, theta, v)
+    start = np.empty((2, 4))
+    dead_reckoning(problem.gyr, problem.valid, problem.dt, quat.IDENTITY, 1e-12, start)
+    levelled_kernel(imu.t, imu.acc_g, start, 1.0, 1e-12, np.empty((2, 4)))
+    norm_error(start)
     _loaded = True
 
 
@@ -431,7 +435,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
 
-    Always: grad_q (T, B) and grad_theta (P,). mode BLOCKS: also the blocks diag (T, B, B),
+    Always: grad_theta (P,), and grad_q (T, B) unless it has no rows. mode BLOCKS: also the blocks diag (T, B, B),
     off (T-1, B, B), cross (T, B, P), theta_block (P, P) as the reference lays them out.
     mode ELIMINATE: eliminate (H + shift diag(H)) x = b on the fly (module docstring) for the
     calibration variables `free` (F,) (their indices; the others are held), with b = -grad or,
@@ -622,8 +626,9 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                             for n in range(P):
                                 jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
                                 G[m, n] += w * jm * jn
-        for i in range(B):
-            grad_q[t, i] = g[i]
+        if grad_q.shape[0]:
+            for i in range(B):
+                grad_q[t, i] = g[i]
         if mode == BLOCKS:
             for i in range(B):
                 for j in range(B):
@@ -708,12 +713,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
 
 
 @_jit
-def back_substitute(M, c, N, x_theta, x):
-    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring); x (T, B)."""
-    T, B = x.shape
+def back_substitute(M, c, N, x_theta):
+    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring), into c (T, 5)."""
+    T = c.shape[0]
     F = len(x_theta)
     nxt = np.zeros(5)
-    cur = np.zeros(5)
     for t in range(T - 1, -1, -1):
         for i in range(5):
             s = c[t, i]
@@ -722,11 +726,100 @@ def back_substitute(M, c, N, x_theta, x):
             if t < T - 1:
                 for j in range(5):
                     s -= M[t, i, j] * nxt[j]
-            cur[i] = s
+            c[t, i] = s
         for i in range(5):
-            nxt[i] = cur[i]
-            if i < B:
-                x[t, i] = cur[i]
+            nxt[i] = c[t, i]
+
+
+# ============================================================================ the start and the log
+@_jit
+def dead_reckoning(gyr, valid, dt, q0, small, out):
+    """out (T, 4): q_0 = q0, q_{k+1} = q_k exp([0, w_k dt_k / 2]) (0 where invalid), each row
+    normalised (`dr.DeadReckoning`, whose parallel scan gives the same products in another
+    order, and `smoother.initial_trajectory`, which normalises)."""
+    q = qnormalize((q0[0], q0[1], q0[2], q0[3]))
+    for i in range(4):
+        out[0, i] = q[i]
+    for k in range(len(dt)):
+        if valid[k]:
+            u = qexp(gyr[k, 0] * dt[k], gyr[k, 1] * dt[k], gyr[k, 2] * dt[k], small)
+        else:
+            u = (1.0, 0.0, 0.0, 0.0)
+        q = qnormalize(qmul(q, u))
+        for i in range(4):
+            out[k + 1, i] = q[i]
+
+
+@_jit
+def levelled_kernel(t, acc, q, window_s, small, out):
+    """out (T, 4): q (T, 4) turned window by window so that the mean world-frame specific force
+    of each window points up (`smoother.levelled`, line by line; the first window is q)."""
+    T = len(t)
+    n = int(math.floor((t[T - 1] - t[0]) / window_s)) + 1
+    mean = np.zeros((n, 3))
+    R = np.empty((3, 3))
+    for k in range(T):
+        a0, a1, a2 = acc[k, 0], acc[k, 1], acc[k, 2]
+        if not (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2)):
+            continue  # weight 0 (numpy: 0 * the zeroed sample)
+        w = 0.5 * (t[k + 1] - t[k]) if k < T - 1 else 0.0  # `sample_durations`
+        if k > 0:
+            w += 0.5 * (t[k] - t[k - 1])
+        rotation(load_quat(q, k), R)
+        j = int(math.floor((t[k] - t[0]) / window_s))
+        for i in range(3):
+            mean[j, i] += w * (R[i, 0] * a0 + R[i, 1] * a1 + R[i, 2] * a2)
+    corr = np.empty((n, 4))
+    for j in range(n):
+        norm = math.sqrt(mean[j, 0] ** 2 + mean[j, 1] ** 2 + mean[j, 2] ** 2)
+        d = norm if norm > 0 else 1.0
+        ux, uy, uz = mean[j, 0] / d, mean[j, 1] / d, mean[j, 2] / d
+        sin = math.sqrt(uy * uy + ux * ux)  # |up x e_z|
+        if norm == 0 or sin == 0:
+            c = (1.0, 0.0, 0.0, 0.0)
+        else:
+            f = math.atan2(sin, uz) / sin
+            c = qexp(uy * f, -ux * f, 0.0, small)
+        for i in range(4):
+            corr[j, i] = c[i]
+    for k in range(T):
+        j = int(math.floor((t[k] - t[0]) / window_s))
+        m = load_quat(q, k) if j == 0 else qnormalize(qmul((corr[j, 0], corr[j, 1], corr[j, 2], corr[j, 3]), load_quat(q, k)))
+        for i in range(4):
+            out[k, i] = m[i]
+
+
+@_jit
+def norm_error(q):
+    """max |(|q_t|) - 1| (`smoother.SolverLog`)."""
+    worst = 0.0
+    for t in range(q.shape[0]):
+        e = abs(math.sqrt(q[t, 0] ** 2 + q[t, 1] ** 2 + q[t, 2] ** 2 + q[t, 3] ** 2) - 1.0)
+        if e > worst:
+            worst = e
+    return worst
+
+
+def start(init: str, owner: str, imu, init_quat_wxyz: np.ndarray, level_s: float) -> np.ndarray:
+    """`BatchSmoother.start` with the kernels: dead reckoning (init "dr"; another estimator
+    runs as it is, `smoother.initial_trajectory`) re-levelled every level_s seconds (0: not)."""
+    from .smoother import initial_trajectory
+
+    small = float(quat.SMALL_ANGLE)
+    if init.strip() == "dr" and owner != "dr":
+        gyr, valid = imu.interval_rates()
+        q = np.empty((len(imu), 4))
+        dead_reckoning(np.ascontiguousarray(gyr, float), np.ascontiguousarray(valid, bool), np.ascontiguousarray(imu.dt, float),
+                       np.asarray(init_quat_wxyz, float), small, q)
+        if not np.all(np.isfinite(q[-1])):
+            raise ValueError(f"{owner}: initial estimator {init!r} returned non-finite orientations")
+    else:
+        q = initial_trajectory(init, owner, imu, init_quat_wxyz)
+    if level_s > 0:
+        out = np.empty_like(q)
+        levelled_kernel(np.ascontiguousarray(imu.t, float), np.ascontiguousarray(imu.acc_g, float), q, float(level_s), small, out)
+        return out
+    return q
 
 
 # ============================================================================ the solvers' operations
@@ -745,9 +838,10 @@ class CompiledOps:
     The elimination's per-sample storage (M, c, N: `linearize_kernel`) is allocated once and
     holds one system at a time: `linearize` with a `shift` eliminates the system at its point
     in the same pass (what the next `solve` needs), and `solve` eliminates again if asked for
-    another shift, another set of free calibration variables or another right-hand side.
-    blocks: linearisations with a Hessian also carry the reference's blocks (`Linearization`:
-    for `gd`'s "block" preconditioner).
+    another shift, another set of free calibration variables or another right-hand side. The
+    step `solve` returns is written over c: it is valid until the next elimination (the solvers
+    use it before they linearise again). blocks: linearisations with a Hessian also carry the
+    reference's blocks (`Linearization`: for `gd`'s "block" preconditioner).
     """
 
     def __init__(self, problem: SmootherProblem, blocks: bool = False):
@@ -757,6 +851,7 @@ class CompiledOps:
         self.T, self.P = len(problem.acc), problem.n_theta
         self.B = 3 + problem.n_vel
         self.blocks = blocks
+        self.norm_error = norm_error
         self._storage = None  # (M, c, N) of the system `_held` (lin, shift, free indices as bytes)
         self._held = None
         self._schur = None
@@ -773,18 +868,22 @@ class CompiledOps:
         (q_new, v_new, theta_new, cost)."""
         q_new, v_new = np.empty_like(q), np.empty_like(v)
         theta_new = theta + alpha * d_theta
+        if self._storage is not None and d_q.base is self._storage[1]:
+            d_q = self._storage[1]  # the step `solve` returned: its (T, 5) storage, handed over whole
         cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
                            1 if update == "geodesic" else 2, q_new, v_new)
         return q_new, v_new, theta_new, cost
 
     # ---------------------------------------------------------------- linearisation and solves
-    def linearize(self, q, theta, v, hessian: bool = True, shift: float | None = None, free=None) -> Linearization:
-        """Cost and gradient at (q, theta, v). With `hessian`: the blocks if this object keeps
-        them, else, given a `shift`, the system (H + shift diag(H)) x = -g for the free
-        calibration variables `free` ((P,) bool; None: all) eliminated for `solve`."""
+    def linearize(self, q, theta, v, hessian: bool = True, shift: float | None = None, free=None,
+                  gradient: bool = True) -> Linearization:
+        """Cost and gradient at (q, theta, v) (gradient=False: no per-sample gradient, grad_q
+        has no rows). With `hessian`: the blocks if this object keeps them, else, given a
+        `shift`, the system (H + shift diag(H)) x = -g for the free calibration variables `free`
+        ((P,) bool; None: all) eliminated for `solve`."""
         theta = np.asarray(theta, float)
         T, B, P = self.T, self.B, self.P
-        grad_q, grad_theta = np.empty((T, B)), np.empty(P)
+        grad_q, grad_theta = np.empty((T if gradient or (hessian and self.blocks) else 0, B)), np.empty(P)
         if hessian and self.blocks:
             blocks = (np.zeros((T, B, B)), np.zeros((max(T - 1, 0), B, B)), np.zeros((T, B, P)), np.zeros((P, P)))
             cost = self._kernel(q, v, theta, BLOCKS, grad_q, grad_theta, blocks=blocks)
@@ -807,16 +906,15 @@ class CompiledOps:
         held = self._held
         if grad is not None or held is None or held[0] is not lin or held[1] != shift or held[2] != index.tobytes():
             q, theta, v = lin.point
-            scratch = np.empty((self.T, self.B)), np.empty(self.P)
-            self._eliminate(q, v, theta, float(shift), index, grad, *scratch)
-            self._held = None if grad is not None else (lin, float(shift), index.tobytes())
+            self._eliminate(q, v, theta, float(shift), index, grad, np.empty((0, self.B)), np.empty(self.P))
+        self._held = None  # the step overwrites c
         schur, schur_rhs = self._schur
         x_theta = np.linalg.solve(schur, schur_rhs) if len(index) else np.zeros(0)
-        x = np.empty((self.T, self.B))
-        back_substitute(*self._storage, x_theta, x)
+        M, c, N = self._storage
+        back_substitute(M, c, N, x_theta)
         d_theta = np.zeros(self.P)
         d_theta[index] = x_theta
-        return x, d_theta
+        return c[:, :self.B], d_theta
 
     def theta_std(self, q, theta, v, lin: Linearization | None = None) -> np.ndarray:
         """(P,) the calibration variables' posterior std at (q, theta, v): sqrt(diag((G - C^T
@@ -831,7 +929,7 @@ class CompiledOps:
         theta = np.asarray(theta, float)
         storage = np.empty((2, 5, 5)), np.empty((2, 5)), np.empty((2, 5, P))  # the running rows only
         schur = np.empty((P, P)), np.empty(P)
-        cost = self._kernel(q, v, theta, ELIMINATE, np.empty((self.T, self.B)), np.empty(P),
+        cost = self._kernel(q, v, theta, ELIMINATE, np.empty((0, self.B)), np.empty(P),
                             index=np.arange(P, dtype=np.int64), storage=storage, schur=schur)
         self._check(cost)
         return np.sqrt(np.diag(np.linalg.inv(schur[0])))
@@ -848,9 +946,11 @@ class CompiledOps:
             grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR))
 
     def _eliminate(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
-        if self._storage is None:
-            self._storage = np.empty((self.T, 5, 5)), np.empty((self.T, 5)), np.empty((self.T, 5, self.P))
         F = len(index)
+        if self._storage is None or self._storage[2].shape[2] != F:  # N has a column per free variable
+            M, c = (np.empty((self.T, 5, 5)), np.empty((self.T, 5))) if self._storage is None else self._storage[:2]
+            self._storage = None  # the old N goes before the new one comes
+            self._storage = M, c, np.empty((self.T, 5, F))
         self._schur = np.empty((F, F)), np.empty(F)
         cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
                             storage=self._storage, schur=self._schur)

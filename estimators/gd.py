@@ -223,7 +223,7 @@ class GradientDescentSmoother(BatchSmoother):
         M = self.preconditioner(ops, lin, free)
         age, builds = 0, 1  # age: steps taken since M was built (0: M is from the current point)
         cost = lin.cost
-        log, steps = SolverLog(cost, q), []
+        log, steps = SolverLog(cost, q, ops.norm_error), []
         alpha = 1.0
         converged = False
         iterations = 0

@@ -75,8 +75,8 @@ class GaussNewtonSmoother(BatchSmoother):
         stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
         # Stage 1 takes at most half of max_iter, stage 2 at least max_iter.
         limit = p.max_iter + (stage1_iter if staged else 0)
-        lin = ops.linearize(q, theta, v, shift=damping, free=free)  # always at the current point
-        log = SolverLog(lin.cost, q)
+        lin = ops.linearize(q, theta, v, shift=damping, free=free, gradient=False)  # always at the current point
+        log = SolverLog(lin.cost, q, ops.norm_error)
         bar = progress_bar(p.progress, limit, self.name)
         try:
             for iterations in range(1, limit + 1):
@@ -95,7 +95,8 @@ class GaussNewtonSmoother(BatchSmoother):
                     q, theta, v = q_new, theta_new, v_new
                     damping = max(damping / 10.0, 1e-12)
                     # At a stage's end the linearisation serves the posterior std (undamped, every variable).
-                    lin = ops.linearize(q, theta, v, shift=0.0 if stage_done else damping, free=None if stage_done else free)
+                    lin = ops.linearize(q, theta, v, shift=0.0 if stage_done else damping, free=None if stage_done else free,
+                                        gradient=False)
                     log.record(lin.cost, q)
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")

@@ -247,15 +247,17 @@ def progress_bar(enabled: bool, total: int, desc: str):
 class SolverLog:
     """What both solvers record at the start and after every accepted step: the cost ("loss"),
     the largest deviation of a quaternion's norm from 1 ("norm_error"; the retraction keeps it
-    at rounding level) and the time since the start ("elapsed_s")."""
+    at rounding level) and the time since the start ("elapsed_s"). norm_error: the function
+    that measures it (the ops' `norm_error`)."""
 
-    def __init__(self, cost: float, q: np.ndarray) -> None:
+    def __init__(self, cost: float, q: np.ndarray, norm_error=None) -> None:
         self._start = time.perf_counter()
-        self.loss, self.norm_error, self.elapsed_s = [cost], [_norm_error(q)], [0.0]
+        self._norm_error = _norm_error if norm_error is None else norm_error
+        self.loss, self.norm_error, self.elapsed_s = [cost], [self._norm_error(q)], [0.0]
 
     def record(self, cost: float, q: np.ndarray) -> None:
         self.loss.append(cost)
-        self.norm_error.append(_norm_error(q))
+        self.norm_error.append(self._norm_error(q))
         self.elapsed_s.append(time.perf_counter() - self._start)
 
     def diagnostics(self, iterations: int, converged: bool) -> dict:
@@ -299,6 +301,7 @@ class ReferenceOps:
 
     def __init__(self, problem: SmootherProblem) -> None:
         self.problem = problem
+        self.norm_error = _norm_error
 
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         return self.problem.cost(q, theta, v)
@@ -313,7 +316,9 @@ class ReferenceOps:
         return q_new, v_new, theta_new, self.problem.cost(q_new, theta_new, v_new)
 
     def linearize(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray, hessian: bool = True, shift: float | None = None,
-                  free: np.ndarray | None = None) -> Linearization:
+                  free: np.ndarray | None = None, gradient: bool = True) -> Linearization:
+        """`SmootherProblem.linearize` (shift, free: the next solve's; gradient=False: the caller
+        does not read grad_q; hints for the kernels)."""
         return self.problem.linearize(q, theta, hessian=hessian, v=v)
 
     def solve(self, lin: Linearization, shift: float, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -373,11 +378,7 @@ class BatchSmoother(Estimator):
         if len(imu) < 2:
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
         problem = self.problem(imu, init_quat_wxyz)
-        q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
-        if p.init_level_s > 0:
-            q = levelled(imu, q, p.init_level_s)
-        q_start = q
-        q, diagnostics = self.solve(problem, q)
+        q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))
         q, diagnostics = self.significant_scales(problem, q, diagnostics)
         # A scale error beyond `scale_max` is not a gyro's: the fit has used it to absorb motion the
         # cost does not model (e.g. fast translation). Those axes are solved again with it held at 0.
@@ -386,10 +387,23 @@ class BatchSmoother(Estimator):
         if implausible:
             kept = "".join(a for a in p.scale_axes if a not in implausible)
             problem = self.problem(imu, init_quat_wxyz, scale_axes=kept)
-            q, diagnostics = self.solve(problem, q_start)
+            q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))  # the same start, computed again
             q, diagnostics = self.significant_scales(problem, q, diagnostics)
             diagnostics["scale_rejected"] = implausible
         return Trajectory(imu.t, q, diagnostics=diagnostics)
+
+    def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
+        """(T, 4) the start of the optimisation: the `init` estimator's output, re-levelled every
+        `init_level_s` seconds (`levelled`); with impl="compiled", dead reckoning and the
+        levelling by the kernels (`_compiled_smoother.start`)."""
+        p = self.params
+        imu_init = imu.replace(gyr_valid=problem_valid(imu, p))
+        if p.impl == "compiled":
+            from ._compiled_smoother import start
+
+            return start(p.init, self.name, imu_init, init_quat_wxyz, p.init_level_s)
+        q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
+        return levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
 
     def significant_scales(self, problem: SmootherProblem, q: np.ndarray, diagnostics: dict) -> tuple[np.ndarray, dict]:
         """Keep the released scale errors only if they lower the cost significantly; otherwise
