@@ -23,8 +23,9 @@ the blocks of H (`Linearization.diag`, `off`, `cross`) and b the right-hand side
     G'   = G - sum_t C'_t^T N_t,   b'_theta = b_theta - sum_t C'_t^T c_t,   x_theta = G'^-1 b'_theta
     x_t  = c_t - M_t x_{t+1} - N_t x_theta    (backwards from t = T - 1)
 
-S_t is factorised by Cholesky (5 x 5 at most) and never stored; a sample keeps M_t, c_t and
-N_t: B (B + 1 + P) numbers (50 with the velocity model and four calibration variables). The
+S_t is factorised as L D L^T (5 x 5; no square roots on the recursion's critical path:
+Golub & Van Loan 2013, sec. 4.1.2) and never stored; a sample keeps M_t, c_t and N_t:
+5 (5 + 1 + F) numbers for F free calibration variables. The
 blocks are those of the reference (`SmootherProblem.linearize`, whose comments cite the
 Jacobians: Sola et al. 2018, "A micro Lie theory", eqs. 143-146); without the velocity model
 the per-sample system is padded from 3 to 5 variables with an identity block, which gives the
@@ -60,13 +61,13 @@ from .smoother_cost import LOSSES, Linearization, SmootherProblem
 GRADIENT, BLOCKS, ELIMINATE = 0, 1, 2
 
 # The problem as the kernels read it (`problem_arrays`), and the constants of the maths.
-Problem = namedtuple("Problem", [
+Problem = namedtuple("SmootherArrays", [
     "dt", "gyr", "valid", "acc",  # (T-1,), (T-1, 3), (T-1,) bool, (T, 3)
     "w_motion", "w_acc", "w_vel", "w_vzero", "w_rest",  # weights; w_vel, w_vzero, w_rest may be empty
     "init_quat", "w_prior", "w_theta", "theta_axis", "n_bias",  # anchor; calibration: prior weights, axis of each, how many biases
     "loss", "loss_c",  # robust loss (index in LOSSES) and its scale, g
 ])
-Consts = namedtuple("Consts", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
+Consts = namedtuple("SmootherConstants", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
 
 
 def constants() -> Consts:
@@ -394,38 +395,46 @@ def moved(q, x, alpha, kind, t, o, q_out):
 
 # ============================================================================ linearisation
 @_jit
-def cholesky5(S, L, inv):
-    """L L^T = S (5 x 5, lower), inv = 1 / diag(L); False if S is not positive definite."""
-    for j in range(5):
-        s = S[j, j]
-        for m in range(j):
-            s -= L[j, m] * L[j, m]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        L[j, j] = d
-        inv[j] = 1.0 / d
-        for i in range(j + 1, 5):
-            s = S[i, j]
-            for m in range(j):
-                s -= L[i, m] * L[j, m]
-            L[i, j] = s * inv[j]
-    return True
+def ldl5(S):
+    """S = L diag(d) L^T for the lower triangle of the 5 x 5 S, L unit lower triangular (no
+    square roots: Golub & Van Loan 2013, sec. 4.1.2): (positive definite, L below the diagonal
+    row by row (10 scalars), 1 / d (5 scalars))."""
+    d0 = S[0, 0]
+    r0 = 1.0 / d0
+    e10, e20, e30, e40 = S[1, 0], S[2, 0], S[3, 0], S[4, 0]  # E = L diag(d), column 0
+    l10, l20, l30, l40 = e10 * r0, e20 * r0, e30 * r0, e40 * r0
+    d1 = S[1, 1] - l10 * e10
+    r1 = 1.0 / d1
+    e21, e31, e41 = S[2, 1] - l20 * e10, S[3, 1] - l30 * e10, S[4, 1] - l40 * e10
+    l21, l31, l41 = e21 * r1, e31 * r1, e41 * r1
+    d2 = S[2, 2] - l20 * e20 - l21 * e21
+    r2 = 1.0 / d2
+    e32, e42 = S[3, 2] - l30 * e20 - l31 * e21, S[4, 2] - l40 * e20 - l41 * e21
+    l32, l42 = e32 * r2, e42 * r2
+    d3 = S[3, 3] - l30 * e30 - l31 * e31 - l32 * e32
+    r3 = 1.0 / d3
+    e43 = S[4, 3] - l40 * e30 - l41 * e31 - l42 * e32
+    l43 = e43 * r3
+    d4 = S[4, 4] - l40 * e40 - l41 * e41 - l42 * e42 - l43 * e43
+    r4 = 1.0 / d4
+    ok = d0 > 0.0 and d1 > 0.0 and d2 > 0.0 and d3 > 0.0 and d4 > 0.0
+    return ok, (l10, l20, l21, l30, l31, l32, l40, l41, l42, l43), (r0, r1, r2, r3, r4)
 
 
 @_jit
-def cho_solve5(L, inv, y):
-    """y <- S^-1 y for S = L L^T (5,)."""
-    for i in range(5):
-        s = y[i]
-        for m in range(i):
-            s -= L[i, m] * y[m]
-        y[i] = s * inv[i]
-    for i in range(4, -1, -1):
-        s = y[i]
-        for m in range(i + 1, 5):
-            s -= L[m, i] * y[m]
-        y[i] = s * inv[i]
+def ldl_solve5(L, r, b0, b1, b2, b3, b4):
+    """S^-1 b for S = L diag(1 / r) L^T (`ldl5`), five scalars in and out."""
+    l10, l20, l21, l30, l31, l32, l40, l41, l42, l43 = L
+    y1 = b1 - l10 * b0
+    y2 = b2 - l20 * b0 - l21 * y1
+    y3 = b3 - l30 * b0 - l31 * y1 - l32 * y2
+    y4 = b4 - l40 * b0 - l41 * y1 - l42 * y2 - l43 * y3
+    x4 = y4 * r[4]
+    x3 = y3 * r[3] - l43 * x4
+    x2 = y2 * r[2] - l32 * x3 - l42 * x4
+    x1 = y1 * r[1] - l21 * x2 - l31 * x3 - l41 * x4
+    x0 = b0 * r[0] - l10 * x1 - l20 * x2 - l30 * x3 - l40 * x4
+    return x0, x1, x2, x3, x4
 
 
 @_jit
@@ -475,8 +484,6 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     Jth = np.zeros((3, P))
     gth = np.zeros(P)
     G = np.zeros((P, P))
-    L = np.zeros((5, 5))
-    inv = np.zeros(5)
     col = np.zeros(5)
     Cf = np.zeros((5, F))
     X0 = np.zeros((2, 3))
@@ -660,17 +667,16 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                         for m in range(5):
                             s += Op[m, i] * N[prev, m, n]
                         Cf[i, n] -= s
-            if not cholesky5(D, L, inv):
+            ok, Lt, rt = ldl5(D)
+            if not ok:
                 return math.nan
-            cho_solve5(L, inv, col)
+            x = ldl_solve5(Lt, rt, col[0], col[1], col[2], col[3], col[4])
             for i in range(5):
-                c[row, i] = col[i]
+                c[row, i] = x[i]
             for n in range(F):  # N_t = S^-1 C'_t; the Schur complement and its right-hand side
+                x = ldl_solve5(Lt, rt, Cf[0, n], Cf[1, n], Cf[2, n], Cf[3, n], Cf[4, n])
                 for i in range(5):
-                    col[i] = Cf[i, n]
-                cho_solve5(L, inv, col)
-                for i in range(5):
-                    N[row, i, n] = col[i]
+                    N[row, i, n] = x[i]
                 s = 0.0
                 for i in range(5):
                     s += Cf[i, n] * c[row, i]
@@ -678,15 +684,13 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 for m in range(n + 1):
                     s = 0.0
                     for i in range(5):
-                        s += Cf[i, m] * col[i]
+                        s += Cf[i, m] * x[i]
                     schur[m, n] += s
             if t < T - 1:
                 for j in range(5):  # M_t = S^-1 O_t
+                    x = ldl_solve5(Lt, rt, O[0, j], O[1, j], O[2, j], O[3, j], O[4, j])
                     for i in range(5):
-                        col[i] = O[i, j]
-                    cho_solve5(L, inv, col)
-                    for i in range(5):
-                        M[row, i, j] = col[i]
+                        M[row, i, j] = x[i]
                 for i in range(5):
                     for j in range(5):
                         Op[i, j] = O[i, j]
