@@ -166,18 +166,40 @@ def load_quat(q, t):
 
 
 @_jit
-def rotation(q, R):
-    """R = R(q) (`quaternion.rotation_matrix`), into the 3 x 3 array R."""
+def rotation(q):
+    """R(q) (`quaternion.rotation_matrix`) as 9 scalars, row by row."""
     w, x, y, z = q
-    R[0, 0] = 1 - 2 * (y * y + z * z)
-    R[0, 1] = 2 * (x * y - w * z)
-    R[0, 2] = 2 * (x * z + w * y)
-    R[1, 0] = 2 * (x * y + w * z)
-    R[1, 1] = 1 - 2 * (x * x + z * z)
-    R[1, 2] = 2 * (y * z - w * x)
-    R[2, 0] = 2 * (x * z - w * y)
-    R[2, 1] = 2 * (y * z + w * x)
-    R[2, 2] = 1 - 2 * (x * x + y * y)
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
+@_jit
+def right_jacobian_inv(x, y, z, o):
+    """J_r^-1(v) = I + [v]x / 2 + C [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian_inv`)."""
+    c = series(math.sqrt(x * x + y * y + z * z), 2, o)
+    return (1.0 + c * (-z * z - y * y), -0.5 * z + c * (x * y), 0.5 * y + c * (x * z),
+            0.5 * z + c * (x * y), 1.0 + c * (-z * z - x * x), -0.5 * x + c * (y * z),
+            -0.5 * y + c * (x * z), 0.5 * x + c * (y * z), 1.0 + c * (-y * y - x * x))
+
+
+@_jit
+def right_jacobian(x, y, z, o):
+    """J_r(v) = I - A [v]x + B [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian`)."""
+    t = math.sqrt(x * x + y * y + z * z)
+    a = series(t, 0, o)
+    b = series(t, 1, o)
+    return (1.0 + b * (-z * z - y * y), a * z + b * (x * y), -a * y + b * (x * z),
+            -a * z + b * (x * y), 1.0 + b * (-z * z - x * x), a * x + b * (y * z),
+            a * y + b * (x * z), -a * x + b * (y * z), 1.0 + b * (-y * y - x * x))
+
+
+@_jit
+def fill3(M, v):
+    """M (3, 3) = the 9 scalars v, row by row."""
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = v[3 * i + j]
 
 
 @_jit
@@ -193,53 +215,6 @@ def series(t, kind, o):
     c = o.jac_a if kind == 0 else (o.jac_b if kind == 1 else o.jac_c)
     t2 = t * t
     return ((0.0 * t2 + c[2]) * t2 + c[1]) * t2 + c[0]
-
-
-@_jit
-def skew_squared(x, y, z, SS):
-    """SS = [v]x [v]x for v = (x, y, z)."""
-    SS[0, 0] = -z * z - y * y
-    SS[1, 1] = -z * z - x * x
-    SS[2, 2] = -y * y - x * x
-    SS[0, 1] = SS[1, 0] = x * y
-    SS[0, 2] = SS[2, 0] = x * z
-    SS[1, 2] = SS[2, 1] = y * z
-
-
-@_jit
-def right_jacobian_inv(x, y, z, o, SS, A):
-    """A = J_r^-1(v) = I + [v]x / 2 + C(|v|) [v]x^2 (`quaternion.right_jacobian_inv`)."""
-    c = series(math.sqrt(x * x + y * y + z * z), 2, o)
-    skew_squared(x, y, z, SS)
-    for i in range(3):
-        for j in range(3):
-            A[i, j] = c * SS[i, j]
-        A[i, i] += 1.0
-    A[0, 1] -= 0.5 * z
-    A[0, 2] += 0.5 * y
-    A[1, 0] += 0.5 * z
-    A[1, 2] -= 0.5 * x
-    A[2, 0] -= 0.5 * y
-    A[2, 1] += 0.5 * x
-
-
-@_jit
-def right_jacobian(x, y, z, o, SS, J):
-    """J = J_r(v) = I - A(|v|) [v]x + B(|v|) [v]x^2 (`quaternion.right_jacobian`)."""
-    t = math.sqrt(x * x + y * y + z * z)
-    a = series(t, 0, o)
-    b = series(t, 1, o)
-    skew_squared(x, y, z, SS)
-    for i in range(3):
-        for j in range(3):
-            J[i, j] = b * SS[i, j]
-        J[i, i] += 1.0
-    J[0, 1] += a * z
-    J[0, 2] -= a * y
-    J[1, 0] -= a * z
-    J[1, 2] += a * x
-    J[2, 0] += a * y
-    J[2, 1] -= a * x
 
 
 @_jit
@@ -325,7 +300,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
             if kind:
                 for i in range(V):
                     v_out[0, i] = v[0, i] + alpha * x[0, 3 + i]
-            rotation(qt, R)
+            fill3(R, rotation(qt))
         else:
             qt = qn
             for i in range(3):
@@ -345,7 +320,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
         if kind:
             for i in range(V):
                 v_out[t + 1, i] = v[t + 1, i] + alpha * x[t + 1, 3 + i]
-        rotation(qn, Rn)
+        fill3(Rn, rotation(qn))
         phi = step_rotvec(p, b, k, t)
         r = motion_residual(qt, qn, qexp(phi[0], phi[1], phi[2], o.small_angle))
         cost_motion += p.w_motion[t] * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
@@ -468,7 +443,6 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     cost_prior = 0.0
     R = np.empty((3, 3))
     Rn = np.empty((3, 3))
-    SS = np.empty((3, 3))
     A = np.empty((3, 3))
     Ru = np.empty((3, 3))
     J0 = np.empty((3, 3))
@@ -481,7 +455,14 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     Cn = np.zeros((5, P))
     g = np.zeros(5)
     gn = np.zeros(5)
-    Jth = np.zeros((3, P))
+    AJ = np.zeros((3, 3))  # column a: A J_r(phi) e_a, what a calibration variable on gyro axis a moves r_m by (per unit)
+    J0AJ = np.zeros((3, 3))  # J0^T AJ
+    AAJ = np.zeros((3, 3))  # A AJ
+    JJ = np.zeros((3, 3))  # AJ^T AJ
+    used = np.zeros(3, np.bool_)  # gyro axes with a calibration variable
+    for m in range(P):
+        used[p.theta_axis[m]] = True
+    dm = np.zeros(P)
     gth = np.zeros(P)
     G = np.zeros((P, P))
     col = np.zeros(5)
@@ -493,18 +474,20 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         for j in range(F):
             schur[i, j] = 0.0
     qn = load_quat(q, 0)
-    rotation(qn, Rn)
+    rn = rotation(qn)
     for t in range(T):
         qt = qn
-        for i in range(3):
-            for j in range(3):
-                R[i, j] = Rn[i, j]
+        rt = rn
+        fill3(R, rt)
+        # What step t-1 added to sample t becomes sample t's; only lower triangles of the symmetric
+        # diagonal blocks are formed (mirrored for BLOCKS).
         for i in range(5):
             g[i] = gn[i]
             gn[i] = 0.0
-            for j in range(5):
+            for j in range(i + 1):
                 D[i, j] = Dn[i, j]
                 Dn[i, j] = 0.0
+            for j in range(5):
                 O[i, j] = 0.0
             for j in range(P):
                 C[i, j] = Cn[i, j]
@@ -520,15 +503,15 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         g[2] += h0 * y1 - h1 * y0
         hh = (h0, h1, h2)
         for i in range(3):
-            for j in range(3):
+            for j in range(i + 1):
                 D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
         if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
             r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
             cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-            right_jacobian_inv(r[0], r[1], r[2], o, SS, A)
+            fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
             for i in range(3):
                 g[i] += p.w_prior * (A[0, i] * r[0] + A[1, i] * r[1] + A[2, i] * r[2])
-                for j in range(3):
+                for j in range(i + 1):
                     D[i, j] += p.w_prior * (A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j])
         if V:
             wz = p.w_vzero[t]
@@ -538,15 +521,16 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 D[3 + i, 3 + i] += wz
         if t < T - 1:
             qn = load_quat(q, t + 1)
-            rotation(qn, Rn)
+            rn = rotation(qn)
+            fill3(Rn, rn)
             # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
             phi = step_rotvec(p, b, k, t)
             u = qexp(phi[0], phi[1], phi[2], o.small_angle)
             r = motion_residual(qt, qn, u)
             wm = p.w_motion[t]
             cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-            right_jacobian_inv(r[0], r[1], r[2], o, SS, A)
-            rotation(u, Ru)
+            fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
+            fill3(Ru, rotation(u))
             wr = (wm * r[0], wm * r[1], wm * r[2])
             atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
                    A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
@@ -558,28 +542,40 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     J0[i, j] = A[i, 0] * Ru[j, 0] + A[i, 1] * Ru[j, 1] + A[i, 2] * Ru[j, 2]
             for i in range(3):
                 for j in range(3):
-                    D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
-                    Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
+                    if j <= i:
+                        D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
+                        Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
                     O[i, j] = -wm * (J0[0, i] * A[j, 0] + J0[1, i] * A[j, 1] + J0[2, i] * A[j, 2])
             if P:
-                # d r_m / d theta = A J_r(phi) d phi / d theta; d phi / d theta: -dt (bias), g dt (scale).
-                right_jacobian(phi[0], phi[1], phi[2], o, SS, Jr)
+                # d r_m / d theta = A J_r(phi) d phi / d theta, d phi / d theta: -dt (bias), g dt (scale):
+                # column a of A J_r(phi) once per gyro axis, times each variable's d phi_a / d theta.
+                fill3(Jr, right_jacobian(phi[0], phi[1], phi[2], o))
+                for a in range(3):
+                    if used[a]:
+                        for i in range(3):
+                            AJ[i, a] = A[i, 0] * Jr[0, a] + A[i, 1] * Jr[1, a] + A[i, 2] * Jr[2, a]
+                        for i in range(3):
+                            J0AJ[i, a] = J0[0, i] * AJ[0, a] + J0[1, i] * AJ[1, a] + J0[2, i] * AJ[2, a]
+                            AAJ[i, a] = A[i, 0] * AJ[0, a] + A[i, 1] * AJ[1, a] + A[i, 2] * AJ[2, a]
+                        for e in range(a + 1):
+                            if used[e]:
+                                JJ[a, e] = JJ[e, a] = AJ[0, a] * AJ[0, e] + AJ[1, a] * AJ[1, e] + AJ[2, a] * AJ[2, e]
                 dt = p.dt[t]
                 for m in range(P):
                     ax = p.theta_axis[m]
                     d = 0.0
                     if p.valid[t]:
                         d = -dt if m < p.n_bias else p.gyr[t, ax] * dt
-                    e0, e1, e2 = Jr[0, ax] * d, Jr[1, ax] * d, Jr[2, ax] * d
+                    dm[m] = d
+                    gth[m] += d * (AJ[0, ax] * wr[0] + AJ[1, ax] * wr[1] + AJ[2, ax] * wr[2])
+                    wd = wm * d
                     for i in range(3):
-                        Jth[i, m] = A[i, 0] * e0 + A[i, 1] * e1 + A[i, 2] * e2
-                    gth[m] += Jth[0, m] * wr[0] + Jth[1, m] * wr[1] + Jth[2, m] * wr[2]
-                    for i in range(3):
-                        C[i, m] += wm * (J0[0, i] * Jth[0, m] + J0[1, i] * Jth[1, m] + J0[2, i] * Jth[2, m])
-                        Cn[i, m] -= wm * (A[i, 0] * Jth[0, m] + A[i, 1] * Jth[1, m] + A[i, 2] * Jth[2, m])
+                        C[i, m] += wd * J0AJ[i, ax]
+                        Cn[i, m] -= wd * AAJ[i, ax]
                 for m in range(P):
+                    wd = wm * dm[m]
                     for n in range(P):
-                        G[m, n] += wm * (Jth[0, m] * Jth[0, n] + Jth[1, m] * Jth[1, n] + Jth[2, m] * Jth[2, n])
+                        G[m, n] += wd * dm[n] * JJ[p.theta_axis[m], p.theta_axis[n]]
             if V:
                 # Velocity increments: d r_v / d delta_t = X0 = G dt P R_t [a_t]x / 2 (rows: R_t,i x a_t),
                 # / d delta_{t+1} = X1 likewise, / d v_t = -I, / d v_{t+1} = I.
@@ -607,13 +603,12 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     gn[3 + i] += w
                 for i in range(3):
                     for j in range(3):
-                        D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
-                        Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
+                        if j <= i:
+                            D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
+                            Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
                         O[i, j] += wv * (X0[0, i] * X1[0, j] + X0[1, i] * X1[1, j])
                     for m in range(2):
-                        D[i, 3 + m] -= wv * X0[m, i]
                         D[3 + m, i] -= wv * X0[m, i]
-                        Dn[i, 3 + m] += wv * X1[m, i]
                         Dn[3 + m, i] += wv * X1[m, i]
                         O[i, 3 + m] += wv * X0[m, i]
                         O[3 + m, i] -= wv * X1[m, i]
@@ -639,7 +634,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         if mode == BLOCKS:
             for i in range(B):
                 for j in range(B):
-                    diag[t, i, j] = D[i, j]
+                    diag[t, i, j] = D[i, j] if j <= i else D[j, i]
                     if t < T - 1:
                         off[t, i, j] = O[i, j]
                 for m in range(P):
@@ -769,7 +764,7 @@ def levelled_kernel(t, acc, q, window_s, small, out):
         w = 0.5 * (t[k + 1] - t[k]) if k < T - 1 else 0.0  # `sample_durations`
         if k > 0:
             w += 0.5 * (t[k] - t[k - 1])
-        rotation(load_quat(q, k), R)
+        fill3(R, rotation(load_quat(q, k)))
         j = int(math.floor((t[k] - t[0]) / window_s))
         for i in range(3):
             mean[j, i] += w * (R[i, 0] * a0 + R[i, 1] * a1 + R[i, 2] * a2)

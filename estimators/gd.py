@@ -264,7 +264,9 @@ class GradientDescentSmoother(BatchSmoother):
                 # Rebuild M at the current point: every `precond_every` steps, after a shortened
                 # step (M's model was poor), when a lagged M stalls, and for the stage change.
                 if small or stage_end or age >= p.precond_every or (alpha < 1.0 and p.precond == "chain"):
-                    lin = ops.linearize(q, theta, v, hessian=hessian or stage_end, shift=RIDGE, free=free)
+                    # At the stage change the linearisation serves the posterior std first (undamped, every variable).
+                    lin = ops.linearize(q, theta, v, hessian=hessian or stage_end, shift=0.0 if stage_end else RIDGE,
+                                        free=None if stage_end else free)
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False
