@@ -64,7 +64,8 @@ GRADIENT, BLOCKS, ELIMINATE = 0, 1, 2
 Problem = namedtuple("SmootherArrays", [
     "dt", "gyr", "valid", "acc",  # (T-1,), (T-1, 3), (T-1,) bool, (T, 3)
     "w_motion", "w_acc", "w_vel", "w_vzero", "w_rest",  # weights; w_vel, w_vzero, w_rest may be empty
-    "init_quat", "w_prior", "w_theta", "theta_axis", "n_bias",  # anchor; calibration: prior weights, axis of each, how many biases
+    "init_quat", "w_prior",  # the anchor
+    "w_theta", "theta_axis", "n_bias",  # calibration: prior weights, the gyro axis of each, how many are biases
     "loss", "loss_c",  # robust loss (index in LOSSES) and its scale, g
 ])
 Consts = namedtuple("SmootherConstants", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
@@ -276,6 +277,20 @@ def calibration(p, theta):
 
 # ============================================================================ cost
 @_jit
+def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
+    """The cost from its terms' sums (`SmootherProblem.cost`): acc (with its 1/2), and the
+    weighted squared residuals of motion, velocity, zero velocity and rest, the anchor's
+    |r_0|^2; the calibration prior from theta."""
+    prior = 0.0
+    for i in range(len(theta)):
+        prior += p.w_theta[i] * theta[i] ** 2
+    total = acc + 0.5 * (motion + p.w_prior * prior_sq + prior)
+    if V:
+        total += 0.5 * (vel + vzero)
+    return total + 0.5 * rest
+
+
+@_jit
 def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
     """The cost (`SmootherProblem.cost`) at q (T, 4), v (T, V) m/s, theta (P,); or, with
     kind 1 (geodesic) or 2 (normalise), at the point moved by alpha times the step x (T, B):
@@ -283,7 +298,6 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
     `quaternion.retract`), v_out = v + alpha x[:, 3:], both written."""
     T = q.shape[0]
     V = v.shape[1]
-    P = len(theta)
     b, k = calibration(p, theta)
     cost_acc = 0.0
     cost_motion = 0.0
@@ -341,13 +355,8 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
             cost_rest += p.w_rest[t] * s
     r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
                   (q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3]) if kind else load_quat(q, 0)))
-    prior = 0.0
-    for i in range(P):
-        prior += p.w_theta[i] * theta[i] ** 2
-    total = cost_acc + 0.5 * (cost_motion + p.w_prior * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]) + prior)
-    if V:
-        total += 0.5 * (cost_vel + cost_vzero)
-    return total + 0.5 * cost_rest
+    prior_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    return total_cost(p, theta, V, cost_acc, cost_motion, prior_sq, cost_vel, cost_vzero, cost_rest)
 
 
 @_jit
@@ -702,13 +711,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
             schur[n, n] = G[free[n], free[n]] * (1.0 + shift) - schur[n, n]
             schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
-    prior = 0.0
-    for m in range(P):
-        prior += p.w_theta[m] * theta[m] ** 2
-    total = cost_acc + 0.5 * (cost_motion + p.w_prior * cost_prior + prior)
-    if V:
-        total += 0.5 * (cost_vel + cost_vzero)
-    return total + 0.5 * cost_rest
+    return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest)
 
 
 @_jit
@@ -923,7 +926,8 @@ class CompiledOps:
             return np.zeros(0)
         P = self.P
         held = self._held
-        if lin is not None and held is not None and held[0] is lin and held[1] == 0.0 and held[2] == self._free_index(None).tobytes():
+        if lin is not None and held is not None and held[0] is lin and held[1] == 0.0 \
+                and held[2] == self._free_index(None).tobytes():
             return np.sqrt(np.diag(np.linalg.inv(self._schur[0])))
         theta = np.asarray(theta, float)
         storage = np.empty((2, 5, 5)), np.empty((2, 5)), np.empty((2, 5, P))  # the running rows only

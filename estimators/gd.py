@@ -28,9 +28,11 @@ The remedy: a preconditioner M that solves the whole chain. The search direction
 with M the Gauss-Newton matrix of the cost, J^T W J (N&W sec. 10.3, eq. 10.23). Each motion
 residual involves two neighbouring samples only, so M is block-tridiagonal (3 x 3 blocks, 5 x 5
 with the velocities) with a dense border for theta; M^-1 g costs O(T) time and memory: a banded
-Cholesky factorisation (LAPACK pbtrf, `scipy.linalg.cholesky_banded`), with the border
-eliminated by a Schur complement. One solve with M carries a correction along the whole chain,
-so the number of iterations no longer grows with the length (benchmarks/bench_smoother.py).
+Cholesky factorisation (LAPACK pbtrf, `scipy.linalg.cholesky_banded`: impl="numpy", the
+reference) or, by default, the compiled kernels' block elimination of the same matrix
+(`fusion.estimators._compiled_smoother`), with the border eliminated by a Schur complement.
+One solve with M carries a correction along the whole chain, so the number of iterations no
+longer grows with the length (benchmarks/bench_smoother.py).
 This is preconditioning in the sense of N&W sec. 5.1: steepest descent in the variables
 M^(1/2) x, whose Hessian is close to the identity. With M rebuilt at every iterate (the
 default, precond_every=1) p is the Gauss-Newton direction, and `gd` differs from `gn` in how

@@ -4,10 +4,12 @@ Minimises the cost of `fusion.estimators.smoother_cost`, with the weighting and 
 `fusion.estimators.smoother.SmootherParams` (motion + robust accelerometer terms
 weighted by the sensor noise) over all orientations at once. Updates are on the manifold,
 `q_t <- q_t * exp([0, delta_t / 2])`; each motion residual touches two neighbours, so the
-normal equations are block-tridiagonal (3x3 blocks), stored in LAPACK band form and solved
-by `scipy.linalg.solveh_banded` in O(T) time and memory. Optional calibration variables
-(a constant gyro bias per axis, per-axis scale errors) add a dense border
-to the matrix, eliminated by a Schur complement (the banded solve takes P + 1 right-hand sides).
+normal equations are block-tridiagonal (3x3 blocks) and solved in O(T) time and memory.
+Optional calibration variables (a constant gyro bias per axis, per-axis scale errors) add a
+dense border to the matrix, eliminated by a Schur complement. By default the compiled kernels
+(`fusion.estimators._compiled_smoother`) linearise and eliminate block by block in one pass;
+with impl="numpy" the reference stores the matrix in LAPACK band form and solves it with
+`scipy.linalg.solveh_banded` (the border's P columns as further right-hand sides).
 
 Levenberg-Marquardt (Marquardt 1963): solve (H + lambda diag(H)) delta = -g, accept the
 step if the cost decreases (lambda /= 10), otherwise reject it (lambda *= 10). Stops when

@@ -102,8 +102,8 @@ class SmootherParams:
         (`levelled`; 0: the init estimator's output as it is).
     max_iter (iters), tol: stopping rule (relative cost decrease below tol). At 1e-4 what is
         left is mostly the heading of long recordings, which a gyro and an accelerometer barely
-        observe: with 1e-5, `gn` takes 43 iterations (84 s) instead of 28 (57 s) on an hour at
-        100 Hz (`benchmarks/bench_long.py`), for the same BROAD and course scores.
+        observe: with 1e-5, `gn` takes 43 iterations instead of 28 on an hour at 100 Hz
+        (`benchmarks/bench_long.py`), for the same BROAD and course scores.
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
     impl: "compiled" (default: cost, linearisation and solves in the numba kernels of
         `fusion.estimators._compiled_smoother`) or "numpy" (the reference they are checked

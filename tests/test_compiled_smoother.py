@@ -48,7 +48,8 @@ def _problem(config: dict, T: int = 60, seed: int = 0):
     valid = np.ones(T, bool)
     valid[20:24] = False
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
-    q = quat.cumulative_product(np.concatenate([quat.normalize(q0 + 0.05)[None], quat.from_rotvec(rng.normal(size=(T - 1, 3)) * 0.1)]))
+    steps = quat.from_rotvec(rng.normal(size=(T - 1, 3)) * 0.1)
+    q = quat.cumulative_product(np.concatenate([quat.normalize(q0 + 0.05)[None], steps]))
     acc = quat.gravity_in_body(q) + rng.normal(size=(T, 3)) * np.where(np.arange(T) % 3 == 0, 0.5, 0.05)[:, None]
     acc[[7, 31]] = np.nan
     imu = ImuSamples(t, rng.normal(size=(T, 3)), acc, valid)
