@@ -3,9 +3,9 @@
 What is compiled and why. A smoother iteration evaluates the cost of `smoother_cost` over the
 whole recording, linearises it and solves the block-tridiagonal normal equations with their
 calibration border. The numpy reference (`SmootherProblem.linearize`, `solve_normal_equations`,
-`gd.Preconditioner`) does this in whole-array operations: each builds (T, 3, 3) or (T, 5, 5)
-temporaries (some thirty of them per linearisation), writes the matrix to LAPACK's band
-storage and solves it there, with the border as P extra right-hand sides. Here one pass over
+`gd.Preconditioner`) does this in whole-array operations, each of which builds (T, 3, 3) or
+(T, 5, 5) temporaries, writes the matrix to LAPACK's band storage and solves it there, with
+the border as P extra right-hand sides. Here one pass over
 the samples computes the cost, the gradient and the Gauss-Newton blocks of each sample from a
 few registers' worth of local data and eliminates them at once, so nothing per sample is kept
 but what the back-substitution needs.
@@ -25,11 +25,13 @@ the blocks of H (`Linearization.diag`, `off`, `cross`) and b the right-hand side
 
 S_t is factorised as L D L^T (5 x 5; no square roots on the recursion's critical path:
 Golub & Van Loan 2013, sec. 4.1.2) and never stored; a sample keeps M_t, c_t and N_t:
-5 (5 + 1 + F) numbers for F free calibration variables. The
-blocks are those of the reference (`SmootherProblem.linearize`, whose comments cite the
-Jacobians: Sola et al. 2018, "A micro Lie theory", eqs. 143-146); without the velocity model
-the per-sample system is padded from 3 to 5 variables with an identity block, which gives the
-two padding variables an exact zero step and the others the same arithmetic as a 3 x 3 system.
+5 (5 + 1 + F) numbers for F free calibration variables. The blocks are those of the reference
+(`SmootherProblem.linearize`, whose comments cite the Jacobians: Sola et al. 2018, "A micro Lie
+theory", eqs. 143-146); without the velocity model the per-sample system is padded from 3 to 5
+variables with an identity block, which gives the two padding variables an exact zero step and
+the others the same arithmetic as a 3 x 3 system. Within the sweep, the blocks live in a few
+small arrays that are filled in place, never reassigned (numba counts references on every
+assignment of an array variable, which costs more than the arithmetic here).
 
 The numpy code is the reference: every kernel line implements a line of `smoother_cost` (or of
 `fusion.quaternion`), and `tests/test_compiled_smoother.py` checks the kernels against it
@@ -41,7 +43,9 @@ Like `_compiled`, the kernels are cached on disk next to this file (`_compiled._
 constants that decide the maths (`fusion.quaternion`'s small-angle rules, 1 g) are passed in at
 run time. The scalar quaternion helpers below repeat those of `_compiled` on purpose: numba
 keys a cached kernel on its own file, so a kernel calling into another module would not be
-recompiled when that module changed.
+recompiled when that module changed. The namedtuples the kernels take have names found nowhere
+else: with a namedtuple of the same name in another compiled module, the kernels of whichever
+module was loaded second ran markedly slower, and renaming the tuples removed the difference.
 """
 from __future__ import annotations
 
@@ -802,26 +806,21 @@ def norm_error(q):
     return worst
 
 
-def start(init: str, owner: str, imu, init_quat_wxyz: np.ndarray, level_s: float) -> np.ndarray:
-    """`BatchSmoother.start` with the kernels: dead reckoning (init "dr"; another estimator
-    runs as it is, `smoother.initial_trajectory`) re-levelled every level_s seconds (0: not)."""
-    from .smoother import initial_trajectory
-
-    small = float(quat.SMALL_ANGLE)
-    if init.strip() == "dr" and owner != "dr":
-        gyr, valid = imu.interval_rates()
-        q = np.empty((len(imu), 4))
-        dead_reckoning(np.ascontiguousarray(gyr, float), np.ascontiguousarray(valid, bool), np.ascontiguousarray(imu.dt, float),
-                       np.asarray(init_quat_wxyz, float), small, q)
-        if not np.all(np.isfinite(q[-1])):
-            raise ValueError(f"{owner}: initial estimator {init!r} returned non-finite orientations")
-    else:
-        q = initial_trajectory(init, owner, imu, init_quat_wxyz)
-    if level_s > 0:
-        out = np.empty_like(q)
-        levelled_kernel(np.ascontiguousarray(imu.t, float), np.ascontiguousarray(imu.acc_g, float), q, float(level_s), small, out)
-        return out
+def dead_reckoned(imu, init_quat_wxyz: np.ndarray) -> np.ndarray:
+    """(T, 4) dead reckoning of `imu` from init_quat_wxyz (4,), rows normalised (`dead_reckoning`)."""
+    gyr, valid = imu.interval_rates()
+    q = np.empty((len(imu), 4))
+    dead_reckoning(np.ascontiguousarray(gyr, float), np.ascontiguousarray(valid, bool), np.ascontiguousarray(imu.dt, float),
+                   np.asarray(init_quat_wxyz, float), float(quat.SMALL_ANGLE), q)
     return q
+
+
+def levelled(imu, quat_wxyz: np.ndarray, window_s: float) -> np.ndarray:
+    """(T, 4) `smoother.levelled` by the kernel (`levelled_kernel`)."""
+    out = np.empty((len(imu), 4))
+    levelled_kernel(np.ascontiguousarray(imu.t, float), np.ascontiguousarray(imu.acc_g, float),
+                    np.ascontiguousarray(quat_wxyz, float), float(window_s), float(quat.SMALL_ANGLE), out)
+    return out
 
 
 # ============================================================================ the solvers' operations

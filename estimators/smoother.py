@@ -395,15 +395,21 @@ class BatchSmoother(Estimator):
     def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
         """(T, 4) the start of the optimisation: the `init` estimator's output, re-levelled every
         `init_level_s` seconds (`levelled`); with impl="compiled", dead reckoning and the
-        levelling by the kernels (`_compiled_smoother.start`)."""
+        levelling by the kernels (`_compiled_smoother.dead_reckoned`, `.levelled`)."""
         p = self.params
         imu_init = imu.replace(gyr_valid=problem_valid(imu, p))
-        if p.impl == "compiled":
-            from ._compiled_smoother import start
+        if p.impl == "numpy":
+            q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
+            return levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
+        from . import _compiled_smoother as kernels
 
-            return start(p.init, self.name, imu_init, init_quat_wxyz, p.init_level_s)
-        q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
-        return levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
+        if p.init.strip() == "dr":
+            q = kernels.dead_reckoned(imu_init, init_quat_wxyz)
+            if not np.all(np.isfinite(q[-1])):
+                raise ValueError(f"{self.name}: initial estimator {p.init!r} returned non-finite orientations")
+        else:
+            q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
+        return kernels.levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
 
     def significant_scales(self, problem: SmootherProblem, q: np.ndarray, diagnostics: dict) -> tuple[np.ndarray, dict]:
         """Keep the released scale errors only if they lower the cost significantly; otherwise
