@@ -44,8 +44,9 @@ constants that decide the maths (`fusion.quaternion`'s small-angle rules, 1 g) a
 run time. The scalar quaternion helpers below repeat those of `_compiled` on purpose: numba
 keys a cached kernel on its own file, so a kernel calling into another module would not be
 recompiled when that module changed. The namedtuples the kernels take have names found nowhere
-else: with a namedtuple of the same name in another compiled module, the kernels of whichever
-module was loaded second ran markedly slower, and renaming the tuples removed the difference.
+else (with a namedtuple of the same name in another compiled module, the kernels of whichever
+module was loaded second ran markedly slower), and each is bound to its own name in this module:
+numba's cache finds a kernel's signature again only if its types can be looked up by name.
 """
 from __future__ import annotations
 
@@ -65,26 +66,27 @@ from .smoother_cost import LOSSES, Linearization, SmootherProblem
 GRADIENT, BLOCKS, ELIMINATE = 0, 1, 2
 
 # The problem as the kernels read it (`problem_arrays`), and the constants of the maths.
-Problem = namedtuple("SmootherArrays", [
+SmootherArrays = namedtuple("SmootherArrays", [
     "dt", "gyr", "valid", "acc",  # (T-1,), (T-1, 3), (T-1,) bool, (T, 3)
     "w_motion", "w_acc", "w_vel", "w_vzero", "w_rest",  # weights; w_vel, w_vzero, w_rest may be empty
     "init_quat", "w_prior",  # the anchor
     "w_theta", "theta_axis", "n_bias",  # calibration: prior weights, the gyro axis of each, how many are biases
     "loss", "loss_c",  # robust loss (index in LOSSES) and its scale, g
 ])
-Consts = namedtuple("SmootherConstants", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
+SmootherConstants = namedtuple("SmootherConstants", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
 
 
-def constants() -> Consts:
+def constants() -> SmootherConstants:
     """`fusion.quaternion`'s small-angle rules and series coefficients, and 1 g in m/s^2."""
-    return Consts(float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD), tuple(float(c) for c in quat._A[1]),
-                  tuple(float(c) for c in quat._B[1]), tuple(float(c) for c in quat._C[1]), float(STANDARD_GRAVITY_M_S2))
+    return SmootherConstants(float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD), tuple(float(c) for c in quat._A[1]),
+                             tuple(float(c) for c in quat._B[1]), tuple(float(c) for c in quat._C[1]),
+                             float(STANDARD_GRAVITY_M_S2))
 
 
-def problem_arrays(problem: SmootherProblem) -> Problem:
+def problem_arrays(problem: SmootherProblem) -> SmootherArrays:
     """The arrays of `problem` as contiguous float64 / bool / int64 arrays (one compiled signature)."""
     f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
-    return Problem(
+    return SmootherArrays(
         f(problem.dt), f(problem.gyr), np.ascontiguousarray(problem.valid, dtype=bool), f(problem.acc),
         f(problem.w_motion), f(problem.w_acc), f(problem.w_vel), f(problem.w_vzero), f(problem.w_rest),
         f(problem.init_quat), float(problem.w_prior), f(problem.w_theta),

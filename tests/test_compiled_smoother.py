@@ -241,3 +241,31 @@ def test_memory_is_linear_with_a_small_constant(name):
     finally:
         tracemalloc.stop()
     assert peak / len(imu) < 900, peak / len(imu)
+
+
+# ----------------------------------------------------------------------------- the disk cache
+_CACHE_STATS = r"""
+import json
+from fusion.estimators import _compiled_smoother as cs
+cs.load()
+kernels = ("cost_kernel", "linearize_kernel", "back_substitute", "dead_reckoning", "levelled_kernel", "norm_error")
+print(json.dumps({k: [sum(getattr(cs, k).stats.cache_hits.values()), sum(getattr(cs, k).stats.cache_misses.values())]
+                  for k in kernels}))
+"""
+
+
+def test_a_new_process_loads_the_kernels_from_the_disk_cache():
+    """This process has compiled the kernels or loaded them from the cache (`load`); a new
+    process must find every one of them there (numba's hit and miss counts). A kernel whose
+    signature the cache cannot match again (e.g. a type numba cannot look up by name) is
+    compiled anew in every process, seconds each time."""
+    import json
+    import subprocess
+    import sys
+
+    cs.load()
+    if cs.linearize_kernel.stats.cache_path is None:
+        pytest.skip("no writable numba cache folder here: the kernels are compiled in every process by design")
+    out = subprocess.run([sys.executable, "-c", _CACHE_STATS], capture_output=True, text=True, check=True).stdout
+    stats = json.loads(out.strip().splitlines()[-1])
+    assert all(hit >= 1 and miss == 0 for hit, miss in stats.values()), stats
