@@ -125,6 +125,9 @@ def load() -> None:
     dead_reckoning(problem.gyr, problem.valid, problem.dt, quat.IDENTITY, 1e-12, start)
     levelled_kernel(imu.t, imu.acc_g, start, 1.0, 1e-12, np.empty((2, 4)))
     norm_error(start)
+    five = np.zeros((2, 5))
+    dot(five, five)
+    dot(five[:, :3].copy(), five[:, :3])  # the step without velocities: a view of the (T, 5) storage
     _loaded = True
 
 
@@ -429,7 +432,7 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
 
 @_jit
 def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs):
+                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad):
     """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
@@ -440,7 +443,8 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     calibration variables `free` (F,) (their indices; the others are held), with b = -grad or,
     if rhs_q has rows, b = -[rhs_q; rhs_theta]; writes M (R, 5, 5), c (R, 5), N (R, 5, F) (R = T
     rows, or 2 to keep only the running ones) and the Schur complement schur (F, F) with its
-    right-hand side schur_rhs (F,).
+    right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T S_t^-1 b'_t (with the Schur
+    complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
     """
     T = q.shape[0]
     V = v.shape[1]
@@ -484,6 +488,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     Cf = np.zeros((5, F))
     X0 = np.zeros((2, 3))
     X1 = np.zeros((2, 3))
+    quad[0] = 0.0
     for i in range(F):
         schur_rhs[i] = 0.0
         for j in range(F):
@@ -683,6 +688,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             x = ldl_solve5(Lt, rt, col[0], col[1], col[2], col[3], col[4])
             for i in range(5):
                 c[row, i] = x[i]
+                quad[0] += col[i] * x[i]
             for n in range(F):  # N_t = S^-1 C'_t; the Schur complement and its right-hand side
                 x = ldl_solve5(Lt, rt, Cf[0, n], Cf[1, n], Cf[2, n], Cf[3, n], Cf[4, n])
                 for i in range(5):
@@ -798,6 +804,16 @@ def levelled_kernel(t, acc, q, window_s, small, out):
 
 
 @_jit
+def dot(a, b):
+    """sum of a * b over (T, B) arrays, without a temporary."""
+    s = 0.0
+    for t in range(a.shape[0]):
+        for i in range(a.shape[1]):
+            s += a[t, i] * b[t, i]
+    return s
+
+
+@_jit
 def norm_error(q):
     """max |(|q_t|) - 1| (`smoother.SolverLog`)."""
     worst = 0.0
@@ -858,6 +874,7 @@ class CompiledOps:
         self._storage = None  # (M, c, N) of the system `_held` (lin, shift, free indices as bytes)
         self._held = None
         self._schur = None
+        self._slope = None  # (lin, g.p) of the last solve with lin's own gradient
 
     # ---------------------------------------------------------------- cost
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
@@ -876,6 +893,16 @@ class CompiledOps:
         cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
                            1 if update == "geodesic" else 2, q_new, v_new)
         return q_new, v_new, theta_new, cost
+
+    def slope(self, lin: Linearization, d_q, d_theta) -> float:
+        """g.p: lin's gradient along the step (d_q (T, B), d_theta (P,)). If lin keeps no
+        per-sample gradient, the step must be the last `solve` of lin's own system, p = -H^-1 g,
+        and g.p = -g^T H^-1 g comes from its elimination."""
+        if len(lin.grad_q):
+            return dot(lin.grad_q, d_q) + float(lin.grad_theta @ d_theta)
+        if self._slope is None or self._slope[0] is not lin:
+            raise ValueError("slope: the step is not the last solve of this linearisation, whose gradient is not kept")
+        return self._slope[1]
 
     # ---------------------------------------------------------------- linearisation and solves
     def linearize(self, q, theta, v, hessian: bool = True, shift: float | None = None, free=None,
@@ -911,8 +938,10 @@ class CompiledOps:
             q, theta, v = lin.point
             self._eliminate(q, v, theta, float(shift), index, grad, np.empty((0, self.B)), np.empty(self.P))
         self._held = None  # the step overwrites c
-        schur, schur_rhs = self._schur
+        schur, schur_rhs, quad = self._schur
         x_theta = np.linalg.solve(schur, schur_rhs) if len(index) else np.zeros(0)
+        # g.x = -b^T H^-1 b (b = -g): the sum over the samples from the sweep, then the Schur complement's.
+        self._slope = None if grad is not None else (lin, -(float(quad[0]) + float(schur_rhs @ x_theta)))
         M, c, N = self._storage
         back_substitute(M, c, N, x_theta)
         d_theta = np.zeros(self.P)
@@ -932,7 +961,7 @@ class CompiledOps:
             return np.sqrt(np.diag(np.linalg.inv(self._schur[0])))
         theta = np.asarray(theta, float)
         storage = np.empty((2, 5, 5)), np.empty((2, 5)), np.empty((2, 5, P))  # the running rows only
-        schur = np.empty((P, P)), np.empty(P)
+        schur = np.empty((P, P)), np.empty(P), np.empty(1)
         cost = self._kernel(q, v, theta, ELIMINATE, np.empty((0, self.B)), np.empty(P),
                             index=np.arange(P, dtype=np.int64), storage=storage, schur=schur)
         self._check(cost)
@@ -955,7 +984,7 @@ class CompiledOps:
             M, c = (np.empty((self.T, 5, 5)), np.empty((self.T, 5))) if self._storage is None else self._storage[:2]
             self._storage = None  # the old N goes before the new one comes
             self._storage = M, c, np.empty((self.T, 5, F))
-        self._schur = np.empty((F, F)), np.empty(F)
+        self._schur = np.empty((F, F)), np.empty(F), np.empty(1)
         cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
                             storage=self._storage, schur=self._schur)
         self._check(cost)
@@ -970,4 +999,4 @@ _NO_INDEX = np.zeros(0, np.int64)
 _NO_RHS = (np.zeros((0, 5)), np.zeros(0))
 _NO_BLOCKS = (np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
 _NO_STORAGE = (np.zeros((0, 5, 5)), np.zeros((0, 5)), np.zeros((0, 5, 0)))
-_NO_SCHUR = (np.zeros((0, 0)), np.zeros(0))
+_NO_SCHUR = (np.zeros((0, 0)), np.zeros(0), np.zeros(1))

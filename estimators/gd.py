@@ -221,7 +221,10 @@ class GradientDescentSmoother(BatchSmoother):
 
         hessian = p.precond != "none"
         ops = self.operations(problem, blocks=p.precond == "block")
-        lin = ops.linearize(q, theta, v, hessian=hessian, shift=RIDGE, free=free)  # always at the current point
+        # With the chain rebuilt at every step, p = -M^-1 g always uses the gradient of M's own point,
+        # and g.p comes from the elimination (`ops.slope`): the per-sample gradient need not be kept.
+        keep = not (p.precond == "chain" and p.precond_every == 1)
+        lin = ops.linearize(q, theta, v, hessian=hessian, shift=RIDGE, free=free, gradient=keep)  # always at the current point
         M = self.preconditioner(ops, lin, free)
         age, builds = 0, 1  # age: steps taken since M was built (0: M is from the current point)
         cost = lin.cost
@@ -235,7 +238,7 @@ class GradientDescentSmoother(BatchSmoother):
         try:
             while iterations < limit:
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
-                slope = float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)  # g.p < 0
+                slope = ops.slope(lin, d_q, d_theta)  # g.p < 0
                 # Backtracking line search (N&W Algorithm 3.1) from alpha = 1 for the Newton-like
                 # chain direction; the other preconditioners' steps have no natural length, so they
                 # start from twice the last accepted one.
@@ -268,7 +271,7 @@ class GradientDescentSmoother(BatchSmoother):
                 if small or stage_end or age >= p.precond_every or (alpha < 1.0 and p.precond == "chain"):
                     # At the stage change the linearisation serves the posterior std first (undamped, every variable).
                     lin = ops.linearize(q, theta, v, hessian=hessian or stage_end, shift=0.0 if stage_end else RIDGE,
-                                        free=None if stage_end else free)
+                                        free=None if stage_end else free, gradient=keep)
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False

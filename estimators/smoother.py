@@ -315,6 +315,10 @@ class ReferenceOps:
         theta_new = theta + alpha * d_theta
         return q_new, v_new, theta_new, self.problem.cost(q_new, theta_new, v_new)
 
+    def slope(self, lin: Linearization, d_q: np.ndarray, d_theta: np.ndarray) -> float:
+        """g.p: lin's gradient along the step (d_q (T, B), d_theta (P,))."""
+        return float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)
+
     def linearize(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray, hessian: bool = True, shift: float | None = None,
                   free: np.ndarray | None = None, gradient: bool = True) -> Linearization:
         """`SmootherProblem.linearize` (shift, free: the next solve's; gradient=False: the caller

@@ -107,7 +107,8 @@ def test_trial_point_and_its_cost_equal_the_reference(config, update):
 def test_elimination_solves_the_normal_equations(config):
     """The damped Gauss-Newton step of gn (solve_normal_equations, with held calibration
     variables), gd's chain direction for its own and for another gradient (Preconditioner),
-    and the posterior std: all equal to the banded LAPACK solves."""
+    the posterior std, and gd's slope g.p from the elimination: all equal to the banded LAPACK
+    solves (and g.p to the reference gradient times the step)."""
     problem, q, theta, v = _problem(config)
     ref = problem.linearize(q, theta, v=v)
     P = problem.n_theta
@@ -140,6 +141,15 @@ def test_elimination_solves_the_normal_equations(config):
         _close(got[1], want[1], 1e-8)
     if P:
         np.testing.assert_allclose(ops.theta_std(q, theta, v), theta_posterior_std(ref), rtol=1e-10)
+    # gd's slope g.p without a kept gradient: -g^T M^-1 g from the elimination
+    for free in frees:
+        ops = cs.CompiledOps(problem)
+        lin = ops.linearize(q, theta, v, shift=RIDGE, free=free, gradient=False)
+        d_q, d_theta = ops.solve(lin, RIDGE, free)
+        want = float(np.sum(ref.grad_q * d_q) + ref.grad_theta @ d_theta)
+        assert want < 0 and ops.slope(lin, d_q, d_theta) == pytest.approx(want, rel=1e-9)
+        with pytest.raises(ValueError, match="slope"):
+            ops.slope(ops.linearize(q, theta, v, shift=RIDGE, gradient=False), d_q, d_theta)  # not its step
 
 
 def test_a_matrix_that_is_not_positive_definite_is_an_error():
@@ -248,7 +258,7 @@ _CACHE_STATS = r"""
 import json
 from fusion.estimators import _compiled_smoother as cs
 cs.load()
-kernels = ("cost_kernel", "linearize_kernel", "back_substitute", "dead_reckoning", "levelled_kernel", "norm_error")
+kernels = ("cost_kernel", "linearize_kernel", "back_substitute", "dead_reckoning", "levelled_kernel", "norm_error", "dot")
 print(json.dumps({k: [sum(getattr(cs, k).stats.cache_hits.values()), sum(getattr(cs, k).stats.cache_misses.values())]
                   for k in kernels}))
 """
