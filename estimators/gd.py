@@ -28,9 +28,11 @@ The remedy: a preconditioner M that solves the whole chain. The search direction
 with M the Gauss-Newton matrix of the cost, J^T W J (N&W sec. 10.3, eq. 10.23). Each motion
 residual involves two neighbouring samples only, so M is block-tridiagonal (3 x 3 blocks, 5 x 5
 with the velocities) with a dense border for theta; M^-1 g costs O(T) time and memory: a banded
-Cholesky factorisation (LAPACK pbtrf, `scipy.linalg.cholesky_banded`), with the border
-eliminated by a Schur complement. One solve with M carries a correction along the whole chain,
-so the number of iterations no longer grows with the length (benchmarks/bench_smoother.py).
+Cholesky factorisation (LAPACK pbtrf, `scipy.linalg.cholesky_banded`: impl="numpy", the
+reference) or, by default, the compiled kernels' block elimination of the same matrix
+(`fusion.estimators._compiled_smoother`), with the border eliminated by a Schur complement.
+One solve with M carries a correction along the whole chain, so the number of iterations no
+longer grows with the length (benchmarks/bench_smoother.py).
 This is preconditioning in the sense of N&W sec. 5.1: steepest descent in the variables
 M^(1/2) x, whose Hessian is close to the identity. With M rebuilt at every iterate (the
 default, precond_every=1) p is the Gauss-Newton direction, and `gd` differs from `gn` in how
@@ -85,10 +87,9 @@ from typing import Literal
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
-from fusion import quaternion as quat
 
-from .gn import released_scales, theta_posterior_std
-from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, solution_diagnostics
+from .gn import released_scales
+from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, retract, solution_diagnostics
 from .smoother_cost import Linearization, SmootherProblem, banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
@@ -172,6 +173,19 @@ class Preconditioner:
         return x.reshape(T, B), d_theta
 
 
+class KernelChain:
+    """The chain preconditioner by the compiled kernels (`_compiled_smoother.CompiledOps`):
+    p = -M^-1 g with M the Gauss-Newton matrix at lin's point, its diagonal times 1 + RIDGE, for
+    the free calibration variables (the others get no step), as `Preconditioner` "chain"."""
+
+    def __init__(self, ops, lin: Linearization, free: np.ndarray):
+        self.ops, self.lin, self.free = ops, lin, free
+
+    def direction(self, grad_q: np.ndarray, grad_theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        grad = None if grad_q is self.lin.grad_q and grad_theta is self.lin.grad_theta else (grad_q, grad_theta)
+        return self.ops.solve(self.lin, RIDGE, self.free, grad=grad)
+
+
 class GradientDescentSmoother(BatchSmoother):
     """Whole-trajectory smoother by preconditioned projected gradient descent (analytic gradients)."""
 
@@ -179,11 +193,16 @@ class GradientDescentSmoother(BatchSmoother):
     name = "gd"
 
     def retract(self, q: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        """Move q (T, 4) by the tangent steps delta (T, 3) rad, body frame, and stay on the sphere."""
-        if self.params.update == "geodesic":
-            return quat.retract(q, delta)  # q * exp([0, delta / 2])
-        tangent = 0.5 * quat.multiply(q, np.concatenate([np.zeros((len(q), 1)), delta], axis=1))
-        return quat.normalize(q + tangent)
+        """Move q (T, 4) by the tangent steps delta (T, 3) rad, body frame, and stay on the sphere
+        (`smoother.retract` with this smoother's `update`)."""
+        return retract(q, delta, self.params.update)
+
+    def preconditioner(self, ops, lin: Linearization, free: np.ndarray):
+        """M for the linearisation `lin`: `Preconditioner`, or with the compiled kernels and the
+        chain, their elimination of the same matrix (`KernelChain`)."""
+        if self.params.precond == "chain" and self.params.impl == "compiled":
+            return KernelChain(ops, lin, free)
+        return Preconditioner(lin, self.params.precond, free)
 
     def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
         """Preconditioned gradient descent from q (T, 4) unit quaternions (velocities and
@@ -201,11 +220,15 @@ class GradientDescentSmoother(BatchSmoother):
         stage1 = None  # (q, theta, v, cost, theta_std) where stage 1 ended, for `significant_scales`
 
         hessian = p.precond != "none"
-        lin = problem.linearize(q, theta, v=v, hessian=hessian)  # always at the current point
-        M = Preconditioner(lin, p.precond, free)
+        ops = self.operations(problem, blocks=p.precond == "block")
+        # With the chain rebuilt at every step, p = -M^-1 g always uses the gradient of M's own point,
+        # and g.p comes from the elimination (`ops.slope`): the per-sample gradient need not be kept.
+        keep = not (p.precond == "chain" and p.precond_every == 1)
+        lin = ops.linearize(q, theta, v, hessian=hessian, shift=RIDGE, free=free, gradient=keep)  # always at the current point
+        M = self.preconditioner(ops, lin, free)
         age, builds = 0, 1  # age: steps taken since M was built (0: M is from the current point)
         cost = lin.cost
-        log, steps = SolverLog(cost, q), []
+        log, steps = SolverLog(cost, q, ops.norm_error), []
         alpha = 1.0
         converged = False
         iterations = 0
@@ -215,17 +238,14 @@ class GradientDescentSmoother(BatchSmoother):
         try:
             while iterations < limit:
                 d_q, d_theta = M.direction(lin.grad_q, lin.grad_theta)
-                slope = float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)  # g.p < 0
+                slope = ops.slope(lin, d_q, d_theta)  # g.p < 0
                 # Backtracking line search (N&W Algorithm 3.1) from alpha = 1 for the Newton-like
                 # chain direction; the other preconditioners' steps have no natural length, so they
                 # start from twice the last accepted one.
                 alpha = 1.0 if p.precond == "chain" else min(1.0, 2.0 * alpha)
                 accepted = False
                 for _ in range(MAX_HALVINGS):
-                    q_new = self.retract(q, alpha * d_q[:, :3])
-                    v_new = v + alpha * d_q[:, 3:]
-                    theta_new = theta + alpha * d_theta
-                    cost_new = problem.cost(q_new, theta_new, v_new)
+                    q_new, v_new, theta_new, cost_new = ops.trial(q, v, theta, d_q, d_theta, alpha, p.update)
                     if cost_new <= cost + ARMIJO_C1 * alpha * slope:  # Armijo, N&W eq. 3.4
                         accepted = True
                         break
@@ -249,20 +269,22 @@ class GradientDescentSmoother(BatchSmoother):
                 # Rebuild M at the current point: every `precond_every` steps, after a shortened
                 # step (M's model was poor), when a lagged M stalls, and for the stage change.
                 if small or stage_end or age >= p.precond_every or (alpha < 1.0 and p.precond == "chain"):
-                    lin = problem.linearize(q, theta, v=v, hessian=hessian or stage_end)
+                    # At the stage change the linearisation serves the posterior std first (undamped, every variable).
+                    lin = ops.linearize(q, theta, v, hessian=hessian or stage_end, shift=0.0 if stage_end else RIDGE,
+                                        free=None if stage_end else free, gradient=keep)
                     age, builds = 0, builds + 1
                     if stage_end:  # release the scale errors the recording determines (as gn)
                         staged = False
-                        std = theta_posterior_std(lin)
+                        std = ops.theta_std(q, theta, v, lin)
                         stage1 = (q, theta, v, cost, std)
                         released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
-                    M = Preconditioner(lin, p.precond, free)
+                    M = self.preconditioner(ops, lin, free)
                 else:
-                    lin = problem.linearize(q, theta, v=v, hessian=False)
+                    lin = ops.linearize(q, theta, v, hessian=False)
         finally:
             bar.close()
-        theta_std = theta_posterior_std(problem.linearize(q, theta, v=v)) if problem.n_theta else np.zeros(0)
+        theta_std = ops.theta_std(q, theta, v) if problem.n_theta else np.zeros(0)
         diagnostics = {
             **log.diagnostics(iterations, converged),
             "step": np.array(steps),

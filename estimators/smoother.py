@@ -32,7 +32,8 @@ from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import make_params, parse_specs
-from .smoother_cost import AXES, SmootherProblem, Weights, sample_durations
+from .smoother_cost import (AXES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
+                            theta_posterior_std)
 from .ukf import UKF, UKFBias
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.
@@ -101,9 +102,12 @@ class SmootherParams:
         (`levelled`; 0: the init estimator's output as it is).
     max_iter (iters), tol: stopping rule (relative cost decrease below tol). At 1e-4 what is
         left is mostly the heading of long recordings, which a gyro and an accelerometer barely
-        observe: with 1e-5, `gn` takes 43 iterations (84 s) instead of 28 (57 s) on an hour at
-        100 Hz (`benchmarks/bench_long.py`), for the same BROAD and course scores.
+        observe: with 1e-5, `gn` takes 43 iterations instead of 28 on an hour at 100 Hz
+        (`benchmarks/bench_long.py`), for the same BROAD and course scores.
     progress: tqdm bar over iterations on stderr (shown only on a terminal).
+    impl: "compiled" (default: cost, linearisation and solves in the numba kernels of
+        `fusion.estimators._compiled_smoother`) or "numpy" (the reference they are checked
+        against: `SmootherProblem` and the banded LAPACK solves). The two differ in rounding only.
     """
 
     gyro_noise_rad_sqrt_s: float = field(default=0.01, metadata={"alias": "sg"})
@@ -133,6 +137,7 @@ class SmootherParams:
     max_iter: int = field(default=50, metadata={"alias": "iters"})
     tol: float = 1e-4
     progress: bool = True
+    impl: Literal["compiled", "numpy"] = "compiled"
 
     def __post_init__(self) -> None:
         if self.weighting == "seed":  # deprecated name of "scalar"
@@ -160,6 +165,8 @@ class SmootherParams:
             raise ValueError(f"max_iter={self.max_iter}: must be at least 1")
         if not self.tol >= 0:
             raise ValueError(f"tol={self.tol!r}: must be >= 0")
+        if self.impl not in ("compiled", "numpy"):
+            raise ValueError(f"impl={self.impl!r}: must be compiled or numpy")
 
     def weights(self) -> Weights:
         """The cost's `Weights` (one scalar weight per term when weighting="scalar")."""
@@ -240,15 +247,17 @@ def progress_bar(enabled: bool, total: int, desc: str):
 class SolverLog:
     """What both solvers record at the start and after every accepted step: the cost ("loss"),
     the largest deviation of a quaternion's norm from 1 ("norm_error"; the retraction keeps it
-    at rounding level) and the time since the start ("elapsed_s")."""
+    at rounding level) and the time since the start ("elapsed_s"). norm_error: the function
+    that measures it (the ops' `norm_error`)."""
 
-    def __init__(self, cost: float, q: np.ndarray) -> None:
+    def __init__(self, cost: float, q: np.ndarray, norm_error=None) -> None:
         self._start = time.perf_counter()
-        self.loss, self.norm_error, self.elapsed_s = [cost], [_norm_error(q)], [0.0]
+        self._norm_error = _norm_error if norm_error is None else norm_error
+        self.loss, self.norm_error, self.elapsed_s = [cost], [self._norm_error(q)], [0.0]
 
     def record(self, cost: float, q: np.ndarray) -> None:
         self.loss.append(cost)
-        self.norm_error.append(_norm_error(q))
+        self.norm_error.append(self._norm_error(q))
         self.elapsed_s.append(time.perf_counter() - self._start)
 
     def diagnostics(self, iterations: int, converged: bool) -> dict:
@@ -272,13 +281,91 @@ def solution_diagnostics(problem: SmootherProblem, theta: np.ndarray, theta_std:
             "velocity_m_s": v}
 
 
+def retract(q: np.ndarray, delta: np.ndarray, update: str = "geodesic") -> np.ndarray:
+    """Move q (T, 4) by the tangent steps delta (T, 3) rad, body frame, and stay on the sphere:
+    "geodesic" q * exp([0, delta / 2]) (the exponential map), "normalise" normalise(q + q *
+    [0, delta / 2]) (the projection retraction; Absil, Mahony & Sepulchre 2008, "Optimization
+    Algorithms on Matrix Manifolds", sec. 4.1)."""
+    if update == "geodesic":
+        return quat.retract(q, delta)
+    tangent = 0.5 * quat.multiply(q, np.concatenate([np.zeros((len(q), 1)), delta], axis=1))
+    return quat.normalize(q + tangent)
+
+
+class ReferenceOps:
+    """What the solvers do with the cost, in numpy: the reference of the compiled kernels
+    (`_compiled_smoother.CompiledOps`, the same interface).
+
+    `linearize` takes the `shift` and `free` of the solve that will follow only as a hint (the
+    kernels eliminate in the same pass); `solve` is the damped Gauss-Newton step of `gn`."""
+
+    def __init__(self, problem: SmootherProblem) -> None:
+        self.problem = problem
+        self.norm_error = _norm_error
+
+    def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
+        return self.problem.cost(q, theta, v)
+
+    def trial(self, q: np.ndarray, v: np.ndarray, theta: np.ndarray, d_q: np.ndarray, d_theta: np.ndarray, alpha: float,
+              update: str = "geodesic") -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(q, v, theta) moved by alpha times the step (d_q (T, B), d_theta (P,)), q retracted
+        by `update` (`retract`), and the cost there: (q_new, v_new, theta_new, cost)."""
+        q_new = retract(q, alpha * d_q[:, :3], update)
+        v_new = v + alpha * d_q[:, 3:]
+        theta_new = theta + alpha * d_theta
+        return q_new, v_new, theta_new, self.problem.cost(q_new, theta_new, v_new)
+
+    def slope(self, lin: Linearization, d_q: np.ndarray, d_theta: np.ndarray) -> float:
+        """g.p: lin's gradient along the step (d_q (T, B), d_theta (P,))."""
+        return float(np.sum(lin.grad_q * d_q) + lin.grad_theta @ d_theta)
+
+    def linearize(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray, hessian: bool = True, shift: float | None = None,
+                  free: np.ndarray | None = None, gradient: bool = True) -> Linearization:
+        """`SmootherProblem.linearize` (shift, free: the next solve's; gradient=False: the caller
+        does not read grad_q; hints for the kernels)."""
+        return self.problem.linearize(q, theta, hessian=hessian, v=v)
+
+    def solve(self, lin: Linearization, shift: float, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """-(H + shift diag(H))^-1 g for the calibration variables `free` ((P,) bool; None: all;
+        the others get no step): ((T, B), (P,))."""
+        if free is None:
+            return solve_normal_equations(lin, shift)
+        d_theta = np.zeros(len(lin.grad_theta))
+        sub = dataclasses.replace(lin, grad_theta=lin.grad_theta[free], cross=lin.cross[:, :, free],
+                                  theta_block=lin.theta_block[np.ix_(free, free)])
+        d_q, d_theta[free] = solve_normal_equations(sub, shift)
+        return d_q, d_theta
+
+    def theta_std(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray, lin: Linearization | None = None) -> np.ndarray:
+        """(P,) the calibration variables' posterior std at (q, theta, v) (`theta_posterior_std`;
+        lin: the linearisation there, with its Hessian, if the caller has it)."""
+        return theta_posterior_std(self.problem.linearize(q, theta, v=v) if lin is None else lin)
+
+
 class BatchSmoother(Estimator):
     """What `gn` and `gd` share: the problem set-up, the start trajectory and `estimate`;
-    each supplies `solve(problem, q) -> (q, diagnostics)`."""
+    each supplies `solve(problem, q) -> (q, diagnostics)`, which works on the cost through
+    `operations(problem)`: the compiled kernels or their numpy reference (`impl`)."""
 
     Params = SmootherParams
     causal = False
     name = ""
+
+    def __init__(self, params=None) -> None:
+        super().__init__(params)
+        if self.params.impl == "compiled":
+            from . import _compiled_smoother  # numba is imported when a compiled smoother is built
+
+            _compiled_smoother.load()  # compile or load the kernels here, not in the first (timed) estimate
+
+    def operations(self, problem: SmootherProblem, blocks: bool = False):
+        """The cost's operations for `solve`: `ReferenceOps` (impl="numpy") or the kernels'
+        `CompiledOps` (blocks: its linearisations carry the Hessian's blocks too)."""
+        if self.params.impl == "numpy":
+            return ReferenceOps(problem)
+        from ._compiled_smoother import CompiledOps
+
+        return CompiledOps(problem, blocks=blocks)
 
     def problem(self, imu: ImuSamples, init_quat_wxyz: np.ndarray, scale_axes: str | None = None) -> SmootherProblem:
         """The cost of `imu`; scale_axes: the scale-error variables (None: the parameters')."""
@@ -295,11 +382,7 @@ class BatchSmoother(Estimator):
         if len(imu) < 2:
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
         problem = self.problem(imu, init_quat_wxyz)
-        q = initial_trajectory(p.init, self.name, imu.replace(gyr_valid=problem_valid(imu, p)), init_quat_wxyz)
-        if p.init_level_s > 0:
-            q = levelled(imu, q, p.init_level_s)
-        q_start = q
-        q, diagnostics = self.solve(problem, q)
+        q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))
         q, diagnostics = self.significant_scales(problem, q, diagnostics)
         # A scale error beyond `scale_max` is not a gyro's: the fit has used it to absorb motion the
         # cost does not model (e.g. fast translation). Those axes are solved again with it held at 0.
@@ -308,10 +391,29 @@ class BatchSmoother(Estimator):
         if implausible:
             kept = "".join(a for a in p.scale_axes if a not in implausible)
             problem = self.problem(imu, init_quat_wxyz, scale_axes=kept)
-            q, diagnostics = self.solve(problem, q_start)
+            q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))  # the same start, computed again
             q, diagnostics = self.significant_scales(problem, q, diagnostics)
             diagnostics["scale_rejected"] = implausible
         return Trajectory(imu.t, q, diagnostics=diagnostics)
+
+    def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
+        """(T, 4) the start of the optimisation: the `init` estimator's output, re-levelled every
+        `init_level_s` seconds (`levelled`); with impl="compiled", dead reckoning and the
+        levelling by the kernels (`_compiled_smoother.dead_reckoned`, `.levelled`)."""
+        p = self.params
+        imu_init = imu.replace(gyr_valid=problem_valid(imu, p))
+        if p.impl == "numpy":
+            q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
+            return levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
+        from . import _compiled_smoother as kernels
+
+        if p.init.strip() == "dr":
+            q = kernels.dead_reckoned(imu_init, init_quat_wxyz)
+            if not np.all(np.isfinite(q[-1])):
+                raise ValueError(f"{self.name}: initial estimator {p.init!r} returned non-finite orientations")
+        else:
+            q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
+        return kernels.levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
 
     def significant_scales(self, problem: SmootherProblem, q: np.ndarray, diagnostics: dict) -> tuple[np.ndarray, dict]:
         """Keep the released scale errors only if they lower the cost significantly; otherwise

@@ -56,6 +56,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scipy.linalg import solveh_banded
+
 from fusion import quaternion as quat
 from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
@@ -544,3 +546,39 @@ def banded_lower(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
             # H[B(t+1) + i, B t + j] = H[t+1, t][i, j] = off[t][j, i]
             ab[B + i - j, cols + j] = off[:, j, i]
     return ab
+
+
+def solve_normal_equations(lin, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """Solve (H + damping diag(H)) [delta; dtheta] = -[g_q; g_theta] in O(T).
+
+    H is block-tridiagonal in the per-sample variables (B = 3 rotation + V velocity) with a
+    dense border for the P calibration variables; the border is eliminated by a Schur
+    complement. Returns ((T, B), (P,)).
+    """
+    T, B = lin.diag.shape[:2]
+    diag = lin.diag.copy()
+    idx = np.arange(B)
+    diag[:, idx, idx] *= 1.0 + damping
+    ab = banded_lower(diag, lin.off)
+    P = lin.cross.shape[2]
+    rhs = np.concatenate([-lin.grad_q.reshape(-1, 1), lin.cross.reshape(B * T, P)], axis=1)
+    sol = solveh_banded(ab, rhs, lower=True, check_finite=False)
+    x0, X1 = sol[:, 0], sol[:, 1:]
+    if P == 0:
+        return x0.reshape(T, B), np.zeros(0)
+    G = lin.theta_block.copy()
+    G[np.arange(P), np.arange(P)] *= 1.0 + damping
+    C = lin.cross.reshape(B * T, P)
+    schur = G - C.T @ X1
+    dtheta = np.linalg.solve(schur, -lin.grad_theta - C.T @ x0)
+    return (x0 - X1 @ dtheta).reshape(T, B), dtheta
+
+
+def theta_posterior_std(lin) -> np.ndarray:
+    """(P,) marginal std of the calibration variables: sqrt(diag((G - C^T A^-1 C)^-1))."""
+    P = lin.cross.shape[2]
+    if P == 0:
+        return np.zeros(0)
+    C = lin.cross.reshape(-1, P)
+    X1 = solveh_banded(banded_lower(lin.diag, lin.off), C, lower=True, check_finite=False)
+    return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))

@@ -1,0 +1,281 @@
+"""The compiled smoothers (`impl=compiled`, numba) against their numpy reference (`impl=numpy`).
+
+Kernel by kernel: the cost, the gradient and the Gauss-Newton blocks against
+`SmootherProblem.cost` / `linearize`, the elimination's solves against
+`solve_normal_equations` and `gd.Preconditioner`, the posterior std against
+`theta_posterior_std`, dead reckoning and the re-levelling against `DeadReckoning` and
+`levelled`, for every option of the cost. Then whole solves: the same iterations, the same
+`converged`, the cost at every iteration equal to 1e-9 (relative), on the simulated
+recording, ece276a/1 and a BROAD trial. The two paths differ in rounding only (the
+summation order of the cost, the elimination order of the solve).
+"""
+from __future__ import annotations
+
+import dataclasses
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from fusion import datasets
+from fusion import quaternion as quat
+from fusion.estimators import build
+from fusion.estimators import _compiled_smoother as cs
+from fusion.estimators.gd import RIDGE, Preconditioner
+from fusion.estimators.smoother import initial_trajectory, levelled
+from fusion.estimators.smoother_cost import SmootherProblem, Weights, solve_normal_equations, theta_posterior_std
+from fusion.types import ImuSamples
+
+COST_RTOL = 1e-9  # the target: final costs equal to the reference within 1e-9
+
+
+# ----------------------------------------------------------------------------- kernels
+CONFIGS = {
+    "default": dict(loss="huber", bias_axes="xy", scale_axes="xy", velocity=True, rest=True),
+    "no velocity": dict(loss="huber", bias_axes="xy", scale_axes="xy", velocity=False, rest=True),
+    "cauchy, bias xyz, scale z": dict(loss="cauchy", bias_axes="xyz", scale_axes="z", velocity=True, rest=True),
+    "geman-mcclure, scale only": dict(loss="geman-mcclure", bias_axes="", scale_axes="xyz", velocity=True, rest=False),
+    "plain least squares, no calibration": dict(loss="none", bias_axes="", scale_axes="", velocity=False, rest=False),
+}
+
+
+def _problem(config: dict, T: int = 60, seed: int = 0):
+    """A random problem with invalid gyro steps, two missing accelerometer samples,
+    accelerometer residuals on both sides of the robust loss's scale, and rest steps; a random
+    point (q (T, 4), theta (P,), v (T, V))."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(0.005 + 0.01 * rng.random(T))
+    valid = np.ones(T, bool)
+    valid[20:24] = False
+    q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
+    steps = quat.from_rotvec(rng.normal(size=(T - 1, 3)) * 0.1)
+    q = quat.cumulative_product(np.concatenate([quat.normalize(q0 + 0.05)[None], steps]))
+    acc = quat.gravity_in_body(q) + rng.normal(size=(T, 3)) * np.where(np.arange(T) % 3 == 0, 0.5, 0.05)[:, None]
+    acc[[7, 31]] = np.nan
+    imu = ImuSamples(t, rng.normal(size=(T, 3)), acc, valid)
+    velocity = dict(velocity_acc_noise_g_sqrt_s=0.01, velocity_bound_m_sqrt_s=0.5) if config["velocity"] else {}
+    weights = Weights(gyro_noise_rad_sqrt_s=0.02, acc_noise_g_sqrt_s=0.05, loss=config["loss"], loss_scale_g=0.3,
+                      bias_axes=config["bias_axes"], scale_axes=config["scale_axes"], **velocity)
+    rest = (np.arange(T - 1) % 6 == 2) if config["rest"] else None
+    problem = SmootherProblem.from_imu(imu, q0, weights, rest=rest)
+    return problem, q, rng.normal(size=problem.n_theta) * 0.02, rng.normal(size=(T, problem.n_vel)) * 0.1
+
+
+def _close(got, ref, rtol=1e-11):
+    """Equal to rtol relative to the largest entry of ref (blocks mix weights of 1e-1 and 1e5)."""
+    got, ref = np.asarray(got), np.asarray(ref)
+    assert got.shape == ref.shape
+    scale = np.max(np.abs(ref), initial=0.0)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=rtol * max(scale, 1e-300))
+
+
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_cost_gradient_and_blocks_equal_the_reference(config):
+    problem, q, theta, v = _problem(config)
+    ref = problem.linearize(q, theta, v=v)
+    _, wa = problem.acc_terms(problem.residuals(q, theta, v)["acc"])
+    if config["loss"] == "huber":  # both branches
+        assert 0 < np.sum(wa < problem.w_acc * (1 - 1e-12)) < np.sum(problem.w_acc > 0) - 10
+    ops = cs.CompiledOps(problem, blocks=True)
+    assert ops.cost(q, theta, v) == pytest.approx(problem.cost(q, theta, v), rel=1e-13)
+    lin = ops.linearize(q, theta, v)
+    assert lin.cost == pytest.approx(ref.cost, rel=1e-13)
+    for key in ("grad_q", "grad_theta", "diag", "off", "cross", "theta_block"):
+        _close(getattr(lin, key), getattr(ref, key))
+    gradient_only = cs.CompiledOps(problem).linearize(q, theta, v, hessian=False)
+    _close(gradient_only.grad_q, ref.grad_q)
+    _close(gradient_only.grad_theta, ref.grad_theta)
+
+
+@pytest.mark.parametrize("update", ["geodesic", "normalise"])
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_trial_point_and_its_cost_equal_the_reference(config, update):
+    from fusion.estimators.smoother import ReferenceOps
+
+    problem, q, theta, v = _problem(config)
+    rng = np.random.default_rng(5)
+    d_q, d_theta = rng.normal(size=(len(q), 3 + problem.n_vel)) * 0.05, rng.normal(size=problem.n_theta) * 0.01
+    for alpha in (1.0, 0.25):
+        got = cs.CompiledOps(problem).trial(q, v, theta, d_q, d_theta, alpha, update)
+        ref = ReferenceOps(problem).trial(q, v, theta, d_q, d_theta, alpha, update)
+        for a, b in zip(got[:3], ref[:3]):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
+        assert got[3] == pytest.approx(ref[3], rel=1e-13)
+
+
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_elimination_solves_the_normal_equations(config):
+    """The damped Gauss-Newton step of gn (solve_normal_equations, with held calibration
+    variables), gd's chain direction for its own and for another gradient (Preconditioner),
+    the posterior std, and gd's slope g.p from the elimination: all equal to the banded LAPACK
+    solves (and g.p to the reference gradient times the step)."""
+    problem, q, theta, v = _problem(config)
+    ref = problem.linearize(q, theta, v=v)
+    P = problem.n_theta
+    frees = [None] + ([np.arange(P) < P // 2] if P > 1 else [])
+    for shift in (1e-6, 0.1):
+        for free in frees:
+            ops = cs.CompiledOps(problem)
+            lin = ops.linearize(q, theta, v, shift=shift, free=free, gradient=False)
+            assert len(lin.grad_q) == 0
+            d_q, d_theta = ops.solve(lin, shift, free)
+            if free is None:
+                want_q, want_theta = solve_normal_equations(ref, shift)
+            else:
+                sub = dataclasses.replace(ref, grad_theta=ref.grad_theta[free], cross=ref.cross[:, :, free],
+                                          theta_block=ref.theta_block[np.ix_(free, free)])
+                want_q, want_theta_free = solve_normal_equations(sub, shift)
+                want_theta = np.zeros(P)
+                want_theta[free] = want_theta_free
+            _close(d_q, want_q, 1e-8)
+            _close(d_theta, want_theta, 1e-8)
+            assert np.all(d_theta[~free] == 0.0) if free is not None else True
+    free = np.ones(P, bool)
+    ops = cs.CompiledOps(problem)
+    lin = ops.linearize(q, theta, v, shift=RIDGE, free=free)
+    other = (np.random.default_rng(2).normal(size=ref.grad_q.shape), np.random.default_rng(3).normal(size=P))
+    for grad in (None, other):
+        got = ops.solve(lin, RIDGE, free, grad=grad)
+        want = Preconditioner(ref, "chain", free).direction(*(grad or (ref.grad_q, ref.grad_theta)))
+        _close(got[0], want[0], 1e-8)
+        _close(got[1], want[1], 1e-8)
+    if P:
+        np.testing.assert_allclose(ops.theta_std(q, theta, v), theta_posterior_std(ref), rtol=1e-10)
+    # gd's slope g.p without a kept gradient: -g^T M^-1 g from the elimination
+    for free in frees:
+        ops = cs.CompiledOps(problem)
+        lin = ops.linearize(q, theta, v, shift=RIDGE, free=free, gradient=False)
+        d_q, d_theta = ops.solve(lin, RIDGE, free)
+        want = float(np.sum(ref.grad_q * d_q) + ref.grad_theta @ d_theta)
+        assert want < 0 and ops.slope(lin, d_q, d_theta) == pytest.approx(want, rel=1e-9)
+        with pytest.raises(ValueError, match="slope"):
+            ops.slope(ops.linearize(q, theta, v, shift=RIDGE, gradient=False), d_q, d_theta)  # not its step
+
+
+def test_a_matrix_that_is_not_positive_definite_is_an_error():
+    problem, q, theta, v = _problem(CONFIGS["default"])
+    ops = cs.CompiledOps(problem)
+    with pytest.raises(np.linalg.LinAlgError):
+        ops.linearize(q, theta, v, shift=-2.0)  # H - 2 diag(H) has negative diagonal entries
+    with pytest.raises(np.linalg.LinAlgError):
+        solve_normal_equations(problem.linearize(q, theta, v=v), -2.0)  # as the reference
+
+
+def test_start_kernels_equal_dead_reckoning_and_levelled():
+    """Dead reckoning as a sequential product (the reference's parallel scan multiplies in
+    another order) and the re-levelling, with missing accelerometer samples and invalid steps."""
+    imu, _, q0 = _sim(120.0)
+    acc = imu.acc_g.copy()
+    acc[500:520] = np.nan
+    imu = imu.replace(acc_g=acc)
+    dr = initial_trajectory("dr", "gn", imu, q0)
+    np.testing.assert_allclose(cs.dead_reckoned(imu, q0), dr, rtol=0, atol=1e-13)
+    out = cs.levelled(imu, dr, 10.0)
+    np.testing.assert_allclose(out, levelled(imu, dr, 10.0), rtol=0, atol=1e-15)
+    assert cs.norm_error(out) == pytest.approx(np.max(np.abs(np.linalg.norm(out, axis=1) - 1.0)), abs=1e-18)
+
+
+# ----------------------------------------------------------------------------- whole solves
+def _sim(duration_s: float):
+    from fusion.calibration import calibrate
+    from fusion.sim import SimSettings, simulate
+
+    raw, truth = simulate(SimSettings(duration_s=duration_s))
+    imu = calibrate(raw).apply(raw)
+    q0, _ = truth.interpolate(imu.t[:1])
+    return imu, truth, q0.as_quat(scalar_first=True)[0]
+
+
+def assert_same_solve(spec: str, imu, q0) -> tuple[dict, dict]:
+    """spec with impl=compiled and impl=numpy: the same iterations and outcome, the cost at
+    every iteration within COST_RTOL, the same calibration and orientations (to 1e-6 rad)."""
+    sep = "," if ":" in spec else ":"
+    got = build(f"{spec}{sep}progress=false").estimate(imu, q0)
+    ref = build(f"{spec}{sep}progress=false,impl=numpy").estimate(imu, q0)
+    a, b = got.diagnostics, ref.diagnostics
+    assert a["iterations"] == b["iterations"] and a["converged"] == b["converged"], spec
+    assert len(a["loss"]) == len(b["loss"]), spec
+    np.testing.assert_allclose(a["loss"], b["loss"], rtol=COST_RTOL, err_msg=spec)
+    np.testing.assert_array_equal(a["scale_released"], b["scale_released"])
+    assert a.get("scale_rejected") == b.get("scale_rejected")
+    np.testing.assert_allclose(a["theta"], b["theta"], rtol=0, atol=1e-7, err_msg=spec)
+    angle = np.linalg.norm(quat.relative_rotvec(ref.quat_wxyz, got.quat_wxyz), axis=1)
+    assert np.max(angle) < 1e-6, spec
+    return a, b
+
+
+@pytest.mark.parametrize("spec", ["gn", "gd", "gn:weighting=scalar", "gd:update=normalise,every=3", "gd:precond=block,iters=20",
+                                  "gd:precond=none,iters=10", "gn:loss=cauchy,bias=xyz,scale=z", "gn:vb=inf,level=0",
+                                  "gn:release=0.01,iters=4"])
+def test_compiled_solves_equal_the_reference_on_the_simulator(spec):
+    imu, _, q0 = _sim(60.0)
+    assert_same_solve(spec, imu, q0)
+
+
+@pytest.mark.parametrize("spec", ["gn", "gd"])
+def test_compiled_solves_equal_the_reference_on_a_course_recording(data_dir, spec):
+    """ece276a/1 (5,645 samples, a gyro freeze), the default cost: stage 1, release of the
+    scale errors and their significance test."""
+    rec = datasets.load("ece276a/1", data_dir / "ece276a")
+    a, _ = assert_same_solve(spec, rec.imu, datasets.initial_orientation(rec, "truth"))
+    assert a["scale_released"].any()
+
+
+@pytest.mark.parametrize("spec", ["gn", "gd"])
+def test_compiled_solves_equal_the_reference_on_a_broad_trial(data_dir, spec):
+    """BROAD trial 15 (fast translation, 285.7 Hz), its first minute (17,000 samples)."""
+    pytest.importorskip("h5py")
+    rec = datasets.load("broad/15_undisturbed_fast_translation_A", data_dir)
+    imu = rec.imu
+    n = 17000
+    part = imu.replace(t=imu.t[:n], gyr_rad_s=imu.gyr_rad_s[:n], acc_g=imu.acc_g[:n], gyr_valid=imu.gyr_valid[:n])
+    assert_same_solve(spec, part, datasets.initial_orientation(rec, "truth"))
+
+
+# ----------------------------------------------------------------------------- memory
+@pytest.mark.parametrize("name", ["gn", "gd"])
+def test_memory_is_linear_with_a_small_constant(name):
+    """Peak of the numpy allocations (tracemalloc) during a compiled solve of 20 minutes of the
+    simulator (120,000 samples), per sample: the elimination keeps 5 (6 + F) floats per
+    sample, the solvers a handful of (T, 4) and (T, 5) arrays. The numpy reference needs
+    several kilobytes per sample (its (T, 5, 5) temporaries and band matrices)."""
+    imu, _, q0 = _sim(1200.0)
+    est = build(f"{name}:progress=false")
+    problem = est.problem(imu, q0)
+    q = est.start(imu, q0)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        est.solve(problem, q)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak / len(imu) < 900, peak / len(imu)
+
+
+# ----------------------------------------------------------------------------- the disk cache
+_CACHE_STATS = r"""
+import json
+from fusion.estimators import _compiled_smoother as cs
+cs.load()
+kernels = ("cost_kernel", "linearize_kernel", "back_substitute", "dead_reckoning", "levelled_kernel", "norm_error", "dot")
+print(json.dumps({k: [sum(getattr(cs, k).stats.cache_hits.values()), sum(getattr(cs, k).stats.cache_misses.values())]
+                  for k in kernels}))
+"""
+
+
+def test_a_new_process_loads_the_kernels_from_the_disk_cache():
+    """This process has compiled the kernels or loaded them from the cache (`load`); a new
+    process must find every one of them there (numba's hit and miss counts). A kernel whose
+    signature the cache cannot match again (e.g. a type numba cannot look up by name) is
+    compiled anew in every process, seconds each time."""
+    import json
+    import subprocess
+    import sys
+
+    cs.load()
+    if cs.linearize_kernel.stats.cache_path is None:
+        pytest.skip("no writable numba cache folder here: the kernels are compiled in every process by design")
+    out = subprocess.run([sys.executable, "-c", _CACHE_STATS], capture_output=True, text=True, check=True).stdout
+    stats = json.loads(out.strip().splitlines()[-1])
+    assert all(hit >= 1 and miss == 0 for hit, miss in stats.values()), stats
