@@ -163,8 +163,9 @@ print(f"at the gn solution {100 * down.mean():.1f} % of the accelerometer sample
 # Linearise every residual around the current trajectory, with a small body-frame rotation
 # $\delta_t$ per sample: $q_t \leftarrow q_t \otimes \operatorname{Exp}(\delta_t)$, $r \approx r_0 + J \delta$. The quadratic model is minimised by the
 # normal equations $(J^\top W J)\,\delta = -J^\top W r_0$. Each motion residual touches two neighbouring
-# samples only, so $J^\top W J$ is block-tridiagonal and the solve is $O(T)$
-# (`scipy.linalg.solveh_banded`). Levenberg-Marquardt adds $\lambda \operatorname{diag}(J^\top W J)$: a step that raises
+# samples only, so $J^\top W J$ is block-tridiagonal and the solve is $O(T)$: by default a compiled
+# block elimination, one pass over the samples that also forms the blocks (`gn:impl=numpy` runs the
+# readable reference, `scipy.linalg.solveh_banded`). Levenberg-Marquardt adds $\lambda \operatorname{diag}(J^\top W J)$: a step that raises
 # the cost is rejected and $\lambda$ grows tenfold; an accepted one shrinks it. The cost after every
 # accepted step is in `diagnostics["loss"]`:
 
