@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -92,7 +93,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
         folder with one file per recording).
     """
-    entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
+    with _heartbeat(progress):
+        entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
     text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries if not e.cls.partial)
     call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
             "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
@@ -137,7 +139,8 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
         grid = [ablate.parse_param(p) if isinstance(p, str) else (p[0], list(p[1])) for p in params]
         specs = ablate.grid_specs(estimator, grid)
         settings = {"kind": "ablate", "estimator": estimator, "params": dict(grid)}
-    entries = resolve_all(specs)
+    with _heartbeat(progress):
+        entries = resolve_all(specs)
     settings["estimators"] = ",".join(e.label for e in entries)
     call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
             "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
@@ -216,6 +219,37 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
                            dropouts, init, align, protocol, json_path, jobs, progress, per_recording, keys)
         finally:
             journal.close()
+
+
+@contextmanager
+def _heartbeat(enabled: bool, first_s: float = 2.0, every_s: float = 4.0) -> Iterator[None]:
+    """Say so on stderr while the estimators are being built, if that takes a while: the first
+    build on a new installation compiles the filters' and smoothers' kernels (numba, cached on disk
+    afterwards), which takes tens of seconds during which nothing else would be printed."""
+    import threading
+    import time
+
+    if not enabled:
+        yield
+        return
+    done = threading.Event()
+    start = time.monotonic()
+
+    def beat() -> None:
+        if done.wait(first_s):
+            return
+        note("preparing the estimators: the first run on this installation compiles their kernels (once; "
+             "cached afterwards)")
+        while not done.wait(every_s):
+            note(f"still compiling ({time.monotonic() - start:.0f} s)")
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
 
 
 def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, call: dict[str, Any]) -> list[str]:
@@ -351,7 +385,8 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     if len(recordings) != 1:
         raise ValueError(f"--dataset {dataset!r} names {len(recordings)} recordings; panorama takes one")
     (recording,) = recordings
-    entries = resolve_all(estimator)
+    with _heartbeat(progress):
+        entries = resolve_all(estimator)
     if len(entries) != 1:
         raise ValueError(f"--estimator {estimator!r}: give exactly one estimator")
     if reference and recording.truth is None:
