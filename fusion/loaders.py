@@ -70,6 +70,9 @@ GYRO_MEDIAN_WARN_RAD_S = 10.0  # median |rate| over a recording (hand-held ~0.3-
 # median |a| over a recording, m/s^2: near gravity's 9.81 (BROAD's fourteen trials 9.84-9.95, the course's 9.79-9.81,
 # even in fast translation); a free fall or a spin would need most of the recording to leave it
 ACC_MEDIAN_M_S2 = (4.0, 30.0)
+# `gyro_tilt_ratio` above this: the gyro reads ~57x too much (deg/s). The shared recordings give 0.27-1.07 (BROAD's
+# fast translation lowest), and 16-61 with their gyro converted to deg/s
+GYRO_TILT_RATIO_WARN = 10.0
 ACC_LIMIT_M_S2 = 200 * STANDARD_GRAVITY_M_S2  # 200 g: high-g MEMS accelerometers (ADXL375); BROAD's tapping peaks at 16 g
 
 
@@ -454,8 +457,46 @@ def check_sampling(t: np.ndarray, path: Path | str) -> None:
                       f"(longest {dt[k]:.3g} s, {t[k] - t[0]:.1f} s after the start)", stacklevel=3)
 
 
+def gyro_tilt_ratio(t: np.ndarray, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray, block_s: float = 0.1,
+                    min_tilt_rad: float = 1.0) -> float | None:
+    """How far the gyro turns the gravity direction against how far the accelerometer sees it turn.
+
+    t: (N,) s; gyr_rad_s: (N, 3) rad/s; acc_m_s2: (N, 3), body frame (any unit: only its direction
+    is used). The accelerometer, averaged over blocks of `block_s`, gives the gravity direction g_j
+    per block; the gyro's rotation over a block, theta_j = sum w dt, turns it by about
+    |theta_j x g_j| (the body-frame gravity obeys dg/dt = -w x g, Titterton & Weston 2004, Ch. 3),
+    its component about gravity leaving it unchanged. The ratio of the two sums over the
+    recording is near 1 for a gyro in rad/s (below 1 where linear acceleration and noise move
+    the measured direction) and near 180/pi = 57 for a gyro in deg/s. None when the accelerometer
+    sees less than `min_tilt_rad` of tilt change in all (too little motion to judge) or the time
+    stamps give no step.
+    """
+    t = np.asarray(t, dtype=float)
+    if len(t) < 2 or not np.all(np.isfinite(t)):
+        return None  # the time checks that follow say what is wrong
+    step = float(np.median(np.diff(t)))
+    if not step > 0.0:
+        return None
+    m = max(1, int(round(block_s / step)))
+    blocks = len(t) // m
+    if blocks < 3:
+        return None
+    acc = np.asarray(acc_m_s2, dtype=float)[: blocks * m].reshape(blocks, m, 3).mean(axis=1)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    g = np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+    measured = np.arccos(np.clip(np.sum(g[1:] * g[:-1], axis=1), -1.0, 1.0))  # between block means
+    # the gyro's rotation between the two block centres: the second half of block j, the first of j + 1
+    theta = (np.asarray(gyr_rad_s, dtype=float)[: blocks * m] * step).reshape(blocks, m, 3)
+    half = m // 2
+    between = theta[:-1, half:].sum(axis=1) + theta[1:, :half].sum(axis=1)
+    predicted = np.linalg.norm(np.cross(between, g[:-1]), axis=1)
+    if measured.sum() < min_tilt_rad:
+        return None
+    return float(predicted.sum() / measured.sum())
+
+
 def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray, gyr_names: tuple[str, ...],
-                   acc_names: tuple[str, ...]) -> None:
+                   acc_names: tuple[str, ...], t: np.ndarray | None = None) -> None:
     """Plausibility of IMU values in physical units (finite (N, 3) arrays; names for messages).
 
     Errors: a gyro value beyond `GYRO_LIMIT_RAD_S` (4000 deg/s; deg/s or scaled values, e.g.
@@ -463,7 +504,9 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
     accelerometer whose median |a| is not near 1 g in m/s^2 (`ACC_MEDIAN_M_S2`: a recording of
     anything that moves by hand, on a vehicle or a robot spends most of its time near 9.81; 1
     is g, 1000 mg, and the message says so).
-    Warning: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion).
+    Warnings: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion); with
+    the time stamps `t`, a gyro that turns the gravity direction more than `GYRO_TILT_RATIO_WARN`
+    times as far as the accelerometer sees it turn (`gyro_tilt_ratio`: deg/s of any motion).
     """
     for values, names, limit, unit, fix in (
         (gyr_rad_s, gyr_names, GYRO_LIMIT_RAD_S, "rad/s", "beyond any MEMS gyro (4000 deg/s); "
@@ -482,7 +525,12 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
         raise ValueError(f"{path}: columns {','.join(acc_names)}: the median |a| is {acc_median:.3g}, where gravity "
                          f"alone reads 9.81 m/s^2: {hint}")
     median = float(np.median(np.sqrt(np.sum(gyr_rad_s**2, axis=1))))
-    if median > GYRO_MEDIAN_WARN_RAD_S:
+    ratio = None if t is None else gyro_tilt_ratio(t, gyr_rad_s, acc_m_s2)
+    if ratio is not None and ratio > GYRO_TILT_RATIO_WARN and median <= GYRO_MEDIAN_WARN_RAD_S:
+        warnings.warn(f"{path}: columns {','.join(gyr_names)}: the gyro turns the gravity direction {ratio:.0f} times "
+                      f"as far as the accelerometer ({','.join(acc_names)}) sees it turn; if they are in deg/s, "
+                      "convert them to rad/s (multiply by pi/180)", stacklevel=3)
+    elif median > GYRO_MEDIAN_WARN_RAD_S:
         warnings.warn(f"{path}: columns {','.join(gyr_names)}: the median angular rate is {median:.3g} rad/s "
                       f"({np.degrees(median):.0f} deg/s) over the whole recording, implausible for hand-held motion; "
                       "if they are in deg/s, convert them to rad/s (multiply by pi/180)", stacklevel=3)
@@ -565,7 +613,7 @@ def physical_samples(path: Path | str, t: np.ndarray, gyr_rad_s: np.ndarray, acc
         raise ValueError(f"{path}: {len(t)} samples; need at least 2")
     if not (np.all(np.isfinite(gyr_rad_s)) and np.all(np.isfinite(acc_m_s2))):
         raise ValueError(f"{path}: the gyro or accelerometer values contain NaN or Inf")
-    check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:])
+    check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:], t)
     if mag_ut is not None:
         mag_ut = check_magnetometer(path, mag_ut, mag_name)
         t, gyr_rad_s, acc_m_s2, mag_ut, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, mag_ut, *arrays)

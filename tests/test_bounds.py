@@ -233,6 +233,32 @@ def test_slow_motion_in_deg_s_warns(tmp_path):
         load(tmp_path, "\n".join([",".join(lines[0]), *body]) + "\n")
 
 
+def turning_csv(rate: float, unit_scale: float, seconds: float = 60.0) -> str:
+    """A board turning about its body x axis at `rate` rad/s, the gyro column written times
+    `unit_scale` (1: rad/s, 180/pi: deg/s), the accelerometer reading gravity as it turns."""
+    t = np.arange(0.0, seconds, 0.01)
+    angle = rate * t
+    acc = 9.80665 * np.column_stack([np.zeros_like(t), np.sin(angle), np.cos(angle)])  # R_x(angle)^T e_z
+    gyr = np.column_stack([np.full_like(t, rate), np.zeros_like(t), np.zeros_like(t)]) * unit_scale
+    rows = np.column_stack([t, gyr, acc])
+    return "t,gx,gy,gz,ax,ay,az\n" + "\n".join(",".join(repr(float(x)) for x in r) for r in rows) + "\n"
+
+
+def test_gyro_consistent_with_the_accelerometer_loads_quietly(tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        imu, _ = load(tmp_path, turning_csv(0.1, 1.0))
+    assert len(imu) == 6000
+
+
+def test_slow_turn_in_deg_s_warns_from_the_accelerometer(tmp_path):
+    """5.7 deg/s read as rad/s: below every range and median limit, but the gyro turns gravity
+    57 times as far as the accelerometer sees it turn."""
+    with pytest.warns(UserWarning, match=r"walk\.csv: columns gx,gy,gz: the gyro turns the gravity direction 5[67] times "
+                                         r"as far as the accelerometer \(ax,ay,az\) sees it turn; if they are in deg/s"):
+        load(tmp_path, turning_csv(0.1, np.degrees(1.0)))
+
+
 def test_values_times_1e6_are_an_error(tmp_path):
     with pytest.raises(ValueError, match="walk.csv: column 'g[xyz]' reaches"):
         load(tmp_path, csv_text(gyr_scale=1e6))
