@@ -5,6 +5,7 @@ setting (TAGP) and each trial's own best. A script that prints figures, never a 
 
     python benchmarks/bench_sweep.py [--data-dir ../shared/data/broad] [--jobs 2] [--out DIR]
     python benchmarks/bench_sweep.py --scaling 2,14     # memory against the number of jobs
+    python benchmarks/bench_sweep.py --local-cluster 2  # the same sweep on a two-worker Dask LocalCluster
 
 With `--scaling N1,N2,...` it runs the sweep on the first N1, N2, ... trials, each in a fresh
 process (so each peak is its own), and prints one line per size: memory must not grow with
@@ -51,6 +52,8 @@ def main() -> None:
     parser.add_argument("--dataset", default="all")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--scheduler", default=None, help="a dask.distributed scheduler instead of the pool")
+    parser.add_argument("--local-cluster", type=int, default=None, metavar="N",
+                        help="run on a dask.distributed LocalCluster of N single-threaded worker processes")
     parser.add_argument("--out", default=None, help="also write the report folder (and its journal)")
     parser.add_argument("--scaling", default=None, metavar="N1,N2", help="memory for the first N1, N2, ... trials")
     parser.add_argument("--json-line", action="store_true", help=argparse.SUPPRESS)  # one size, for --scaling
@@ -64,7 +67,18 @@ def main() -> None:
             m = json.loads(line)
             print(f"{m['trials']:6d} {m['jobs']:5d} {m['wall_s']:7.1f} {m['main_mb']:8.0f} {m['worker_mb']:9.0f}")
         return
-    m = measure(args.data_dir, args.dataset, args.jobs, args.scheduler, args.out, progress=not args.json_line)
+    cluster = None
+    if args.local_cluster:
+        from distributed import LocalCluster
+
+        cluster = LocalCluster(n_workers=args.local_cluster, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        args.scheduler, args.jobs = cluster.scheduler_address, args.local_cluster
+    try:
+        m = measure(args.data_dir, args.dataset, args.jobs, args.scheduler, args.out, progress=not args.json_line)
+    finally:
+        if cluster is not None:
+            cluster.close()
     if args.json_line:
         print(json.dumps({k: v for k, v in m.items() if k != "run"}))
         return
@@ -72,6 +86,8 @@ def main() -> None:
           f"{m['samples'] / 1e6:.1f} M filter-samples, jobs={args.jobs if not args.scheduler else args.scheduler}")
     print(f"wall time {m['wall_s']:.1f} s ({m['wall_s'] / 60:.1f} min); filter time summed over jobs "
           f"{m['filter_s']:.1f} s ({1e6 * m['filter_s'] / m['samples']:.1f} us/sample)")
+    print(f"filter share of the workers' time: {m['filter_s'] / (m['wall_s'] * args.jobs):.0%} "
+          f"(filter time / (wall time x {args.jobs} workers))")
     print(f"peak resident memory: main process {m['main_mb']:.0f} MB, largest worker {m['worker_mb']:.0f} MB")
     print(format_sweep(sweep_summary([r.to_json() for r in m["run"].results])))
 
