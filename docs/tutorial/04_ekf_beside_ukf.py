@@ -330,8 +330,8 @@ if rows:
 # %% [markdown]
 # Recordings 5, 6 and 7 gain 0.09-0.16 degrees, the others move by 0.03 degrees at most (recording
 # 4 loses 0.03): 1.596 degrees on average without the velocity states, 1.555 with them. On
-# BROAD's nine trials, with fast translation, the mean goes from 0.682 to 0.665 degrees (README,
-# BROAD table).
+# BROAD's first nine trials (01-26), with fast translation, the mean went from 0.682 to 0.665
+# degrees (`docs/results.md`).
 #
 # ## Summary
 #

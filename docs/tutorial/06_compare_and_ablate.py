@@ -134,7 +134,7 @@ plt.show()
 #   `ahrs` package's) one to a few hundred. Filters that must run on a small board need the left
 #   of the plot.
 #
-# The same comparison on the nine BROAD trials (another IMU at 286 Hz, with BROAD's own protocol,
+# The same comparison on the fourteen BROAD trials (another IMU at 286 Hz, with BROAD's own protocol,
 # `docs/results.md`) is the command below. It takes several minutes, so it is not run here:
 #
 #     fusion compare --estimators all --dataset 'broad/*' --jobs 2
