@@ -51,6 +51,23 @@ def test_q_and_minus_q_score_the_same():
         assert a.rmse_deg[kind] == pytest.approx(c.rmse_deg[kind], abs=1e-9)
 
 
+def test_error_angles_equal_scipys_rotation_algebra():
+    """The quaternion algebra of the scoring against the same definitions written with SciPy's
+    `Rotation` (geodesic angle, gravity directions, twist of the world-frame error), on random
+    orientations, arrays and `Rotation` stacks alike, unnormalised inputs included."""
+    r_true, r_est = Rotation.random(2000, random_state=3), Rotation.random(2000, random_state=4)
+    up = np.array([0.0, 0.0, 1.0])
+    g_true, g_est = r_true.inv().apply(up), r_est.inv().apply(up)
+    world = (r_est * r_true.inv()).as_quat(scalar_first=True)
+    expected = {"total": (r_true.inv() * r_est).magnitude(),
+                "inclination": np.arccos(np.clip(np.sum(g_true * g_est, axis=1), -1, 1)),
+                "heading": 2 * np.arctan2(np.abs(world[:, 3]), np.abs(world[:, 0]))}
+    scaled = 3.0 * r_est.as_quat(scalar_first=True)  # a quaternion of norm 3 is the same rotation
+    for got in (error_angles(r_true, r_est), error_angles(r_true.as_quat(scalar_first=True), scaled)):
+        for kind, value in expected.items():
+            np.testing.assert_allclose(got[kind], value, rtol=0, atol=1e-7 if kind == "inclination" else 1e-12)
+
+
 def test_truth_gaps_are_skipped_not_interpolated():
     t = np.arange(100) * 0.01
     q = np.tile([1.0, 0, 0, 0], (100, 1))
