@@ -41,9 +41,10 @@ summation order of the cost and the elimination order of the solve.
 
 Like `_compiled`, the kernels are cached on disk next to this file (`_compiled._jit`), and the
 constants that decide the maths (`fusion.quaternion`'s small-angle rules, 1 g) are passed in at
-run time. The scalar quaternion helpers below repeat those of `_compiled` on purpose: numba
-keys a cached kernel on its own file, so a kernel calling into another module would not be
-recompiled when that module changed. The namedtuples the kernels take have names found nowhere
+run time. The quaternion helpers are `fusion.quaternion`'s scalar path, compiled (one definition
+for numpy, Python and the kernels); numba keys a cached kernel on its own file only, so
+`_kernel_cache.forget_stale_kernels` drops this module's cache when `fusion.quaternion` changes.
+The namedtuples the kernels take have names found nowhere
 else (with a namedtuple of the same name in another compiled module, the kernels of whichever
 module was loaded second ran markedly slower), and each is bound to its own name in this module:
 numba's cache finds a kernel's signature again only if its types can be looked up by name.
@@ -60,6 +61,7 @@ from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2
 
 from ._compiled import _jit
+from ._kernel_cache import forget_stale_kernels
 from .smoother_cost import LOSSES, Linearization, SmootherProblem
 
 # Modes of `linearize_kernel`.
@@ -73,6 +75,8 @@ SmootherArrays = namedtuple("SmootherArrays", [
     "w_theta", "theta_axis", "n_bias",  # calibration: prior weights, the gyro axis of each, how many are biases
     "loss", "loss_c",  # robust loss (index in LOSSES) and its scale, g
 ])
+forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
+
 SmootherConstants = namedtuple("SmootherConstants", ["small_angle", "series_rad", "jac_a", "jac_b", "jac_c", "gravity"])
 
 
@@ -132,56 +136,17 @@ def load() -> None:
 
 
 # ============================================================================ scalar helpers
-@_jit
-def qmul(a, b):
-    """Hamilton product a * b (`quaternion.multiply`)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
-
-
-@_jit
-def qexp(vx, vy, vz, small):
-    """exp([0, v / 2]) (`quaternion.from_rotvec`)."""
-    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if angle <= small:
-        return (math.cos(0.5 * angle), 0.5 * vx, 0.5 * vy, 0.5 * vz)
-    s = math.sin(0.5 * angle) / angle
-    return (math.cos(0.5 * angle), vx * s, vy * s, vz * s)
-
-
-@_jit
-def qlog(q):
-    """2 log(q), shortest rotation (`quaternion.to_rotvec`)."""
-    w, x, y, z = q
-    s = math.sqrt(x * x + y * y + z * z)
-    scale = math.copysign(2.0 * math.atan2(s, abs(w)) / max(s, 1e-300), w)
-    return (x * scale, y * scale, z * scale)
-
-
-@_jit
-def qnormalize(q):
-    """q / |q| (`quaternion.normalize`)."""
-    w, x, y, z = q
-    m = math.sqrt(w * w + x * x + y * y + z * z)
-    return (w / m, x / m, y / m, z / m)
+# `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels.
+qmul = _jit(quat.multiply_floats)
+qexp = _jit(quat.exp_floats)
+qlog = _jit(quat.log_floats)
+qnormalize = _jit(quat.normalize_floats)
+rotation = _jit(quat.rotation_floats)  # R(q) as 9 scalars, row by row
 
 
 @_jit
 def load_quat(q, t):
     return (q[t, 0], q[t, 1], q[t, 2], q[t, 3])
-
-
-@_jit
-def rotation(q):
-    """R(q) (`quaternion.rotation_matrix`) as 9 scalars, row by row."""
-    w, x, y, z = q
-    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
 @_jit

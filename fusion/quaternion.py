@@ -46,17 +46,15 @@ JACOBIAN_SERIES_RAD = 1e-3  # rad: below it the SO(3) Jacobians use their Taylor
 
 # ============================================================================ batch path
 def multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product `p * q`. p, q: (..., 4) wxyz, broadcast."""
-    p = np.asarray(p, dtype=float)
+    """Hamilton product `p * q`. p, q: (..., 4) wxyz, broadcast (`multiply_floats` on the components)."""
+    return np.stack(multiply_floats(_parts(p), _parts(q)), axis=-1)
+
+
+def _parts(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The four components of (..., 4) quaternions, each (...,): the scalar path's functions take
+    them as they take four floats, and so run on whole arrays."""
     q = np.asarray(q, dtype=float)
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(np.broadcast_shapes(p.shape, q.shape))
-    out[..., 0] = pw * qw - px * qx - py * qy - pz * qz
-    out[..., 1] = pw * qx + px * qw + py * qz - pz * qy
-    out[..., 2] = pw * qy - px * qz + py * qw + pz * qx
-    out[..., 3] = pw * qz + px * qy - py * qx + pz * qw
-    return out
+    return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
@@ -130,20 +128,9 @@ def gravity_in_body(q: np.ndarray) -> np.ndarray:
 
 
 def rotation_matrix(q: np.ndarray) -> np.ndarray:
-    """R(q), (..., 4) unit wxyz -> (..., 3, 3) (maps body to world)."""
+    """R(q), (..., 4) unit wxyz -> (..., 3, 3) (maps body to world; `rotation_floats` on the components)."""
     q = np.asarray(q, dtype=float)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - w * z)
-    out[..., 0, 2] = 2 * (x * z + w * y)
-    out[..., 1, 0] = 2 * (x * y + w * z)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - w * x)
-    out[..., 2, 0] = 2 * (x * z - w * y)
-    out[..., 2, 1] = 2 * (y * z + w * x)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
+    return np.stack(rotation_floats(_parts(q)), axis=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -221,7 +208,8 @@ Floats4 = tuple[float, float, float, float]
 
 
 def multiply_floats(a: tuple, b: tuple) -> Floats4:
-    """Hamilton product `a * b` of two quaternions given as 4 floats each."""
+    """Hamilton product `a * b` of two quaternions given as 4 floats each (or 4 arrays each:
+    `multiply` calls it so; the compiled kernels compile it)."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
     return (
@@ -232,13 +220,23 @@ def multiply_floats(a: tuple, b: tuple) -> Floats4:
     )
 
 
-def exp_floats(vx: float, vy: float, vz: float) -> Floats4:
-    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats (the exp rule)."""
+def exp_floats(vx: float, vy: float, vz: float, small: float = SMALL_ANGLE) -> Floats4:
+    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats (the exp rule; `small` is
+    `SMALL_ANGLE`, an argument so that the compiled kernels take it as their other constants)."""
     angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if angle <= SMALL_ANGLE:
+    if angle <= small:
         return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
     s = math.sin(0.5 * angle) / angle
     return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+
+
+def log_floats(q: tuple) -> tuple[float, float, float]:
+    """`2 log(q)`: the rotation vector (rad) of one quaternion given as 4 floats, shortest path,
+    q and -q alike (the log rule; the scalar path of `to_rotvec`)."""
+    w, x, y, z = q
+    s = math.sqrt(x * x + y * y + z * z)
+    scale = math.copysign(2.0 * math.atan2(s, abs(w)) / max(s, 1e-300), w)
+    return x * scale, y * scale, z * scale
 
 
 def normalize_floats(q: tuple) -> Floats4:
@@ -253,15 +251,20 @@ def unit_array(q: tuple) -> np.ndarray:
     return np.array(normalize_floats(q))
 
 
+def rotation_floats(q: tuple) -> tuple:
+    """The nine entries of R(q), row by row, of a unit quaternion given as 4 floats (or 4 arrays:
+    `rotation_matrix` calls it so; the compiled kernels compile it)."""
+    w, x, y, z = q
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
 def rotate_floats(q: tuple, v: tuple) -> tuple[float, float, float]:
     """`R(q) v` for a unit quaternion q (4 floats) and a vector v (3 floats): body -> world."""
-    w, x, y, z = q
+    r = rotation_floats(q)
     a, b, c = v
-    return (
-        (1 - 2 * (y * y + z * z)) * a + 2 * (x * y - w * z) * b + 2 * (x * z + w * y) * c,
-        2 * (x * y + w * z) * a + (1 - 2 * (x * x + z * z)) * b + 2 * (y * z - w * x) * c,
-        2 * (x * z - w * y) * a + 2 * (y * z + w * x) * b + (1 - 2 * (x * x + y * y)) * c,
-    )
+    return r[0] * a + r[1] * b + r[2] * c, r[3] * a + r[4] * b + r[5] * c, r[6] * a + r[7] * b + r[8] * c
 
 
 def gravity_in_body_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
@@ -271,13 +274,7 @@ def gravity_in_body_floats(w: float, x: float, y: float, z: float) -> np.ndarray
 
 def rotation_matrix_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
     """(3, 3) R(q) of one unit quaternion (the scalar path of `rotation_matrix`)."""
-    return np.array(
-        (
-            (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-        )
-    )
+    return np.array(rotation_floats((w, x, y, z))).reshape(3, 3)
 
 
 def skew_floats(x: float, y: float, z: float) -> np.ndarray:
