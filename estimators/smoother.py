@@ -17,6 +17,7 @@ import dataclasses
 import math
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -90,12 +91,11 @@ class SmootherParams:
     the recording determines them and they lower the cost significantly: on the course board
     (x and y read 8 and 5 % high) they do, on BROAD's IMU (well within 1 %) only on one trial;
     without the significance test, the fast-translation trial fits -5 and -4 % and loses 0.3
-    deg of inclination. Measured with these defaults (`fusion compare --estimators gd,gn`):
-    course recordings 1-9 1.31 deg inclination, 5.18 (gd) and 4.97 (gn) total; the nine BROAD
-    trials 0.545 mean inclination for both (offlineVQF 0.544).
+    deg of inclination. The figures these defaults reach are in the README's Results section
+    and `docs/results.md`, with the commands.
     weighting: "noise" (information matrices from the noise stds above) or "scalar" (one
         scalar weight per term: motion `scalar_motion_weight`, accelerometer 1, no robust loss,
-        no velocity model). "seed", its former name, is accepted as a deprecated alias.
+        no velocity model). "seed", its former name, is still accepted, with a warning.
     scalar_motion_weight (wm): the motion term's weight with weighting="scalar".
     init: estimator whose output starts the optimisation ("dr", "ukf", ...).
     init_level_s (level): re-level the start every this many seconds with the accelerometer
@@ -140,7 +140,9 @@ class SmootherParams:
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def __post_init__(self) -> None:
-        if self.weighting == "seed":  # deprecated name of "scalar"
+        if self.weighting == "seed":  # the former name of "scalar", to be removed
+            warnings.warn('weighting="seed" is now called "scalar"; "seed" will be removed in the next release',
+                          FutureWarning, stacklevel=3)
             object.__setattr__(self, "weighting", "scalar")
         for name in ("gyro_noise_rad_sqrt_s", "acc_noise_g_sqrt_s", "loss_scale_g", "prior_std_rad", "dropout_noise_rad_sqrt_s",
                      "bias_prior_rad_s", "scale_prior", "scalar_motion_weight", "velocity_acc_noise_g_sqrt_s",

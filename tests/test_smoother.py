@@ -247,9 +247,12 @@ def test_real_recording_regression(data_dir):
 
 
 def test_seed_weighting_is_a_deprecated_alias_of_scalar():
-    assert SmootherParams(weighting="seed") == SmootherParams(weighting="scalar")
-    assert build("gn:weighting=seed,wm=3").params.weights() == build("gn:weighting=scalar,wm=3").params.weights()
-    assert GDParams(weighting="seed").weighting == "scalar"
+    with pytest.warns(FutureWarning, match='weighting="seed" is now called "scalar"'):
+        assert SmootherParams(weighting="seed") == SmootherParams(weighting="scalar")
+    with pytest.warns(FutureWarning):
+        assert build("gn:weighting=seed,wm=3").params.weights() == build("gn:weighting=scalar,wm=3").params.weights()
+    with pytest.warns(FutureWarning):
+        assert GDParams(weighting="seed").weighting == "scalar"
 
 
 @pytest.mark.parametrize("init", ["vqf", "gd", "nope"])
