@@ -71,7 +71,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
                 resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
-                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = ()) -> Run:
+                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = (), tum: bool = True) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -92,6 +92,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     trajectories: (name, path) pairs: trajectories other programs wrote, in the table as rows
         named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
         folder with one file per recording).
+    tum: with `out`, write every estimate and the truth it was scored against as TUM files
+        (`DIR/trajectories/<recording>/<estimator>.tum`, for evo); False: not.
     """
     with _heartbeat(progress):
         entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
@@ -99,13 +101,13 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
     call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
             "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
             "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag,
-            "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories]}
+            "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories], **_tum(tum)}
     command = command or f"run_compare({text!r}, {dataset!r})"
     return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
                     init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
                     progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
                     scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic,
-                    truth_topic=truth_topic, mag=mag)
+                    truth_topic=truth_topic, mag=mag, tum=tum)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -115,14 +117,15 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
                out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
                scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False,
-               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> Run:
+               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True, tum: bool = True) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
     estimator: the estimator to sweep, possibly with fixed parameters (`"ukf:Q=1e-5"`).
     params: the grid, as `"R=1e-4,1e-3"` texts or `("R", ["1e-4", "1e-3"])` pairs.
     preset: a name in `fusion.evaluation.ablate.PRESETS` (instead of estimator and params).
-    per_recording: with `out`, also draw each recording's figures for every setting.
+    per_recording: with `out`, also draw each recording's figures (and, with `tum`, write its TUM
+        files) for every setting.
     Other arguments as `run_compare`.
     """
     if bool(preset) == bool(estimator):
@@ -144,13 +147,13 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     settings["estimators"] = ",".join(e.label for e in entries)
     call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
             "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
-            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag}
+            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag, **_tum(tum)}
     command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
     return _execute(entries, settings, call, dataset, data_dir, command, init=init, protocol=protocol, align=align,
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
                     json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
                     scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic,
-                    mag=mag)
+                    mag=mag, tum=tum)
 
 
 def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
@@ -176,7 +179,7 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
              dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
              json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
              scatter: bool | None, timeout_s: float | None, resume: bool, imu_topic: str | None,
-             truth_topic: str | None, mag: bool) -> Run:
+             truth_topic: str | None, mag: bool, tum: bool = True) -> Run:
     """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
     before computing."""
     if resume and not out:
@@ -195,7 +198,7 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
     if not out:
         results = run(entries, sources, **options)
         return _finish(None, None, entries, sources, results, settings, dataset, root, command, calibration,
-                       dropouts, init, align, protocol, json_path, jobs, progress, per_recording)
+                       dropouts, init, align, protocol, json_path, jobs, progress, per_recording, tum=tum)
     with OutputFolder(out) as folder:
         header = {"call": call, "data_dir": str(root.resolve()),
                   "calibration": str(Path(calibration).resolve()) if calibration else None, "command": command,
@@ -216,9 +219,15 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
 
             results = run(entries, sources, **options, series=per_recording, done=done, on_done=record)
             return _finish(folder, journal, entries, sources, results, settings, dataset, root, command, calibration,
-                           dropouts, init, align, protocol, json_path, jobs, progress, per_recording, keys)
+                           dropouts, init, align, protocol, json_path, jobs, progress, per_recording, keys, tum)
         finally:
             journal.close()
+
+
+def _tum(tum: bool) -> dict[str, bool]:
+    """The TUM switch as the journal's call records it: only when off, so that a run journalled
+    before the switch existed resumes as the same call."""
+    return {} if tum else {"tum": False}
 
 
 @contextmanager
@@ -279,7 +288,7 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
             results: list[Result], settings: dict[str, Any], dataset: str, root: Path, command: str,
             calibration: PathLike | None, dropouts: bool, init: str | None, align: bool, protocol: str | None,
             json_path: PathLike | None, jobs: int | None, progress: bool, per_recording: bool,
-            keys: list[str] = ()) -> Run:
+            keys: list[str] = (), tum: bool = True) -> Run:
     """The table, the results document and the report folder of a finished run."""
     table = format_table(results, align=align)
     sweep = ablate.sweep_summary([r.to_json() for r in results]) if settings.get("kind") == "ablate" else None
@@ -305,17 +314,17 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
     if folder is not None:
-        series = _series(journal, entries, len(sources), results, keys, folder.staging) if per_recording else None
+        series = _series(journal, entries, len(sources), results, keys, folder.staging, tum) if per_recording else None
         report = write_run(folder, doc, series, journal, jobs=jobs, progress=progress)
         journal.remove()
     return Run(results, table, doc, report)
 
 
 def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, results: list[Result],
-            keys: list[str], stage: Path) -> Iterator[Any]:
+            keys: list[str], stage: Path, tum: bool = True) -> Iterator[Any]:
     """Each recording's series, assembled from its jobs' parts in the journal, one at a time (so
-    that at most one recording's plot data is in memory); on the way, each estimate and the truth
-    it was scored against are written as TUM files into `stage/trajectories/<recording>/`."""
+    that at most one recording's plot data is in memory); on the way (`tum`), each estimate and the
+    truth it was scored against are written as TUM files into `stage/trajectories/<recording>/`."""
     from fusion.trajectory_files import write_tum
 
     from . import series
@@ -326,12 +335,13 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
         first = journal.load_part(keys[i * per])  # the recording's arrays come with its first job
         parts = [first if j == 0 else journal.load_part(keys[i * per + j]) for j in shown]
         recording = {k[4:]: v for k, v in first.items() if k.startswith("rec_")}
-        folder = stage / "trajectories" / str(recording["id"])
-        folder.mkdir(parents=True, exist_ok=True)
-        if "truth_at_imu" in recording:
-            write_tum(folder / "truth.tum", recording["imu_t"], recording["truth_at_imu"])
-        for j, part in zip(shown, parts):
-            write_tum(folder / f"{entries[j].label.replace('/', '_')}.tum", recording["imu_t"], part["quat_wxyz"])
+        if tum:
+            folder = stage / "trajectories" / str(recording["id"])
+            folder.mkdir(parents=True, exist_ok=True)
+            if "truth_at_imu" in recording:
+                write_tum(folder / "truth.tum", recording["imu_t"], recording["truth_at_imu"])
+            for j, part in zip(shown, parts):
+                write_tum(folder / f"{entries[j].label.replace('/', '_')}.tum", recording["imu_t"], part["quat_wxyz"])
         yield series.assemble(recording, [entries[j].label for j in shown], [bool(entries[j].cls.causal) for j in shown],
                               parts)
 

@@ -73,6 +73,17 @@ def test_evo_scores_our_export_as_we_do(exported, estimator):
     assert rmse == pytest.approx(rows[estimator]["rmse_deg"]["total"], abs=1e-4)
 
 
+def test_no_tum_leaves_the_trajectories_out(quiet_data, exported, capsys):
+    out = quiet_data / "lean"
+    assert main(["compare", "--estimators", "dr,ekf", "--dataset", "sim", "--no-progress", "--out", str(out), "--no-tum"]) == 0
+    capsys.readouterr()
+    assert (out / "report.html").exists() and not (out / "trajectories").exists()
+    with_tum, _ = exported
+    assert sorted(p.name for p in (with_tum / "trajectories" / "sim").iterdir()) == ["dr.tum", "ekf.tum", "truth.tum"]
+    rows = [json.loads((folder / "results.json").read_text())["results"] for folder in (out, with_tum)]
+    assert [r["rmse_deg"] for r in rows[0]] == [r["rmse_deg"] for r in rows[1]]
+
+
 def test_a_partial_trajectory_is_scored_where_it_is_and_never_extrapolated(exported, capsys):
     out, rows = exported
     full = read_trajectory(out / "trajectories" / "sim" / "ekf.tum")
