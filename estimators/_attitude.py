@@ -469,3 +469,104 @@ def axes_mask(axes: str, name: str = "scale_axes") -> np.ndarray:
     if any(a not in "xyz" for a in axes) or len(set(axes)) != len(axes):
         raise ValueError(f"{name}={axes!r}: expected distinct letters from 'xyz' (or 'none')")
     return np.array([a in axes for a in "xyz"])
+
+
+class MagReference:
+    """The reference magnetic field (norm and dip), learned from the data while undisturbed, and
+    the disturbance gate of the magnetometer's heading update (after the magnetic disturbance
+    rejection of Laidig & Seel 2023, VQF, Information Fusion 91, Sec. 3.3: a sample counts only
+    while its norm and dip agree with a reference learned from undisturbed samples, and only
+    after they have agreed for a minimum time).
+
+    Per magnetometer sample, with m_w = R(q) m the field in the (ENU, z up) world at the current
+    estimate: norm `|m|` (uT) and dip `atan2(-m_w,z, |m_w,xy|)` (rad, positive downwards; the
+    dip needs the inclination only, which the accelerometer owns). The sample is *in the gates*
+    when `| |m| - norm_ref | < norm_gate_frac norm_ref` and `|dip - dip_ref| < dip_gate_rad`.
+    In the gates, the references follow the sample: `ref <- ref + (dt / min(T, ref_s)) (x - ref)`
+    with T the time spent in the gates so far (a running mean over the first `ref_s` seconds, a
+    first-order low-pass of time constant `ref_s` after that); the first sample starts them.
+    Out of the gates they stay where they are. The sample may correct the heading once the gates
+    have held for `min_undisturbed_s` without interruption (`update` returns True).
+
+    A magnet carried with the sensor adds a constant body-frame offset, whose world-frame norm and
+    dip change as the sensor turns: its samples leave the gates and the filter runs on the gyro
+    (6-D) until the field is back; a magnet fixed in the room is rejected where its field moves
+    the norm or the dip out of the gates.
+    """
+
+    __slots__ = ("norm_gate", "dip_gate", "min_time", "ref_s", "has_ref", "norm", "dip", "learn_time", "time_ok")
+
+    def __init__(self, norm_gate_frac: float, dip_gate_rad: float, min_undisturbed_s: float, ref_s: float) -> None:
+        self.norm_gate, self.dip_gate, self.min_time, self.ref_s = norm_gate_frac, dip_gate_rad, min_undisturbed_s, ref_s
+        self.has_ref = False
+        self.norm = self.dip = self.learn_time = self.time_ok = 0.0
+
+    def state(self) -> np.ndarray:
+        """(5,) float64 `[has_ref, norm_ref (uT), dip_ref (rad), time learned (s), time in the
+        gates (s)]`: the state as the compiled filter carries it; `set_state` takes it back."""
+        return np.array([float(self.has_ref), self.norm, self.dip, self.learn_time, self.time_ok])
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.has_ref = bool(state[0])
+        self.norm, self.dip, self.learn_time, self.time_ok = (float(x) for x in state[1:5])
+
+    def update(self, norm_ut: float, dip_rad: float, dt_s: float) -> bool:
+        """Feed one sample's norm (uT) and dip (rad) over the step dt_s (s); -> usable now."""
+        if not self.has_ref:
+            self.has_ref = True
+            self.norm, self.dip, self.learn_time, self.time_ok = norm_ut, dip_rad, dt_s, 0.0
+            return False
+        if abs(norm_ut - self.norm) < self.norm_gate * self.norm and abs(dip_rad - self.dip) < self.dip_gate:
+            self.learn_time += dt_s
+            alpha = dt_s / min(self.learn_time, self.ref_s)
+            self.norm += alpha * (norm_ut - self.norm)
+            self.dip += alpha * (dip_rad - self.dip)
+            self.time_ok += dt_s
+        else:
+            self.time_ok = 0.0
+        return self.time_ok >= self.min_time
+
+
+def field_norm_dip(q: tuple, mag_ut: np.ndarray) -> tuple[float, float, float, float]:
+    """The magnetometer sample `mag_ut` (3,) (uT, body) in the world of the estimate q (4 floats,
+    `R_world_body`, ENU, z up): `(norm (uT), dip (rad, positive down), east, north)` with
+    east, north (uT) its horizontal components."""
+    e, n, u = quat.rotate_floats(q, (float(mag_ut[0]), float(mag_ut[1]), float(mag_ut[2])))
+    horizontal = math.hypot(e, n)
+    return math.sqrt(e * e + n * n + u * u), math.atan2(-u, horizontal), e, n
+
+
+def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: float,
+                   r_rad2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The magnetometer's heading-only Kalman update (`ekf` module docstring, 9-D).
+
+    q: the estimate (4 floats, `R_world_body`, ENU); P: (N, N) error covariance `[attitude (3),
+    bias (3), scale (3), velocity (2)]` (the blocks that exist; n = 3, 6 or 9 without the
+    velocity); east_ut, north_ut: the horizontal field at the estimate (`field_norm_dip`);
+    r_rad2: the heading measurement's variance, rad^2. The measured heading error is the
+    angle of the horizontal field from north (magnetic north is the world's +y),
+    `psi = atan2(-east, north)`, which is 0 at the true attitude; a turn of the estimate by phi
+    about the world vertical turns the field, and psi, by phi, and in the body-frame error state
+    that turn is `e = v phi` with `v = R(q)^T e_z`, so `H = [v^T, 0, ...]` (scalar) and the
+    innovation is `0 - psi`. The gain is
+    restricted to heading (Laidig & Seel 2023, Sec. 3.3: the magnetometer corrects the heading
+    only, the accelerometer owns the inclination): `K <- v v^T K` on the attitude and bias
+    rows, 0 on the scale and velocity rows; with that gain the Joseph form
+    `P <- (I - K H) P (I - K H)^T + r K K^T` stays exact (Sola 2017, Sec. 6.1-6.3).
+    Returns `(dx (N,), P)`.
+    """
+    N = len(P)
+    v = quat.gravity_in_body_floats(*q)
+    psi = math.atan2(-east_ut, north_ut)
+    H = np.zeros(N)
+    H[:3] = v
+    PHt = P @ H
+    S = float(H @ PHt) + r_rad2
+    K = PHt / S
+    K[:3] = v * float(v @ K[:3])
+    if n > 3:
+        K[3:6] = v * float(v @ K[3:6])
+    K[min(n, 6):] = 0.0
+    IKH = np.eye(N) - np.outer(K, H)
+    P = IKH @ P @ IKH.T + r_rad2 * np.outer(K, K)
+    return K * -psi, P

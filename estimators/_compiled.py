@@ -86,6 +86,7 @@ Settings = namedtuple("Settings", [
     "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
     "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
     "cov_floor", "cov_reset", "sqrt_floor",  # _attitude's covariance repair
+    "mag_noise", "mag_norm_gate", "mag_dip_gate", "mag_min_time", "mag_ref_s",  # ekf: the magnetometer (9-D)
 ])
 
 
@@ -109,6 +110,9 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD),
         tuple(float(c) for c in quat._A[1]), tuple(float(c) for c in quat._B[1]),
         float(COV_FLOOR), float(COV_RESET_VAR), float(SQRT_FLOOR),
+        float(getattr(p, "mag_heading_noise_rad2_s", 0.0)), float(getattr(p, "mag_norm_gate_frac", 0.0)),
+        float(getattr(p, "mag_dip_gate_rad", 0.0)), float(getattr(p, "mag_min_undisturbed_s", 0.0)),
+        float(getattr(p, "mag_ref_s", 1.0)),
     )
 
 
@@ -118,6 +122,14 @@ def inputs(imu: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     gyr, valid = imu.interval_rates()
     return (np.ascontiguousarray(gyr, dtype=float), np.ascontiguousarray(valid, dtype=bool),
             np.ascontiguousarray(imu.dt, dtype=float), np.array(imu.acc_g, dtype=float, order="C"))
+
+
+def mag_inputs(imu: Any, use: bool) -> tuple[np.ndarray, np.ndarray]:
+    """`(mag (N, 3) uT, valid (N,))` for the EKF kernel when `use` (a 9-D filter on a recording with a
+    magnetometer), else empty arrays (0, 3), (0,): the 6-D filter."""
+    if not (use and imu.has_mag):
+        return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    return np.array(imu.mag_ut, dtype=float, order="C"), np.array(imu.mag_valid, dtype=bool)
 
 
 def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -135,6 +147,7 @@ def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[st
         "nis": np.zeros(n_samples),
         "bias_guarded": np.zeros(n_samples, dtype=bool),
         "acc_lowpassed": np.zeros(n_samples, dtype=bool),
+        "mag_used": np.zeros(n_samples, dtype=bool),
     }
     out["quat"][0] = init_quat_wxyz
     for key, value in current.items():
@@ -163,9 +176,10 @@ def load() -> None:
     state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), dist, rest)
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), P, Qrate, Qbad, dist, rest, o,
+    ekf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), unit.copy(), np.zeros(3), np.zeros(3),
+               np.zeros(2), P, Qrate, Qbad, dist, rest, np.zeros(5), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-               out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"])
+               out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
@@ -674,6 +688,57 @@ def _inject(q, b, s, v, dx, n, N, small):
 
 
 @_jit
+def mag_reference_update(st, norm, dip, dt, o):
+    """`_attitude.MagReference.update` on its state st (5,) `[has_ref, norm, dip, learned, in gates]`;
+    -> the sample may correct the heading."""
+    if st[0] == 0.0:
+        st[0], st[1], st[2], st[3], st[4] = 1.0, norm, dip, dt, 0.0
+        return False
+    if abs(norm - st[1]) < o.mag_norm_gate * st[1] and abs(dip - st[2]) < o.mag_dip_gate:
+        st[3] += dt
+        alpha = dt / min(st[3], o.mag_ref_s)
+        st[1] += alpha * (norm - st[1])
+        st[2] += alpha * (dip - st[2])
+        st[4] += dt
+    else:
+        st[4] = 0.0
+    return st[4] >= o.mag_min_time
+
+
+@_jit
+def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
+    """`_attitude.heading_update`: the heading-only update with H = [v^T, 0] (v = R(q)^T e_z), the
+    gain restricted to v on the attitude and bias rows and 0 below, Joseph form for a scalar
+    measurement (M = P - K (H P), P = M - (M H^T) K^T + r K K^T); the correction into dx (N,)
+    (K, G: (N,) scratch; M: N x N scratch)."""
+    vx, vy, vz = gravity(q)
+    psi = math.atan2(-east, north)
+    for i in range(N):  # P H^T
+        K[i] = P[i, 0] * vx + P[i, 1] * vy + P[i, 2] * vz
+    S = vx * K[0] + vy * K[1] + vz * K[2] + r
+    for i in range(N):
+        K[i] = K[i] / S
+    vk = vx * K[0] + vy * K[1] + vz * K[2]
+    K[0], K[1], K[2] = vx * vk, vy * vk, vz * vk
+    if n > 3:
+        vk = vx * K[3] + vy * K[4] + vz * K[5]
+        K[3], K[4], K[5] = vx * vk, vy * vk, vz * vk
+    for i in range(min(n, 6), N):
+        K[i] = 0.0
+    for c in range(N):  # G = H P
+        G[c] = vx * P[0, c] + vy * P[1, c] + vz * P[2, c]
+    for i in range(N):
+        for c in range(N):
+            M[i, c] = P[i, c] - K[i] * G[c]
+    for i in range(N):
+        e = M[i, 0] * vx + M[i, 1] * vy + M[i, 2] * vz
+        for c in range(N):
+            P[i, c] = M[i, c] - e * K[c] + r * K[i] * K[c]
+    for i in range(N):
+        dx[i] = -psi * K[i]
+
+
+@_jit
 def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
     the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
@@ -719,15 +784,16 @@ def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
 
 
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed):
+def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, dist, rest, magst, o,
+               out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed, out_mag):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
-    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
+    mag (N, 3), uT, and mag_ok (N,) its validity, or both empty (no magnetometer: 6-D).
     State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N) (N = n + nv, the velocity
-    last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,). Qrate, Qbad (N, N) as
-    built by `EKF.reset`. Fills rows 1.. of the (samples, ...) outputs; returns (updates
-    skipped, covariance repairs).
+    last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,), magst (5,)
+    (`MagReference.state`). Qrate, Qbad (N, N) as built by `EKF.reset`. Fills rows 1.. of the
+    (samples, ...) outputs; returns (updates skipped, covariance repairs).
     """
     n = o.n
     N = n + o.nv
@@ -747,6 +813,9 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
     M = np.empty((N, N))
     L = np.empty((N, N))
     q = (qio[0], qio[1], qio[2], qio[3])
+    use_mag = mag.shape[0] > 0
+    Km = np.empty(N)
+    Gm = np.empty(N)
     skipped = 0
     repaired = 0
     for k in range(dt.shape[0]):
@@ -878,6 +947,18 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
             skipped += 1
             if o.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 disturbance_turn(dist, d, h, o, with_lag, rate)
+        mag_used = False
+        if use_mag and mag_ok[k + 1]:  # 9-D: the gated heading-only update (`EKF.step`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
+            if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                east, north, up = rotate(q, mx, my, mz)  # `_attitude.field_norm_dip`
+                horizontal = math.hypot(east, north)
+                norm = math.sqrt(east * east + north * north + up * up)
+                dip = math.atan2(-up, horizontal)
+                if mag_reference_update(magst, norm, dip, h, o) and east * east + north * north > 0.0:
+                    heading_update(P, n, N, q, east, north, o.mag_noise / h, Km, Gm, dx, M)
+                    q = _inject(q, b, s, v, dx, n, N, small)
+                    mag_used = True
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -897,6 +978,7 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
         out_nis[k + 1] = nis
         out_guard[k + 1] = guarded
         out_lowpassed[k + 1] = lowpassed
+        out_mag[k + 1] = mag_used
     qio[0], qio[1], qio[2], qio[3] = q
     return skipped, repaired
 

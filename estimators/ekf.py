@@ -118,15 +118,18 @@ from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ._attitude import (
     AccDisturbance,
+    MagReference,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
     bias_rest_update,
+    field_norm_dip,
+    heading_update,
     inv_sym3,
     models_lag,
     repair_covariance,
 )
-from .filter_params import BiasFilterParams
+from .filter_params import BiasFilterParams, check_nonneg
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 
 
@@ -142,6 +145,17 @@ class EKFParams(BiasFilterParams):
     velocity_bound_m_sqrt_s (vb): density of the pseudo-measurement v = 0, m/s sqrt(s): per
         second, one observation "v = 0" of std vb m/s (inf: no velocity states; see the
         module docstring).
+    mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
+        (step variance Rm / dt); with the gyro noise Q it sets the heading correction's time
+        constant, about sqrt(Rm / Q) (10 s by default).
+    mag_norm_gate_frac (mnorm): a magnetometer sample is in the gates while its norm is within
+        this fraction of the learned reference norm (`_attitude.MagReference`).
+    mag_dip_gate_rad (mdip): ... and its dip within this of the learned reference dip, rad.
+    mag_min_undisturbed_s (mtime): the gates must have held this long, s, before a sample
+        corrects the heading.
+    mag_ref_s (mref): time constant of the learned reference norm and dip, s.
+    The magnetometer fields apply to recordings with a magnetometer (9-D); `--mag off` or a
+    recording without one runs the 6-D filter, unchanged.
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
@@ -154,10 +168,20 @@ class EKFParams(BiasFilterParams):
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=1.0, metadata={"alias": "vb"})
+    mag_heading_noise_rad2_s: float = field(default=0.03, metadata={"alias": "Rm"})
+    mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
+    mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
+    mag_min_undisturbed_s: float = field(default=0.5, metadata={"alias": "mtime"})
+    mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
         super()._check()
+        for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
+                raise ValueError(f"ekf: {name} must be a finite number > 0, got {value!r}")
+        check_nonneg("ekf", mag_min_undisturbed_s=self.mag_min_undisturbed_s)
         if not (self.velocity_acc_noise_g_sqrt_s > 0.0 and math.isfinite(self.velocity_acc_noise_g_sqrt_s)):
             raise ValueError(f"ekf: velocity_acc_noise_g_sqrt_s must be a finite number > 0, "
                              f"got {self.velocity_acc_noise_g_sqrt_s!r}")
@@ -194,7 +218,8 @@ class EKF(KalmanFilter):
     """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
 
     Params = EKFParams
-    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded"}
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used"}
+    magnetometer = True  # 9-D where the recording has a magnetometer (the heading-only update)
 
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
@@ -215,6 +240,7 @@ class EKF(KalmanFilter):
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
+        self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
         self._F = np.eye(N)
         self._H = np.zeros((3, N))
         self._I = np.eye(N)
@@ -223,12 +249,17 @@ class EKF(KalmanFilter):
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
         self.lowpassed = False  # whether the last update used the low-passed accelerometer
+        self.mag_used = False  # whether the last step made the magnetometer's heading update
         self.n_skipped = self.n_cov_repaired = 0
 
-    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
+             mag_ut: np.ndarray | None = None) -> np.ndarray:
+        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
+        uT, body frame, or None (no magnetometer, or no valid sample): the heading update."""
         p = self.params
         n = self.n
         self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
+        self.mag_used = False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -309,6 +340,13 @@ class EKF(KalmanFilter):
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 self._dist.turn(d, dt_s, rate, 1.0 + self.s)
+        if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
+            # 9-D: the heading-only magnetometer update, gated (`_attitude.MagReference`, `heading_update`)
+            norm, dip, east, north = field_norm_dip(q, mag_ut)
+            if self._mag.update(norm, dip, dt_s) and east * east + north * north > 0.0:
+                dx, P = heading_update(q, P, n, east, north, p.mag_heading_noise_rad2_s / dt_s)
+                q = self._correct(q, dx)
+                self.mag_used = True
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -357,7 +395,8 @@ class EKF(KalmanFilter):
 
     def current(self) -> dict[str, Any]:
         return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "velocity_m_s": self.v, "acc_var_g2": self.acc_var,
-                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed}
+                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed,
+                "mag_used": self.mag_used}
 
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}
@@ -365,9 +404,11 @@ class EKF(KalmanFilter):
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
                     rest: np.ndarray) -> None:
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
+        mag_state = self._mag.state()
         self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
-            *kernels.inputs(imu), q, b, s, v, P, self._Qrate, self._Qbad, dist, rest,
-            kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
+            *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad,
+            dist, rest, mag_state, kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"])
+            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"])
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
+        self._mag.set_state(mag_state)
