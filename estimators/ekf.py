@@ -147,7 +147,7 @@ class EKFParams(BiasFilterParams):
         module docstring).
     mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
         (step variance Rm / dt); with the gyro noise Q it sets the heading correction's time
-        constant, about sqrt(Rm / Q) (10 s by default).
+        constant, about sqrt(Rm / Q) (30 s by default).
     mag_norm_gate_frac (mnorm): a magnetometer sample is in the gates while its norm is within
         this fraction of the learned reference norm (`_attitude.MagReference`).
     mag_dip_gate_rad (mdip): ... and its dip within this of the learned reference dip, rad.
@@ -168,10 +168,10 @@ class EKFParams(BiasFilterParams):
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=1.0, metadata={"alias": "vb"})
-    mag_heading_noise_rad2_s: float = field(default=0.03, metadata={"alias": "Rm"})
+    mag_heading_noise_rad2_s: float = field(default=0.3, metadata={"alias": "Rm"})
     mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
     mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
-    mag_min_undisturbed_s: float = field(default=0.5, metadata={"alias": "mtime"})
+    mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
     mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
