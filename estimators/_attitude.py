@@ -510,6 +510,11 @@ class MagReference:
         self.has_ref = bool(state[0])
         self.norm, self.dip, self.learn_time, self.time_ok = (float(x) for x in state[1:5])
 
+    def in_gates(self, norm_ut: float, dip_rad: float) -> bool:
+        """Whether a sample's norm (uT) and dip (rad) are in the gates of the learned reference
+        (False before the first sample)."""
+        return self.has_ref and abs(norm_ut - self.norm) < self.norm_gate * self.norm and abs(dip_rad - self.dip) < self.dip_gate
+
     def update(self, norm_ut: float, dip_rad: float, dt_s: float) -> bool:
         """Feed one sample's norm (uT) and dip (rad) over the step dt_s (s); -> usable now."""
         if not self.has_ref:
@@ -570,3 +575,125 @@ def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: fl
     IKH = np.eye(N) - np.outer(K, H)
     P = IKH @ P @ IKH.T + r_rad2 * np.outer(K, K)
     return K * -psi, P
+
+
+# The hard-iron sphere fit's running sums (`HardIron.state`): A (4 x 4, row by row), b (4),
+# sum of y^2, sum of weights.
+HARD_IRON_STATE = 22
+
+
+class HardIron:
+    """A magnet carried with the sensor: a constant body-frame offset o (hard iron), estimated
+    without the attitude by fitting a sphere to the recent samples (the standard hard-iron
+    calibration, e.g. Vasconcelos et al. 2011, "Geometric approach to strapdown magnetometer
+    calibration in sensor frame", IEEE TAES 47(2), eqs. 4-6 with the soft iron left out): the
+    readings m of a field of constant norm r turned in every direction lie on
+    `|m - o|^2 = r^2`, linear in `x = [2 o, r^2 - |o|^2]`: `[m^T, 1] x = |m|^2`.
+
+    Least squares over an exponential window of time constant `window_s` (running sums of the
+    normal equations, weight `dt / window_s` per sample, the older ones decaying by
+    `1 - dt / window_s`): `A x = b`, `A = sum w [m, 1][m, 1]^T`, `b = sum w [m, 1] |m|^2`. The fit
+    is trusted (`fit` returns it) only when the samples cover the sphere (the geometric mean of
+    the eigenvalues of their covariance, `det^(1/3)`, at least `(coverage r)^2`), fit it (RMS
+    residual `|m - o| - r` under `residual_ut`), its offset exceeds that residual (a smaller one,
+    from soft iron or noise, is not told apart) and its radius is that of the reference field
+    (checked by the caller). An offset that changes within the window (the magnet comes or goes)
+    or a field that is not a sphere (a magnet in the room, passed by) leaves a large residual.
+    The 4 x 4 system is solved by Gaussian elimination with partial pivoting written out
+    (`solve4`), the same operations as the compiled filter's.
+    """
+
+    __slots__ = ("window_s", "residual_ut", "coverage", "s")
+
+    def __init__(self, window_s: float, residual_ut: float, coverage: float) -> None:
+        self.window_s, self.residual_ut, self.coverage = window_s, residual_ut, coverage
+        self.s = np.zeros(HARD_IRON_STATE)
+
+    def state(self) -> np.ndarray:
+        """(22,) float64: the running sums (`HARD_IRON_STATE`); `set_state` takes them back."""
+        return self.s.copy()
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.s = np.array(state, dtype=float)
+
+    def update(self, mx: float, my: float, mz: float, dt_s: float) -> None:
+        """Add one sample (uT, body) over the step dt_s (s)."""
+        hard_iron_add(self.s, mx, my, mz, min(dt_s / self.window_s, 1.0))
+
+    def fit(self) -> tuple[float, float, float, float] | None:
+        """`(ox, oy, oz, r)` (uT) when the fit is trusted, else None."""
+        return hard_iron_fit(self.s, self.residual_ut, self.coverage)
+
+
+def hard_iron_add(s: np.ndarray, mx: float, my: float, mz: float, alpha: float) -> None:
+    """`HardIron.update` on the sums s (22,) in place: s <- (1 - alpha) s + alpha (sample's terms)."""
+    x = (mx, my, mz, 1.0)
+    y = mx * mx + my * my + mz * mz
+    keep = 1.0 - alpha
+    for i in range(4):
+        for j in range(4):
+            s[4 * i + j] = keep * s[4 * i + j] + alpha * x[i] * x[j]
+        s[16 + i] = keep * s[16 + i] + alpha * x[i] * y
+    s[20] = keep * s[20] + alpha * y * y
+    s[21] = keep * s[21] + alpha
+
+
+def solve4(s: np.ndarray) -> tuple[float, float, float, float] | None:
+    """x with A x = b from the sums s (`HardIron`), Gaussian elimination with partial pivoting;
+    None when a pivot vanishes."""
+    a = [[s[4 * i + j] for j in range(4)] + [s[16 + i]] for i in range(4)]
+    for c in range(4):
+        p = c
+        for r in range(c + 1, 4):
+            if abs(a[r][c]) > abs(a[p][c]):
+                p = r
+        if not abs(a[p][c]) > 0.0:
+            return None
+        a[c], a[p] = a[p], a[c]
+        for r in range(c + 1, 4):
+            f = a[r][c] / a[c][c]
+            for j in range(c, 5):
+                a[r][j] -= f * a[c][j]
+    x = [0.0, 0.0, 0.0, 0.0]
+    for r in range(3, -1, -1):
+        v = a[r][4]
+        for j in range(r + 1, 4):
+            v -= a[r][j] * x[j]
+        x[r] = v / a[r][r]
+    return x[0], x[1], x[2], x[3]
+
+
+def hard_iron_fit(s: np.ndarray, residual_ut: float, coverage: float) -> tuple[float, float, float, float] | None:
+    """`HardIron.fit` from the sums s: `(ox, oy, oz, r)` (uT) or None (see `HardIron`)."""
+    w = s[21]
+    if not w > 0.0:
+        return None
+    x = solve4(s)
+    if x is None:
+        return None
+    ox, oy, oz = 0.5 * x[0], 0.5 * x[1], 0.5 * x[2]
+    r2 = x[3] + ox * ox + oy * oy + oz * oz
+    if not r2 > 0.0:
+        return None
+    r = math.sqrt(r2)
+    # weighted mean squared residual of [m, 1] x = |m|^2: (sum y^2 - 2 x.b + x^T A x) / w
+    xAx = 0.0
+    xb = 0.0
+    for i in range(4):
+        xb += x[i] * s[16 + i]
+        for j in range(4):
+            xAx += x[i] * s[4 * i + j] * x[j]
+    res = (s[20] - 2.0 * xb + xAx) / w
+    # |m|^2 - [m, 1] x = |m - o|^2 - r^2 ~ 2 r (|m - o| - r)
+    if not res < (2.0 * r * residual_ut) ** 2:
+        return None
+    # covariance of the samples: the coverage of the sphere
+    mx, my, mz = s[3] / w, s[7] / w, s[11] / w
+    cxx, cxy, cxz = s[0] / w - mx * mx, s[1] / w - mx * my, s[2] / w - mx * mz
+    cyy, cyz, czz = s[5] / w - my * my, s[6] / w - my * mz, s[10] / w - mz * mz
+    det = cxx * (cyy * czz - cyz * cyz) - cxy * (cxy * czz - cyz * cxz) + cxz * (cxy * cyz - cyy * cxz)
+    if not det > (coverage * r) ** 6:
+        return None
+    if not ox * ox + oy * oy + oz * oz > residual_ut * residual_ut:
+        return None  # an offset within the fit's residual is not one (soft iron, noise)
+    return ox, oy, oz, r

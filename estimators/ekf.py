@@ -118,6 +118,7 @@ from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ._attitude import (
     AccDisturbance,
+    HardIron,
     MagReference,
     RestDetector,
     accelerometer_update_input,
@@ -154,6 +155,17 @@ class EKFParams(BiasFilterParams):
     mag_min_undisturbed_s (mtime): the gates must have held this long, s, before a sample
         corrects the heading.
     mag_ref_s (mref): time constant of the learned reference norm and dip, s.
+    mag_rate_rad_s (mrate): the heading measurement's variance is Rm / dt (1 + (w / mrate)^2),
+        w the rate about the vertical, rad/s: a magnetometer sample that lags the gyro (its own
+        sampling and low-pass) errs in heading by the angle turned over the lag; inf: constant.
+    mag_hard_iron (mhi): estimate a magnet carried with the sensor (a constant body-frame
+        offset) by a sphere fit (`_attitude.HardIron`); a sample out of the gates is used with
+        the offset removed when that brings it into them. The three fields below apply only
+        with it.
+    mag_hard_iron_window_s (mhiw): time constant of the sphere fit's exponential window, s.
+    mag_hard_iron_residual_ut (mhires): the fit is trusted while its RMS residual is below this, uT.
+    mag_hard_iron_coverage (mhicov): ... and the samples' spread, the geometric mean of the
+        standard deviations along the principal axes, at least this fraction of the radius.
     The magnetometer fields apply to recordings with a magnetometer (9-D); `--mag off` or a
     recording without one runs the 6-D filter, unchanged.
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
@@ -173,11 +185,19 @@ class EKFParams(BiasFilterParams):
     mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
     mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
     mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
+    mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
+    mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
+    mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
+    mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
+    mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
         super()._check()
-        for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s"):
+        if not self.mag_rate_rad_s > 0.0:
+            raise ValueError(f"ekf: mag_rate_rad_s must be > 0 (inf: no rate term), got {self.mag_rate_rad_s!r}")
+        for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s",
+                     "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"ekf: {name} must be a finite number > 0, got {value!r}")
@@ -197,7 +217,10 @@ class EKFParams(BiasFilterParams):
         bias = ("estimate_bias", (True,))
         names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
                  "rest_time_s", "rest_noise_rad2_s")
-        return {**super()._only_with(), **{name: bias for name in names}}
+        hard_iron = ("mag_hard_iron", (True,))
+        return {**super()._only_with(), **{name: bias for name in names},
+                **{name: hard_iron for name in ("mag_hard_iron_window_s", "mag_hard_iron_residual_ut",
+                                                "mag_hard_iron_coverage")}}
 
     @property
     def velocity_states(self) -> int:
@@ -218,7 +241,8 @@ class EKF(KalmanFilter):
     """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
 
     Params = EKFParams
-    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used"}
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used",
+                "mag_hard_iron": "hard_iron_used"}
     magnetometer = True  # 9-D where the recording has a magnetometer (the heading-only update)
 
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
@@ -241,6 +265,7 @@ class EKF(KalmanFilter):
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
+        self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self._F = np.eye(N)
         self._H = np.zeros((3, N))
         self._I = np.eye(N)
@@ -250,6 +275,7 @@ class EKF(KalmanFilter):
         self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
         self.lowpassed = False  # whether the last update used the low-passed accelerometer
         self.mag_used = False  # whether the last step made the magnetometer's heading update
+        self.hard_iron_used = False  # ... with the sphere fit's offset removed
         self.n_skipped = self.n_cov_repaired = 0
 
     def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
@@ -259,7 +285,7 @@ class EKF(KalmanFilter):
         p = self.params
         n = self.n
         self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
-        self.mag_used = False
+        self.mag_used = self.hard_iron_used = False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -343,8 +369,24 @@ class EKF(KalmanFilter):
         if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
             # 9-D: the heading-only magnetometer update, gated (`_attitude.MagReference`, `heading_update`)
             norm, dip, east, north = field_norm_dip(q, mag_ut)
-            if self._mag.update(norm, dip, dt_s) and east * east + north * north > 0.0:
-                dx, P = heading_update(q, P, n, east, north, p.mag_heading_noise_rad2_s / dt_s)
+            mag = self._mag
+            if p.mag_hard_iron:
+                self._hard_iron.update(mag_ut[0], mag_ut[1], mag_ut[2], dt_s)
+                if mag.has_ref:
+                    fit = self._hard_iron.fit()
+                    if fit is not None and abs(fit[3] - mag.norm) < mag.norm_gate * mag.norm:
+                        # a carried magnet: the sample without the fitted offset, if that is in the gates
+                        corrected = field_norm_dip(q, (mag_ut[0] - fit[0], mag_ut[1] - fit[1], mag_ut[2] - fit[2]))
+                        if mag.in_gates(corrected[0], corrected[1]):
+                            norm, dip, east, north = corrected
+                            self.hard_iron_used = True
+            if mag.update(norm, dip, dt_s) and east * east + north * north > 0.0:
+                # the heading measurement's variance grows with the rate about the vertical
+                # (a magnetometer sampled late or low-passed lags the turn: an error ~ rate x lag)
+                vx, vy, vz = gravity_in_body_floats(*q)
+                w_up = (tx * vx + ty * vy + tz * vz) / dt_s
+                r = p.mag_heading_noise_rad2_s / dt_s * (1.0 + (w_up / p.mag_rate_rad_s) ** 2)
+                dx, P = heading_update(q, P, n, east, north, r)
                 q = self._correct(q, dx)
                 self.mag_used = True
         if n > 3:
@@ -396,7 +438,7 @@ class EKF(KalmanFilter):
     def current(self) -> dict[str, Any]:
         return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "velocity_m_s": self.v, "acc_var_g2": self.acc_var,
                 "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed,
-                "mag_used": self.mag_used}
+                "mag_used": self.mag_used, "mag_hard_iron": self.hard_iron_used}
 
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}
@@ -404,11 +446,12 @@ class EKF(KalmanFilter):
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
                     rest: np.ndarray) -> None:
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
-        mag_state = self._mag.state()
+        mag_state, hard_iron = self._mag.state(), self._hard_iron.state()
         self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
             *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad,
-            dist, rest, mag_state, kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
+            dist, rest, mag_state, hard_iron, kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"])
+            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"])
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
         self._mag.set_state(mag_state)
+        self._hard_iron.set_state(hard_iron)
