@@ -2,7 +2,7 @@
 
     python benchmarks/broad_9d.py [--data-dir DIR] [--estimators ekf,vqf] [--jobs 1]
 
-Runs each estimator through the harness (`fusion.evaluation.compare`, the same jobs as
+Runs each estimator through the harness (`fusion.evaluation.runs.run_compare`, the same run as
 `fusion compare --estimators ekf,vqf --dataset 'broad/*'`) under BROAD's protocol (the
 movement phases; a 9-D estimate is scored on its total error with no heading offset removed)
 and prints the per-trial total RMSE (deg), each row's 6-D/9-D mark, and the mean over the
@@ -26,7 +26,7 @@ import sys
 import numpy as np
 
 from fusion import datasets
-from fusion.evaluation.compare import compare
+from fusion.evaluation.runs import run_compare
 
 # VQF's 9-D total RMSE (deg) run directly on the trials with BROAD's metric (the data README).
 VQF_DIRECT_DEG = {"28": 4.04, "30": 2.57, "32": 7.67, "34": 3.35, "36": 2.39}
@@ -37,11 +37,14 @@ def trial(recording_id: str) -> str:
     return recording_id.split("/")[-1].split("_")[0]
 
 
-def totals(specs: list[str], sources, jobs: int) -> dict[str, dict[str, tuple[float, bool]]]:
+def totals(specs: list[str], data_dir, jobs: int) -> dict[str, dict[str, tuple[float, bool]]]:
     """spec -> trial -> (total RMSE deg, 9-D)."""
     out: dict[str, dict[str, tuple[float, bool]]] = {spec: {} for spec in specs}
-    for r in compare(specs, sources, jobs=jobs):
-        out[r.estimator][trial(r.recording)] = (r.rmse_deg["total"], r.magnetometer)
+    run = run_compare(specs, "broad/*", data_dir, jobs=jobs)
+    if run.failed:
+        raise SystemExit(f"failed: {[(r.dataset, r.estimator, r.error) for r in run.failed]}")
+    for r in run.results:
+        out[r.estimator][trial(r.dataset)] = (r.rmse_deg["total"], r.magnetometer)
     return out
 
 
@@ -58,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"expected BROAD's fourteen trials, found {len(sources)}", file=sys.stderr)
         return 1
     specs = args.estimators.split(",")
-    res = totals(specs, sources, args.jobs)
+    res = totals(specs, args.data_dir, args.jobs)
     trials = sorted(res[specs[0]])
     print("total RMSE, deg (BROAD protocol, movement phases; 9-D rows: no heading offset removed)")
     print(f"{'trial':6s}" + "".join(f"{s:>14s}" for s in specs) + f"{'VQF direct':>12s}")
@@ -74,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.leave_one_out:
         grid = args.grid.split(",")
         grid_specs = [f"ekf:Rm={g}" for g in grid]
-        by = totals(grid_specs, sources, args.jobs)
+        by = totals(grid_specs, args.data_dir, args.jobs)
         held = []
         for t in trials:
             best = min(grid_specs, key=lambda s: np.mean([by[s][u][0] for u in trials if u != t]))

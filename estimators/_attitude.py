@@ -697,3 +697,40 @@ def hard_iron_fit(s: np.ndarray, residual_ut: float, coverage: float) -> tuple[f
     if not ox * ox + oy * oy + oz * oz > residual_ut * residual_ut:
         return None  # an offset within the fit's residual is not one (soft iron, noise)
     return ox, oy, oz, r
+
+
+def magnetometer_input(p, mag: MagReference, hard_iron: HardIron, q: tuple, mag_ut, dt_s: float
+                       ) -> tuple[bool, float, float, bool]:
+    """One magnetometer sample through the gates (`ekf`, `ukf-bias`): `(usable, east, north,
+    hard_iron_used)`.
+
+    p: the filter's parameters (`BiasFilterParams`, the mag_* fields); mag, hard_iron: its
+    `MagReference` and `HardIron`, advanced here; q: the estimate (4 floats); mag_ut: (3,)
+    the finite sample, uT, body; dt_s: the step, s. The sample goes into the sphere fit; while
+    the fit is trusted and its radius is the reference norm, the sample without the fitted
+    offset replaces it if that is in the gates. `east, north` (uT): its horizontal field at q,
+    for `heading_update`.
+    """
+    norm, dip, east, north = field_norm_dip(q, mag_ut)
+    hard_iron_used = False
+    if p.mag_hard_iron:
+        hard_iron.update(mag_ut[0], mag_ut[1], mag_ut[2], dt_s)
+        if mag.has_ref:
+            fit = hard_iron.fit()
+            if fit is not None and abs(fit[3] - mag.norm) < mag.norm_gate * mag.norm:
+                # a carried magnet: the sample without the fitted offset, if that is in the gates
+                corrected = field_norm_dip(q, (mag_ut[0] - fit[0], mag_ut[1] - fit[1], mag_ut[2] - fit[2]))
+                if mag.in_gates(corrected[0], corrected[1]):
+                    norm, dip, east, north = corrected
+                    hard_iron_used = True
+    usable = mag.update(norm, dip, dt_s) and east * east + north * north > 0.0
+    return usable, east, north, hard_iron_used
+
+
+def heading_variance(p, q: tuple, tx: float, ty: float, tz: float, dt_s: float) -> float:
+    """The heading measurement's variance for one step, rad^2: `Rm / dt (1 + (w / mrate)^2)`, w
+    the rate about the vertical (the step's rotation (tx, ty, tz), rad, body, over dt_s, on
+    `R(q)^T e_z`): a magnetometer that lags the gyro errs by the angle turned over its lag."""
+    vx, vy, vz = quat.gravity_in_body_floats(*q)
+    w_up = (tx * vx + ty * vy + tz * vz) / dt_s
+    return p.mag_heading_noise_rad2_s / dt_s * (1.0 + (w_up / p.mag_rate_rad_s) ** 2)

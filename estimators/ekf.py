@@ -124,13 +124,14 @@ from ._attitude import (
     accelerometer_update_input,
     acc_variance_scale,
     bias_rest_update,
-    field_norm_dip,
     heading_update,
+    heading_variance,
     inv_sym3,
+    magnetometer_input,
     models_lag,
     repair_covariance,
 )
-from .filter_params import BiasFilterParams, check_nonneg
+from .filter_params import BiasFilterParams
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 
 
@@ -146,28 +147,6 @@ class EKFParams(BiasFilterParams):
     velocity_bound_m_sqrt_s (vb): density of the pseudo-measurement v = 0, m/s sqrt(s): per
         second, one observation "v = 0" of std vb m/s (inf: no velocity states; see the
         module docstring).
-    mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
-        (step variance Rm / dt); with the gyro noise Q it sets the heading correction's time
-        constant, about sqrt(Rm / Q) (30 s by default).
-    mag_norm_gate_frac (mnorm): a magnetometer sample is in the gates while its norm is within
-        this fraction of the learned reference norm (`_attitude.MagReference`).
-    mag_dip_gate_rad (mdip): ... and its dip within this of the learned reference dip, rad.
-    mag_min_undisturbed_s (mtime): the gates must have held this long, s, before a sample
-        corrects the heading.
-    mag_ref_s (mref): time constant of the learned reference norm and dip, s.
-    mag_rate_rad_s (mrate): the heading measurement's variance is Rm / dt (1 + (w / mrate)^2),
-        w the rate about the vertical, rad/s: a magnetometer sample that lags the gyro (its own
-        sampling and low-pass) errs in heading by the angle turned over the lag; inf: constant.
-    mag_hard_iron (mhi): estimate a magnet carried with the sensor (a constant body-frame
-        offset) by a sphere fit (`_attitude.HardIron`); a sample out of the gates is used with
-        the offset removed when that brings it into them. The three fields below apply only
-        with it.
-    mag_hard_iron_window_s (mhiw): time constant of the sphere fit's exponential window, s.
-    mag_hard_iron_residual_ut (mhires): the fit is trusted while its RMS residual is below this, uT.
-    mag_hard_iron_coverage (mhicov): ... and the samples' spread, the geometric mean of the
-        standard deviations along the principal axes, at least this fraction of the radius.
-    The magnetometer fields apply to recordings with a magnetometer (9-D); `--mag off` or a
-    recording without one runs the 6-D filter, unchanged.
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
@@ -180,28 +159,10 @@ class EKFParams(BiasFilterParams):
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
     velocity_bound_m_sqrt_s: float = field(default=1.0, metadata={"alias": "vb"})
-    mag_heading_noise_rad2_s: float = field(default=0.3, metadata={"alias": "Rm"})
-    mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
-    mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
-    mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
-    mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
-    mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
-    mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
-    mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
-    mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
-    mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
         super()._check()
-        if not self.mag_rate_rad_s > 0.0:
-            raise ValueError(f"ekf: mag_rate_rad_s must be > 0 (inf: no rate term), got {self.mag_rate_rad_s!r}")
-        for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s",
-                     "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
-                raise ValueError(f"ekf: {name} must be a finite number > 0, got {value!r}")
-        check_nonneg("ekf", mag_min_undisturbed_s=self.mag_min_undisturbed_s)
         if not (self.velocity_acc_noise_g_sqrt_s > 0.0 and math.isfinite(self.velocity_acc_noise_g_sqrt_s)):
             raise ValueError(f"ekf: velocity_acc_noise_g_sqrt_s must be a finite number > 0, "
                              f"got {self.velocity_acc_noise_g_sqrt_s!r}")
@@ -217,10 +178,7 @@ class EKFParams(BiasFilterParams):
         bias = ("estimate_bias", (True,))
         names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
                  "rest_time_s", "rest_noise_rad2_s")
-        hard_iron = ("mag_hard_iron", (True,))
-        return {**super()._only_with(), **{name: bias for name in names},
-                **{name: hard_iron for name in ("mag_hard_iron_window_s", "mag_hard_iron_residual_ut",
-                                                "mag_hard_iron_coverage")}}
+        return {**super()._only_with(), **{name: bias for name in names}}
 
     @property
     def velocity_states(self) -> int:
@@ -368,24 +326,10 @@ class EKF(KalmanFilter):
                 self._dist.turn(d, dt_s, rate, 1.0 + self.s)
         if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
             # 9-D: the heading-only magnetometer update, gated (`_attitude.MagReference`, `heading_update`)
-            norm, dip, east, north = field_norm_dip(q, mag_ut)
-            mag = self._mag
-            if p.mag_hard_iron:
-                self._hard_iron.update(mag_ut[0], mag_ut[1], mag_ut[2], dt_s)
-                if mag.has_ref:
-                    fit = self._hard_iron.fit()
-                    if fit is not None and abs(fit[3] - mag.norm) < mag.norm_gate * mag.norm:
-                        # a carried magnet: the sample without the fitted offset, if that is in the gates
-                        corrected = field_norm_dip(q, (mag_ut[0] - fit[0], mag_ut[1] - fit[1], mag_ut[2] - fit[2]))
-                        if mag.in_gates(corrected[0], corrected[1]):
-                            norm, dip, east, north = corrected
-                            self.hard_iron_used = True
-            if mag.update(norm, dip, dt_s) and east * east + north * north > 0.0:
-                # the heading measurement's variance grows with the rate about the vertical
-                # (a magnetometer sampled late or low-passed lags the turn: an error ~ rate x lag)
-                vx, vy, vz = gravity_in_body_floats(*q)
-                w_up = (tx * vx + ty * vy + tz * vz) / dt_s
-                r = p.mag_heading_noise_rad2_s / dt_s * (1.0 + (w_up / p.mag_rate_rad_s) ** 2)
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
+                                                                          dt_s)
+            if usable:
+                r = heading_variance(p, q, tx, ty, tz, dt_s)  # grown with the rate about the vertical
                 dx, P = heading_update(q, P, n, east, north, r)
                 q = self._correct(q, dx)
                 self.mag_used = True
