@@ -189,9 +189,11 @@ def load() -> None:
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
+    ukf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), np.concatenate([unit, np.zeros(n - 3)]), P, Qrate,
+               Qbad, weights, weights, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
+               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
+               out["mag_hard_iron"])
     _loaded = True
 
 
@@ -712,6 +714,38 @@ def mag_reference_update(st, norm, dip, dt, o):
 
 
 @_jit
+def mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work):
+    """`_attitude.magnetometer_input`: one finite sample (uT, body) through the sphere fit and the
+    gates (magst (5,), hist (22,) advanced in place); -> (usable, east, north, hard iron used)."""
+    east, north, up = rotate(q, mx, my, mz)  # `_attitude.field_norm_dip`
+    horizontal = math.hypot(east, north)
+    norm = math.sqrt(east * east + north * north + up * up)
+    dip = math.atan2(-up, horizontal)
+    hi_used = False
+    if o.mag_hard_iron:
+        hard_iron_add(hist, mx, my, mz, min(h / o.mag_hi_window, 1.0))
+        if magst[0] != 0.0 and hard_iron_fit(hist, o.mag_hi_residual, o.mag_hi_coverage, hi_fit, hi_work) \
+                and abs(hi_fit[3] - magst[1]) < o.mag_norm_gate * magst[1]:
+            e2, n2, u2 = rotate(q, mx - hi_fit[0], my - hi_fit[1], mz - hi_fit[2])
+            horizontal2 = math.hypot(e2, n2)
+            norm2 = math.sqrt(e2 * e2 + n2 * n2 + u2 * u2)
+            dip2 = math.atan2(-u2, horizontal2)
+            if mag_in_gates(magst, norm2, dip2, o):
+                east, north, norm, dip = e2, n2, norm2, dip2
+                hi_used = True
+    usable = mag_reference_update(magst, norm, dip, h, o) and east * east + north * north > 0.0
+    return usable, east, north, hi_used
+
+
+@_jit
+def heading_variance(q, tx, ty, tz, h, o):
+    """`_attitude.heading_variance`: Rm / dt (1 + (w / mrate)^2), w the rate about the vertical."""
+    vx, vy, vz = gravity(q)
+    w_up = (tx * vx + ty * vy + tz * vz) / h
+    return o.mag_noise / h * (1.0 + (w_up / o.mag_rate) ** 2)
+
+
+@_jit
 def mag_in_gates(st, norm, dip, o):
     """`_attitude.MagReference.in_gates` on its state st (5,)."""
     return st[0] != 0.0 and abs(norm - st[1]) < o.mag_norm_gate * st[1] and abs(dip - st[2]) < o.mag_dip_gate
@@ -1048,26 +1082,9 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
         if use_mag and mag_ok[k + 1]:  # 9-D: the gated heading-only update (`EKF.step`)
             mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
-                east, north, up = rotate(q, mx, my, mz)  # `_attitude.field_norm_dip`
-                horizontal = math.hypot(east, north)
-                norm = math.sqrt(east * east + north * north + up * up)
-                dip = math.atan2(-up, horizontal)
-                if o.mag_hard_iron:
-                    hard_iron_add(hist, mx, my, mz, min(h / o.mag_hi_window, 1.0))
-                    if magst[0] != 0.0 and hard_iron_fit(hist, o.mag_hi_residual, o.mag_hi_coverage, hi_fit, hi_work) \
-                            and abs(hi_fit[3] - magst[1]) < o.mag_norm_gate * magst[1]:
-                        # a carried magnet: the sample without the fitted offset, if that is in the gates
-                        e2, n2, u2 = rotate(q, mx - hi_fit[0], my - hi_fit[1], mz - hi_fit[2])
-                        horizontal2 = math.hypot(e2, n2)
-                        norm2 = math.sqrt(e2 * e2 + n2 * n2 + u2 * u2)
-                        dip2 = math.atan2(-u2, horizontal2)
-                        if mag_in_gates(magst, norm2, dip2, o):
-                            east, north, norm, dip = e2, n2, norm2, dip2
-                            hi_used = True
-                if mag_reference_update(magst, norm, dip, h, o) and east * east + north * north > 0.0:
-                    vx, vy, vz = gravity(q)
-                    w_up = (tx * vx + ty * vy + tz * vz) / h
-                    r_mag = o.mag_noise / h * (1.0 + (w_up / o.mag_rate) ** 2)
+                usable, east, north, hi_used = mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
+                if usable:
+                    r_mag = heading_variance(q, tx, ty, tz, h, o)
                     heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx, M)
                     q = _inject(q, b, s, v, dx, n, N, small)
                     mag_used = True
@@ -1098,14 +1115,15 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
 
 # ============================================================================ ukf, ukf-bias
 @_jit
-def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
+def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist, rest, magst, hist, o,
+               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed, out_mag, out_hi):
     """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
-    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
+    mag (N, 3), uT, and mag_ok (N,), or both empty (6-D; ukf-bias only, as in `ekf_kernel`).
     State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (41,) (`AccDisturbance.state`,
-    with the lag), rest (5,). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
+    with the lag), rest (5,), magst (5,), hist (22,) (`MagReference`, `HardIron`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
     sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, square-root recoveries, covariance repairs, mean-iteration cap hits).
     """
@@ -1131,6 +1149,11 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
     M = np.empty((n, n))
     with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
+    use_mag = mag.shape[0] > 0
+    hi_fit = np.empty(4)
+    hi_work = np.empty((4, 5))
+    Km = np.empty(n)
+    Gm = np.empty(n)
     skipped = 0
     sqrt_recovered = 0
     repaired = 0
@@ -1318,6 +1341,21 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
             skipped += 1
             if o.corr_s > 0.0:
                 disturbance_turn(dist, dq, h, o, with_lag, rate)
+        mag_used = False
+        hi_used = False
+        if use_mag and mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
+            if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                q4 = (x[0], x[1], x[2], x[3])
+                usable, east, north, hi_used = mag_input(q4, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
+                if usable:
+                    r_mag = heading_variance(q4, wx * h, wy * h, wz * h, h, o)
+                    heading_update(P, n, n, q4, east, north, r_mag, Km, Gm, dx, M)
+                    qn4 = qnormalize(qmul(q4, qexp(dx[0], dx[1], dx[2], small)))
+                    x[0], x[1], x[2], x[3] = qn4
+                    for j in range(3, n):
+                        x[j + 1] = x[j + 1] + dx[j]
+                    mag_used = True
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)
@@ -1337,4 +1375,6 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         out_rest[k + 1] = at_rest
         out_nis[k + 1] = nis
         out_lowpassed[k + 1] = lowpassed
+        out_mag[k + 1] = mag_used
+        out_hi[k + 1] = hi_used
     return skipped, sqrt_recovered, repaired, capped

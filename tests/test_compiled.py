@@ -46,11 +46,12 @@ SPECS = (
 )
 
 
-# ekf in 9-D (a recording with a magnetometer): the gates, the rate term, the hard-iron fit (loosened
+# ekf and ukf-bias in 9-D (a recording with a magnetometer): the gates, the rate term, the hard-iron fit (loosened
 # so that the simulator's motion reaches it), and with fewer states
 MAG_SPECS = (
     "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
     "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:vb=inf,Rm=0.01",
+    "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0",
 )
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
 
@@ -141,9 +142,10 @@ def test_compiled_equals_reference_in_9d_with_broken_samples_from_a_wrong_start(
 
 def test_the_9d_cases_reach_the_hard_iron_fit(sim_mag, broad):
     imu, q0 = sim_mag
-    loose = build("ekf:mhiw=3,mhires=5,mhicov=0.05").estimate(imu, q0).diagnostics
-    assert loose["mag_hard_iron"].any() and loose["mag_used"].any() and not loose["mag_used"].all()
-    assert build("ekf").estimate(*broad).diagnostics["mag_used"].any()  # the BROAD trial is 9-D
+    for name in ("ekf", "ukf-bias"):
+        loose = build(f"{name}:mhiw=3,mhires=5,mhicov=0.05").estimate(imu, q0).diagnostics
+        assert loose["mag_hard_iron"].any() and loose["mag_used"].any() and not loose["mag_used"].all()
+        assert build(name).estimate(*broad).diagnostics["mag_used"].any()  # the BROAD trial is 9-D
 
 
 @pytest.fixture(scope="module")
@@ -249,10 +251,10 @@ def test_compiled_estimate_leaves_the_filter_where_the_steps_do(sim, spec):
                                    rtol=0, atol=TOL)
 
 
-def test_compiled_9d_estimate_leaves_the_filter_where_the_steps_do(sim_mag):
+@pytest.mark.parametrize("spec", ["ekf:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05"])
+def test_compiled_9d_estimate_leaves_the_filter_where_the_steps_do(sim_mag, spec):
     """As above in 9-D: the magnetometer reference and the hard-iron sums carry over."""
     imu, q0 = sim_mag
-    spec = "ekf:mhiw=3,mhires=5,mhicov=0.05"
     a, b = build(spec), build(reference(spec))
     a.estimate(imu, q0)
     b.estimate(imu, q0)
