@@ -67,6 +67,34 @@ trials move at about 1 m/s. Mean inclination (deg) with vb = 0.5 / 1 / 2 / inf (
 course recordings 1-9 1.50 / 1.55 / 1.58 / 1.60, BROAD's nine trials 0.741 / 0.665 / 0.657 /
 0.682 (`fusion compare --estimators ekf:vb=0.5,ekf,ekf:vb=2,ekf:vb=inf`).
 
+Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
+accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
+z up), the frame of BROAD's truth, whose heading agrees with magnetic north. The accelerometer
+owns the inclination; the magnetometer corrects the heading only (Laidig & Seel 2023, VQF,
+Information Fusion 91, Sec. 3.3: a heading correction from the magnetometer's horizontal
+direction, with magnetic disturbance rejection):
+    m_w = R(q) m = (east, north, up),  psi = atan2(-east, north)      (0 at the true heading)
+    v = R(q)^T e_z (the vertical in the body frame): a turn by phi about the world vertical is
+        the error e = v phi and turns psi by phi, so H = [v^T, 0, 0, 0] (scalar)
+    r_k = Rm / dt (1 + (w_up / mrate)^2),  w_up = (theta . v) / dt the rate about the vertical
+        (a magnetometer sampled late or low-passed errs by the angle turned over its lag)
+    S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows and 0 on
+        the scale and velocity rows (heading only),  dx = K (0 - psi)
+    q <- q exp(dx_e / 2), b <- b + dx_b;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
+        form, exact for the restricted gain; Sola 2017, Sec. 6.1-6.3)
+Disturbances (`_attitude.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
+north)|) are learned from the data while the samples agree with them (a running mean, then a
+low-pass of time constant `mref`); a sample counts while |norm - ref| < mnorm ref and |dip - ref|
+< mdip, and only after that has held for `mtime` s without interruption (a magnet in the room
+moves the norm or the dip out of the gates; the filter then runs on the gyro, 6-D, whose heading
+drifts slowly). A magnet carried with the sensor adds a constant body-frame offset o (hard iron),
+fitted without the attitude (`_attitude.HardIron`): the readings of a field of constant norm lie
+on the sphere |m - o| = r, linear least squares in [2 o, r^2 - |o|^2] over an exponential window
+(Vasconcelos et al. 2011, IEEE TAES 47(2), the hard-iron part); while the fit is trusted (its
+samples cover the sphere, its residual is small, its offset exceeds that residual and its radius
+is the reference norm), samples are used with o removed. `--mag off`, or a recording without a
+magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
+
 Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional
 to the angle turned. When the board only rocks (bounded angles, under 1 rad/s) while it is
 moved back and forth, the linear acceleration has power at the rocking frequencies, and the

@@ -56,6 +56,12 @@ map, `fx`/`hx` the process and measurement models. Traps worked around:
 * FilterPy's sigma-point classes check `size(x) == n`; ours take the (n+1)-entry state
   with an n x n covariance.
 
+`ukf-bias` in 9-D (a recording with a magnetometer): after the accelerometer update, the
+heading-only magnetometer update of `ekf` (its module docstring: gates, hard-iron fit, H = [v^T,
+0, 0]); that measurement is linear in the error state, so it is applied as one Kalman update to
+the mean and covariance (Joseph form), the same in every implementation, as the rest update is.
+`ukf` stays 6-D.
+
 Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"lean"` runs predict and update as a handful of vectorised numpy calls over all
