@@ -556,7 +556,9 @@ def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: fl
     innovation is `0 - psi`. The gain is
     restricted to heading (Laidig & Seel 2023, Sec. 3.3: the magnetometer corrects the heading
     only, the accelerometer owns the inclination): `K <- v v^T K` on the attitude and bias
-    rows, 0 on the scale and velocity rows; with that gain the Joseph form
+    rows, 0 on the velocity rows; the scale rows keep their gain (a scale error turns the
+    heading as the board turns, and the heading innovation measures it through the attitude-
+    scale covariance); with that gain the Joseph form
     `P <- (I - K H) P (I - K H)^T + r K K^T` stays exact (Sola 2017, Sec. 6.1-6.3).
     Returns `(dx (N,), P)`.
     """
@@ -571,7 +573,7 @@ def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: fl
     K[:3] = v * float(v @ K[:3])
     if n > 3:
         K[3:6] = v * float(v @ K[3:6])
-    K[min(n, 6):] = 0.0
+    K[n:] = 0.0
     IKH = np.eye(N) - np.outer(K, H)
     P = IKH @ P @ IKH.T + r_rad2 * np.outer(K, K)
     return K * -psi, P

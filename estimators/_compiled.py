@@ -835,7 +835,7 @@ def hard_iron_fit(s, residual_ut, coverage, out, a):
 @_jit
 def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
     """`_attitude.heading_update`: the heading-only update with H = [v^T, 0] (v = R(q)^T e_z), the
-    gain restricted to v on the attitude and bias rows and 0 below, Joseph form for a scalar
+    gain restricted to v on the attitude and bias rows and 0 on the velocity rows, Joseph form for a scalar
     measurement (M = P - K (H P), P = M - (M H^T) K^T + r K K^T); the correction into dx (N,)
     (K, G: (N,) scratch; M: N x N scratch)."""
     vx, vy, vz = gravity(q)
@@ -850,7 +850,7 @@ def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
     if n > 3:
         vk = vx * K[3] + vy * K[4] + vz * K[5]
         K[3], K[4], K[5] = vx * vk, vy * vk, vz * vk
-    for i in range(min(n, 6), N):
+    for i in range(n, N):
         K[i] = 0.0
     for c in range(N):  # G = H P
         G[c] = vx * P[0, c] + vy * P[1, c] + vz * P[2, c]

@@ -78,9 +78,10 @@ direction, with magnetic disturbance rejection):
         the error e = v phi and turns psi by phi, so H = [v^T, 0, 0, 0] (scalar)
     r_k = Rm / dt (1 + (w_up / mrate)^2),  w_up = (theta . v) / dt the rate about the vertical
         (a magnetometer sampled late or low-passed errs by the angle turned over its lag)
-    S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows and 0 on
-        the scale and velocity rows (heading only),  dx = K (0 - psi)
-    q <- q exp(dx_e / 2), b <- b + dx_b;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
+    S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows (heading
+        only) and 0 on the velocity rows; the scale rows keep theirs (a scale error turns the
+        heading as the board turns: the innovation measures it),  dx = K (0 - psi)
+    q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
         form, exact for the restricted gain; Sola 2017, Sec. 6.1-6.3)
 Disturbances (`_attitude.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
 north)|) are learned from the data while the samples agree with them (a running mean, then a
