@@ -46,7 +46,8 @@ import numpy as np
 from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2
 
-from ._attitude import COV_FLOOR, COV_RESET_VAR, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector, models_lag
+from ._attitude import (COV_FLOOR, COV_RESET_VAR, HARD_IRON_STATE, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector,
+                        models_lag)
 from .filter_params import BiasFilterParams
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
@@ -86,6 +87,8 @@ Settings = namedtuple("Settings", [
     "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
     "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
     "cov_floor", "cov_reset", "sqrt_floor",  # _attitude's covariance repair
+    "mag_noise", "mag_norm_gate", "mag_dip_gate", "mag_min_time", "mag_ref_s",  # ekf: the magnetometer (9-D)
+    "mag_rate", "mag_hard_iron", "mag_hi_window", "mag_hi_residual", "mag_hi_coverage",  # ... rate term, hard iron
 ])
 
 
@@ -109,6 +112,11 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD),
         tuple(float(c) for c in quat._A[1]), tuple(float(c) for c in quat._B[1]),
         float(COV_FLOOR), float(COV_RESET_VAR), float(SQRT_FLOOR),
+        float(getattr(p, "mag_heading_noise_rad2_s", 0.0)), float(getattr(p, "mag_norm_gate_frac", 0.0)),
+        float(getattr(p, "mag_dip_gate_rad", 0.0)), float(getattr(p, "mag_min_undisturbed_s", 0.0)),
+        float(getattr(p, "mag_ref_s", 1.0)), float(getattr(p, "mag_rate_rad_s", math.inf)),
+        bool(getattr(p, "mag_hard_iron", False)), float(getattr(p, "mag_hard_iron_window_s", 1.0)),
+        float(getattr(p, "mag_hard_iron_residual_ut", 0.0)), float(getattr(p, "mag_hard_iron_coverage", 0.0)),
     )
 
 
@@ -118,6 +126,14 @@ def inputs(imu: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     gyr, valid = imu.interval_rates()
     return (np.ascontiguousarray(gyr, dtype=float), np.ascontiguousarray(valid, dtype=bool),
             np.ascontiguousarray(imu.dt, dtype=float), np.array(imu.acc_g, dtype=float, order="C"))
+
+
+def mag_inputs(imu: Any, use: bool) -> tuple[np.ndarray, np.ndarray]:
+    """`(mag (N, 3) uT, valid (N,))` for the EKF kernel when `use` (a 9-D filter on a recording with a
+    magnetometer), else empty arrays (0, 3), (0,): the 6-D filter."""
+    if not (use and imu.has_mag):
+        return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    return np.array(imu.mag_ut, dtype=float, order="C"), np.array(imu.mag_valid, dtype=bool)
 
 
 def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -135,6 +151,8 @@ def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[st
         "nis": np.zeros(n_samples),
         "bias_guarded": np.zeros(n_samples, dtype=bool),
         "acc_lowpassed": np.zeros(n_samples, dtype=bool),
+        "mag_used": np.zeros(n_samples, dtype=bool),
+        "mag_hard_iron": np.zeros(n_samples, dtype=bool),
     }
     out["quat"][0] = init_quat_wxyz
     for key, value in current.items():
@@ -163,15 +181,19 @@ def load() -> None:
     state = (np.eye(n) * 1e-4, np.eye(n) * 1e-4, np.zeros((n, n)), dist, rest)
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ekf_kernel(*inputs_, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), P, Qrate, Qbad, dist, rest, o,
+    ekf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), unit.copy(), np.zeros(3), np.zeros(3),
+               np.zeros(2), P, Qrate, Qbad, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-               out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"])
+               out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"],
+               out["mag_hard_iron"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
-    ukf_kernel(*inputs_, np.concatenate([unit, np.zeros(n - 3)]), P, Qrate, Qbad, weights, weights, dist, rest, o,
+    ukf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), np.concatenate([unit, np.zeros(n - 3)]), P, Qrate,
+               Qbad, weights, weights, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
+               out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
+               out["mag_hard_iron"])
     _loaded = True
 
 
@@ -674,6 +696,176 @@ def _inject(q, b, s, v, dx, n, N, small):
 
 
 @_jit
+def mag_reference_update(st, norm, dip, dt, o):
+    """`_attitude.MagReference.update` on its state st (5,) `[has_ref, norm, dip, learned, in gates]`;
+    -> the sample may correct the heading."""
+    if st[0] == 0.0:
+        st[0], st[1], st[2], st[3], st[4] = 1.0, norm, dip, dt, 0.0
+        return False
+    if abs(norm - st[1]) < o.mag_norm_gate * st[1] and abs(dip - st[2]) < o.mag_dip_gate:
+        st[3] += dt
+        alpha = dt / min(st[3], o.mag_ref_s)
+        st[1] += alpha * (norm - st[1])
+        st[2] += alpha * (dip - st[2])
+        st[4] += dt
+    else:
+        st[4] = 0.0
+    return st[4] >= o.mag_min_time
+
+
+@_jit
+def mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work):
+    """`_attitude.magnetometer_input`: one finite sample (uT, body) through the sphere fit and the
+    gates (magst (5,), hist (22,) advanced in place); -> (usable, east, north, hard iron used)."""
+    east, north, up = rotate(q, mx, my, mz)  # `_attitude.field_norm_dip`
+    horizontal = math.hypot(east, north)
+    norm = math.sqrt(east * east + north * north + up * up)
+    dip = math.atan2(-up, horizontal)
+    hi_used = False
+    if o.mag_hard_iron:
+        hard_iron_add(hist, mx, my, mz, min(h / o.mag_hi_window, 1.0))
+        if magst[0] != 0.0 and hard_iron_fit(hist, o.mag_hi_residual, o.mag_hi_coverage, hi_fit, hi_work) \
+                and abs(hi_fit[3] - magst[1]) < o.mag_norm_gate * magst[1]:
+            e2, n2, u2 = rotate(q, mx - hi_fit[0], my - hi_fit[1], mz - hi_fit[2])
+            horizontal2 = math.hypot(e2, n2)
+            norm2 = math.sqrt(e2 * e2 + n2 * n2 + u2 * u2)
+            dip2 = math.atan2(-u2, horizontal2)
+            if mag_in_gates(magst, norm2, dip2, o):
+                east, north, norm, dip = e2, n2, norm2, dip2
+                hi_used = True
+    usable = mag_reference_update(magst, norm, dip, h, o) and east * east + north * north > 0.0
+    return usable, east, north, hi_used
+
+
+@_jit
+def heading_variance(q, tx, ty, tz, h, o):
+    """`_attitude.heading_variance`: Rm / dt (1 + (w / mrate)^2), w the rate about the vertical."""
+    vx, vy, vz = gravity(q)
+    w_up = (tx * vx + ty * vy + tz * vz) / h
+    return o.mag_noise / h * (1.0 + (w_up / o.mag_rate) ** 2)
+
+
+@_jit
+def mag_in_gates(st, norm, dip, o):
+    """`_attitude.MagReference.in_gates` on its state st (5,)."""
+    return st[0] != 0.0 and abs(norm - st[1]) < o.mag_norm_gate * st[1] and abs(dip - st[2]) < o.mag_dip_gate
+
+
+@_jit
+def hard_iron_add(s, mx, my, mz, alpha):
+    """`_attitude.hard_iron_add`: the sphere fit's sums s (22,) <- (1 - alpha) s + alpha (the sample's terms)."""
+    y = mx * mx + my * my + mz * mz
+    keep = 1.0 - alpha
+    for i in range(4):
+        xi = mx if i == 0 else my if i == 1 else mz if i == 2 else 1.0
+        for j in range(4):
+            xj = mx if j == 0 else my if j == 1 else mz if j == 2 else 1.0
+            s[4 * i + j] = keep * s[4 * i + j] + alpha * xi * xj
+        s[16 + i] = keep * s[16 + i] + alpha * xi * y
+    s[20] = keep * s[20] + alpha * y * y
+    s[21] = keep * s[21] + alpha
+
+
+@_jit
+def hard_iron_fit(s, residual_ut, coverage, out, a):
+    """`_attitude.hard_iron_fit` (with `_attitude.solve4`): True and out (4,) = (ox, oy, oz, r) when
+    the sphere fit is trusted (a: 4 x 5 scratch)."""
+    w = s[21]
+    if not w > 0.0:
+        return False
+    for i in range(4):
+        for j in range(4):
+            a[i, j] = s[4 * i + j]
+        a[i, 4] = s[16 + i]
+    for c in range(4):
+        p = c
+        for r in range(c + 1, 4):
+            if abs(a[r, c]) > abs(a[p, c]):
+                p = r
+        if not abs(a[p, c]) > 0.0:
+            return False
+        if p != c:
+            for j in range(5):
+                a[c, j], a[p, j] = a[p, j], a[c, j]
+        for r in range(c + 1, 4):
+            f = a[r, c] / a[c, c]
+            for j in range(c, 5):
+                a[r, j] -= f * a[c, j]
+    x0 = x1 = x2 = x3 = 0.0
+    for r in range(3, -1, -1):
+        v = a[r, 4]
+        for j in range(r + 1, 4):
+            v -= a[r, j] * (x0 if j == 0 else x1 if j == 1 else x2 if j == 2 else x3)
+        if r == 3:
+            x3 = v / a[r, r]
+        elif r == 2:
+            x2 = v / a[r, r]
+        elif r == 1:
+            x1 = v / a[r, r]
+        else:
+            x0 = v / a[r, r]
+    ox, oy, oz = 0.5 * x0, 0.5 * x1, 0.5 * x2
+    r2 = x3 + ox * ox + oy * oy + oz * oz
+    if not r2 > 0.0:
+        return False
+    rad = math.sqrt(r2)
+    xAx = 0.0
+    xb = 0.0
+    for i in range(4):
+        xi = x0 if i == 0 else x1 if i == 1 else x2 if i == 2 else x3
+        xb += xi * s[16 + i]
+        for j in range(4):
+            xj = x0 if j == 0 else x1 if j == 1 else x2 if j == 2 else x3
+            xAx += xi * s[4 * i + j] * xj
+    res = (s[20] - 2.0 * xb + xAx) / w
+    if not res < (2.0 * rad * residual_ut) ** 2:
+        return False
+    mx, my, mz = s[3] / w, s[7] / w, s[11] / w
+    cxx, cxy, cxz = s[0] / w - mx * mx, s[1] / w - mx * my, s[2] / w - mx * mz
+    cyy, cyz, czz = s[5] / w - my * my, s[6] / w - my * mz, s[10] / w - mz * mz
+    det = cxx * (cyy * czz - cyz * cyz) - cxy * (cxy * czz - cyz * cxz) + cxz * (cxy * cyz - cyy * cxz)
+    if not det > (coverage * rad) ** 6:
+        return False
+    if not ox * ox + oy * oy + oz * oz > residual_ut * residual_ut:
+        return False
+    out[0], out[1], out[2], out[3] = ox, oy, oz, rad
+    return True
+
+
+@_jit
+def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
+    """`_attitude.heading_update`: the heading-only update with H = [v^T, 0] (v = R(q)^T e_z), the
+    gain restricted to v on the attitude and bias rows and 0 on the velocity rows, Joseph form for a scalar
+    measurement (M = P - K (H P), P = M - (M H^T) K^T + r K K^T); the correction into dx (N,)
+    (K, G: (N,) scratch; M: N x N scratch)."""
+    vx, vy, vz = gravity(q)
+    psi = math.atan2(-east, north)
+    for i in range(N):  # P H^T
+        K[i] = P[i, 0] * vx + P[i, 1] * vy + P[i, 2] * vz
+    S = vx * K[0] + vy * K[1] + vz * K[2] + r
+    for i in range(N):
+        K[i] = K[i] / S
+    vk = vx * K[0] + vy * K[1] + vz * K[2]
+    K[0], K[1], K[2] = vx * vk, vy * vk, vz * vk
+    if n > 3:
+        vk = vx * K[3] + vy * K[4] + vz * K[5]
+        K[3], K[4], K[5] = vx * vk, vy * vk, vz * vk
+    for i in range(n, N):
+        K[i] = 0.0
+    for c in range(N):  # G = H P
+        G[c] = vx * P[0, c] + vy * P[1, c] + vz * P[2, c]
+    for i in range(N):
+        for c in range(N):
+            M[i, c] = P[i, c] - K[i] * G[c]
+    for i in range(N):
+        e = M[i, 0] * vx + M[i, 1] * vy + M[i, 2] * vz
+        for c in range(N):
+            P[i, c] = M[i, c] - e * K[c] + r * K[i] * K[c]
+    for i in range(N):
+        dx[i] = -psi * K[i]
+
+
+@_jit
 def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
     the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
@@ -719,15 +911,17 @@ def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
 
 
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed):
+def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, dist, rest, magst, hist, o,
+               out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed, out_mag,
+               out_hi):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
-    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
+    mag (N, 3), uT, and mag_ok (N,) its validity, or both empty (no magnetometer: 6-D).
     State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N) (N = n + nv, the velocity
-    last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,). Qrate, Qbad (N, N) as
-    built by `EKF.reset`. Fills rows 1.. of the (samples, ...) outputs; returns (updates
-    skipped, covariance repairs).
+    last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,), magst (5,)
+    (`MagReference.state`), hist (22,) (`HardIron.state`). Qrate, Qbad (N, N) as built by `EKF.reset`. Fills rows 1.. of the
+    (samples, ...) outputs; returns (updates skipped, covariance repairs).
     """
     n = o.n
     N = n + o.nv
@@ -747,6 +941,11 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
     M = np.empty((N, N))
     L = np.empty((N, N))
     q = (qio[0], qio[1], qio[2], qio[3])
+    use_mag = mag.shape[0] > 0
+    hi_fit = np.empty(4)
+    hi_work = np.empty((4, 5))
+    Km = np.empty(N)
+    Gm = np.empty(N)
     skipped = 0
     repaired = 0
     for k in range(dt.shape[0]):
@@ -878,6 +1077,17 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
             skipped += 1
             if o.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 disturbance_turn(dist, d, h, o, with_lag, rate)
+        mag_used = False
+        hi_used = False
+        if use_mag and mag_ok[k + 1]:  # 9-D: the gated heading-only update (`EKF.step`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
+            if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                usable, east, north, hi_used = mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
+                if usable:
+                    r_mag = heading_variance(q, tx, ty, tz, h, o)
+                    heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx, M)
+                    q = _inject(q, b, s, v, dx, n, N, small)
+                    mag_used = True
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -897,20 +1107,23 @@ def ekf_kernel(gyr, valid, dt, acc, qio, b, s, v, P, Qrate, Qbad, dist, rest, o,
         out_nis[k + 1] = nis
         out_guard[k + 1] = guarded
         out_lowpassed[k + 1] = lowpassed
+        out_mag[k + 1] = mag_used
+        out_hi[k + 1] = hi_used
     qio[0], qio[1], qio[2], qio[3] = q
     return skipped, repaired
 
 
 # ============================================================================ ukf, ukf-bias
 @_jit
-def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
-               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed):
+def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist, rest, magst, hist, o,
+               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed, out_mag, out_hi):
     """`UKF.estimate` with impl=lean: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
-    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g.
+    gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
+    mag (N, 3), uT, and mag_ok (N,), or both empty (6-D; ukf-bias only, as in `ekf_kernel`).
     State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (41,) (`AccDisturbance.state`,
-    with the lag), rest (5,). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
+    with the lag), rest (5,), magst (5,), hist (22,) (`MagReference`, `HardIron`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
     sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, square-root recoveries, covariance repairs, mean-iteration cap hits).
     """
@@ -936,6 +1149,11 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
     M = np.empty((n, n))
     with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
+    use_mag = mag.shape[0] > 0
+    hi_fit = np.empty(4)
+    hi_work = np.empty((4, 5))
+    Km = np.empty(n)
+    Gm = np.empty(n)
     skipped = 0
     sqrt_recovered = 0
     repaired = 0
@@ -1123,6 +1341,21 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
             skipped += 1
             if o.corr_s > 0.0:
                 disturbance_turn(dist, dq, h, o, with_lag, rate)
+        mag_used = False
+        hi_used = False
+        if use_mag and mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
+            if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                q4 = (x[0], x[1], x[2], x[3])
+                usable, east, north, hi_used = mag_input(q4, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
+                if usable:
+                    r_mag = heading_variance(q4, wx * h, wy * h, wz * h, h, o)
+                    heading_update(P, n, n, q4, east, north, r_mag, Km, Gm, dx, M)
+                    qn4 = qnormalize(qmul(q4, qexp(dx[0], dx[1], dx[2], small)))
+                    x[0], x[1], x[2], x[3] = qn4
+                    for j in range(3, n):
+                        x[j + 1] = x[j + 1] + dx[j]
+                    mag_used = True
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)
@@ -1142,4 +1375,6 @@ def ukf_kernel(gyr, valid, dt, acc, x, P, Qrate, Qbad, Wm, Wc, dist, rest, o,
         out_rest[k + 1] = at_rest
         out_nis[k + 1] = nis
         out_lowpassed[k + 1] = lowpassed
+        out_mag[k + 1] = mag_used
+        out_hi[k + 1] = hi_used
     return skipped, sqrt_recovered, repaired, capped

@@ -72,7 +72,9 @@ class RecursiveEstimator(Estimator):
     interface) loops `step` over a recording: step k propagates with the gyro reading for the
     interval [t[k], t[k+1]] (`ImuSamples.interval_rates`: gyro sample k + 1 or k, as the
     recording's `gyr_timing` says) over `dt[k] = t[k+1] - t[k]`, corrects with the
-    accelerometer sample k + 1, and returns the orientation at `t[k+1]`. After the reset and
+    accelerometer sample k + 1, and returns the orientation at `t[k+1]`. A filter with
+    `magnetometer = True` on a recording with one also gets the magnetometer sample k + 1
+    (`step(..., mag_ut)`, None where it is not valid). After the reset and
     after every step it records `current()` (e.g. the covariance), so the trajectory's
     diagnostics hold one row per sample; the filter itself keeps no history.
     """
@@ -116,7 +118,13 @@ class RecursiveEstimator(Estimator):
             history[key][0] = value
         (gyr, valid), acc, dt = imu.interval_rates(), imu.acc_g, imu.dt
         step, current = self.step, self.current
-        if history:
+        if self.magnetometer and imu.has_mag:  # 9-D: the magnetometer sample at each step's end (None: invalid)
+            mag, mag_valid = imu.mag_ut, imu.mag_valid
+            for k in range(n - 1):
+                out[k + 1] = step(gyr[k], dt[k], acc[k + 1], valid[k], mag[k + 1] if mag_valid[k + 1] else None)
+                for key, value in current().items():
+                    history[key][k + 1] = value
+        elif history:
             for k in range(n - 1):
                 out[k + 1] = step(gyr[k], dt[k], acc[k + 1], valid[k])
                 for key, value in current().items():

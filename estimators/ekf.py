@@ -67,6 +67,35 @@ trials move at about 1 m/s. Mean inclination (deg) with vb = 0.5 / 1 / 2 / inf (
 course recordings 1-9 1.50 / 1.55 / 1.58 / 1.60, BROAD's nine trials 0.741 / 0.665 / 0.657 /
 0.682 (`fusion compare --estimators ekf:vb=0.5,ekf,ekf:vb=2,ekf:vb=inf`).
 
+Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
+accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
+z up), the frame of BROAD's truth, whose heading agrees with magnetic north. The accelerometer
+owns the inclination; the magnetometer corrects the heading only (Laidig & Seel 2023, VQF,
+Information Fusion 91, Sec. 3.3: a heading correction from the magnetometer's horizontal
+direction, with magnetic disturbance rejection):
+    m_w = R(q) m = (east, north, up),  psi = atan2(-east, north)      (0 at the true heading)
+    v = R(q)^T e_z (the vertical in the body frame): a turn by phi about the world vertical is
+        the error e = v phi and turns psi by phi, so H = [v^T, 0, 0, 0] (scalar)
+    r_k = Rm / dt (1 + (w_up / mrate)^2),  w_up = (theta . v) / dt the rate about the vertical
+        (a magnetometer sampled late or low-passed errs by the angle turned over its lag)
+    S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows (heading
+        only) and 0 on the velocity rows; the scale rows keep theirs (a scale error turns the
+        heading as the board turns: the innovation measures it),  dx = K (0 - psi)
+    q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
+        form, exact for the restricted gain; Sola 2017, Sec. 6.1-6.3)
+Disturbances (`_attitude.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
+north)|) are learned from the data while the samples agree with them (a running mean, then a
+low-pass of time constant `mref`); a sample counts while |norm - ref| < mnorm ref and |dip - ref|
+< mdip, and only after that has held for `mtime` s without interruption (a magnet in the room
+moves the norm or the dip out of the gates; the filter then runs on the gyro, 6-D, whose heading
+drifts slowly). A magnet carried with the sensor adds a constant body-frame offset o (hard iron),
+fitted without the attitude (`_attitude.HardIron`): the readings of a field of constant norm lie
+on the sphere |m - o| = r, linear least squares in [2 o, r^2 - |o|^2] over an exponential window
+(Vasconcelos et al. 2011, IEEE TAES 47(2), the hard-iron part); while the fit is trusted (its
+samples cover the sphere, its residual is small, its offset exceeds that residual and its radius
+is the reference norm), samples are used with o removed. `--mag off`, or a recording without a
+magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
+
 Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional
 to the angle turned. When the board only rocks (bounded angles, under 1 rad/s) while it is
 moved back and forth, the linear acceleration has power at the rocking frequencies, and the
@@ -118,11 +147,16 @@ from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ._attitude import (
     AccDisturbance,
+    HardIron,
+    MagReference,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
     bias_rest_update,
+    heading_update,
+    heading_variance,
     inv_sym3,
+    magnetometer_input,
     models_lag,
     repair_covariance,
 )
@@ -194,7 +228,9 @@ class EKF(KalmanFilter):
     """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
 
     Params = EKFParams
-    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded"}
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used",
+                "mag_hard_iron": "hard_iron_used"}
+    magnetometer = True  # 9-D where the recording has a magnetometer (the heading-only update)
 
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
@@ -215,6 +251,8 @@ class EKF(KalmanFilter):
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
+        self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
+        self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self._F = np.eye(N)
         self._H = np.zeros((3, N))
         self._I = np.eye(N)
@@ -223,12 +261,18 @@ class EKF(KalmanFilter):
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
         self.lowpassed = False  # whether the last update used the low-passed accelerometer
+        self.mag_used = False  # whether the last step made the magnetometer's heading update
+        self.hard_iron_used = False  # ... with the sphere fit's offset removed
         self.n_skipped = self.n_cov_repaired = 0
 
-    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
+             mag_ut: np.ndarray | None = None) -> np.ndarray:
+        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
+        uT, body frame, or None (no magnetometer, or no valid sample): the heading update."""
         p = self.params
         n = self.n
         self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
+        self.mag_used = self.hard_iron_used = False
         Q = self._Qrate * dt_s
         F = self._F
         q = self.q.tolist()
@@ -309,6 +353,15 @@ class EKF(KalmanFilter):
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 self._dist.turn(d, dt_s, rate, 1.0 + self.s)
+        if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
+            # 9-D: the heading-only magnetometer update, gated (`_attitude.MagReference`, `heading_update`)
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
+                                                                          dt_s)
+            if usable:
+                r = heading_variance(p, q, tx, ty, tz, dt_s)  # grown with the rate about the vertical
+                dx, P = heading_update(q, P, n, east, north, r)
+                q = self._correct(q, dx)
+                self.mag_used = True
         if n > 3:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
         if n > 6:
@@ -357,7 +410,8 @@ class EKF(KalmanFilter):
 
     def current(self) -> dict[str, Any]:
         return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "velocity_m_s": self.v, "acc_var_g2": self.acc_var,
-                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed}
+                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed,
+                "mag_used": self.mag_used, "mag_hard_iron": self.hard_iron_used}
 
     def diagnostics(self) -> dict[str, Any]:
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired}
@@ -365,9 +419,12 @@ class EKF(KalmanFilter):
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
                     rest: np.ndarray) -> None:
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
+        mag_state, hard_iron = self._mag.state(), self._hard_iron.state()
         self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
-            *kernels.inputs(imu), q, b, s, v, P, self._Qrate, self._Qbad, dist, rest,
-            kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
+            *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad,
+            dist, rest, mag_state, hard_iron, kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF),
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"])
+            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"])
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
+        self._mag.set_state(mag_state)
+        self._hard_iron.set_state(hard_iron)

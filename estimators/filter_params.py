@@ -154,6 +154,30 @@ class BiasFilterParams(FilterParams):
         turns it off.
     rest_noise_rad2_s (Rrest): density of the gyro reading at rest, rad^2/s (step variance
         Rrest / dt).
+    mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
+        (step variance Rm / dt); with the gyro noise Q it sets the heading correction's time
+        constant, about sqrt(Rm / Q) (30 s by default). The magnetometer fields (mag_*) apply to
+        recordings with a magnetometer (9-D; `ekf` and `ukf-bias`, the heading-only update of
+        `_attitude.heading_update`); `--mag off` or a recording without one runs the 6-D filter,
+        unchanged.
+    mag_norm_gate_frac (mnorm): a magnetometer sample is in the gates while its norm is within
+        this fraction of the learned reference norm (`_attitude.MagReference`).
+    mag_dip_gate_rad (mdip): ... and its dip within this of the learned reference dip, rad.
+    mag_min_undisturbed_s (mtime): the gates must have held this long, s, before a sample
+        corrects the heading.
+    mag_ref_s (mref): time constant of the learned reference norm and dip, s.
+    mag_rate_rad_s (mrate): the heading measurement's variance is Rm / dt (1 + (w / mrate)^2),
+        w the rate about the vertical, rad/s: a magnetometer sample that lags the gyro (its own
+        sampling and low-pass) errs in heading by the angle turned over the lag; inf: constant.
+    mag_hard_iron (mhi): estimate a magnet carried with the sensor (a constant body-frame
+        offset) by a sphere fit (`_attitude.HardIron`); while the fit is trusted and its radius
+        is the reference norm, samples are used with the offset removed. The three fields below
+        apply only with it.
+    mag_hard_iron_window_s (mhiw): time constant of the sphere fit's exponential window, s.
+    mag_hard_iron_residual_ut (mhires): the fit is trusted while its RMS residual is below this,
+        uT, and its offset above it.
+    mag_hard_iron_coverage (mhicov): ... and the samples' spread, the geometric mean of the
+        standard deviations along the principal axes, at least this fraction of the radius.
     """
 
     bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
@@ -168,6 +192,16 @@ class BiasFilterParams(FilterParams):
     rest_acc_g: float = REST_ACC_G
     rest_time_s: float = REST_TIME_S
     rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
+    mag_heading_noise_rad2_s: float = field(default=0.3, metadata={"alias": "Rm"})
+    mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
+    mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
+    mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
+    mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
+    mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
+    mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
+    mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
+    mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
+    mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
 
     def _check(self) -> None:
         owner = self.owner
@@ -188,8 +222,18 @@ class BiasFilterParams(FilterParams):
             axes_mask(self.scale_axes)
         except ValueError as exc:
             raise ValueError(f"{owner}: {exc}") from None
+        if not self.mag_rate_rad_s > 0.0:
+            raise ValueError(f"{owner}: mag_rate_rad_s must be > 0 (inf: no rate term), got {self.mag_rate_rad_s!r}")
+        for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s",
+                     "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
+                raise ValueError(f"{owner}: {name} must be a finite number > 0, got {value!r}")
+        check_nonneg(owner, mag_min_undisturbed_s=self.mag_min_undisturbed_s)
 
     def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
         scale = ("estimate_scale", (True,))
+        hard_iron = ("mag_hard_iron", (True,))
         return {**super()._only_with(), "init_scale_var": scale, "scale_walk_1_s": scale, "scale_max": scale,
-                "scale_axes": scale}
+                "scale_axes": scale, "mag_hard_iron_window_s": hard_iron, "mag_hard_iron_residual_ut": hard_iron,
+                "mag_hard_iron_coverage": hard_iron}

@@ -56,6 +56,12 @@ map, `fx`/`hx` the process and measurement models. Traps worked around:
 * FilterPy's sigma-point classes check `size(x) == n`; ours take the (n+1)-entry state
   with an n x n covariance.
 
+`ukf-bias` in 9-D (a recording with a magnetometer): after the accelerometer update, the
+heading-only magnetometer update of `ekf` (its module docstring: gates, hard-iron fit, H = [v^T,
+0, 0]); that measurement is linear in the error state, so it is applied as one Kalman update to
+the mean and covariance (Joseph form), the same in every implementation, as the rest update is.
+`ukf` stays 6-D.
+
 Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"lean"` runs predict and update as a handful of vectorised numpy calls over all
@@ -119,11 +125,17 @@ from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_ma
 from fusion.types import ImuSamples
 
 from ._attitude import (
+    HARD_IRON_STATE,
     AccDisturbance,
+    HardIron,
+    MagReference,
     RestDetector,
     accelerometer_update_input,
     acc_variance_scale,
     bias_rest_update,
+    heading_update,
+    heading_variance,
+    magnetometer_input,
     inv_sym3,
     models_lag,
     repair_covariance,
@@ -585,6 +597,11 @@ class UKF(KalmanFilter):
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
+        if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
+            self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
+            self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
+        self.mag_used = False  # whether the last step made the magnetometer's heading update (ukf-bias)
+        self.hard_iron_used = False  # ... with the sphere fit's offset removed
         self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
@@ -593,11 +610,16 @@ class UKF(KalmanFilter):
         self._update = kf.update_reference if p.impl == "filterpy" else kf.update_kraft
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
-    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> np.ndarray:
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
+             mag_ut: np.ndarray | None = None) -> np.ndarray:
+        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
+        uT, body frame, or None: the heading update of `ukf-bias` in 9-D (`ukf` ignores it)."""
         p, kf, n = self.params, self.kf, self.n
         self.acc_var, self.at_rest, self.nis, self.lowpassed = math.nan, False, math.nan, False
+        self.mag_used = self.hard_iron_used = False
         Q = self._Qrate * dt_s
         x = kf.x
+        w = np.zeros(3)  # the step's corrected rate (rad/s; zero when not integrated)
         if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
             gyr = None  # no rate integration; inflate the attitude noise instead
             Q = Q + self._Qbad * (dt_s * dt_s)
@@ -647,6 +669,20 @@ class UKF(KalmanFilter):
             self.n_skipped += 1
             if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 self._dist.turn(dq, dt_s, rate, gain)
+        if (self.with_bias and mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1])
+                and math.isfinite(mag_ut[2])):
+            # 9-D: the heading-only magnetometer update of `ekf` (`_attitude.heading_update`); H is
+            # linear in the error state, so it is the same Kalman update for every implementation
+            x = kf.x
+            q = tuple(x[:4].tolist())
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
+                                                                          dt_s)
+            if usable:
+                r = heading_variance(p, q, w[0] * dt_s, w[1] * dt_s, w[2] * dt_s, dt_s)
+                dx, kf.P = heading_update(q, kf.P, n, east, north, r)
+                qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
+                kf.x = np.concatenate([qn, x[4:] + dx[3:]])
+                self.mag_used = True
         x = kf.x
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
@@ -672,6 +708,8 @@ class UKF(KalmanFilter):
         if self.with_bias:
             out["gyr_bias_rad_s"] = kf.x[4:7]
             out["at_rest"] = self.at_rest
+            out["mag_used"] = self.mag_used
+            out["mag_hard_iron"] = self.hard_iron_used
             if self.n > 6:
                 out["gyr_scale"] = kf.x[7:10]
         return out
@@ -690,11 +728,17 @@ class UKF(KalmanFilter):
         x, P = kf.x.copy(), kf.P.copy()
         o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                              mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
+        mag_state = self._mag.state() if self.with_bias else np.zeros(5)
+        hard_iron = self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE)
         (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.ukf_kernel(
-            *kernels.inputs(imu), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, dist, rest, o,
+            *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), x, P, self._Qrate, self._Qbad, kf.Wm,
+            kf.Wc, dist, rest, mag_state, hard_iron, o,
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"])
+            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
+        if self.with_bias:
+            self._mag.set_state(mag_state)
+            self._hard_iron.set_state(hard_iron)
 
 
 class UKFBias(UKF):
@@ -702,3 +746,5 @@ class UKFBias(UKF):
 
     Params = UKFBiasParams
     with_bias = True
+    magnetometer = True  # 9-D where the recording has a magnetometer (the heading-only update of `ekf`)
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "mag_used": "mag_used", "mag_hard_iron": "hard_iron_used"}

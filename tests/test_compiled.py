@@ -46,6 +46,16 @@ SPECS = (
 )
 
 
+# ekf and ukf-bias in 9-D (a recording with a magnetometer): the gates, the rate term, the hard-iron fit (loosened
+# so that the simulator's motion reaches it), and with fewer states
+MAG_SPECS = (
+    "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
+    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:vb=inf,Rm=0.01",
+    "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0",
+)
+FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
+
+
 def reference(spec: str) -> str:
     """The spec with the numpy reference implementation."""
     impl = "impl=numpy" if spec.split(":")[0] == "ekf" else "impl=lean"
@@ -96,6 +106,46 @@ def broken(imu: ImuSamples) -> ImuSamples:
 def sim():
     """2,500 samples of the built-in simulated recording (3 s rest, then hand-held motion)."""
     return window(datasets.load("sim"), 0, 2500)
+
+
+@pytest.fixture(scope="module")
+def sim_mag():
+    """The first 4,000 samples of the simulated recording with a magnetometer along its truth
+    (1 uT noise), a magnet carried with the sensor from sample 1,500, NaN and invalid samples."""
+    rec = datasets.load("sim")
+    imu, q0 = window(rec, 0, 4000)
+    rot, _ = rec.truth.interpolate(imu.t)
+    mag = rot.inv().apply(FIELD_ENU_UT) + np.random.default_rng(3).normal(0.0, 1.0, (len(imu), 3))
+    mag[1500:] += [30.0, -25.0, 12.0]
+    mag[700:720] = np.nan
+    valid = np.ones(len(imu), bool)
+    valid[900:950] = False
+    return imu.replace(mag_ut=mag, mag_valid=valid), q0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", MAG_SPECS)
+def test_compiled_equals_reference_in_9d(sim_mag, spec):
+    imu, q0 = sim_mag
+    a, b = build(spec).estimate(imu, q0), build(reference(spec)).estimate(imu, q0)
+    assert_same(a, b)
+    assert a.diagnostics["mag_used"].any()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", MAG_SPECS[:3])
+def test_compiled_equals_reference_in_9d_with_broken_samples_from_a_wrong_start(sim_mag, spec):
+    imu, q0 = sim_mag
+    assert_same(build(spec).estimate(broken(imu), wrong_start(q0)),
+                build(reference(spec)).estimate(broken(imu), wrong_start(q0)))
+
+
+def test_the_9d_cases_reach_the_hard_iron_fit(sim_mag, broad):
+    imu, q0 = sim_mag
+    for name in ("ekf", "ukf-bias"):
+        loose = build(f"{name}:mhiw=3,mhires=5,mhicov=0.05").estimate(imu, q0).diagnostics
+        assert loose["mag_hard_iron"].any() and loose["mag_used"].any() and not loose["mag_used"].all()
+        assert build(name).estimate(*broad).diagnostics["mag_used"].any()  # the BROAD trial is 9-D
 
 
 @pytest.fixture(scope="module")
@@ -199,6 +249,21 @@ def test_compiled_estimate_leaves_the_filter_where_the_steps_do(sim, spec):
     for k in range(300):
         np.testing.assert_allclose(a.step(gyr[k], 0.01, acc[k], valid[k]), b.step(gyr[k], 0.01, acc[k], valid[k]),
                                    rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("spec", ["ekf:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05"])
+def test_compiled_9d_estimate_leaves_the_filter_where_the_steps_do(sim_mag, spec):
+    """As above in 9-D: the magnetometer reference and the hard-iron sums carry over."""
+    imu, q0 = sim_mag
+    a, b = build(spec), build(reference(spec))
+    a.estimate(imu, q0)
+    b.estimate(imu, q0)
+    np.testing.assert_allclose(a._mag.state(), b._mag.state(), rtol=TOL, atol=TOL)
+    np.testing.assert_allclose(a._hard_iron.state(), b._hard_iron.state(), rtol=TOL, atol=TOL)
+    (gyr, valid), acc, mag = imu.interval_rates(), imu.acc_g, imu.mag_ut
+    for k in range(2000, 2300):
+        np.testing.assert_allclose(a.step(gyr[k], 0.01, acc[k + 1], valid[k], mag[k + 1]),
+                                   b.step(gyr[k], 0.01, acc[k + 1], valid[k], mag[k + 1]), rtol=0, atol=TOL)
 
 
 @pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])
