@@ -180,10 +180,16 @@ class EKFParams(BiasFilterParams):
         `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
 
-    The defaults are one set for every recording and rate.
+    The defaults are one set for every recording and rate. `acc_lowpass_s` (taulp) is 2 s here
+    (1 s in `BiasFilterParams`): chosen by leave-one-recording-out over the nine course
+    recordings and BROAD's fourteen trials together, where every fold picks it
+    (`benchmarks/cross_validate.py`; for `ukf-bias`, which has no velocity states, the same
+    procedure does not pick 2 s).
     """
 
     owner: ClassVar[str] = "ekf"
+
+    acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp"})
 
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})

@@ -108,8 +108,8 @@ def _fast_turning_with_translation(seconds=120.0, rate_hz=200.0, seed=1):
     return turning_body(t, w, q0, ext, gyr_std=0.005, acc_std=0.01, seed=seed, source="fast turning with translation")
 
 
-@pytest.mark.parametrize("spec", ["ekf", "ukf-bias"])
-def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec):
+@pytest.mark.parametrize("spec, scale_bound", [("ekf", 8.4e-4), ("ukf-bias", 2.4e-4)])
+def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec, scale_bound):
     # The raw samples carry 0.3 g of translation, so the filters take the low-passed one. Its lag
     # behind a drifting frame is modelled (`_attitude.LowpassLag`), not added to its noise as
     # rate^2 x scale variance, so fast turning does not push the filters back to the raw samples,
@@ -117,12 +117,13 @@ def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec):
     imu, truth = _fast_turning_with_translation()
     est = build(spec).estimate(imu, truth[0])
     second_half = slice(len(imu) // 2, None)
-    # Measured: the low-passed sample on every update of the second half (1.0), 0.140 / 0.153 deg
-    # inclination RMSE and a largest scale estimate of 2.0e-4 / 1.8e-4 (ekf / ukf-bias). The bounds
-    # add 15 % to the larger (they were 0.22 deg and 2e-3).
+    # Measured: the low-passed sample on every update of the second half (1.0), 0.101 / 0.153 deg
+    # inclination RMSE and a largest scale estimate of 7.3e-4 / 1.8e-4 (ekf with its 2 s low-pass /
+    # ukf-bias with 1 s; ekf with 1 s: 0.140 deg, 2.0e-4). The bounds add 15 % to the larger
+    # inclination and to each scale (they were 0.22 deg and 2e-3).
     assert est.diagnostics["acc_lowpassed"][second_half].mean() > 0.9
     assert np.sqrt(np.mean(inclination_deg(truth[second_half], est.quat_wxyz[second_half]) ** 2)) < 0.18
-    assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < 2.4e-4
+    assert np.max(np.abs(est.diagnostics["gyr_scale"][-1])) < scale_bound
 
 
 @pytest.mark.parametrize("impl", ["compiled", "numpy"])
@@ -172,9 +173,11 @@ def test_slow_rocking_with_translation_invents_no_scale(spec):
     assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < 1.0
 
 
-# Inclination RMSE measured 0.548 / 0.560 / 0.048 deg, + 15 % (was 1.0 for all); with scale
-# states, above: 1.75 / 1.86 deg, and scale estimates of 13 / 15 %.
-@pytest.mark.parametrize("spec,bound", [("ekf:scale=false", 0.63), ("ukf-bias:scale=false", 0.65), ("gd", 0.056)])
+# Inclination RMSE measured 0.758 / 0.560 / 0.048 deg, + 15 % (was 1.0 for all); with scale
+# states, above: 1.72 / 1.86 deg, and scale estimates of 9 / 15 %. ekf with a 1 s low-pass (its
+# default before the cross-validated 2 s): 0.548 without scale states, 1.76 with them: the longer
+# low-pass costs this simulated rocking 0.2 deg without scale states.
+@pytest.mark.parametrize("spec,bound", [("ekf:scale=false", 0.87), ("ukf-bias:scale=false", 0.65), ("gd", 0.056)])
 def test_slow_rocking_with_translation_without_scale_states(spec, bound):
     # The same motion without scale states in the filters: the limitation above is the scale's,
     # not the disturbance model's. The smoothers keep a scale error only where it lowers their
