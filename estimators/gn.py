@@ -23,6 +23,9 @@ determines (`released_scales`); they are kept only if they lower the cost signif
 it releases nothing after a first stage that was cut, it goes on with the same variables.
 `converged` says that the cost stopped decreasing (by `tol`), not that a budget ran out.
 
+On a recording with a magnetometer (9-D) the heading of the solution is then corrected, and
+only the heading, by the stage of `fusion.estimators.smoother_mag` (shared with `gd`).
+
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
 its prior std. A variable the data cannot see keeps a posterior std near the prior's.
