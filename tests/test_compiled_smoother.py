@@ -212,6 +212,21 @@ def test_compiled_solves_equal_the_reference_on_the_simulator(spec):
     assert_same_solve(spec, imu, q0)
 
 
+@pytest.mark.parametrize("spec", ["gn", "gd", "gn:mhi=false,mloss=cauchy"])
+def test_compiled_solves_equal_the_reference_in_9d(spec):
+    """With a magnetometer (a field read along the simulator's truth, a carried magnet over a
+    third of it): the 6-D solve as above, then the same heading stage (`smoother_mag`) on both:
+    the same samples used and the same orientations."""
+    imu, truth, q0 = _sim(60.0)
+    rot, _ = truth.interpolate(imu.t)
+    mag = rot.inv().apply([0.0, 16.0, -41.0]) + np.random.default_rng(2).normal(0.0, 1.0, (len(imu), 3))
+    mag[2000:4000] += [30.0, -25.0, 12.0]
+    a, b = assert_same_solve(spec, imu.replace(mag_ut=mag), q0)
+    np.testing.assert_array_equal(a["mag_used"], b["mag_used"])
+    assert a["mag_used"].mean() > 0.5
+    np.testing.assert_allclose(a["mag_heading_correction_rad"], b["mag_heading_correction_rad"], rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("spec", ["gn", "gd"])
 def test_compiled_solves_equal_the_reference_on_a_course_recording(data_dir, spec):
     """ece276a/1 (5,645 samples, a gyro freeze), the default cost: stage 1, release of the
