@@ -38,9 +38,10 @@ undisturbed time merged) is fitted with a sphere, |m - o|^2 = r^2, linear in [2 
 strapdown magnetometer calibration in sensor frame", IEEE TAES 47(2), eqs. 4-6 without soft
 iron), over the whole stretch and, if that is not trusted, over windows of
 `mag_hard_iron_window_s`. A fit is trusted on the filters' terms (coverage of the sphere, RMS
-residual, an offset above the residual) and when its radius is the reference norm; the samples
-it covers are then used with o removed wherever that brings them into the gates. Without a
-trusted fit they stay gated out.
+residual, an offset above the residual) and when its radius is the reference norm; every sample
+it covers is then used with o removed if that is in the gates, and not at all otherwise (a raw
+sample that passes the gates by chance still carries the offset). Without a trusted fit the
+stretch stays gated out.
 
 Heading-error smoother. The 6-D heading error is modelled as a random walk of density sigma_h
 (`mag_heading_walk_rad_sqrt_s`: the gyro's noise about the vertical and what the 6-D cost leaves
@@ -240,11 +241,14 @@ def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[
                     fits.append((c, d) + tuple(fit))
                     corrected = mag[c:d] - np.array(fit[:3])
                     cn, cd, ce, cnn = world_field(q[c:d], corrected)
-                    better = ok & ~inside[c:d] & in_gates(cn, cd, ref_n, ref_d, s)
-                    idx = np.flatnonzero(better) + c
-                    norm[idx], dip[idx], east[idx], north[idx] = cn[better], cd[better], ce[better], cnn[better]
-                    inside[idx] = True
-                    hard[idx] = True
+                    # The magnet is there over the whole piece: every sample of it is used with the
+                    # offset removed if that is in the gates, and not at all otherwise (a raw sample
+                    # that happens to pass the gates still carries the offset).
+                    good = ok & in_gates(cn, cd, ref_n, ref_d, s)
+                    idx = np.flatnonzero(good) + c
+                    norm[idx], dip[idx], east[idx], north[idx] = cn[good], cd[good], ce[good], cnn[good]
+                    inside[c:d] = good
+                    hard[c:d] = good
         used = long_runs(inside & (east**2 + north**2 > 0.0), t, s.min_undisturbed_s)
     hard &= used
     diagnostics = {"mag_used": used, "mag_hard_iron": hard, "mag_reference": (ref_n, ref_d),
