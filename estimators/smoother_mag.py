@@ -200,14 +200,13 @@ def heading_smoother(psi: np.ndarray, info: np.ndarray, walk_var: np.ndarray, in
     return s
 
 
-def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[np.ndarray, dict]:
-    """The 9-D heading correction of the 6-D solution q (T, 4) (module docstring).
-
+def measurements(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The gated heading measurements of the magnetometer at the 6-D solution q (T, 4) (module
+    docstring, eqs. 1-2 and the gates): (psi (T,) rad, their information g_t / r_t (T,) rad^-2,
+    0 where a sample is not used, diagnostics). Diagnostics: "mag_used" (T,) bool (gate weight
+    1), "mag_hard_iron" (T,) bool (used with a fitted offset removed), "mag_reference" (norm uT,
+    dip rad), "mag_hard_iron_fits" (list of (start, stop, ox, oy, oz, r)).
     imu: the samples, with a magnetometer (`imu.has_mag`); q: unit quaternions, `R_world_body`.
-    Returns the corrected (T, 4) quaternions (a new array) and diagnostics: "mag_used" (T,) bool
-    (gate weight 1), "mag_hard_iron" (T,) bool (used with a fitted offset removed),
-    "mag_heading_correction_rad" (T,) (s_t: the heading error removed), "mag_reference"
-    (norm uT, dip rad), "mag_hard_iron_fits" (list of (start, stop, ox, oy, oz, r)).
     """
     T = len(q)
     t = np.asarray(imu.t, float)
@@ -254,8 +253,7 @@ def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[
     diagnostics = {"mag_used": used, "mag_hard_iron": hard, "mag_reference": (ref_n, ref_d),
                    "mag_hard_iron_fits": fits}
     if not used.any():
-        diagnostics["mag_heading_correction_rad"] = np.zeros(T)
-        return np.array(q, dtype=float), diagnostics
+        return np.zeros(T), np.zeros(T), diagnostics
     psi = np.arctan2(-east, north)  # eq. (1)
     # eq. (2): the rate about the vertical from the gyro (the interval rates; the last sample takes the last step's)
     rate, _ = imu.interval_rates()
@@ -264,6 +262,22 @@ def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[
     w_up = np.sum(up_body * np.nan_to_num(rate), axis=1)
     dt = sample_durations(t)
     base_info = np.where(used, dt / (s.heading_noise_rad2_s * (1.0 + (w_up / s.rate_rad_s) ** 2)), 0.0)
+    return psi, base_info, diagnostics
+
+
+def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[np.ndarray, dict]:
+    """The 9-D heading correction of the 6-D solution q (T, 4) (module docstring).
+
+    imu: the samples, with a magnetometer (`imu.has_mag`); q: unit quaternions, `R_world_body`.
+    Returns the corrected (T, 4) quaternions (a new array) and diagnostics: those of
+    `measurements` and "mag_heading_correction_rad" (T,) (s_t: the heading error removed).
+    """
+    T = len(q)
+    t = np.asarray(imu.t, float)
+    psi, base_info, diagnostics = measurements(imu, q, s)
+    if not diagnostics["mag_used"].any():
+        diagnostics["mag_heading_correction_rad"] = np.zeros(T)
+        return np.array(q, dtype=float), diagnostics
     walk_var = s.heading_walk_rad_sqrt_s**2 * np.diff(t)
     init_var = s.init_std_rad**2
     robust = np.ones(T)
