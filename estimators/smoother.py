@@ -32,7 +32,7 @@ from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import make_params, parse_specs
-from .smoother_mag import MagSettings, heading_correction
+from .smoother_mag import MagSettings, heading_correction, measurements
 from .smoother_cost import (AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
                             theta_posterior_std)
 from .ukf import UKF, UKFBias
@@ -111,15 +111,23 @@ class SmootherParams:
         against: `SmootherProblem` and the banded LAPACK solves). The two differ in rounding only.
 
     The magnetometer (9-D; recordings with one, `--mag off` or none: the 6-D result unchanged)
-    corrects the heading only, in a stage after the 6-D solve (`fusion.estimators.smoother_mag`:
-    a heading-error random walk started at the anchor's `prior_std_rad`, smoothed over the gated
-    magnetometer headings):
+    corrects the heading only. By default (mag_term="cost") its heading residual is a term of
+    the cost (`smoother_cost`, the magnetometer term), with the gates, hard-iron fit and measured
+    headings of `fusion.estimators.smoother_mag.measurements` taken at the 6-D solution, which
+    the cost is then solved again from; the motion term then sets how fast the heading may
+    follow the magnetometer (sqrt(Rm) / gyro_noise_rad_sqrt_s, about 30 s). mag_term="stage"
+    instead corrects the 6-D solution afterwards (`smoother_mag.heading_correction`: a
+    heading-error random walk of density mwalk, started at the anchor's `prior_std_rad`,
+    smoothed over the same headings), a rotation about the world vertical that leaves the
+    inclination exactly as in 6-D.
+    mag_term (mterm): "cost" or "stage", as above.
     mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
         (sample variance Rm / dt).
-    mag_heading_walk_rad_sqrt_s (mwalk): density of the 6-D solution's heading-error random walk,
-        rad/sqrt(s): more than the gyro's noise density, since it also carries what the 6-D
-        cost leaves unmodelled about the vertical (the z gyro's scale error, its bias between
-        rests). With Rm it sets the correction's time constant, sqrt(Rm) / mwalk (about 10 s).
+    mag_heading_walk_rad_sqrt_s (mwalk): mag_term="stage" only: density of the 6-D solution's
+        heading-error random walk, rad/sqrt(s); more than the gyro's noise density, since it
+        also carries what the 6-D cost leaves unmodelled about the vertical (the z gyro's
+        scale error, its bias between rests). With Rm it sets the stage's time constant,
+        sqrt(Rm) / mwalk (about 10 s).
     mag_rate_rad_s (mrate): that variance grows as (1 + (w / mrate)^2), w the rate about the
         vertical, rad/s (a magnetometer lagging the gyro; inf: constant).
     mag_loss (mloss), mag_loss_scale_rad (mhuber): robust loss on the heading residual and its
@@ -176,6 +184,7 @@ class SmootherParams:
     mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
     mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
     mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
+    mag_term: Literal["cost", "stage"] = field(default="cost", metadata={"alias": "mterm"})
 
     def __post_init__(self) -> None:
         if self.weighting == "seed":  # deprecated name of "scalar"
@@ -214,6 +223,8 @@ class SmootherParams:
             raise ValueError(f"mag_rate_rad_s={self.mag_rate_rad_s!r}: must be > 0 (inf: no rate term)")
         if not 0 <= self.mag_min_undisturbed_s < np.inf:
             raise ValueError(f"mag_min_undisturbed_s={self.mag_min_undisturbed_s!r}: must be >= 0 and finite")
+        if self.mag_term not in ("stage", "cost"):
+            raise ValueError(f"mag_term={self.mag_term!r}: must be stage or cost")
         if self.mag_loss not in LOSSES:
             raise ValueError(f"mag_loss={self.mag_loss!r}: expected one of {', '.join(LOSSES)}")
 
@@ -456,9 +467,18 @@ class BatchSmoother(Estimator):
             q, diagnostics = self.significant_scales(problem, q, diagnostics)
             diagnostics["scale_rejected"] = implausible
         if self.magnetometer and imu.has_mag:
-            # 9-D: the heading-only correction of the 6-D solution (`smoother_mag`)
-            q, mag_diagnostics = heading_correction(imu, q, p.mag_settings())
-            diagnostics.update(mag_diagnostics)
+            if p.mag_term == "stage":
+                # 9-D: the heading-only correction of the 6-D solution (`smoother_mag`)
+                q, mag_diagnostics = heading_correction(imu, q, p.mag_settings())
+                diagnostics.update(mag_diagnostics)
+            else:
+                # 9-D: the heading term in the cost, measured at the 6-D solution, solved again from there
+                psi, info, mag_diagnostics = measurements(imu, q, p.mag_settings())
+                if mag_diagnostics["mag_used"].any():
+                    problem = problem.with_magnetometer(info, psi, q, p.mag_loss, p.mag_loss_scale_rad)
+                    q, diagnostics = self.solve(problem, q)
+                    q, diagnostics = self.significant_scales(problem, q, diagnostics)
+                diagnostics.update(mag_diagnostics)
         return Trajectory(imu.t, q, diagnostics=diagnostics)
 
     def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:

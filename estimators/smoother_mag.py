@@ -1,12 +1,15 @@
-"""The smoothers' magnetometer stage (9-D): a heading-only correction after the 6-D solve.
+"""The smoothers' magnetometer (9-D): gated heading measurements, and a heading-only stage.
 
 `gn` and `gd` solve the gyro + accelerometer cost (`fusion.estimators.smoother_cost`) first; on
-a recording with a magnetometer this stage then corrects their heading, and only their heading
-(the accelerometer owns the inclination: Laidig & Seel 2023, "VQF: Highly accurate IMU
-orientation estimation with bias estimation and magnetic disturbance rejection", Information
-Fusion 91, Sec. 3.3, where the magnetometer's correction is a rotation about the world's
-vertical). The magnetometer is not (yet) a term of the batch cost itself: this is a second,
-scalar smoothing problem on the 6-D solution.
+a recording with a magnetometer, its samples are turned into heading measurements at that 6-D
+solution (`measurements`: eqs. 1-2, the gates and the hard-iron fit below). The magnetometer
+corrects the heading, and only the heading (the accelerometer owns the inclination: Laidig &
+Seel 2023, "VQF: Highly accurate IMU orientation estimation with bias estimation and magnetic
+disturbance rejection", Information Fusion 91, Sec. 3.3, where the magnetometer's correction is
+a rotation about the world's vertical), in one of two ways (`SmootherParams.mag_term`): as a
+term of the batch cost, solved again from the 6-D solution (`smoother_cost`, the magnetometer
+term; the default), or in the stage of `heading_correction` below, a second, scalar smoothing
+problem on the 6-D solution.
 
 Measurement. With q_t the 6-D solution (`R_world_body`, ENU, z up) and m_t the magnetometer
 sample (uT, body), the field in the world is m_w,t = R(q_t) m_t; its horizontal components
@@ -43,9 +46,9 @@ it covers is then used with o removed if that is in the gates, and not at all ot
 sample that passes the gates by chance still carries the offset). Without a trusted fit the
 stretch stays gated out.
 
-Heading-error smoother. The 6-D heading error is modelled as a random walk of density sigma_h
-(`mag_heading_walk_rad_sqrt_s`: the gyro's noise about the vertical and what the 6-D cost leaves
-unmodelled there, the z gyro's scale error and its bias between rests):
+Heading-error smoother (`heading_correction`). The 6-D heading error is modelled as a random
+walk of density sigma_h (`mag_heading_walk_rad_sqrt_s`: the gyro's noise about the vertical and
+what the 6-D cost leaves unmodelled there, the z gyro's scale error and its bias between rests):
 
     e_{t+1} = e_t + w_t,   w_t ~ N(0, sigma_h^2 dt_t);   e_0 ~ N(0, p0^2)          (3)
 
@@ -65,9 +68,9 @@ The minimised cost is therefore
     1/2 sum_t (e_{t+1} - e_t)^2 / (sigma_h^2 dt_t) + 1/2 e_0^2 / p0^2
       + 1/2 sum_t g_t dt_t / (Rm (1 + (w_up,t / mrate)^2)) c^2 rho(|psi_t - e_t|^2 / c^2).
 
-Correction. q_t <- Rz(-s_t) q_t: a rotation about the world vertical on the left, so the
-inclination (R(q_t)^T e_z) is unchanged. A recording without a magnetometer never reaches this
-stage (the 6-D result is returned as it is).
+Correction (`heading_correction`). q_t <- Rz(-s_t) q_t: a rotation about the world vertical on
+the left, so the inclination (R(q_t)^T e_z) is unchanged. A recording without a magnetometer
+never reaches either (the 6-D result is returned as it is).
 """
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""`gn` and `gd` in 9-D: the magnetometer's heading-only stage after the 6-D solve
-(`fusion.estimators.smoother_mag`), its gates and hard-iron fit, and 6-D unchanged.
+"""`gn` and `gd` in 9-D: the magnetometer's heading term in the cost (`smoother_cost`, the
+default) and the heading-only stage after the 6-D solve (`fusion.estimators.smoother_mag`,
+mag_term=stage), their gates and hard-iron fit, and 6-D unchanged.
 
 Simulated cases use the built-in `sim` recording with the body-frame reading of an ENU field
 (north along y, dipping down) along its truth, plus noise, and a 0.2 deg/s z gyro bias added
@@ -28,7 +29,8 @@ from optional_helpers import require_module
 
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])  # 44 uT, dip 69 deg (BROAD's lab: 44 uT, 69 deg)
 Z_BIAS_RAD_S = np.radians(0.2)  # an uncalibrated z gyro bias (BROAD: about 0.2 deg/s): the 6-D heading drifts
-UNGATED = ":mnorm=10,mdip=3.14,mhi=false"  # nothing gated out, no hard-iron fit
+UNGATED = ",mnorm=10,mdip=3.14,mhi=false,mloss=none"  # nothing gated out, no hard-iron fit, no robust loss
+TERMS = ["cost", "stage"]
 SMOOTHERS = ["gn", "gd"]
 
 
@@ -67,9 +69,9 @@ def test_the_smoothers_are_9d_estimators():
 
 
 @pytest.mark.parametrize("name", SMOOTHERS)
-def test_heading_stays_right_where_6d_drifts(sim, six_d, name):
+def test_the_heading_stage_holds_heading_where_6d_drifts(sim, six_d, name):
     imu, rot = sim
-    nine = build(name).estimate(imu, q0(rot))
+    nine = build(f"{name}:mterm=stage").estimate(imu, q0(rot))
     six = six_d[name]
     drift, held = angles(rot, six.quat_wxyz), angles(rot, nine.quat_wxyz)
     assert rms(drift["heading"]) > 20.0, "the test needs a drifting 6-D heading"
@@ -96,30 +98,42 @@ def with_magnet_passed(imu, rot, centre: int, width: int, peak_ut=(35.0, 10.0, 2
     return imu.replace(mag_ut=np.array(imu.mag_ut) + rot.inv().apply(world))
 
 
-def test_a_magnet_carried_with_the_sensor_does_not_drag_heading(sim):
+@pytest.fixture(scope="module")
+def clean_heading(sim):
+    """gn's 9-D heading error (deg) on the undisturbed simulated recording, per mag_term."""
+    imu, rot = sim
+    return {term: angles(rot, build(f"gn:mterm={term}").estimate(imu, q0(rot)).quat_wxyz)["heading"] for term in TERMS}
+
+
+@pytest.mark.parametrize("term", TERMS)
+def test_a_magnet_carried_with_the_sensor_does_not_drag_heading(sim, clean_heading, term):
     """The simulator turns mostly about one axis, too little of the sphere for a trusted
-    hard-iron fit: the magnet's samples are gated out and the heading bridges them."""
+    hard-iron fit: the magnet's samples are gated out and the heading bridges them. Measured:
+    at most 1.9 (stage) and 1.3 deg (cost) from the heading without the magnet; 70 and 17 deg
+    with no gate, no fit and no robust loss."""
     imu, rot = sim
     disturbed = with_magnet_carried(imu, 4000, 10000)  # 40-100 s
-    est = build("gn").estimate(disturbed, q0(rot))
+    est = build(f"gn:mterm={term}").estimate(disturbed, q0(rot))
     heading = angles(rot, est.quat_wxyz)["heading"]
-    ungated = angles(rot, build("gn" + UNGATED).estimate(disturbed, q0(rot)).quat_wxyz)["heading"]
+    ungated = angles(rot, build(f"gn:mterm={term}" + UNGATED).estimate(disturbed, q0(rot)).quat_wxyz)["heading"]
     used = est.diagnostics["mag_used"]
     assert used[4000:10000].mean() < 0.05 and used[:3500].mean() > 0.9 and used[-3000:].mean() > 0.9
-    # measured: gated 2.6 deg RMS (max 6.9), ungated max 8.8; without the magnet 2.3 RMS
-    assert rms(heading) < 3.5, f"gated {rms(heading):.2f} deg RMS"
-    assert np.max(np.abs(heading)) < np.max(np.abs(ungated)) - 1.0
+    moved, dragged = np.max(np.abs(heading - clean_heading[term])), np.max(np.abs(ungated - clean_heading[term]))
+    assert moved < 2.5 and dragged > 4.0 * moved, (moved, dragged)
 
 
-def test_a_magnet_in_the_room_does_not_drag_heading(sim):
+@pytest.mark.parametrize("term", TERMS)
+def test_a_magnet_in_the_room_does_not_drag_heading(sim, clean_heading, term):
+    """Measured: at most 1.9 (stage) and 1.0 deg (cost) from the heading without the magnet;
+    24 and 10 deg with no gate, no fit and no robust loss."""
     imu, rot = sim
     disturbed = with_magnet_passed(imu, rot, centre=8000, width=500)
-    est = build("gn").estimate(disturbed, q0(rot))
+    est = build(f"gn:mterm={term}").estimate(disturbed, q0(rot))
     heading = angles(rot, est.quat_wxyz)["heading"]
-    ungated = angles(rot, build("gn" + UNGATED).estimate(disturbed, q0(rot)).quat_wxyz)["heading"]
+    ungated = angles(rot, build(f"gn:mterm={term}" + UNGATED).estimate(disturbed, q0(rot)).quat_wxyz)["heading"]
     assert est.diagnostics["mag_used"][7700:8300].mean() < 0.05  # the magnet's peak is gated out
-    # measured: gated up to 6.6 deg, ungated 12.3
-    assert np.max(np.abs(heading)) < 0.7 * np.max(np.abs(ungated)), (np.max(np.abs(heading)), np.max(np.abs(ungated)))
+    moved, dragged = np.max(np.abs(heading - clean_heading[term])), np.max(np.abs(ungated - clean_heading[term]))
+    assert moved < 2.5 and dragged > 4.0 * moved, (moved, dragged)
 
 
 def tumbling(seconds: float = 240.0, rate_hz: float = 50.0):
@@ -148,7 +162,7 @@ def test_a_carried_magnet_is_fitted_as_hard_iron_and_removed():
     imu = imu.replace(mag_ut=mag)
     drift = np.radians(0.3) * imu.t  # a 6-D solution whose heading drifts 0.3 deg/s
     six = quat.multiply(quat.from_rotvec(np.outer(drift, [0.0, 0.0, 1.0])), rot.as_quat(scalar_first=True))
-    s = build("gn").params.mag_settings()
+    s = build("gn:mterm=stage").params.mag_settings()
     q, diag = heading_correction(imu, six, s)
     assert diag["mag_hard_iron_fits"], "no trusted fit"
     for fit in diag["mag_hard_iron_fits"]:
@@ -197,51 +211,60 @@ def test_without_a_magnetometer_the_smoother_is_6d_bit_for_bit(sim, impl):
     assert "mag_used" not in plain.diagnostics
 
 
+@pytest.mark.parametrize("term", TERMS)
 @pytest.mark.parametrize("name", SMOOTHERS)
-def test_compiled_equals_numpy_in_9d(sim, name):
+def test_compiled_equals_numpy_in_9d(sim, name, term):
     imu, rot = sim
-    compiled = build(f"{name}:impl=compiled").estimate(imu, q0(rot))
-    numpy_ = build(f"{name}:impl=numpy").estimate(imu, q0(rot))
+    compiled = build(f"{name}:impl=compiled,mterm={term}").estimate(imu, q0(rot))
+    numpy_ = build(f"{name}:impl=numpy,mterm={term}").estimate(imu, q0(rot))
     np.testing.assert_array_equal(compiled.diagnostics["mag_used"], numpy_.diagnostics["mag_used"])
     angle = np.linalg.norm(quat.relative_rotvec(numpy_.quat_wxyz, compiled.quat_wxyz), axis=1)
     assert np.max(angle) < 1e-6, f"largest difference {np.max(angle):.2e} rad"
 
 
-def test_invalid_magnetometer_samples_are_skipped(sim):
+@pytest.mark.parametrize("term", TERMS)
+def test_invalid_magnetometer_samples_are_skipped(sim, term):
     imu, rot = sim
     mag = np.array(imu.mag_ut)
     mag[2000:2500] = np.nan
     valid = np.ones(len(imu), bool)
     valid[5000:5400] = False
-    est = build("gn").estimate(imu.replace(mag_ut=mag, mag_valid=valid), q0(rot))
+    est = build(f"gn:mterm={term}").estimate(imu.replace(mag_ut=mag, mag_valid=valid), q0(rot))
     used = est.diagnostics["mag_used"]
     assert not used[2000:2500].any() and not used[5000:5400].any()
     assert used.mean() > 0.85
     assert np.all(np.isfinite(est.quat_wxyz))
 
 
-def test_the_inputs_are_untouched(sim):
+@pytest.mark.parametrize("term", TERMS)
+def test_the_inputs_are_untouched(sim, term):
     imu, rot = sim
-    before = np.array(imu.mag_ut)
-    build("gn").estimate(imu, q0(rot))
-    np.testing.assert_array_equal(imu.mag_ut, before)
+    before = [np.array(a) for a in (imu.mag_ut, imu.gyr_rad_s, imu.acc_g, imu.t)]
+    build(f"gn:mterm={term}").estimate(imu, q0(rot))
+    for a, b in zip((imu.mag_ut, imu.gyr_rad_s, imu.acc_g, imu.t), before):
+        np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("bad", ["Rm=0", "mwalk=-1", "mnorm=-0.1", "mdip=inf", "mtime=-1", "mrate=0", "mhuber=0",
+@pytest.mark.parametrize("bad", ["mterm=both", "Rm=0", "mwalk=-1", "mnorm=-0.1", "mdip=inf", "mtime=-1", "mrate=0", "mhuber=0",
                                  "mloss=l1"])
 def test_bad_magnetometer_parameters_raise(bad):
-    with pytest.raises(ValueError, match="mag_|mloss"):
+    with pytest.raises(ValueError, match="mag_|mloss|mterm"):
         build(f"gn:{bad}")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("trial, bound_deg", [("28_disturbed_stationary_magnet_A.mat", 2.6),
-                                               ("36_disturbed_attached_magnet_5cm.hdf5", 2.8)])
-def test_broad_9d_total_error(data_dir, trial, bound_deg):
+@pytest.mark.parametrize("term, trial, bound_deg", [("cost", "28_disturbed_stationary_magnet_A.mat", 1.4),
+                                                     ("cost", "36_disturbed_attached_magnet_5cm.hdf5", 1.9),
+                                                     ("stage", "28_disturbed_stationary_magnet_A.mat", 2.6),
+                                                     ("stage", "36_disturbed_attached_magnet_5cm.hdf5", 2.8)])
+def test_broad_9d_total_error(data_dir, term, trial, bound_deg):
     """BROAD's protocol (movement phases, total error, no heading offset removed in 9-D) on a
-    trial past a magnet fixed in the room (gn measured 2.09 deg; VQF's 9-D estimate scores 4.04)
-    and on one with a magnet carried 5 cm from the sensor, fitted as hard iron (gn 2.14; VQF
-    2.39). The inclination is the 6-D solution's."""
+    trial past a magnet fixed in the room (gn measured 1.06 deg with the term in the cost, 2.09
+    with the stage; VQF's 9-D estimate scores 4.04) and on one with a magnet carried 5 cm from
+    the sensor, fitted as hard iron (1.46 and 2.14; VQF 2.39). The stage keeps the 6-D
+    inclination exactly; with the term in the cost the heading moves the velocity model's and
+    the x/y biases' fit, and the inclination with them (measured on trial 36: 0.65 deg, 6-D
+    0.55)."""
     path = data_dir / "broad" / trial
     if not path.is_file():
         pytest.fail(f"FUSION_DATA={data_dir} is set but {path} is missing")
@@ -249,13 +272,95 @@ def test_broad_9d_total_error(data_dir, trial, bound_deg):
         require_module("h5py")
     rec = datasets.load(str(path))
     start = datasets.initial_orientation(rec)
-    est = build("gn").estimate(rec.imu, start)
+    est = build(f"gn:mterm={term}").estimate(rec.imu, start)
     six = build("gn").estimate(rec.imu.replace(mag_ut=None), start)
     nine_score = score(rec.truth, est, "broad", rec.movement, nine_d=True).rmse_deg
     six_score = score(rec.truth, six, "broad", rec.movement, nine_d=True).rmse_deg
     assert nine_score["total"] < bound_deg, f"{trial}: 9-D total RMSE {nine_score['total']:.2f} deg"
     assert nine_score["total"] < six_score["total"], (nine_score, six_score)
-    assert nine_score["inclination"] == pytest.approx(six_score["inclination"], abs=1e-6)
+    assert nine_score["inclination"] == pytest.approx(six_score["inclination"], abs=1e-6 if term == "stage" else 0.15)
     if "attached" in trial:
         assert est.diagnostics["mag_hard_iron"].any() and est.diagnostics["mag_hard_iron_fits"]
 
+
+# ----------------------------------------------------------------------------- the heading term in the cost
+def _mag_problem(loss: str, T: int = 30, seed: int = 0):
+    """A small random problem with the magnetometer's heading term: (problem, q, theta, v)."""
+    from fusion.estimators.smoother_cost import SmootherProblem, Weights
+
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(0.005 + 0.01 * rng.random(T))
+    q = quat.normalize(rng.normal(size=(T, 4)))
+    imu = ImuSamples(t, rng.normal(size=(T, 3)), quat.gravity_in_body(q) + rng.normal(size=(T, 3)) * 0.05)
+    weights = Weights(bias_axes="xy", scale_axes="x", velocity_acc_noise_g_sqrt_s=0.01, velocity_bound_m_sqrt_s=0.5)
+    problem = SmootherProblem.from_imu(imu, q[0], weights)
+    q_ref = quat.normalize(q + rng.normal(size=(T, 4)) * 0.2)
+    w_mag = rng.uniform(1e3, 1e5, T) * (np.arange(T) % 4 != 0)
+    psi = rng.normal(size=T) * 0.3
+    return (problem.with_magnetometer(w_mag, psi, q_ref, loss, 0.1), q, rng.normal(size=problem.n_theta) * 0.01,
+            rng.normal(size=(T, 2)) * 0.1)
+
+
+@pytest.mark.parametrize("loss", ["huber", "cauchy", "none"])
+def test_the_heading_terms_gradient_and_jacobian_are_exact(loss):
+    """The magnetometer term's part of the gradient against central differences of its part of
+    the cost, and its Gauss-Newton block against the residual's differences (J^T W J)."""
+    problem, q, theta, v = _mag_problem(loss)
+    without = dataclasses.replace(problem, w_mag=np.zeros(0))
+    lin, lin0 = problem.linearize(q, theta, v=v), without.linearize(q, theta, v=v)
+    grad = lin.grad_q[:, :3] - lin0.grad_q[:, :3]
+    block = lin.diag[:, :3, :3] - lin0.diag[:, :3, :3]
+    r, _ = problem.mag_residual(q)
+    _, wh = problem.mag_terms(r)
+    h = 1e-6
+    num = np.zeros((len(q), 3))
+    jac = np.zeros((len(q), 3))
+    mag_cost = lambda qq: problem.cost(qq, theta, v) - without.cost(qq, theta, v)  # noqa: E731
+    for j in range(3):
+        d = np.zeros((len(q), 3))
+        d[:, j] = h
+        plus, minus = quat.retract(q, d), quat.retract(q, -d)
+        jac[:, j] = (problem.mag_residual(plus)[0] - problem.mag_residual(minus)[0]) / (2 * h)
+        for i in range(len(q)):  # one sample at a time: the cost's part from sample i
+            di = np.zeros((len(q), 3))
+            di[i, j] = h
+            num[i, j] = (mag_cost(quat.retract(q, di)) - mag_cost(quat.retract(q, -di))) / (2 * h)
+    np.testing.assert_allclose(grad, num, rtol=0, atol=1e-5 * np.max(np.abs(num)))
+    np.testing.assert_allclose(block, wh[:, None, None] * jac[:, :, None] * jac[:, None, :], rtol=0,
+                               atol=1e-6 * np.max(np.abs(block)))
+    assert np.any(wh > 0) and np.max(np.abs(grad)) > 0
+
+
+def test_the_heading_term_sees_the_heading_only():
+    """Tilting q about a horizontal world axis leaves the residual as it is; turning it by phi
+    about the world vertical from q_ref adds phi."""
+    problem, q, _, _ = _mag_problem("huber")
+    q_ref = problem.mag_ref
+    T = len(q_ref)
+    tilt = quat.from_rotvec(np.stack([np.full(T, 0.3), np.full(T, -0.2), np.zeros(T)], axis=1))
+    r, _ = problem.mag_residual(quat.multiply(tilt, q_ref))
+    np.testing.assert_allclose(r, problem.mag_psi, atol=1e-12)
+    turn = quat.from_rotvec(np.stack([np.zeros(T), np.zeros(T), np.full(T, 0.25)], axis=1))
+    r, _ = problem.mag_residual(quat.multiply(turn, q_ref))
+    np.testing.assert_allclose(r, problem.mag_psi + 0.25, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", SMOOTHERS)
+def test_the_heading_term_in_the_cost_holds_heading_where_6d_drifts(sim, six_d, name):
+    imu, rot = sim
+    nine = build(f"{name}:mterm=cost").estimate(imu, q0(rot))
+    drift, held = angles(rot, six_d[name].quat_wxyz), angles(rot, nine.quat_wxyz)
+    # measured (gn): 6-D 24.3 deg RMS, 9-D 3.8 (the heading-error walk is the gyro noise's,
+    # 0.01 rad/sqrt(s): a 30 s time constant against the simulator's unmodelled z scale error)
+    assert rms(held["heading"]) < 5.0, f"9-D heading error {rms(held['heading']):.2f} deg RMS"
+    assert nine.diagnostics["mag_used"].mean() > 0.9
+    # the term pulls on heading only: the inclination stays within 0.1 deg RMS of the 6-D one
+    assert rms(held["inclination"]) < rms(drift["inclination"]) + 0.1
+
+
+def test_bad_magnetometer_term_inputs_raise():
+    problem, q, _, _ = _mag_problem("huber")
+    with pytest.raises(ValueError, match="magnetometer term"):
+        problem.with_magnetometer(np.ones(3), np.zeros(3), q[:3], "huber", 0.1)
+    with pytest.raises(ValueError, match="loss"):
+        problem.with_magnetometer(problem.w_mag, problem.mag_psi, problem.mag_ref, "l1", 0.1)
