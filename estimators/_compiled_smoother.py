@@ -74,6 +74,7 @@ SmootherArrays = namedtuple("SmootherArrays", [
     "init_quat", "w_prior",  # the anchor
     "w_theta", "theta_axis", "n_bias",  # calibration: prior weights, the gyro axis of each, how many are biases
     "loss", "loss_c",  # robust loss (index in LOSSES) and its scale, g
+    "w_mag", "mag_ref", "mag_psi", "mag_loss", "mag_c",  # magnetometer heading term (w_mag empty: none)
 ])
 forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
 
@@ -96,6 +97,7 @@ def problem_arrays(problem: SmootherProblem) -> SmootherArrays:
         f(problem.init_quat), float(problem.w_prior), f(problem.w_theta),
         np.ascontiguousarray(np.concatenate([problem.bias_idx, problem.scale_idx]), dtype=np.int64), int(len(problem.bias_idx)),
         LOSSES.index(problem.loss), float(problem.loss_c),
+        f(problem.w_mag), f(problem.mag_ref), f(problem.mag_psi), LOSSES.index(problem.mag_loss), float(problem.mag_c),
     )
 
 
@@ -230,6 +232,19 @@ def acc_term(sq, w, loss, c):
 
 
 @_jit
+def mag_residual(p, t, qt):
+    """The magnetometer's heading residual at sample t, q_t = qt (`SmootherProblem.mag_residual`):
+    (r_h rad, k0, k1, k2)."""
+    d = qmul(qt, (p.mag_ref[t, 0], -p.mag_ref[t, 1], -p.mag_ref[t, 2], -p.mag_ref[t, 3]))
+    dw, dx, dy, dz = d
+    n2 = dw * dw + dz * dz
+    x = p.mag_psi[t] + 2.0 * math.atan2(dz, dw)
+    r = x - 2.0 * math.pi * math.floor((x + math.pi) / (2.0 * math.pi))
+    safe = n2 if n2 > 0.0 else 1.0
+    return r, (dw * dy + dz * dx) / safe, (dz * dy - dw * dx) / safe, 1.0
+
+
+@_jit
 def rest_residual(p, b, k, t, i):
     """Rest residual of step t on the i-th bias variable's axis, and that axis."""
     ax = p.theta_axis[i]
@@ -278,6 +293,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
     cost_vel = 0.0
     cost_vzero = 0.0
     cost_rest = 0.0
+    cost_mag = 0.0
     R = np.empty((3, 3))
     Rn = np.empty((3, 3))
     qn = (0.0, 0.0, 0.0, 0.0)
@@ -300,6 +316,10 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
         r2 = p.acc[t, 2] - R[2, 2]
         c, _ = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
         cost_acc += c
+        if len(p.w_mag) and p.w_mag[t] > 0.0:
+            rh, _, _, _ = mag_residual(p, t, qt)
+            c, _ = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            cost_mag += c
         if V:
             cost_vzero += p.w_vzero[t] * (vv[t, 0] * vv[t, 0] + vv[t, 1] * vv[t, 1])
         if t == T - 1:
@@ -330,7 +350,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
     r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
                   (q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3]) if kind else load_quat(q, 0)))
     prior_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-    return total_cost(p, theta, V, cost_acc, cost_motion, prior_sq, cost_vel, cost_vzero, cost_rest)
+    return total_cost(p, theta, V, cost_acc, cost_motion, prior_sq, cost_vel, cost_vzero, cost_rest) + cost_mag
 
 
 @_jit
@@ -425,6 +445,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     cost_vzero = 0.0
     cost_rest = 0.0
     cost_prior = 0.0
+    cost_mag = 0.0
     R = np.empty((3, 3))
     Rn = np.empty((3, 3))
     A = np.empty((3, 3))
@@ -490,6 +511,17 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         for i in range(3):
             for j in range(i + 1):
                 D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
+        if len(p.w_mag) and p.w_mag[t] > 0.0:
+            # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
+            rh, k0, k1, k2 = mag_residual(p, t, qt)
+            cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            cost_mag += cm
+            jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
+                  R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
+            for i in range(3):
+                g[i] += wh * rh * jh[i]
+                for j in range(i + 1):
+                    D[i, j] += wh * jh[i] * jh[j]
         if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
             r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
             cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
@@ -688,7 +720,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
             schur[n, n] = G[free[n], free[n]] * (1.0 + shift) - schur[n, n]
             schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
-    return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest)
+    return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest) + cost_mag
 
 
 @_jit

@@ -2,7 +2,9 @@
 
 `gd` minimises the same cost as `gn` (`fusion.estimators.smoother_cost`, with the same
 defaults: noise weighting, robust accelerometer loss, gyro bias and scale variables, velocity
-model); the solver is what differs. The unknowns are the unit quaternions q_t (one per
+model); the solver is what differs. On a recording with a magnetometer (9-D) both add the
+magnetometer's heading-only term to the cost (`smoother_cost`; its measurements and gates:
+`fusion.estimators.smoother_mag`) and solve again from the 6-D solution. The unknowns are the unit quaternions q_t (one per
 sample), the horizontal velocities v_t and the calibration variables theta. A step moves every
 quaternion along the unit sphere,
 

@@ -23,6 +23,11 @@ determines (`released_scales`); they are kept only if they lower the cost signif
 it releases nothing after a first stage that was cut, it goes on with the same variables.
 `converged` says that the cost stopped decreasing (by `tol`), not that a budget ran out.
 
+On a recording with a magnetometer (9-D) the magnetometer then corrects the heading, and only
+the heading: by default its heading residual joins the cost (`smoother_cost`, the magnetometer
+term, measured and gated at the 6-D solution by `fusion.estimators.smoother_mag`) and the cost
+is solved again from there; mag_term=stage corrects the 6-D solution afterwards instead.
+
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
 its prior std. A variable the data cannot see keeps a posterior std near the prior's.

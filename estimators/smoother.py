@@ -33,7 +33,8 @@ from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import make_params, parse_specs
-from .smoother_cost import (AXES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
+from .smoother_mag import MagSettings, heading_correction, measurements
+from .smoother_cost import (AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
                             theta_posterior_std)
 from .ukf import UKF, UKFBias
 
@@ -108,6 +109,39 @@ class SmootherParams:
     impl: "compiled" (default: cost, linearisation and solves in the numba kernels of
         `fusion.estimators._compiled_smoother`) or "numpy" (the reference they are checked
         against: `SmootherProblem` and the banded LAPACK solves). The two differ in rounding only.
+
+    The magnetometer (9-D; recordings with one, `--mag off` or none: the 6-D result unchanged)
+    corrects the heading only. By default (mag_term="cost") its heading residual is a term of
+    the cost (`smoother_cost`, the magnetometer term), with the gates, hard-iron fit and measured
+    headings of `fusion.estimators.smoother_mag.measurements` taken at the 6-D solution, which
+    the cost is then solved again from; the motion term then sets how fast the heading may
+    follow the magnetometer (sqrt(Rm) / gyro_noise_rad_sqrt_s, about 30 s). mag_term="stage"
+    instead corrects the 6-D solution afterwards (`smoother_mag.heading_correction`: a
+    heading-error random walk of density mwalk, started at the anchor's `prior_std_rad`,
+    smoothed over the same headings), a rotation about the world vertical that leaves the
+    inclination exactly as in 6-D.
+    mag_term (mterm): "cost" or "stage", as above.
+    mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
+        (sample variance Rm / dt).
+    mag_heading_walk_rad_sqrt_s (mwalk): mag_term="stage" only: density of the 6-D solution's
+        heading-error random walk, rad/sqrt(s); more than the gyro's noise density, since it
+        also carries what the 6-D cost leaves unmodelled about the vertical (the z gyro's
+        scale error, its bias between rests). With Rm it sets the stage's time constant,
+        sqrt(Rm) / mwalk (about 10 s).
+    mag_rate_rad_s (mrate): that variance grows as (1 + (w / mrate)^2), w the rate about the
+        vertical, rad/s (a magnetometer lagging the gyro; inf: constant).
+    mag_loss (mloss), mag_loss_scale_rad (mhuber): robust loss on the heading residual and its
+        scale, rad ("none": plain least squares).
+    mag_norm_gate_frac (mnorm), mag_dip_gate_rad (mdip): a sample counts while its norm is
+        within this fraction of the reference norm and its dip within this of the reference
+        dip, rad (the references: medians of the recording's own undisturbed samples) ...
+    mag_min_undisturbed_s (mtime): ... in an uninterrupted run of such samples this long, s.
+    mag_hard_iron (mhi): fit a magnet carried with the sensor (a sphere fit over each disturbed
+        stretch, else over windows of mag_hard_iron_window_s (mhiw) s) and use its samples
+        with the offset removed; the fit is trusted with an RMS residual below
+        mag_hard_iron_residual_ut (mhires) uT and a spread of at least mag_hard_iron_coverage
+        (mhicov) of its radius (the filters' `_attitude.hard_iron_fit`).
+    The magnetometer's defaults are the filters' (`BiasFilterParams`) where they mean the same.
     """
 
     gyro_noise_rad_sqrt_s: float = field(default=0.01, metadata={"alias": "sg"})
@@ -138,6 +172,19 @@ class SmootherParams:
     tol: float = 1e-4
     progress: bool = True
     impl: Literal["compiled", "numpy"] = "compiled"
+    mag_heading_noise_rad2_s: float = field(default=0.1, metadata={"alias": "Rm"})
+    mag_heading_walk_rad_sqrt_s: float = field(default=0.03, metadata={"alias": "mwalk"})
+    mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
+    mag_loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = field(default="huber", metadata={"alias": "mloss"})
+    mag_loss_scale_rad: float = field(default=0.1, metadata={"alias": "mhuber"})
+    mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
+    mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
+    mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
+    mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
+    mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
+    mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
+    mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
+    mag_term: Literal["cost", "stage"] = field(default="cost", metadata={"alias": "mterm"})
 
     def __post_init__(self) -> None:
         if self.weighting == "seed":  # the former name of "scalar", to be removed
@@ -169,6 +216,30 @@ class SmootherParams:
             raise ValueError(f"tol={self.tol!r}: must be >= 0")
         if self.impl not in ("compiled", "numpy"):
             raise ValueError(f"impl={self.impl!r}: must be compiled or numpy")
+        for name in ("mag_heading_noise_rad2_s", "mag_heading_walk_rad_sqrt_s", "mag_loss_scale_rad", "mag_norm_gate_frac", "mag_dip_gate_rad",
+                     "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 < value < np.inf):
+                raise ValueError(f"{name}={value!r}: must be a finite number > 0")
+        if not self.mag_rate_rad_s > 0:
+            raise ValueError(f"mag_rate_rad_s={self.mag_rate_rad_s!r}: must be > 0 (inf: no rate term)")
+        if not 0 <= self.mag_min_undisturbed_s < np.inf:
+            raise ValueError(f"mag_min_undisturbed_s={self.mag_min_undisturbed_s!r}: must be >= 0 and finite")
+        if self.mag_term not in ("stage", "cost"):
+            raise ValueError(f"mag_term={self.mag_term!r}: must be stage or cost")
+        if self.mag_loss not in LOSSES:
+            raise ValueError(f"mag_loss={self.mag_loss!r}: expected one of {', '.join(LOSSES)}")
+
+    def mag_settings(self) -> MagSettings:
+        """The magnetometer stage's settings (`fusion.estimators.smoother_mag`)."""
+        return MagSettings(
+            heading_noise_rad2_s=self.mag_heading_noise_rad2_s, heading_walk_rad_sqrt_s=self.mag_heading_walk_rad_sqrt_s,
+            init_std_rad=self.prior_std_rad, rate_rad_s=self.mag_rate_rad_s, loss=self.mag_loss,
+            loss_scale_rad=self.mag_loss_scale_rad, norm_gate_frac=self.mag_norm_gate_frac,
+            dip_gate_rad=self.mag_dip_gate_rad, min_undisturbed_s=self.mag_min_undisturbed_s,
+            hard_iron=self.mag_hard_iron, hard_iron_window_s=self.mag_hard_iron_window_s,
+            hard_iron_residual_ut=self.mag_hard_iron_residual_ut, hard_iron_coverage=self.mag_hard_iron_coverage,
+        )
 
     def weights(self) -> Weights:
         """The cost's `Weights` (one scalar weight per term when weighting="scalar")."""
@@ -352,6 +423,7 @@ class BatchSmoother(Estimator):
     Params = SmootherParams
     causal = False
     name = ""
+    magnetometer = True  # 9-D where the recording has a magnetometer: the heading stage of `smoother_mag`
 
     def __init__(self, params=None) -> None:
         super().__init__(params)
@@ -396,6 +468,19 @@ class BatchSmoother(Estimator):
             q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))  # the same start, computed again
             q, diagnostics = self.significant_scales(problem, q, diagnostics)
             diagnostics["scale_rejected"] = implausible
+        if self.magnetometer and imu.has_mag:
+            if p.mag_term == "stage":
+                # 9-D: the heading-only correction of the 6-D solution (`smoother_mag`)
+                q, mag_diagnostics = heading_correction(imu, q, p.mag_settings())
+                diagnostics.update(mag_diagnostics)
+            else:
+                # 9-D: the heading term in the cost, measured at the 6-D solution, solved again from there
+                psi, info, mag_diagnostics = measurements(imu, q, p.mag_settings())
+                if mag_diagnostics["mag_used"].any():
+                    problem = problem.with_magnetometer(info, psi, q, p.mag_loss, p.mag_loss_scale_rad)
+                    q, diagnostics = self.solve(problem, q)
+                    q, diagnostics = self.significant_scales(problem, q, diagnostics)
+                diagnostics.update(mag_diagnostics)
         return Trajectory(imu.t, q, diagnostics=diagnostics)
 
     def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:

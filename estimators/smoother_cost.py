@@ -7,6 +7,7 @@ The cost over the whole recording (weighted least squares with a robust accelero
                    + 1/2 w_0 |r_0|^2 + 1/2 theta^T W_theta theta          (anchor of q_0, calibration prior)
                    + 1/2 sum_t  w_v,t |r_v,t|^2 + 1/2 sum_t w_z,t |v_t|^2   (optional velocity model)
                    + 1/2 sum_t  w_r,t |w_t|^2                            (rest: steps detected at rest)
+                   + 1/2 sum_t  w_h,t c_h^2 rho(r_h,t^2 / c_h^2)         (magnetometer, 9-D: heading only)
 
     r_m,t = 2 log(q_{t+1}^-1 * q_t * exp([0, w_t dt_t / 2]))            (motion residual)
     r_a,t = a_t - h(q_t),   h(q) = R(q)^T e_z                           (observation residual, g)
@@ -41,6 +42,27 @@ bias variable. It touches only the calibration variables. An axis without a bias
 takes the mean rest reading as a fixed bias (`from_imu`): about the vertical, nothing but the
 gyro sees a rotation, so the rest is the only place its bias can be read.
 
+The magnetometer term (9-D, optional; `SmootherProblem.with_magnetometer`) corrects the heading
+only, as the magnetometer's correction in VQF (Laidig & Seel 2023, Sec. 3.3: a rotation about
+the world's vertical; the accelerometer owns the inclination). Its residual on sample t is the
+heading error psi_t of a reference trajectory q_ref (the 6-D solution) against magnetic north,
+measured by the magnetometer there (`fusion.estimators.smoother_mag.measurements`, eq. 1, with
+its gates and hard-iron fit), plus the turn of q_t from q_ref,t about the world vertical:
+
+    r_h,t = wrap(psi_t + tau(q_t q_ref,t^-1)),   tau(d) = 2 atan2(d_z, d_w)
+
+tau is the twist about world z of the swing-twist decomposition of d (a rotation about a
+horizontal axis has none), so r_h depends on q_t's heading only, and at q_t = q_ref,t turning
+q_t by phi about the world vertical adds phi. With q_t <- q_t Exp(delta), q_t Exp(delta)
+q_ref^-1 = Exp(R(q_t) delta) d, and the first-order change of tau is k^T R(q_t) delta with
+
+    k = [d_w d_y + d_z d_x, d_z d_y - d_w d_x, d_w^2 + d_z^2] / (d_w^2 + d_z^2)
+
+(k = e_z at d = 1: then the Jacobian is R^T e_z, the body-frame vertical). w_h,t is the heading
+measurement's information (0 for a gated-out sample) and rho the robust loss of the
+accelerometer's term (`robust_loss`) at scale c_h, rad. A unary term: it adds to the diagonal
+blocks and the gradient only.
+
 The anchor `r_0` fixes the gauge: the cost is invariant under a rotation of the whole
 trajectory about world z, so without it the normal equations are singular in heading.
 
@@ -52,6 +74,7 @@ vectorised over samples.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -203,6 +226,11 @@ class SmootherProblem:
     w_vel: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T-1,) velocity increments, (s/m)^2; empty: no velocity model
     w_vzero: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) zero-velocity pseudo-measurements, (s/m)^2
     w_rest: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T-1,) zero-rate information of steps at rest, (s/rad)^2; empty: none
+    w_mag: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) heading information, rad^-2; empty: no magnetometer term
+    mag_ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (T, 4) q_ref, the trajectory psi was measured at
+    mag_psi: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) heading error of q_ref, rad
+    mag_loss: str = "none"  # robust loss on the heading residual (`robust_loss`)
+    mag_c: float = np.inf  # its scale, rad
 
     @classmethod
     def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True,
@@ -267,6 +295,42 @@ class SmootherProblem:
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
             w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
         )
+
+    def with_magnetometer(self, w_mag: np.ndarray, psi: np.ndarray, q_ref: np.ndarray, loss: str,
+                          scale_rad: float) -> "SmootherProblem":
+        """This problem with the magnetometer's heading term: w_mag (T,) information of each
+        heading measurement, rad^-2 (0: not used); psi (T,) rad, the heading error of q_ref
+        (T, 4) measured by the magnetometer; loss, scale_rad: its robust loss and scale, rad."""
+        T = len(self.acc)
+        w_mag, psi, q_ref = (np.array(a, dtype=float) for a in (w_mag, psi, q_ref))
+        if w_mag.shape != (T,) or psi.shape != (T,) or q_ref.shape != (T, 4):
+            raise ValueError(f"magnetometer term: expected ({T},), ({T},), ({T}, 4), got {w_mag.shape}, {psi.shape}, "
+                             f"{q_ref.shape}")
+        if loss not in LOSSES:
+            raise ValueError(f"loss={loss!r}: expected one of {', '.join(LOSSES)}")
+        return dataclasses.replace(self, w_mag=np.where(np.isfinite(psi), w_mag, 0.0), mag_psi=np.nan_to_num(psi),
+                                   mag_ref=quat.normalize(q_ref), mag_loss=loss if np.isfinite(scale_rad) else "none",
+                                   mag_c=float(scale_rad))
+
+    def mag_residual(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) r_h (rad) and (T, 3) k (module docstring) at q (T, 4)."""
+        d = quat.multiply(q, quat.conjugate(self.mag_ref))
+        dw, dx, dy, dz = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+        n2 = dw * dw + dz * dz
+        x = self.mag_psi + 2.0 * np.arctan2(dz, dw)
+        r = x - 2.0 * np.pi * np.floor((x + np.pi) / (2.0 * np.pi))
+        safe = np.where(n2 > 0.0, n2, 1.0)
+        k = np.stack([(dw * dy + dz * dx) / safe, (dz * dy - dw * dx) / safe, np.ones_like(dw)], axis=1)
+        return r, k
+
+    def mag_terms(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) heading cost terms `1/2 w c^2 rho(r^2 / c^2)` and (T,) IRLS weights `w rho'`."""
+        sq = r * r
+        if self.mag_loss == "none":
+            return 0.5 * self.w_mag * sq, self.w_mag
+        c2 = self.mag_c**2
+        rho, drho = robust_loss(self.mag_loss, sq / c2)
+        return 0.5 * self.w_mag * c2 * rho, self.w_mag * drho
 
     # -------------------------------------------------------------- pieces
     @property
@@ -389,6 +453,8 @@ class SmootherProblem:
             out["vzero"] = v
         if np.any(self.w_rest):
             out["rest"] = self.rest_residual(theta)
+        if len(self.w_mag):
+            out["mag"], _ = self.mag_residual(q)
         return out
 
     def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -416,6 +482,8 @@ class SmootherProblem:
                                  + np.sum(self.w_vzero * np.sum(r["vzero"] ** 2, axis=1)))
         if "rest" in r:  # the rest term of `rest_terms`, from the residual computed above
             total += 0.5 * float(np.sum(self.w_rest[self.w_rest > 0] * np.sum(r["rest"] ** 2, axis=1)))
+        if "mag" in r:
+            total += float(np.sum(self.mag_terms(r["mag"])[0]))
         return total
 
     # -------------------------------------------------------------- linearisation
@@ -459,6 +527,14 @@ class SmootherProblem:
         # Anchor: d r_0 / d delta_0 = Jr^-1(r_0).
         J_0 = right_jacobian_inv(r_0)
         grad[0, :3] += self.w_prior * J_0.T @ r_0
+        Jh = wh = None
+        if len(self.w_mag):
+            # Magnetometer (heading only): d r_h / d delta = k^T R, i.e. the body-frame row R^T k.
+            r_h, k = self.mag_residual(q)
+            mag_cost, wh = self.mag_terms(r_h)
+            cost += float(np.sum(mag_cost))
+            Jh = (np.swapaxes(R, -1, -2) @ k[:, :, None])[:, :, 0]
+            grad[:, :3] += (wh * r_h)[:, None] * Jh
 
         if V:
             # Velocity increments: R(q Exp(d)) a ~ R a - R [a]x d, so
@@ -499,6 +575,8 @@ class SmootherProblem:
         # Accelerometer: [h]x^T [h]x = |h|^2 I - h h^T, |h| = 1.
         diag[:, :3, :3] += wa[:, None, None] * (np.eye(3) - h[:, :, None] * h[:, None, :])
         diag[0, :3, :3] += self.w_prior * J_0.T @ J_0
+        if Jh is not None:
+            diag[:, :3, :3] += wh[:, None, None] * (Jh[:, :, None] * Jh[:, None, :])
         off = np.zeros((T - 1, B, B))
         off[:, :3, :3] = -wm * (J0t @ At)  # J0^T J1
         if V:
