@@ -27,7 +27,9 @@ matrices; zero blocks contribute exact zeros), and the Joseph form is expanded a
 Constants that decide the maths (the small-angle limits of `fusion.quaternion`, the covariance
 floors of `_attitude`, the chi-square bound of `ekf`) are passed in at run time from the
 reference modules (`settings`), not frozen into the cached machine code: numba keys its cache on
-this file alone and would not see a change elsewhere.
+this file alone and would not see a change elsewhere. The quaternion helpers are
+`fusion.quaternion`'s own scalar functions, compiled here; `_kernel_cache.forget_stale_kernels`
+drops this module's cache when `fusion/quaternion.py` changes.
 
 Cache location: next to this file (`__pycache__`); if that folder is not writable, numba's
 user-wide cache folder; `NUMBA_CACHE_DIR` overrides both. If no folder is writable the kernels
@@ -48,7 +50,10 @@ from fusion.types import STANDARD_GRAVITY_M_S2
 
 from ._attitude import (COV_FLOOR, COV_RESET_VAR, HARD_IRON_STATE, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector,
                         models_lag)
+from ._kernel_cache import forget_stale_kernels
 from .filter_params import BiasFilterParams
+
+forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 _OPTIONS = dict(error_model="numpy", nogil=True)
@@ -198,59 +203,21 @@ def load() -> None:
 
 
 # ============================================================================ quaternions
-# The scalar path of `fusion.quaternion`, as tuples of floats.
-@_jit
-def qmul(a, b):
-    """Hamilton product a * b (`quaternion.multiply_floats`)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
-
-
-@_jit
-def qexp(vx, vy, vz, small):
-    """exp([0, v / 2]) (`quaternion.exp_floats`); `small`: `quaternion.SMALL_ANGLE`."""
-    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if angle <= small:
-        return (1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz)
-    s = math.sin(0.5 * angle) / angle
-    return (math.cos(0.5 * angle), vx * s, vy * s, vz * s)
-
-
-@_jit
-def qlog(q):
-    """2 log(q), shortest rotation, q and -q alike (`quaternion.to_rotvec`)."""
-    w, x, y, z = q
-    s = math.sqrt(x * x + y * y + z * z)
-    scale = math.copysign(2.0 * math.atan2(s, abs(w)) / max(s, 1e-300), w)
-    return (x * scale, y * scale, z * scale)
-
-
-@_jit
-def qnormalize(q):
-    """q / |q| (`quaternion.normalize_floats`)."""
-    w, x, y, z = q
-    m = math.sqrt(w * w + x * x + y * y + z * z)
-    return (w / m, x / m, y / m, z / m)
+# `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels
+# (`_kernel_cache.forget_stale_kernels` drops this module's cache when that module changes).
+qmul = _jit(quat.multiply_floats)
+qexp = _jit(quat.exp_floats)  # (vx, vy, vz, small): small is `quaternion.SMALL_ANGLE`
+qlog = _jit(quat.log_floats)
+qnormalize = _jit(quat.normalize_floats)
+gravity = _jit(quat.gravity_floats)  # R(q)^T e_z
+_rotation = _jit(quat.rotation_floats)
 
 
 @_jit
 def rotate(q, vx, vy, vz):
     """R(q) v (`quaternion.rotate_floats`)."""
-    w, x, y, z = q
-    return ((1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
-            2 * (x * y + w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z - w * x) * vz,
-            2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz)
-
-
-@_jit
-def gravity(q):
-    """R(q)^T e_z (`quaternion.gravity_in_body_floats`)."""
-    w, x, y, z = q
-    return (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z)
+    r = _rotation(q)
+    return (r[0] * vx + r[1] * vy + r[2] * vz, r[3] * vx + r[4] * vy + r[5] * vz, r[6] * vx + r[7] * vy + r[8] * vz)
 
 
 @_jit

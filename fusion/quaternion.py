@@ -267,9 +267,16 @@ def rotate_floats(q: tuple, v: tuple) -> tuple[float, float, float]:
     return r[0] * a + r[1] * b + r[2] * c, r[3] * a + r[4] * b + r[5] * c, r[6] * a + r[7] * b + r[8] * c
 
 
+def gravity_floats(q: tuple) -> tuple[float, float, float]:
+    """`R(q)^T e_z`, world up in the body frame, of a unit quaternion given as 4 floats (the
+    compiled kernels compile it)."""
+    w, x, y, z = q
+    return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z
+
+
 def gravity_in_body_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
     """(3,) `R(q)^T e_z` of one unit quaternion, g (the scalar path of `gravity_in_body`)."""
-    return np.array((2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z))
+    return np.array(gravity_floats((w, x, y, z)))
 
 
 def rotation_matrix_floats(w: float, x: float, y: float, z: float) -> np.ndarray:
