@@ -5,7 +5,7 @@
 Prints, per estimator, the best of at least `--repeat` runs (more for the fast ones, up to
 about a second each) of the whole-recording `estimate` (the loop and the per-sample
 diagnostics recording included): the compiled filters (`impl=compiled`, the default), their
-numpy references (`ekf:impl=numpy`, the UKFs' `impl=lean` and `impl=filterpy`) and VQF (the
+numpy references (`ekf:impl=numpy`, the UKFs' `impl=numpy` and `impl=filterpy`) and VQF (the
 `vqf` package: `VQF.updateBatch` and `offlineVQF`, through this toolkit's adapters) on the
 same recording, with the ratio to VQF. Then the compile time of the two numba kernels
 (`_compiled.ekf_kernel`, `_compiled.ukf_kernel`, which serves `ukf` and `ukf-bias`; a
@@ -39,7 +39,7 @@ SPECS = (
     "ekf", "ukf", "ukf-bias",  # compiled (the defaults)
     "ekf:vb=inf",  # ekf without its velocity states (9 states, the model of ukf-bias)
     "ukf:sigma=julier,kappa=2", "ukf-bias:sigma=merwe,alpha=1,kappa=0.5",
-    "ekf:impl=numpy", "ukf:impl=lean", "ukf-bias:impl=lean",  # the numpy references
+    "ekf:impl=numpy", "ukf:impl=numpy", "ukf-bias:impl=numpy",  # the numpy references
     "ukf:impl=filterpy", "ukf-bias:impl=filterpy,hf=false",  # FilterPy's update
     "dr", "vqf", "vqf-offline",  # peers: dead reckoning, VQF (updateBatch), offlineVQF
 )

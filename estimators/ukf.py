@@ -64,14 +64,14 @@ the mean and covariance (Joseph form), the same in every implementation, as the 
 
 Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
-transform); `"lean"` runs predict and update as a handful of vectorised numpy calls over all
+transform); `"numpy"` runs predict and update as a handful of vectorised numpy calls over all
 sigma points at once (about 5x faster than filterpy; `tests/test_ukf.py` checks the two agree
 to 1e-12); `"compiled"` (the default) makes `estimate` run the whole recording in one numba
-kernel, `_compiled.ukf_kernel`, which does the lean step's arithmetic in explicit loops and
+kernel, `_compiled.ukf_kernel`, which does the numpy step's arithmetic in explicit loops and
 records the same diagnostics (about 1 us per sample for `ukf`, 3-6 for `ukf-bias`, against
-60-130 and 120-390 for lean; `tests/test_compiled.py` checks it against lean to 1e-10). The lean
+60-130 and 120-390 for numpy; `tests/test_compiled.py` checks it against numpy to 1e-10). The
 numpy step stays the readable reference and is what `reset`/`step` (the streaming interface)
-run for compiled and lean alike. Why numba: see `_compiled`. Profile and timings:
+run for compiled and numpy alike. Why numba: see `_compiled`. Profile and timings:
 `benchmarks/bench_filters.py`.
 
 Sigma-point schemes (`sigma`): `"kraft"` (2n points at +-sqrt(n (P+Q)), weights 1/(2n); a
@@ -114,6 +114,7 @@ vertical (attitude and bias rows) and updates P with the general-gain formula
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -145,7 +146,7 @@ from .filter_params import BiasFilterParams, FilterParams, check_nonneg
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 
 Sigma = Literal["kraft", "julier", "merwe"]
-Impl = Literal["compiled", "lean", "filterpy"]
+Impl = Literal["compiled", "numpy", "filterpy", "lean"]  # "lean": the former name of "numpy", with a warning
 
 
 # --------------------------------------------------------------------------- parameters
@@ -165,9 +166,10 @@ class UKFOptions(FilterParams):
         for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled`, the lean step's arithmetic) | lean (vectorised numpy step) | filterpy
-        (per-point hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run
-        the lean step for compiled and lean.
+        `_compiled`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
+        reference; "lean", its former name, still works with a warning) | filterpy (per-point
+        hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run the numpy step
+        for compiled and numpy.
     """
 
     sigma: Sigma = "kraft"
@@ -185,8 +187,12 @@ class UKFOptions(FilterParams):
             raise ValueError(f"{owner}: mean_tol_rad must be > 0, got {self.mean_tol_rad!r}")
         if int(self.mean_max_iter) != self.mean_max_iter or self.mean_max_iter < 1:
             raise ValueError(f"{owner}: mean_max_iter must be a whole number >= 1, got {self.mean_max_iter!r}")
-        if self.impl not in ("compiled", "lean", "filterpy"):
-            raise ValueError(f"{owner}: impl must be compiled, lean or filterpy, got {self.impl!r}")
+        if self.impl == "lean":  # the former name of the numpy reference, as `ekf` calls it
+            warnings.warn(f"{owner}: impl=lean is now called impl=numpy (as for ekf and the smoothers); "
+                          "'lean' will be removed in the next release", FutureWarning, stacklevel=4)
+            object.__setattr__(self, "impl", "numpy")
+        if self.impl not in ("compiled", "numpy", "filterpy"):
+            raise ValueError(f"{owner}: impl must be compiled, numpy or filterpy, got {self.impl!r}")
         if self.impl == "filterpy" and self.heading_free:
             raise ValueError(
                 f"{owner}: impl=filterpy runs FilterPy's own update, which cannot project the gain; "
@@ -471,7 +477,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
             Pxz += self.Wc[i] * np.outer(self.residual_x(sigmas_f[i], x), self.residual_z(sigmas_h[i], z))
         return Pxz
 
-    # -- lean path --
+    # -- numpy path --
     def predict_kraft(self, dt: float, gyr_rad_s: np.ndarray | None, Q: np.ndarray) -> None:
         """Steps 1-5 for all sigma points at once. gyr_rad_s: (3,) rad/s, body, or None
         (invalid sample: nothing integrated); Q: (n, n)."""

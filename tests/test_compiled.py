@@ -1,6 +1,6 @@
 """The compiled filters (`impl=compiled`, numba) against their numpy reference steps.
 
-`ekf` against `impl=numpy`, `ukf` and `ukf-bias` against `impl=lean` (itself checked against
+`ekf`, `ukf` and `ukf-bias` against `impl=numpy` (itself checked against
 FilterPy's update in test_ukf.py): same quaternions and the same per-sample diagnostics and
 counts, to 1e-10, NaN at the same places, on a course recording, a BROAD trial and the
 simulator (each trimmed to a few thousand samples), for every option and with broken samples.
@@ -58,7 +58,7 @@ FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
 
 def reference(spec: str) -> str:
     """The spec with the numpy reference implementation."""
-    impl = "impl=numpy" if spec.split(":")[0] == "ekf" else "impl=lean"
+    impl = "impl=numpy"
     return spec + ("," if ":" in spec else ":") + impl
 
 
@@ -284,10 +284,16 @@ def test_a_single_sample_recording(spec):
     assert_same(a, b)
 
 
-@pytest.mark.parametrize("spec", ["ekf:impl=lean", "ekf:impl=filterpy", "ukf:impl=numpy", "ukf-bias:impl=fast"])
+@pytest.mark.parametrize("spec", ["ekf:impl=lean", "ekf:impl=filterpy", "ukf:impl=reference", "ukf-bias:impl=fast"])
 def test_unknown_implementations_raise(spec):
     with pytest.raises(ValueError, match="impl"):
         build(spec)
+
+
+def test_impl_lean_is_the_former_name_of_impl_numpy():
+    with pytest.warns(FutureWarning, match="impl=lean is now called impl=numpy"):
+        params = build("ukf-bias:impl=lean").params
+    assert params.impl == "numpy" and params == build("ukf-bias:impl=numpy").params
 
 
 def test_compiled_is_the_default():
@@ -313,7 +319,7 @@ def test_without_a_writable_cache_folder_the_kernels_still_run():
 def test_numba_is_imported_only_for_the_compiled_filters():
     code = ("import sys\n"
             "from fusion.estimators import build\n"
-            "for spec in ('ekf:impl=numpy', 'ukf:impl=lean', 'ukf-bias:impl=filterpy,hf=false'):\n"
+            "for spec in ('ekf:impl=numpy', 'ukf:impl=numpy', 'ukf-bias:impl=filterpy,hf=false'):\n"
             "    build(spec)\n"
             "assert 'numba' not in sys.modules\n"
             "from fusion.estimators import _compiled\n"

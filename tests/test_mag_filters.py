@@ -50,7 +50,7 @@ def q0(rot: Rotation) -> np.ndarray:
 
 
 # each 9-D filter with its compiled kernel and its reference step
-FILTERS = ["ekf", "ekf:impl=numpy", "ukf-bias", "ukf-bias:impl=lean"]
+FILTERS = ["ekf", "ekf:impl=numpy", "ukf-bias", "ukf-bias:impl=numpy"]
 
 
 def with_params(spec: str, params: str) -> str:
