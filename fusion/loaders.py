@@ -496,7 +496,7 @@ def gyro_tilt_ratio(t: np.ndarray, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray, 
 
 
 def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray, gyr_names: tuple[str, ...],
-                   acc_names: tuple[str, ...], t: np.ndarray | None = None) -> None:
+                   acc_names: tuple[str, ...]) -> None:
     """Plausibility of IMU values in physical units (finite (N, 3) arrays; names for messages).
 
     Errors: a gyro value beyond `GYRO_LIMIT_RAD_S` (4000 deg/s; deg/s or scaled values, e.g.
@@ -504,9 +504,8 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
     accelerometer whose median |a| is not near 1 g in m/s^2 (`ACC_MEDIAN_M_S2`: a recording of
     anything that moves by hand, on a vehicle or a robot spends most of its time near 9.81; 1
     is g, 1000 mg, and the message says so).
-    Warnings: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion); with
-    the time stamps `t`, a gyro that turns the gravity direction more than `GYRO_TILT_RATIO_WARN`
-    times as far as the accelerometer sees it turn (`gyro_tilt_ratio`: deg/s of any motion).
+    Warning: a median |rate| above `GYRO_MEDIAN_WARN_RAD_S` (likely deg/s of a slow motion; for
+    any motion, see `check_gyro_turns_gravity`).
     """
     for values, names, limit, unit, fix in (
         (gyr_rad_s, gyr_names, GYRO_LIMIT_RAD_S, "rad/s", "beyond any MEMS gyro (4000 deg/s); "
@@ -525,15 +524,24 @@ def check_physical(path: Path | str, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray
         raise ValueError(f"{path}: columns {','.join(acc_names)}: the median |a| is {acc_median:.3g}, where gravity "
                          f"alone reads 9.81 m/s^2: {hint}")
     median = float(np.median(np.sqrt(np.sum(gyr_rad_s**2, axis=1))))
-    ratio = None if t is None else gyro_tilt_ratio(t, gyr_rad_s, acc_m_s2)
-    if ratio is not None and ratio > GYRO_TILT_RATIO_WARN and median <= GYRO_MEDIAN_WARN_RAD_S:
-        warnings.warn(f"{path}: columns {','.join(gyr_names)}: the gyro turns the gravity direction {ratio:.0f} times "
-                      f"as far as the accelerometer ({','.join(acc_names)}) sees it turn; if they are in deg/s, "
-                      "convert them to rad/s (multiply by pi/180)", stacklevel=3)
-    elif median > GYRO_MEDIAN_WARN_RAD_S:
+    if median > GYRO_MEDIAN_WARN_RAD_S:
         warnings.warn(f"{path}: columns {','.join(gyr_names)}: the median angular rate is {median:.3g} rad/s "
                       f"({np.degrees(median):.0f} deg/s) over the whole recording, implausible for hand-held motion; "
                       "if they are in deg/s, convert them to rad/s (multiply by pi/180)", stacklevel=3)
+
+
+def check_gyro_turns_gravity(path: Path | str, t: np.ndarray, gyr_rad_s: np.ndarray, acc_m_s2: np.ndarray,
+                             gyr_names: tuple[str, ...], acc_names: tuple[str, ...]) -> None:
+    """Warn when the gyro turns the gravity direction more than `GYRO_TILT_RATIO_WARN` times as
+    far as the accelerometer sees it turn (`gyro_tilt_ratio`: a gyro in deg/s, at any speed), unless
+    `check_physical`'s median-rate warning has said so already. After the time checks: t (N,)
+    increasing, s; gyr_rad_s, acc_m_s2 (N, 3) finite."""
+    median = float(np.median(np.sqrt(np.sum(gyr_rad_s**2, axis=1))))
+    ratio = gyro_tilt_ratio(t, gyr_rad_s, acc_m_s2)
+    if ratio is not None and ratio > GYRO_TILT_RATIO_WARN and median <= GYRO_MEDIAN_WARN_RAD_S:
+        warnings.warn(f"{path}: columns {','.join(gyr_names)}: the gyro turns the gravity direction {ratio:.0f} times "
+                      f"as far as the accelerometer ({','.join(acc_names)}) sees it turn; if they are in deg/s, "
+                      "convert them to rad/s (multiply by pi/180)", stacklevel=4)
 
 
 def _gaps(dt: np.ndarray) -> np.ndarray:
@@ -613,12 +621,13 @@ def physical_samples(path: Path | str, t: np.ndarray, gyr_rad_s: np.ndarray, acc
         raise ValueError(f"{path}: {len(t)} samples; need at least 2")
     if not (np.all(np.isfinite(gyr_rad_s)) and np.all(np.isfinite(acc_m_s2))):
         raise ValueError(f"{path}: the gyro or accelerometer values contain NaN or Inf")
-    check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:], t)
+    check_physical(path, gyr_rad_s, acc_m_s2, names[:3], names[3:])
     if mag_ut is not None:
         mag_ut = check_magnetometer(path, mag_ut, mag_name)
         t, gyr_rad_s, acc_m_s2, mag_ut, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, mag_ut, *arrays)
     else:
         t, gyr_rad_s, acc_m_s2, *arrays = repair_time(t, path, gyr_rad_s, acc_m_s2, *arrays)
+    check_gyro_turns_gravity(path, t, gyr_rad_s, acc_m_s2, names[:3], names[3:])
     imu = ImuSamples(t, gyr_rad_s, acc_m_s2 / STANDARD_GRAVITY_M_S2, source=str(path), gyr_timing=gyr_timing,
                      mag_ut=mag_ut)
     return (imu, *arrays)
