@@ -26,11 +26,14 @@ def forget_stale_kernels(module_file: str, dependencies: list[str]) -> None:
         digest.update(Path(path).read_bytes())
     stamp = cache / f"{module.stem}.dependencies.sha256"
     try:
-        if stamp.exists() and stamp.read_text() == digest.hexdigest():
-            return
-        for pattern in (f"{module.stem}.*.nbi", f"{module.stem}.*.nbc"):
-            for path in cache.glob(pattern):
-                path.unlink(missing_ok=True)
+        if stamp.exists():
+            if stamp.read_text() == digest.hexdigest():
+                return
+            for pattern in (f"{module.stem}.*.nbi", f"{module.stem}.*.nbc"):
+                for path in cache.glob(pattern):
+                    path.unlink(missing_ok=True)
+        # No stamp: a new installation (nothing cached yet), or a cache written before stamps were
+        # kept, whose kernels numba dates by their own file; from now on the stamp decides.
         cache.mkdir(exist_ok=True)
         stamp.write_text(digest.hexdigest())
     except OSError:  # a read-only installation: nothing there changes in place

@@ -19,11 +19,9 @@ def test_cache_dropped_when_a_dependency_changes_and_kept_otherwise(tmp_path):
         return sorted(p.name for p in cache.iterdir() if not p.name.endswith(".sha256"))
 
     before = cached("kernel")
-    forget_stale_kernels(str(module), [str(dependency)])  # no stamp yet: nothing known, so dropped
-    assert sorted(p.name for p in cache.iterdir()) == ["_kernels.dependencies.sha256", "other.g-3.py311.nbi"]
-    assert len(before) == 3
+    forget_stale_kernels(str(module), [str(dependency)])  # no stamp yet: the stamp is written, nothing dropped
+    assert sorted(p.name for p in cache.iterdir()) == sorted(before + ["_kernels.dependencies.sha256"])
 
-    cached("kernel")
     forget_stale_kernels(str(module), [str(dependency)])  # unchanged: kept
     assert (cache / "_kernels.kernel-10.py311.nbi").exists()
 
