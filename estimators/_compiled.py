@@ -838,9 +838,7 @@ def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
     the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
     pseudo-measurement v = 0 (variance vb^2 / dt, H = [0, I]) in Joseph form; the correction
     into dx (N,) (K: N x 3 scratch, its third column unused; M: N x N scratch)."""
-    w, x, y, z = q
-    r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-    r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    r00, r01, r02, r10, r11, r12, _, _, _ = _rotation(q)  # the first two rows of R(q)
     if math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az):
         g = o.gravity * h
         v[0] += (r00 * ax + r01 * ay + r02 * az) * g
