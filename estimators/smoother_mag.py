@@ -80,6 +80,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion import quaternion as quat
+from fusion.checks import runs
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples
 
@@ -141,13 +142,6 @@ def reference(norm: np.ndarray, dip: np.ndarray, s: MagSettings) -> tuple[float,
 
 def in_gates(norm: np.ndarray, dip: np.ndarray, ref_norm: float, ref_dip: float, s: MagSettings) -> np.ndarray:
     return (np.abs(norm - ref_norm) < s.norm_gate_frac * ref_norm) & (np.abs(dip - ref_dip) < s.dip_gate_rad)
-
-
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, stop) of each run of True in mask (T,)."""
-    padded = np.concatenate([[False], mask, [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
-    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
 
 
 def long_runs(mask: np.ndarray, t: np.ndarray, min_s: float) -> np.ndarray:

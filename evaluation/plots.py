@@ -26,6 +26,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from scipy.spatial.transform import Rotation
 
+from fusion.checks import runs
 from fusion.estimators.params import parse_specs
 
 from .metrics import KINDS
@@ -72,19 +73,12 @@ def break_wraps(x: np.ndarray, y: np.ndarray, jump_deg: float = 180.0) -> tuple[
     return np.insert(x, cut, np.nan), np.insert(y, cut, np.nan)
 
 
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """(first, last) index pairs of the runs of True in a (N,) bool mask."""
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
-    return [(int(a), int(b) - 1) for a, b in zip(edges[::2], edges[1::2])]
-
-
 def _time_spans(t: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
     """Time spans of the runs of True in `mask` over samples `t`, each widened to the
     neighbouring samples (a single bad sample still gets a visible span)."""
     out = []
-    for a, b in runs(mask):
-        out.append((float(t[max(a - 1, 0)]), float(t[min(b + 1, len(t) - 1)])))
+    for a, stop in runs(mask):
+        out.append((float(t[max(a - 1, 0)]), float(t[min(stop, len(t) - 1)])))
     return out
 
 
@@ -586,7 +580,7 @@ def event_spans(t: np.ndarray, mask: np.ndarray, min_width: float) -> list[tuple
     """(start, width) of the runs of True in `mask` over samples `t`, each at least `min_width`
     wide (one sample of a 50,000-sample recording would be a fraction of a pixel) and merged
     where they then overlap, for `broken_barh`."""
-    ends = [(float(t[a]), max(float(t[min(b + 1, len(t) - 1)]), float(t[a]) + min_width)) for a, b in runs(mask)]
+    ends = [(float(t[a]), max(float(t[min(stop, len(t) - 1)]), float(t[a]) + min_width)) for a, stop in runs(mask)]
     return [(a, b - a) for a, b in merge_spans(ends)]
 
 

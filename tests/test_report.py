@@ -86,7 +86,7 @@ def test_bad_gyro_and_gap_spans_in_seconds():
     (bad,) = plots.bad_gyro_spans(s)
     assert gap == (s.truth_t[199], s.truth_t[230])
     assert bad == (s.imu_t[399], s.imu_t[420])
-    assert plots.runs(np.array([1, 1, 0, 0, 1, 0, 1], bool)) == [(0, 1), (4, 4), (6, 6)]
+    assert plots.runs(np.array([1, 1, 0, 0, 1, 0, 1], bool)) == [(0, 2), (4, 5), (6, 7)]  # fusion.checks.runs: [first, stop)
 
 
 def test_error_and_loss_figures(toy):
