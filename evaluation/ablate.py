@@ -102,7 +102,8 @@ def _one_spec(text: str) -> list[EstimatorSpec]:
     return specs
 
 
-def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total") -> dict[str, Any] | None:
+def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
+                  groups: dict[str, Sequence[str]] | None = None) -> dict[str, Any] | None:
     """BROAD's reading of an ablation (rows as in results.json; rows without truth or with low
     coverage left out, as in the means): the best common setting, the one with the lowest mean
     `kind` RMSE over the recordings (over those every setting was scored on), and per recording
@@ -112,6 +113,12 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total") -> dict[s
     "per_recording": [{"dataset", "best_estimator", "best_rmse_deg", "common_rmse_deg"}],
     "mean_best_per_recording_deg"}: the last is the mean of the per-recording minima, the
     bound a setting tuned per trial would reach.
+
+    groups: recording -> the groups it belongs to (BROAD's `trials.json`:
+    `fusion.formats.broad.trial_groups`); with it, "groups" lists each group's best common
+    setting over its recordings (BROAD's TAGP per group: {"group", "recordings",
+    "best_estimator", "mean_rmse_deg"}, in the order the groups first appear) and
+    "trial_groups" keeps the mapping, so that a re-render computes the same.
     """
     labels = list(dict.fromkeys(r["estimator"] for r in rows))
     err: dict[tuple[str, str], float] = {}
@@ -129,10 +136,23 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total") -> dict[s
         own = min(labels, key=lambda lab: err[(d, lab)])
         per.append({"dataset": d, "best_estimator": own, "best_rmse_deg": err[(d, own)],
                     "common_rmse_deg": err[(d, best)]})
-    return {"kind": kind, "settings": len(labels), "recordings": len(datasets),
-            "best_common": {"estimator": best, "mean_rmse_deg": means[best]},
-            "per_recording": per,
-            "mean_best_per_recording_deg": math.fsum(p["best_rmse_deg"] for p in per) / len(per)}
+    out = {"kind": kind, "settings": len(labels), "recordings": len(datasets),
+           "best_common": {"estimator": best, "mean_rmse_deg": means[best]},
+           "per_recording": per,
+           "mean_best_per_recording_deg": math.fsum(p["best_rmse_deg"] for p in per) / len(per)}
+    if groups:
+        members: dict[str, list[str]] = {}
+        for d in datasets:
+            for g in groups.get(d, ()):
+                members.setdefault(g, []).append(d)
+        out["groups"] = []
+        for g, ds in members.items():
+            group_means = {lab: math.fsum(err[(d, lab)] for d in ds) / len(ds) for lab in labels}
+            top = min(labels, key=lambda lab: group_means[lab])
+            out["groups"].append({"group": g, "recordings": len(ds), "best_estimator": top,
+                                  "mean_rmse_deg": group_means[top]})
+        out["trial_groups"] = {d: list(groups[d]) for d in datasets if d in groups}
+    return out
 
 
 def _min_coverage() -> float:
@@ -152,4 +172,10 @@ def format_sweep(summary: dict[str, Any]) -> str:
     lines += [head, "-" * len(head)]
     lines += [f"{p['dataset']:<{width}}  {p['best_rmse_deg']:8.2f}  {p['common_rmse_deg']:6.2f}  {p['best_estimator']}"
               for p in summary["per_recording"]]
+    if summary.get("groups"):
+        width = max(len("group"), *(len(g["group"]) for g in summary["groups"]))
+        head = f"{'group':<{width}}  {'trials':>6}  {'mean':>6}  best common setting of the group (BROAD's trials.json)"
+        lines += ["", head, "-" * len(head)]
+        lines += [f"{g['group']:<{width}}  {g['recordings']:6d}  {g['mean_rmse_deg']:6.2f}  {g['best_estimator']}"
+                  for g in summary["groups"]]
     return "\n".join(lines)

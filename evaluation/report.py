@@ -206,7 +206,7 @@ def _sweep_text(doc: dict[str, Any]) -> str:
         return ""
     from .ablate import format_sweep, sweep_summary
 
-    summary = sweep_summary(doc["results"])
+    summary = sweep_summary(doc["results"], groups=(doc.get("sweep") or {}).get("trial_groups"))
     return format_sweep(summary) if summary else ""
 
 

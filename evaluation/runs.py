@@ -291,7 +291,8 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
             keys: list[str] = (), tum: bool = True) -> Run:
     """The table, the results document and the report folder of a finished run."""
     table = format_table(results, align=align)
-    sweep = ablate.sweep_summary([r.to_json() for r in results]) if settings.get("kind") == "ablate" else None
+    sweep = (ablate.sweep_summary([r.to_json() for r in results], groups=_trial_groups(sources))
+             if settings.get("kind") == "ablate" else None)
     if sweep:
         table += "\n\n" + ablate.format_sweep(sweep)
     if not (json_path or folder):
@@ -318,6 +319,27 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         report = write_run(folder, doc, series, journal, jobs=jobs, progress=progress)
         journal.remove()
     return Run(results, table, doc, report)
+
+
+def _trial_groups(sources: list) -> dict[str, list[str]]:
+    """Recording id -> its BROAD groups (`fusion.formats.broad.trial_groups`), for the recordings
+    with a `trials.json` beside them; a malformed one is a warning and no groups."""
+    import warnings
+
+    from fusion.formats.broad import trial_groups
+
+    out = {}
+    for source in sources:
+        if getattr(source, "imu", None) is None:
+            continue
+        try:
+            groups = trial_groups(source.imu)
+        except (ValueError, OSError) as exc:
+            warnings.warn(f"{exc}; the sweep is not summarised per group", stacklevel=2)
+            return {}
+        if groups:
+            out[source.id] = groups
+    return out
 
 
 def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, results: list[Result],

@@ -80,7 +80,7 @@ def test_euler_figure_lines_shading_and_no_wrap_strokes(toy):
     assert np.isnan(np.asarray(truth_line.get_ydata(), float)).sum() > 30  # the gap and the wrap breaks
 
 
-def test_bad_gyro_and_gap_spans_in_seconds():
+def test_bad_gyro_and_gap_spans_in_seconds(toy):
     s = _series(specs=["dr"], gap=(200, 230), bad_gyro=(400, 420))
     (gap,) = plots.truth_gaps(s)
     (bad,) = plots.bad_gyro_spans(s)
@@ -347,7 +347,7 @@ def test_speed_figure_labels_do_not_overlap():
             assert not a.overlaps(b), (texts[i].get_text(), a, b)
 
 
-def test_loss_figure_gives_each_smoother_its_own_axis():
+def test_loss_figure_gives_each_smoother_its_own_axis(toy):
     from fusion.evaluation.series import RecordingSeries
 
     s = _series()

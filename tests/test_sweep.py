@@ -37,6 +37,37 @@ def test_sweep_summary_common_best_and_per_recording_best():
     assert ablate.sweep_summary([_row("r1", "a", 1.0)]) is None  # one setting: nothing to choose
 
 
+def test_sweep_summary_per_broad_group():
+    """BROAD's TAGP per group: the best common setting over each group's trials only."""
+    errors = {("r1", "a"): 1.0, ("r2", "a"): 5.0, ("r3", "a"): 2.0,
+              ("r1", "b"): 2.0, ("r2", "b"): 3.0, ("r3", "b"): 2.5}
+    rows = [_row(d, lab, e) for (d, lab), e in errors.items()]
+    groups = {"r1": ["all_trials", "undisturbed"], "r2": ["all_trials", "disturbed"], "r3": ["all_trials", "undisturbed"]}
+    s = ablate.sweep_summary(rows, groups=groups)
+    assert s["best_common"]["estimator"] == "b"  # 2.5 against 2.67 over all three
+    assert s["groups"] == [
+        {"group": "all_trials", "recordings": 3, "best_estimator": "b", "mean_rmse_deg": 2.5},
+        {"group": "undisturbed", "recordings": 2, "best_estimator": "a", "mean_rmse_deg": 1.5},
+        {"group": "disturbed", "recordings": 1, "best_estimator": "b", "mean_rmse_deg": 3.0}]
+    assert s["trial_groups"] == groups
+    assert "undisturbed       2    1.50  a" in ablate.format_sweep(s)
+    assert "groups" not in ablate.sweep_summary(rows)  # without trials.json: no group lines
+
+
+def test_trial_groups_read_broads_trials_json(tmp_path):
+    from fusion.formats.broad import trial_groups
+
+    trial = tmp_path / "36_disturbed_attached_magnet_5cm.hdf5"
+    assert trial_groups(trial) == []  # no trials.json beside it
+    (tmp_path / "trials.json").write_text(json.dumps(
+        {"trials": {trial.stem: {"groups": ["all_trials", "disturbed", "attached_magnet"]}}}))
+    assert trial_groups(trial) == ["all_trials", "disturbed", "attached_magnet"]
+    assert trial_groups(tmp_path / "99_unknown.hdf5") == []
+    (tmp_path / "trials.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"trials\.json: not BROAD's trials\.json"):
+        trial_groups(trial)
+
+
 def test_broad_sweep_preset_is_the_ekf_grid():
     specs = ablate.preset_specs("broad-sweep")
     assert len(specs) == 30 and {s.name for s in specs} == {"ekf"}

@@ -24,6 +24,8 @@ In a data directory, every `.hdf5`/`.h5` file and every `.mat` not named like a 
 """
 from __future__ import annotations
 
+import json
+
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -148,6 +150,30 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     if quat is None:
         raise ValueError(f"{path}: 'opt_quat' has no finite row")
     return imu, Trajectory(imu.t, quat), movement
+
+
+TRIALS_JSON_MAX_BYTES = 1_000_000  # BROAD's lists 39 trials in about 10 kB
+
+
+def trial_groups(path: str | Path) -> list[str]:
+    """The groups BROAD puts the trial at `path` in (`undisturbed`, `rotation`, `attached_magnet`,
+    ...), from the `trials.json` beside it (the benchmark's own file: {"trials": {stem: {"groups":
+    [...]}}}); [] without one or for a trial it does not list. A `trials.json` that is not that
+    is a ValueError naming it."""
+    index = Path(path).parent / "trials.json"
+    if not index.is_file():
+        return []
+    if index.stat().st_size > TRIALS_JSON_MAX_BYTES:
+        raise ValueError(f"{index}: {index.stat().st_size} bytes, more than BROAD's trials.json could hold "
+                         f"({TRIALS_JSON_MAX_BYTES})")
+    try:
+        doc = json.loads(index.read_text())
+        groups = doc["trials"].get(Path(path).stem, {}).get("groups", [])
+    except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
+        raise ValueError(f"{index}: not BROAD's trials.json ({{\"trials\": {{name: {{\"groups\": [...]}}}}}})") from None
+    if not (isinstance(groups, list) and all(isinstance(g, str) for g in groups)):
+        raise ValueError(f"{index}: the groups of {Path(path).stem} are not a list of names")
+    return groups
 
 
 class BroadFormat(Format):
