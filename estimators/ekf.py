@@ -63,9 +63,8 @@ A tilt error e turns 1 g into the horizontal acceleration g e, which a bounded v
 cannot absorb for long, while a linear acceleration that averages out over seconds can: the
 velocity states follow the translation (`tests/test_ekf.py`) instead of the attitude taking it
 for gravity. vb = 1 m/s sqrt(s), looser than the smoothers' 0.5: BROAD's fast translation
-trials move at about 1 m/s. Mean inclination (deg) with vb = 0.5 / 1 / 2 / inf (no velocity):
-course recordings 1-9 1.50 / 1.55 / 1.58 / 1.60, BROAD's nine trials 0.741 / 0.665 / 0.657 /
-0.682 (`fusion compare --estimators ekf:vb=0.5,ekf,ekf:vb=2,ekf:vb=inf`).
+trials move at about 1 m/s (the choice is checked by `benchmarks/cross_validate.py`; compare
+`fusion compare --estimators ekf:vb=0.5,ekf,ekf:vb=2,ekf:vb=inf`).
 
 Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
 accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
@@ -102,11 +101,11 @@ moved back and forth, the linear acceleration has power at the rocking frequenci
 filter, which models it as noise that is white at the scale of `disturbance_corr_s` (or, for
 the low-passed sample, as the derivative of a bounded velocity), takes part of it for a
 scale error. With the 10 % prior (`init_scale_var`) it fits up to 13-15 % to an exactly
-calibrated gyro and loses 1-2 deg of inclination (`tests/test_ekf.py`, a strict xfail; the
-velocity model brings it from 1.86 to 1.76 deg). On BROAD's slow and translation trials the
-estimates end at -3 to -11 % (within about one and a half posterior sigma of zero), where a
-fit against the truth over all nine trials gives 0.4 %
-(`fusion calibrate --dataset 'broad/*'`). `scale=false` or a narrower prior avoids it where
+calibrated gyro and loses 1-2 deg of inclination (`tests/test_ekf.py`, a strict xfail, with
+the measured figures). On BROAD's slow and translation trials the estimates end several per
+cent from zero (within about one and a half posterior sigma), where a fit against the truth
+finds well under 1 % (`fusion calibrate --dataset 'broad/*'`; `docs/results.md`).
+`scale=false` or a narrower prior avoids it where
 the gyro is known to be calibrated; the smoothers keep a scale error only where it lowers
 their cost significantly, and do not show it.
 
