@@ -26,32 +26,17 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 
 from fusion import datasets
-from fusion.evaluation.runs import run_compare
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from broad_9d import VQF_DIRECT_DEG, VQF_DIRECT_MEAN_DEG, leave_one_out, rows  # noqa: E402
 
 MAGNET_TRIALS = ("28", "30", "32", "34", "36")
-# VQF's 9-D total RMSE (deg) run directly on the trials with BROAD's metric (the data README).
-VQF_DIRECT_DEG = {"28": 4.04, "30": 2.57, "32": 7.67, "34": 3.35, "36": 2.39}
-VQF_DIRECT_MEAN_DEG = 2.93
 OFFLINE_VQF_DIRECT_MEAN_DEG = 2.68
-
-
-def trial(recording_id: str) -> str:
-    return recording_id.split("/")[-1].split("_")[0]
-
-
-def rows(specs: list[str], data_dir, jobs: int, mag: bool) -> dict[str, dict[str, tuple[dict, bool]]]:
-    """spec -> trial -> (rmse_deg, 9-D)."""
-    out: dict[str, dict[str, tuple[dict, bool]]] = {spec: {} for spec in specs}
-    run = run_compare(specs, "broad/*", data_dir, jobs=jobs, mag=mag)
-    if run.failed:
-        raise SystemExit(f"failed: {[(r.dataset, r.estimator, r.error) for r in run.failed]}")
-    for r in run.results:
-        out[r.estimator][trial(r.dataset)] = (r.rmse_deg, r.magnetometer)
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,19 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         diff = max(abs(nine[s][t][0]["inclination"] - six[s][t][0]["inclination"]) for t in trials)
         print(f"{s}: largest |9-D - 6-D| inclination difference {diff:.2e} deg")
     if args.leave_one_out:
-        grid_specs = [f"gn:Rm={rm}" for rm in args.grid.split(",")]
-        by = rows(grid_specs, args.data_dir, args.jobs, mag=True)
-        grid_total = {g: {t: by[g][t][0]["total"] for t in trials} for g in grid_specs}
-        print()
-        for g in grid_specs:
-            print(f"{g:28s} mean {np.mean(list(grid_total[g].values())):.2f} (all fourteen, for reference)")
-        held = []
-        for t in trials:
-            best = min(grid_specs, key=lambda g: np.mean([grid_total[g][u] for u in trials if u != t]))
-            held.append(grid_total[best][t])
-            print(f"leave out {t}: chosen on the other 13 {best}, held-out total {grid_total[best][t]:.2f}")
         default = np.mean(list(total["gn"].values())) if "gn" in total else float("nan")
-        print(f"leave-one-out mean {np.mean(held):.2f} deg (default gn {default:.2f})")
+        leave_one_out([f"gn:Rm={rm}" for rm in args.grid.split(",")], args.data_dir, args.jobs, default, "gn")
     return 0
 
 
