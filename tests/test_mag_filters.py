@@ -19,22 +19,15 @@ from fusion.estimators.ukf import UKF, UKFBias
 from fusion.evaluation.metrics import error_angles, score
 from fusion.types import Trajectory
 
+from mag_helpers import q0, sim_with_magnetometer, with_magnet_carried, with_magnet_passed
 from optional_helpers import require_module
-
-FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])  # 44 uT, dip 69 deg (BROAD's lab: 44 uT, 69 deg)
-Z_BIAS_RAD_S = np.radians(0.2)  # an uncalibrated z gyro bias (BROAD: about 0.2 deg/s): the 6-D heading drifts
 
 
 @pytest.fixture(scope="module")
 def sim():
     """The simulated recording (180 s, 100 Hz) with a 0.2 deg/s z gyro bias added after its
     calibration, the true rotation at each sample, and a noisy (1 uT) magnetometer."""
-    rec = datasets.load("sim")
-    rot, inside = rec.truth.interpolate(rec.imu.t)
-    assert inside.all()
-    mag = rot.inv().apply(FIELD_ENU_UT) + np.random.default_rng(7).normal(0.0, 1.0, (len(rec.imu), 3))
-    imu = rec.imu.replace(gyr_rad_s=rec.imu.gyr_rad_s + [0.0, 0.0, Z_BIAS_RAD_S], mag_ut=mag)
-    return imu, rot
+    return sim_with_magnetometer()
 
 
 def heading_deg(rot: Rotation, trajectory: Trajectory) -> np.ndarray:
@@ -43,10 +36,6 @@ def heading_deg(rot: Rotation, trajectory: Trajectory) -> np.ndarray:
 
 def inclination_deg(rot: Rotation, trajectory: Trajectory) -> np.ndarray:
     return np.degrees(error_angles(rot, Rotation.from_quat(trajectory.quat_wxyz, scalar_first=True))["inclination"])
-
-
-def q0(rot: Rotation) -> np.ndarray:
-    return rot[0].as_quat(scalar_first=True)
 
 
 # each 9-D filter with its compiled kernel and its reference step
@@ -85,21 +74,6 @@ def test_a_wrong_initial_heading_converges_to_magnetic_north(sim, spec):
     heading = heading_deg(rot, build(spec).estimate(imu, seed))
     assert heading[0] == pytest.approx(30.0, abs=1e-6)
     assert np.sqrt(np.mean(heading[-6000:] ** 2)) < 6.0  # the last 60 s, as from the true start (measured 4-5 deg RMS)
-
-
-def with_magnet_carried(imu, start: int, stop: int, offset_ut=(30.0, -25.0, 12.0)):
-    """A magnet fixed to the sensor over samples start..stop: a constant body-frame offset."""
-    mag = np.array(imu.mag_ut)
-    mag[start:stop] += offset_ut
-    return imu.replace(mag_ut=mag)
-
-
-def with_magnet_passed(imu, rot, centre: int, width: int, peak_ut=(35.0, 10.0, 20.0)):
-    """The sensor carried past a magnet fixed in the room: a world-frame field that swells and
-    fades (Gaussian in time, `width` samples), read in the body frame."""
-    k = np.arange(len(imu))
-    world = np.exp(-0.5 * ((k - centre) / width) ** 2)[:, None] * np.asarray(peak_ut)
-    return imu.replace(mag_ut=np.array(imu.mag_ut) + rot.inv().apply(world))
 
 
 # gates so wide that nothing is rejected, no hard-iron fit: what the magnet would do to an ungated update

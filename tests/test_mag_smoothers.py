@@ -25,10 +25,9 @@ from fusion.estimators.smoother_mag import heading_correction, heading_smoother
 from fusion.evaluation.metrics import error_angles, score
 from fusion.types import ImuSamples
 
+from mag_helpers import FIELD_ENU_UT, q0, sim_with_magnetometer, with_magnet_carried, with_magnet_passed
 from optional_helpers import require_module
 
-FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])  # 44 uT, dip 69 deg (BROAD's lab: 44 uT, 69 deg)
-Z_BIAS_RAD_S = np.radians(0.2)  # an uncalibrated z gyro bias (BROAD: about 0.2 deg/s): the 6-D heading drifts
 UNGATED = ",mnorm=10,mdip=3.14,mhi=false,mloss=none"  # nothing gated out, no hard-iron fit, no robust loss
 TERMS = ["cost", "stage"]
 SMOOTHERS = ["gn", "gd"]
@@ -37,12 +36,7 @@ SMOOTHERS = ["gn", "gd"]
 @pytest.fixture(scope="module")
 def sim():
     """The simulated recording (180 s, 100 Hz) with a z gyro bias and a noisy (1 uT) magnetometer."""
-    rec = datasets.load("sim")
-    rot, inside = rec.truth.interpolate(rec.imu.t)
-    assert inside.all()
-    mag = rot.inv().apply(FIELD_ENU_UT) + np.random.default_rng(7).normal(0.0, 1.0, (len(rec.imu), 3))
-    imu = rec.imu.replace(gyr_rad_s=rec.imu.gyr_rad_s + [0.0, 0.0, Z_BIAS_RAD_S], mag_ut=mag)
-    return imu, rot
+    return sim_with_magnetometer()
 
 
 @pytest.fixture(scope="module")
@@ -58,10 +52,6 @@ def angles(rot: Rotation, q: np.ndarray) -> dict[str, np.ndarray]:
 
 def rms(e: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e**2)))
-
-
-def q0(rot: Rotation) -> np.ndarray:
-    return rot[0].as_quat(scalar_first=True)
 
 
 def test_the_smoothers_are_9d_estimators():
@@ -81,21 +71,6 @@ def test_the_heading_stage_holds_heading_where_6d_drifts(sim, six_d, name):
     assert nine.diagnostics["mag_used"].mean() > 0.9
     # heading only: the inclination is the 6-D solution's (a rotation about the world vertical)
     np.testing.assert_allclose(held["inclination"], drift["inclination"], atol=1e-6)
-
-
-def with_magnet_carried(imu, start: int, stop: int, offset_ut=(30.0, -25.0, 12.0)):
-    """A magnet fixed to the sensor over samples start..stop: a constant body-frame offset."""
-    mag = np.array(imu.mag_ut)
-    mag[start:stop] += offset_ut
-    return imu.replace(mag_ut=mag)
-
-
-def with_magnet_passed(imu, rot, centre: int, width: int, peak_ut=(35.0, 10.0, 20.0)):
-    """The sensor carried past a magnet fixed in the room: a world-frame field that swells and
-    fades (Gaussian in time, `width` samples), read in the body frame."""
-    k = np.arange(len(imu))
-    world = np.exp(-0.5 * ((k - centre) / width) ** 2)[:, None] * np.asarray(peak_ut)
-    return imu.replace(mag_ut=np.array(imu.mag_ut) + rot.inv().apply(world))
 
 
 @pytest.fixture(scope="module")
