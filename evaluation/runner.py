@@ -218,6 +218,11 @@ WORKER_WAIT_S = 30.0  # how long to wait for the scheduler's first worker
 CONNECT_TIMEOUT_S = 20.0  # how long to try to reach the scheduler
 
 
+def _given(value: Any) -> Any:
+    """A value as a Dask task's result (recomputable from the graph if the worker holding it dies)."""
+    return value
+
+
 def _dask_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None) -> JobOutput:
     """A job as a task on a Dask worker (the recording and its alignment are tasks of their own)."""
     from . import consistency
@@ -232,9 +237,9 @@ def _run_dask(tasks: list[tuple[int, Job]], items: list, entries: list[ResolvedS
               load: LoadOptions, scatter: bool | None, finished: Callable[[int, JobOutput], None]) -> None:
     """The jobs on a dask.distributed cluster, each output handed to `finished` as it arrives.
     Every recording becomes one future (a load task on a worker, or the loaded recording
-    scattered from here) and, with `align`, one alignment task; each job is a task taking them,
-    so a recording is loaded (and aligned) once per run, and a worker that needs it fetches it
-    from the worker that has it. A worker that dies mid-job costs a retry: the scheduler reruns
+    scattered from here) and, with `align`, one alignment task; every estimator spec one task;
+    each job is a task taking them, so a recording is loaded (and aligned) once per run, and a
+    worker that needs it fetches it from the worker that has it. A worker that dies mid-job costs a retry: the scheduler reruns
     its tasks elsewhere (up to `distributed.scheduler.allowed-failures` deaths per task, 3 by
     default), recomputing lost recordings from their load task."""
     try:
@@ -258,7 +263,9 @@ def _run_dask(tasks: list[tuple[int, Job]], items: list, entries: list[ResolvedS
         shared = _recordings_on(client, items, load, scatter, needed)
         alignments = {i: client.submit(recording_alignment, shared[i], pure=False, retries=RETRIES)
                       for i in sorted({job.recording for _, job in tasks if job.align})}
-        specs = {j: client.scatter(entries[j], broadcast=True, hash=False)
+        # each spec as a task of its own (not scattered): a worker that dies with its result costs a
+        # recomputation, where scattered data would be lost with the last worker that held it
+        specs = {j: client.submit(_given, entries[j], pure=False, retries=RETRIES)
                  for j in sorted({job.estimator for _, job in tasks})}
         shared += list(alignments.values()) + list(specs.values())
         futures = {client.submit(_dask_job, job, shared[job.recording], specs[job.estimator],
