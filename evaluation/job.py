@@ -167,6 +167,8 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         raise ValueError(f"{where}: {' '.join(str(exc).split())[:300]}") from None
     seconds = time.perf_counter() - start
     for warning in caught:  # a user's estimator's warnings, named: which estimator, which recording
+        if issubclass(warning.category, ResourceWarning):
+            continue  # the garbage collector's, about whatever it collected then (ignored by Python's defaults too)
         warnings.warn_explicit(f"{where}: {warning.message}", warning.category, warning.filename, warning.lineno)
     if not entry.cls.partial and not np.all(np.isfinite(trajectory.quat_wxyz)):
         raise ValueError(f"{where} produced non-finite orientations (diverged or overflowed; check its parameter "
