@@ -521,7 +521,7 @@ class MagReference:
             self.has_ref = True
             self.norm, self.dip, self.learn_time, self.time_ok = norm_ut, dip_rad, dt_s, 0.0
             return False
-        if abs(norm_ut - self.norm) < self.norm_gate * self.norm and abs(dip_rad - self.dip) < self.dip_gate:
+        if self.in_gates(norm_ut, dip_rad):
             self.learn_time += dt_s
             alpha = dt_s / min(self.learn_time, self.ref_s)
             self.norm += alpha * (norm_ut - self.norm)

@@ -423,7 +423,7 @@ class BatchSmoother(Estimator):
     Params = SmootherParams
     causal = False
     name = ""
-    magnetometer = True  # 9-D where the recording has a magnetometer: the heading stage of `smoother_mag`
+    magnetometer = True  # 9-D where the recording has a magnetometer: the heading term (`smoother_mag`)
 
     def __init__(self, params=None) -> None:
         super().__init__(params)

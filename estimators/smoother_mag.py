@@ -84,7 +84,7 @@ from fusion.checks import runs
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples
 
-from ._attitude import hard_iron_add, hard_iron_fit
+from ._attitude import hard_iron_fit
 from .smoother_cost import robust_loss, sample_durations
 
 # IRLS passes of the heading-error smoother (the robust weights settle in a few).
@@ -155,11 +155,11 @@ def long_runs(mask: np.ndarray, t: np.ndarray, min_s: float) -> np.ndarray:
 
 def sphere_fit(mag_ut: np.ndarray, s: MagSettings) -> tuple[float, float, float, float] | None:
     """The hard-iron sphere fit `(ox, oy, oz, r)` (uT) of the samples mag_ut (K, 3), uT, body,
-    equally weighted (the filters' running sums with alpha = 1 / (k + 1): their mean), or None
-    when it is not trusted (`_attitude.hard_iron_fit`)."""
-    sums = np.zeros(22)
-    for k, (mx, my, mz) in enumerate(mag_ut.tolist()):
-        hard_iron_add(sums, mx, my, mz, 1.0 / (k + 1))
+    equally weighted (the sums of the filters' `_attitude.HardIron` as plain means over the
+    samples), or None when it is not trusted (`_attitude.hard_iron_fit`)."""
+    x = np.column_stack([mag_ut, np.ones(len(mag_ut))])  # [m, 1]
+    y = np.sum(mag_ut**2, axis=1)  # |m|^2
+    sums = np.concatenate([(x.T @ x).ravel(), x.T @ y, [y @ y, len(y)]]) / len(y)  # `HardIron`'s sums, as means
     return hard_iron_fit(sums, s.hard_iron_residual_ut, s.hard_iron_coverage)
 
 
@@ -255,8 +255,7 @@ def measurements(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[np.nda
     # eq. (2): the rate about the vertical from the gyro (the interval rates; the last sample takes the last step's)
     rate, _ = imu.interval_rates()
     rate = np.concatenate([rate, rate[-1:]]) if len(rate) else np.zeros((T, 3))
-    up_body = rotation_matrix(q)[:, 2, :]
-    w_up = np.sum(up_body * np.nan_to_num(rate), axis=1)
+    w_up = np.sum(quat.gravity_in_body(q) * np.nan_to_num(rate), axis=1)  # R(q)^T e_z: the vertical, body
     dt = sample_durations(t)
     base_info = np.where(used, dt / (s.heading_noise_rad2_s * (1.0 + (w_up / s.rate_rad_s) ** 2)), 0.0)
     return psi, base_info, diagnostics
