@@ -14,6 +14,7 @@ accelerometer and LPR530AL / LY530ALH rate gyros (4x amplified outputs).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,9 +53,11 @@ class BoardModel:
 
 
 @dataclass(frozen=True)
-class RestDetector:
-    """A sample is at rest when, over a window around it, every channel's standard deviation
-    stays below a threshold (in physical units, converted with the board's nominal scales)."""
+class RestCriteria:
+    """When raw samples count as rest for the calibration: a sample is at rest when, over a window
+    around it, every channel's standard deviation stays below a threshold (in physical units,
+    converted with the board's nominal scales). Not the filters' online rest detection
+    (`fusion.estimators`' `rest_gyr_rad_s`, `rest_acc_g`, `rest_time_s` parameters)."""
 
     window_s: float = 0.3
     gyro_std_rad_s: float = 0.025  # about 1.4 deg/s, 1.5 counts
@@ -75,7 +78,7 @@ class Calibration:
     bias_counts: np.ndarray
     rest_start: tuple[int, int]
     rest_end: tuple[int, int] | None = None
-    detector: RestDetector = field(default_factory=RestDetector)
+    detector: RestCriteria = field(default_factory=RestCriteria)
 
     def apply(self, raw: RawImu) -> ImuSamples:
         values = (raw.counts - self.bias_counts) * self.board.scale
@@ -85,7 +88,7 @@ class Calibration:
 _STD_CHUNK = 4096  # windows per chunk in `stationary_mask`
 
 
-def stationary_mask(raw: RawImu, board: BoardModel, detector: RestDetector) -> np.ndarray:
+def stationary_mask(raw: RawImu, board: BoardModel, detector: RestCriteria) -> np.ndarray:
     """(N,) bool: samples inside a window whose every channel is still."""
     n = len(raw.t)
     window = max(3, int(round(detector.window_s / np.median(np.diff(raw.t))))) if n > 1 else 1
@@ -109,7 +112,7 @@ def stationary_mask(raw: RawImu, board: BoardModel, detector: RestDetector) -> n
     return moving[last] - moving[first] == 0
 
 
-def detect_rest(raw: RawImu, board: BoardModel = BoardModel(), detector: RestDetector = RestDetector()
+def detect_rest(raw: RawImu, board: BoardModel = BoardModel(), detector: RestCriteria = RestCriteria()
                 ) -> tuple[tuple[int, int] | None, tuple[int, int] | None]:
     """The stationary periods at the start and at the end, as (first, stop) index pairs.
 
@@ -129,7 +132,7 @@ def detect_rest(raw: RawImu, board: BoardModel = BoardModel(), detector: RestDet
     return start, end
 
 
-def calibrate(raw: RawImu, board: BoardModel = BoardModel(), detector: RestDetector = RestDetector()) -> Calibration:
+def calibrate(raw: RawImu, board: BoardModel = BoardModel(), detector: RestCriteria = RestCriteria()) -> Calibration:
     """Biases from the stationary start (z keeps 1 g). Raises if the recording has no rest at its start."""
     start, end = detect_rest(raw, board, detector)
     if start is None:
@@ -149,3 +152,13 @@ def rest_gravity_norms(imu: ImuSamples, calibration: Calibration) -> dict[str, f
         if window is not None:
             out[name] = float(np.linalg.norm(imu.acc_g[window[0]:window[1]].mean(axis=0)))
     return out
+
+
+def __getattr__(name: str):
+    """`RestDetector`, this class's former name (the filters' online rest detection has that
+    name): still importable, with a warning, for one release."""
+    if name == "RestDetector":
+        warnings.warn("fusion.calibration.RestDetector is now RestCriteria; the old name goes in the next release",
+                      FutureWarning, stacklevel=2)
+        return RestCriteria
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from . import quaternion as quat
-from .calibration import BoardModel, Calibration, RestDetector, stationary_mask
+from .calibration import BoardModel, Calibration, RestCriteria, stationary_mask
 from .types import ImuSamples, RawImu, Recording, Trajectory
 
 NOMINAL_GYRO_RANGE_DEG_S = 300.0  # LPR530AL / LY530ALH on the 4x outputs
@@ -337,7 +337,7 @@ def check_timing(t: np.ndarray, gap_factor: float = 2.0) -> TimingCheck:
 
 
 def rest_periods(raw: RawImu, imu: ImuSamples, board: BoardModel = BoardModel(),
-                 detector: RestDetector = RestDetector()) -> list[RestPeriod]:
+                 detector: RestCriteria = RestCriteria()) -> list[RestPeriod]:
     """Every stationary run of at least `detector.min_duration_s` (`check_recording` drops
     those inside a freeze: a frozen gyro looks still)."""
     still = stationary_mask(raw, board, detector)
@@ -534,7 +534,7 @@ def check_recording(recording: Recording, freeze_detector: FreezeDetector = Free
     drift = None
     freezes = detect_freezes(imu, freeze_detector, raw, calib.bias_counts if calib is not None else None)
     if raw is not None:
-        detector = calib.detector if calib is not None else RestDetector()
+        detector = calib.detector if calib is not None else RestCriteria()
         rests = [r for r in rest_periods(raw, imu, board, detector)
                  if not any(r.interval.first < f.interval.stop and f.interval.first < r.interval.stop for f in freezes)]
         if len(rests) >= 2:

@@ -51,3 +51,14 @@ def test_no_rest_at_start_is_an_error():
     raw, _ = simulate(SimSettings(duration_s=20, rest_start_s=0.0, ramp_s=0.01))
     with pytest.raises(ValueError, match="no stationary period"):
         calibrate(raw)
+
+
+def test_the_rest_criteria_former_name_still_imports_with_a_warning():
+    # The filters' online rest detection is `RestDetector`; the calibration's criteria had the same name.
+    import fusion.calibration as calibration
+
+    with pytest.warns(FutureWarning, match="RestDetector is now RestCriteria"):
+        old = calibration.RestDetector
+    assert old is calibration.RestCriteria
+    with pytest.raises(AttributeError):
+        calibration.NoSuchName  # noqa: B018
