@@ -1,12 +1,18 @@
 """`ukf`: a quaternion UKF after Kraft 2003, and `ukf-bias`, the same with gyro bias and scale.
 
 Kraft 2003: E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking",
-Proc. 6th Int. Conf. Information Fusion. The numbered steps below are this module's and the
-code refers to them; where a step implements a numbered part of the paper it says so (the
-iterative mean is its Sec. 3.4, the covariances eqs. 63-64 and 68-71, the gain and update
-eqs. 72 and 75). Those numbers follow the paper as independent implementations cite it;
-they were not checked against a copy of the paper here. The notebook
-`docs/tutorial/03_quaternion_ukf.py` runs every step on a real sample.
+Proc. 6th Int. Conf. Information Fusion, pp. 47-54. The numbered steps below are this
+module's and the code refers to them. They are written in our notation, without the paper's
+equation numbers, which could not be checked against a copy of it; the one place cited is
+the iterative mean, its Sec. 3.4, as two independent implementations (sfwa/ukf, Google's
+Cartographer) cite it. "As in Kraft's filter" marks what the public implementations of the
+paper consulted all do alike; where this module departs from them it says so. The notebook
+`docs/tutorial/03_quaternion_ukf.py` runs every step on a real sample and lists the sources.
+
+One departure throughout: Kraft's state also holds the angular velocity, which the gyro
+measures; here, as in the reduced variant course implementations use, the gyro is the
+control input of the process model and the state is the quaternion (and, for `ukf-bias`,
+the gyro bias).
 
 State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, rad/s, for
 `ukf-bias`); covariance `P` on the body-frame rotation-vector error `e`, `q_true = q exp(e/2)`
@@ -14,22 +20,26 @@ State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, ra
 
 1. control input: the gyro, `q_delta = exp(w dt / 2)` (with `w - b_i` per sigma point for
    `ukf-bias`);
-2. sigma points: the columns of `+-sqrt(c (P + Q))` (Kraft: c = n, 2n points, equal weights;
-   process noise enters *before* the transform, as in Kraft 2003);
+2. sigma points: the columns of `+-sqrt(c (P + Q))`, process noise entering *before* the
+   transform as in Kraft's filter (scheme `kraft`: 2n points, equal weights 1/(2n) and
+   c = n, the one factor with which the points reproduce P + Q exactly; implementations
+   that follow the paper differ here, some scale by 2n, and the paper's own factor was not
+   checked);
 3. each turned into a quaternion by the exponential map, `X_i = q exp(W_i / 2)`;
 4. propagated, `Y_i = X_i q_delta`;
 5. the iterative quaternion mean: error rotation vectors `e_i = log(q_t^-1 Y_i)`, wrapped
    to the shortest rotation (angle in [0, pi], so q and -q agree), averaged with the mean
    weights and re-applied, `q_t <- q_t exp(e/2)`, until `|e| < mean_tol_rad` or
    `mean_max_iter` iterations (Kraft's gradient-descent mean, Sec. 3.4);
-   `P_pred = sum Wc e_i e_i^T` (eqs. 63-64);
+   `P_pred = sum Wc e_i e_i^T`, the errors taken about the mean in the body frame;
 6. predicted measurement per sigma point: gravity in the body frame `Z_i = R(Y_i)^T e_z`
-   (the accelerometer part of Kraft's measurement model);
+   (the accelerometer part of Kraft's measurement model), from the propagated points `Y_i`
+   (not re-drawn from `P_pred`, as in Kraft's filter);
 7. its mean `z = sum Wm Z_i`;
-8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R` (eq. 68, plus R: Kraft's P_vv),
-   `P_xz = sum Wc e_i (Z_i - z)^T` (eqs. 70-71);
-9. gain `K = P_xz P_zz^-1` (eq. 72), update through the exponential map
-   `q <- q exp(K (a - z) / 2)`, `P <- P_pred - K P_zz K^T` (eq. 75).
+8. the innovation covariance `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R` and the cross
+   covariance `P_xz = sum Wc e_i (Z_i - z)^T`;
+9. gain `K = P_xz P_zz^-1`, update through the exponential map on the right (body frame),
+   `q <- q exp(K (a - z) / 2)`, and `P <- P_pred - K P_zz K^T`.
 
 What FilterPy (2.0.0) provides and what is replaced
 ----------------------------------------------------
