@@ -75,14 +75,14 @@ the mean and covariance (Joseph form), the same in every implementation, as the 
 Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"numpy"` runs predict and update as a handful of vectorised numpy calls over all
-sigma points at once (about 5x faster than filterpy; `tests/test_ukf.py` checks the two agree
-to 1e-12); `"compiled"` (the default) makes `estimate` run the whole recording in one numba
-kernel, `_compiled.ukf_kernel`, which does the numpy step's arithmetic in explicit loops and
-records the same diagnostics (about 1 us per sample for `ukf`, 3-6 for `ukf-bias`, against
-60-130 and 120-390 for numpy; `tests/test_compiled.py` checks it against numpy to 1e-10). The
-numpy step stays the readable reference and is what `reset`/`step` (the streaming interface)
-run for compiled and numpy alike. Why numba: see `_compiled`. Profile and timings:
-`benchmarks/bench_filters.py`.
+sigma points at once (`tests/test_ukf.py` checks the two agree to 1e-12); `"compiled"` (the
+default) makes `estimate` run the whole recording in one numba kernel, `_compiled.ukf_kernel`,
+which does the numpy step's arithmetic in explicit loops and records the same diagnostics
+(`tests/test_compiled.py` checks it against numpy to 1e-10). The numpy step stays the
+readable reference and is what `reset`/`step` (the streaming interface) run for compiled and
+numpy alike. Why numba: see `_compiled`. Timings of the three:
+`python benchmarks/bench_filters.py`; the time per sample of every estimator is in
+`docs/results.md`.
 
 Sigma-point schemes (`sigma`): `"kraft"` (2n points at +-sqrt(n (P+Q)), weights 1/(2n); a
 zero-weight centre point is carried along only to start the iterative mean, which changes
@@ -108,11 +108,11 @@ Defaults. Equal variances P0 = Q = R = 1e-4 I per 100 Hz sample (`UKFParams.equa
 Q = 1e-2 rad^2/s, R = 1e-6 g^2 s, no disturbance model or scale noise) are a common start.
 They apply nearly the whole accelerometer innovation every sample, so hand-motion
 accelerations become attitude noise and, through the correlations of the unobservable
-heading with the tilt, a heading random walk: 2.98 deg inclination but 52.9 deg total RMSE
-(mean over ece276a 1-9, --init truth). Kraft's filter with the package's densities
-(`ukf:tauc=0,Qs=0`: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s) gives 1.98 / 16.4 deg; the default
-`ukf` adds the adaptive accelerometer noise and the rate-dependent process noise, 1.92 / 6.78
-(3.75 / 8.72 without the latter, 2.40 / 25.8 without the former).
+heading with the tilt, a heading random walk. Kraft's filter with the package's densities is
+`ukf:tauc=0,Qs=0` (Q = 1e-3 rad^2/s, R = 3e-5 g^2 s); the default `ukf` adds the adaptive
+accelerometer noise (`tauc`) and the rate-dependent process noise (`Qs`). What each of them
+changes, measured on the course recordings: `docs/results.md`, "What the default `ukf` adds
+to Kraft's filter"; the defaults' scores: the README's Results.
 
 Beyond Kraft 2003 (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
 the tilt, yet the optimal gain also turns the estimate about the vertical through the
@@ -225,22 +225,16 @@ class UKFParams(UKFOptions):
     process_noise_rad2_s (Q) = 1e-3 rad^2/s, disturbance_corr_s (tauc) = 0.5 s, gate_g = 0.1 g,
     heading_free (hf) = False (not in Kraft 2003; see the module docstring), acc_lowpass_s
     (taulp) = 0 (raw accelerometer samples only, as in Kraft 2003: with the low-passed samples
-    `ukf` gains inclination but loses more in heading, 3.03 / 12.2 deg against 3.77 / 10.5
-    inclination / total on the nine BROAD trials, 1.84 / 7.07 against 1.92 / 6.78 on
-    ece276a 1-9); plus
+    `ukf` gains inclination but loses more in heading on both the course recordings and
+    BROAD: `fusion compare --estimators ukf,ukf:taulp=1` shows by how much); plus
     scale_noise_s (Qs): rate-dependent attitude process noise, s: `Qs w_i^2 dt` is added to
         the step variance of axis i (a stand-in for an unmodelled gyro scale error).
 
-    Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density). Sweep over
-    ece276a 1-9 (`fusion ablate --estimator ukf --param Q=1e-4,1e-3,1e-2
-    --param R=1e-5,3e-5,1e-4,1e-3,1e-2 --dataset all`, --init truth), mean RMSE
-    inclination / total (deg):
-        R =        1e-5       3e-5       1e-4       1e-3       1e-2
-        Q = 1e-4   1.93/6.62  1.92/6.64  1.92/6.60  1.93/6.39  2.11/6.66
-        Q = 1e-3   1.92/6.73  1.92/6.78  1.91/6.74  1.94/6.44  2.10/6.66
-        Q = 1e-2   1.88/7.02  1.88/7.05  1.88/6.96  1.89/6.39  2.02/6.47
-    With the adaptive accelerometer noise the scores hardly depend on Q and R (a plateau);
-    the defaults are the package's densities, not a choice from this table.
+    Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density), not tuned on
+    the recordings. With the adaptive accelerometer noise the scores hardly depend on Q and
+    R (a plateau); the sweep that shows it: `fusion ablate --estimator ukf --param
+    Q=1e-4,1e-3,1e-2 --param R=1e-5,3e-5,1e-4,1e-3,1e-2 --dataset all --data-dir
+    ../shared/data/ece276a`.
     """
 
     owner: ClassVar[str] = "ukf"
