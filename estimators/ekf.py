@@ -100,9 +100,9 @@ to the angle turned. When the board only rocks (bounded angles, under 1 rad/s) w
 moved back and forth, the linear acceleration has power at the rocking frequencies, and the
 filter, which models it as noise that is white at the scale of `disturbance_corr_s` (or, for
 the low-passed sample, as the derivative of a bounded velocity), takes part of it for a
-scale error. With the 10 % prior (`init_scale_var`) it fits up to 13-15 % to an exactly
-calibrated gyro and loses 1-2 deg of inclination (`tests/test_ekf.py`, a strict xfail, with
-the measured figures). On BROAD's slow and translation trials the estimates end several per
+scale error. With the 10 % prior (`init_scale_var`) it fits a scale error larger than the
+prior to an exactly calibrated gyro and loses inclination (`tests/test_ekf.py`, a strict
+xfail, measures both). On BROAD's slow and translation trials the estimates end several per
 cent from zero (within about one and a half posterior sigma), where a fit against the truth
 finds well under 1 % (`fusion calibrate --dataset 'broad/*'`; `docs/results.md`).
 `scale=false` or a narrower prior avoids it where
@@ -126,10 +126,10 @@ Two implementations (`impl` parameter). `EKF.step` below, in numpy, is the refer
 definition of the filter, and what `reset`/`step` (the streaming interface) always run.
 `"compiled"` (the default) makes `estimate` run the whole recording in one numba kernel,
 `_compiled.ekf_kernel`, which does the same arithmetic in explicit loops over the small
-matrices and records the same diagnostics: 2.3-2.9 us per sample instead of 150-170, on the
-course's recording 1 and BROAD's trial 15, with the velocity states (11 x 11 matrices; about
-1.5 us without them, `ekf:vb=inf`). numpy's per-call overhead dominates the reference step
-(`python benchmarks/bench_filters.py --dataset ...`; see `_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
+matrices and records the same diagnostics, with or without the velocity states (11 x 11
+matrices with them; `ekf:vb=inf` leaves them out). numpy's per-call overhead dominates the
+reference step; timings of both: `python benchmarks/bench_filters.py --dataset ...` (see
+`_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
 checks that the two agree to 1e-10.
 """
 from __future__ import annotations

@@ -1,12 +1,18 @@
 """`ukf`: a quaternion UKF after Kraft 2003, and `ukf-bias`, the same with gyro bias and scale.
 
 Kraft 2003: E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking",
-Proc. 6th Int. Conf. Information Fusion. The numbered steps below are this module's and the
-code refers to them; where a step implements a numbered part of the paper it says so (the
-iterative mean is its Sec. 3.4, the covariances eqs. 63-64 and 68-71, the gain and update
-eqs. 72 and 75). Those numbers follow the paper as independent implementations cite it;
-they were not checked against a copy of the paper here. The notebook
-`docs/tutorial/03_quaternion_ukf.py` runs every step on a real sample.
+Proc. 6th Int. Conf. Information Fusion, pp. 47-54. The numbered steps below are this
+module's and the code refers to them. They are written in our notation, without the paper's
+equation numbers, which could not be checked against a copy of it; the one place cited is
+the iterative mean, its Sec. 3.4, as two independent implementations (sfwa/ukf, Google's
+Cartographer) cite it. "As in Kraft's filter" marks what the public implementations of the
+paper consulted all do alike; where this module departs from them it says so. The notebook
+`docs/tutorial/03_quaternion_ukf.py` runs every step on a real sample and lists the sources.
+
+One departure throughout: Kraft's state also holds the angular velocity, which the gyro
+measures; here, as in the reduced variant course implementations use, the gyro is the
+control input of the process model and the state is the quaternion (and, for `ukf-bias`,
+the gyro bias).
 
 State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, rad/s, for
 `ukf-bias`); covariance `P` on the body-frame rotation-vector error `e`, `q_true = q exp(e/2)`
@@ -14,22 +20,26 @@ State: the orientation quaternion `q = R_world_body` (plus the gyro bias `b`, ra
 
 1. control input: the gyro, `q_delta = exp(w dt / 2)` (with `w - b_i` per sigma point for
    `ukf-bias`);
-2. sigma points: the columns of `+-sqrt(c (P + Q))` (Kraft: c = n, 2n points, equal weights;
-   process noise enters *before* the transform, as in Kraft 2003);
+2. sigma points: the columns of `+-sqrt(c (P + Q))`, process noise entering *before* the
+   transform as in Kraft's filter (scheme `kraft`: 2n points, equal weights 1/(2n) and
+   c = n, the one factor with which the points reproduce P + Q exactly; implementations
+   that follow the paper differ here, some scale by 2n, and the paper's own factor was not
+   checked);
 3. each turned into a quaternion by the exponential map, `X_i = q exp(W_i / 2)`;
 4. propagated, `Y_i = X_i q_delta`;
 5. the iterative quaternion mean: error rotation vectors `e_i = log(q_t^-1 Y_i)`, wrapped
    to the shortest rotation (angle in [0, pi], so q and -q agree), averaged with the mean
    weights and re-applied, `q_t <- q_t exp(e/2)`, until `|e| < mean_tol_rad` or
    `mean_max_iter` iterations (Kraft's gradient-descent mean, Sec. 3.4);
-   `P_pred = sum Wc e_i e_i^T` (eqs. 63-64);
+   `P_pred = sum Wc e_i e_i^T`, the errors taken about the mean in the body frame;
 6. predicted measurement per sigma point: gravity in the body frame `Z_i = R(Y_i)^T e_z`
-   (the accelerometer part of Kraft's measurement model);
+   (the accelerometer part of Kraft's measurement model), from the propagated points `Y_i`
+   (not re-drawn from `P_pred`, as in Kraft's filter);
 7. its mean `z = sum Wm Z_i`;
-8. `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R` (eq. 68, plus R: Kraft's P_vv),
-   `P_xz = sum Wc e_i (Z_i - z)^T` (eqs. 70-71);
-9. gain `K = P_xz P_zz^-1` (eq. 72), update through the exponential map
-   `q <- q exp(K (a - z) / 2)`, `P <- P_pred - K P_zz K^T` (eq. 75).
+8. the innovation covariance `P_zz = sum Wc (Z_i - z)(Z_i - z)^T + R` and the cross
+   covariance `P_xz = sum Wc e_i (Z_i - z)^T`;
+9. gain `K = P_xz P_zz^-1`, update through the exponential map on the right (body frame),
+   `q <- q exp(K (a - z) / 2)`, and `P <- P_pred - K P_zz K^T`.
 
 What FilterPy (2.0.0) provides and what is replaced
 ----------------------------------------------------
@@ -65,14 +75,14 @@ the mean and covariance (Joseph form), the same in every implementation, as the 
 Three implementations of the same step (`impl` parameter): `"filterpy"` calls the
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"numpy"` runs predict and update as a handful of vectorised numpy calls over all
-sigma points at once (about 5x faster than filterpy; `tests/test_ukf.py` checks the two agree
-to 1e-12); `"compiled"` (the default) makes `estimate` run the whole recording in one numba
-kernel, `_compiled.ukf_kernel`, which does the numpy step's arithmetic in explicit loops and
-records the same diagnostics (about 1 us per sample for `ukf`, 3-6 for `ukf-bias`, against
-60-130 and 120-390 for numpy; `tests/test_compiled.py` checks it against numpy to 1e-10). The
-numpy step stays the readable reference and is what `reset`/`step` (the streaming interface)
-run for compiled and numpy alike. Why numba: see `_compiled`. Profile and timings:
-`benchmarks/bench_filters.py`.
+sigma points at once (`tests/test_ukf.py` checks the two agree to 1e-12); `"compiled"` (the
+default) makes `estimate` run the whole recording in one numba kernel, `_compiled.ukf_kernel`,
+which does the numpy step's arithmetic in explicit loops and records the same diagnostics
+(`tests/test_compiled.py` checks it against numpy to 1e-10). The numpy step stays the
+readable reference and is what `reset`/`step` (the streaming interface) run for compiled and
+numpy alike. Why numba: see `_compiled`. Timings of the three:
+`python benchmarks/bench_filters.py`; the time per sample of every estimator is in
+`docs/results.md`.
 
 Sigma-point schemes (`sigma`): `"kraft"` (2n points at +-sqrt(n (P+Q)), weights 1/(2n); a
 zero-weight centre point is carried along only to start the iterative mean, which changes
@@ -98,11 +108,11 @@ Defaults. Equal variances P0 = Q = R = 1e-4 I per 100 Hz sample (`UKFParams.equa
 Q = 1e-2 rad^2/s, R = 1e-6 g^2 s, no disturbance model or scale noise) are a common start.
 They apply nearly the whole accelerometer innovation every sample, so hand-motion
 accelerations become attitude noise and, through the correlations of the unobservable
-heading with the tilt, a heading random walk: 2.98 deg inclination but 52.9 deg total RMSE
-(mean over ece276a 1-9, --init truth). Kraft's filter with the package's densities
-(`ukf:tauc=0,Qs=0`: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s) gives 1.98 / 16.4 deg; the default
-`ukf` adds the adaptive accelerometer noise and the rate-dependent process noise, 1.92 / 6.78
-(3.75 / 8.72 without the latter, 2.40 / 25.8 without the former).
+heading with the tilt, a heading random walk. Kraft's filter with the package's densities is
+`ukf:tauc=0,Qs=0` (Q = 1e-3 rad^2/s, R = 3e-5 g^2 s); the default `ukf` adds the adaptive
+accelerometer noise (`tauc`) and the rate-dependent process noise (`Qs`). What each of them
+changes, measured on the course recordings: `docs/results.md`, "What the default `ukf` adds
+to Kraft's filter"; the defaults' scores: the README's Results.
 
 Beyond Kraft 2003 (`ukf-bias`, option `heading_free` for `ukf`): the accelerometer sees only
 the tilt, yet the optimal gain also turns the estimate about the vertical through the
@@ -215,22 +225,16 @@ class UKFParams(UKFOptions):
     process_noise_rad2_s (Q) = 1e-3 rad^2/s, disturbance_corr_s (tauc) = 0.5 s, gate_g = 0.1 g,
     heading_free (hf) = False (not in Kraft 2003; see the module docstring), acc_lowpass_s
     (taulp) = 0 (raw accelerometer samples only, as in Kraft 2003: with the low-passed samples
-    `ukf` gains inclination but loses more in heading, 3.03 / 12.2 deg against 3.77 / 10.5
-    inclination / total on the nine BROAD trials, 1.84 / 7.07 against 1.92 / 6.78 on
-    ece276a 1-9); plus
+    `ukf` gains inclination but loses more in heading on both the course recordings and
+    BROAD: `fusion compare --estimators ukf,ukf:taulp=1` shows by how much); plus
     scale_noise_s (Qs): rate-dependent attitude process noise, s: `Qs w_i^2 dt` is added to
         the step variance of axis i (a stand-in for an unmodelled gyro scale error).
 
-    Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density). Sweep over
-    ece276a 1-9 (`fusion ablate --estimator ukf --param Q=1e-4,1e-3,1e-2
-    --param R=1e-5,3e-5,1e-4,1e-3,1e-2 --dataset all`, --init truth), mean RMSE
-    inclination / total (deg):
-        R =        1e-5       3e-5       1e-4       1e-3       1e-2
-        Q = 1e-4   1.93/6.62  1.92/6.64  1.92/6.60  1.93/6.39  2.11/6.66
-        Q = 1e-3   1.92/6.73  1.92/6.78  1.91/6.74  1.94/6.44  2.10/6.66
-        Q = 1e-2   1.88/7.02  1.88/7.05  1.88/6.96  1.89/6.39  2.02/6.47
-    With the adaptive accelerometer noise the scores hardly depend on Q and R (a plateau);
-    the defaults are the package's densities, not a choice from this table.
+    Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density), not tuned on
+    the recordings. With the adaptive accelerometer noise the scores hardly depend on Q and
+    R (a plateau); the sweep that shows it: `fusion ablate --estimator ukf --param
+    Q=1e-4,1e-3,1e-2 --param R=1e-5,3e-5,1e-4,1e-3,1e-2 --dataset all --data-dir
+    ../shared/data/ece276a`.
     """
 
     owner: ClassVar[str] = "ukf"

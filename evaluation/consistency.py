@@ -29,8 +29,9 @@ statistics here are the tests of that section, for one run of one filter on one 
   The NIS needs no truth: it tests the filter against its own measurements.
 
 P_k is the covariance the filters record after the update at sample k, so e_k is taken at
-the same instant. Equation and subsection numbers of Bar-Shalom et al. are not cited: they
-could not be checked here.
+the same instant. Bar-Shalom et al. are cited by their section (5.4, "Consistency of state
+estimators"), not by equation or subsection numbers; the statistics themselves are defined
+above in full.
 
 What the numbers cannot separate:
 

@@ -65,7 +65,7 @@ def _angle(vector_norm: np.ndarray, scalar: np.ndarray) -> np.ndarray:
 def error_angles(r_true: Rotation | np.ndarray, r_est: Rotation | np.ndarray) -> dict[str, np.ndarray]:
     """Per-sample total, inclination and heading errors (rad) between two stacks of orientations
     (`Rotation`s or (M, 4) wxyz arrays, `R_world_body`); quaternion algebra on whole arrays
-    (`fusion.quaternion`), some 15x faster than SciPy's `Rotation` products on a BROAD trial."""
+    (`fusion.quaternion`), faster than SciPy's `Rotation` products."""
     q_true, q_est = _wxyz(r_true), _wxyz(r_est)
     body = quaternion.multiply(quaternion.conjugate(q_true), q_est)  # R_gt^-1 R_est
     total = _angle(np.linalg.norm(body[..., 1:], axis=-1), body[..., 0])

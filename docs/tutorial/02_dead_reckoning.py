@@ -21,9 +21,9 @@
 #
 # Reference: J. Sola, "Quaternion kinematics for the error-state Kalman filter", 2017,
 # arXiv:1711.02508: Sec. 1.2.2 (the quaternion product), Sec. 1.3.4 (exponential of pure
-# quaternions), Sec. 1.3.6 (logarithm of unit quaternions), Sec. 2.3 (the exponential and
-# logarithmic maps of rotations). Section numbers are given rather than equation numbers,
-# which were not checked here.
+# quaternions), Sec. 1.3.6 (logarithm of unit quaternions), Secs. 2.3.1 and 2.3.4 (the exponential
+# and logarithmic maps of rotations). The numbers are sections of the paper's version dated
+# 12 October 2017, not equations.
 
 # %%
 # %matplotlib inline

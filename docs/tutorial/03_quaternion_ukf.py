@@ -24,8 +24,9 @@
 # difference, and its covariance cannot be 4x4 (it would be singular). Kraft's answer, which
 # the library follows:
 #
-# * the covariance $P$ (3x3) is the covariance of a **body-frame rotation-vector error** $e$:
-#   $q_\text{true} = q \otimes \operatorname{Exp}(e)$, with $\operatorname{Exp}$ the exponential map of notebook 2;
+# * the covariance $P$ of the orientation (3x3) is the covariance of a **rotation-vector error** $e$,
+#   in the library a body-frame one: $q_\text{true} = q \otimes \operatorname{Exp}(e)$, with $\operatorname{Exp}$ the
+#   exponential map of notebook 2;
 # * sigma points are built in that 3-D error space, then mapped onto quaternions with $\operatorname{Exp}$;
 # * the mean of the propagated quaternions is found iteratively (a gradient descent on the sphere);
 # * the error of each point about the mean, $\operatorname{Log}(\bar q^{-1} q_i)$, is what goes into the covariances.
@@ -61,27 +62,32 @@ q0 = initial_orientation(rec)
 # ## 3.1 Kraft's steps, the library's steps
 #
 # The module docstring of `estimators/ukf.py` numbers the steps of one filter cycle 1-9; the code
-# refers to those numbers. The table maps them to Kraft's paper.
+# refers to those numbers. The table says what each step is in Kraft's filter, and where the
+# library differs from it.
 #
 # | `ukf.py` step | operation | Kraft 2003 |
 # |---|---|---|
-# | 1 | control input $q_\Delta = \operatorname{Exp}(\omega \Delta t)$ | process model; equation number **not verified** |
-# | 2 | sigma points $W_i$ = $\pm$ columns of $\sqrt{c\,(P + Q)}$ (Q enters *before* the transform) | **not verified** |
-# | 3 | $X_i = q \otimes \operatorname{Exp}(W_i)$ | **not verified** |
-# | 4 | $Y_i = X_i \otimes q_\Delta$ | **not verified** |
-# | 5 | iterative quaternion mean $\bar q$; errors $W'_i = \operatorname{Log}(\bar q^{-1} Y_i)$; $P^- = \sum_i w_i W'_i W'^\top_i$ | mean: Sec. 3.4 (two sources); $P^-$: Sec. 3.5.1, eqs. 63-64 (one source, which reports a typo in eq. 63) |
-# | 6 | $Z_i = h(Y_i) = R(Y_i)^\top e_z$ | **not verified** |
-# | 7 | $z^- = \sum_i w_i Z_i$ | **not verified** |
-# | 8 | $P_{zz} = \sum_i w_i (Z_i - z^-)(Z_i - z^-)^\top$ (eq. 68); $P_{\nu\nu} = P_{zz} + R$; $P_{xz} = \sum_i w_i W'_i (Z_i - z^-)^\top$ (eqs. 70-71) | eqs. 68, 70-71 (one source); $\nu = z - z^-$ and $P_{\nu\nu}$ cited as eqs. 44-45 by the same source, which also cites eq. 45 for $W'_i$: **conflicting, not verified** |
-# | 9 | $K = P_{xz} P_{\nu\nu}^{-1}$ (eq. 72); $q \leftarrow \bar q \otimes \operatorname{Exp}(K \nu)$; $P = P^- - K P_{\nu\nu} K^\top$ (eq. 75) | eqs. 72, 75 (one source); the quaternion update: **not verified** |
+# | 1 | control input $q_\Delta = \operatorname{Exp}(\omega \Delta t)$ | **differs**: Kraft's state also holds the angular velocity, and the gyro is one of his measurements; here, as in the reduced variant that course implementations use, the gyro drives the process model and the state is $q$ alone. The turn over one step, $q \otimes \operatorname{Exp}(\omega \Delta t)$, is the same |
+# | 2 | sigma points $W_i$ = $\pm$ columns of $\sqrt{c\,(P + Q)}$ | as in Kraft's filter, $Q$ is added to $P$ *before* the points are drawn. The scheme `kraft`: $2n$ points with equal weights, as the course implementations of the paper use (`sfwa/ukf` uses scaled points with a centre point instead), and $c = n$ where those implementations scale by $2n$: with weights $1/(2n)$, $c = n$ is the one factor with which the points reproduce $P + Q$ (checked below), and the paper's own factor was not checked |
+# | 3 | $X_i = q \otimes \operatorname{Exp}(W_i)$ | the error vectors become quaternions through the exponential map, composed with the mean; here on the right (a body-frame error, as $P$ is defined), where implementations differ |
+# | 4 | $Y_i = X_i \otimes q_\Delta$ | the process model, applied to every point |
+# | 5 | iterative quaternion mean $\bar q$; errors $W'_i = \operatorname{Log}(\bar q^{-1} Y_i)$; $P^- = \sum_i w_i W'_i W'^\top_i$ | the mean is Kraft's gradient descent, his **Sec. 3.4**; $P^-$ from the errors about the mean, with no second $Q$ (it entered in step 2) |
+# | 6 | $Z_i = h(Y_i) = R(Y_i)^\top e_z$ | the accelerometer part of Kraft's measurement model (which also measures the angular velocity of his state, step 1), evaluated on the propagated points $Y_i$, not on points re-drawn from $P^-$ |
+# | 7 | $z^- = \sum_i w_i Z_i$ | the predicted measurement |
+# | 8 | $P_{zz} = \sum_i w_i (Z_i - z^-)(Z_i - z^-)^\top$; $P_{\nu\nu} = P_{zz} + R$; $P_{xz} = \sum_i w_i W'_i (Z_i - z^-)^\top$ | the unscented transform's covariances, with the errors $W'_i$ of step 5 in place of state differences |
+# | 9 | $K = P_{xz} P_{\nu\nu}^{-1}$; $q \leftarrow \bar q \otimes \operatorname{Exp}(K \nu)$, $\nu = z - z^-$; $P = P^- - K P_{\nu\nu} K^\top$ | the Kalman gain and covariance update; the correction $K\nu$ is a rotation vector, applied through the exponential map (on the right here, as in step 3) |
 #
-# **Source of these numbers.** The paper itself could not be consulted here. The equation and
-# section numbers come from the comments of two open-source implementations that cite it:
-# `sfwa/ukf` (files `UKF/Core.h` and `UKF/StateVector.h`, Thiemar Pty Ltd, 2016, citing the copy
-# of the paper hosted at kodlab.seas.upenn.edu), and Google's Cartographer
-# (`cartographer/kalman_filter/unscented_kalman_filter.h`, "Kraft's Section 3.4" for the mean).
-# Check them against the paper before relying on them; a number marked "not verified" is one
-# no source gave.
+# **Where these statements come from.** A copy of the paper could not be consulted while this
+# notebook was written, so the table gives no equation numbers. Sec. 3.4 is cited for the mean
+# because two independent implementations cite it so: `sfwa/ukf` (Thiemar Pty Ltd, 2016,
+# `include/UKF/StateVector.h`) and Google's Cartographer
+# (`cartographer/kalman_filter/unscented_kalman_filter.h`). `sfwa/ukf` also gives equation numbers
+# for steps 5, 8 and 9; they come from one source, which gives one number to two different
+# quantities, so they are not repeated here. "As in Kraft's filter" marks what every public
+# implementation of the paper read for this notebook does alike: `sfwa/ukf` (`include/UKF/Core.h`)
+# and course projects that follow the paper (for example
+# `github.com/yrlu/orientation_tracking-unscented_kalman_filter`, whose report implements both
+# Kraft's 7-element state and the 4-element variant with the gyro as control input).
 #
 # ## 3.2 One real sample
 #
@@ -137,8 +143,8 @@ print("Q_k diagonal (rad^2):", np.diag(Q), " R_k diagonal (g^2):", np.diag(R))
 # (a Cholesky factor) with $c = n$ and equal weights $1/(2n)$; the library also carries a centre
 # point of weight 0, which only starts the mean of step 5. The check that matters: the points
 # reproduce the covariance they were drawn from, $\sum_i w_i W_i W_i^\top = P_k + Q_k$. (With weights
-# $1/(2n)$ that holds for $c = n$ only; the module docstring attributes this choice to Kraft, which
-# could not be checked against the paper here.)
+# $1/(2n)$ that holds for $c = n$ only, which is why the library uses it: a scale of $2n$, as some
+# implementations of the paper use, would give $2(P_k + Q_k)$.)
 
 # %%
 points = QuaternionSigmaPoints(3, p.sigma)

@@ -111,7 +111,8 @@ print("F_eb = -J_r(theta) dt, analytic vs numeric:", np.abs(-quat.right_jacobian
 # Take one attitude with covariance $P = \sigma^2 I$ and ask both methods for the mean and the
 # covariance of the predicted gravity $h(q \otimes \operatorname{Exp}(e))$, $e \sim N(0, P)$; a Monte Carlo run with
 # 20,000 samples is the reference. The EKF answers $h(q)$ and $H P H^\top$; the UKF the weighted mean
-# and covariance of the sigma points' $h$ (the library's `QuaternionSigmaPoints`, Kraft's scheme).
+# and covariance of the sigma points' $h$ (the library's `QuaternionSigmaPoints`, scheme `kraft`: $2n$ points at
+# $\pm\sqrt{n P}$).
 
 # %%
 points = QuaternionSigmaPoints(3, "kraft")
