@@ -4,8 +4,8 @@ level and inside functions alike; nothing is imported or run).
     python docs/import_graph.py          # text: one box per layer, each module's imports below it
     python docs/import_graph.py --dot    # Graphviz: python docs/import_graph.py --dot | dot -Tsvg > graph.svg
 
-Layers, top to bottom: the command line (`fusion.cli`, `fusion.__main__`), `fusion.evaluation`
-(folder evaluation/), `fusion.estimators` (estimators/), the core (the rest of fusion/). An
+Layers, top to bottom: the command line (`fusion.cli`, folder cli/, and `fusion.__main__`),
+`fusion.evaluation` (evaluation/), `fusion.estimators` (estimators/), the core (the rest of fusion/). An
 arrow is "imports"; `tests/test_layers.py` checks that every arrow points down (or within a
 layer) and that there is no cycle.
 """
@@ -17,8 +17,8 @@ from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = {"fusion": "fusion", "estimators": "fusion.estimators", "evaluation": "fusion.evaluation"}
-LAYERS = [("cli", "fusion/cli.py, fusion/__main__.py"), ("evaluation", "evaluation/"),
+FOLDERS = {"fusion": "fusion", "estimators": "fusion.estimators", "evaluation": "fusion.evaluation", "cli": "fusion.cli"}
+LAYERS = [("cli", "cli/, fusion/__main__.py"), ("evaluation", "evaluation/"),
           ("estimators", "estimators/"), ("core", "fusion/")]  # top to bottom
 
 
@@ -31,9 +31,9 @@ def modules() -> dict[str, Path]:
 
 
 def layer(module: str) -> str:
-    if module in ("fusion.cli", "fusion.__main__"):
+    if module == "fusion.__main__":
         return "cli"
-    for name in ("evaluation", "estimators"):
+    for name in ("cli", "evaluation", "estimators"):
         if module == f"fusion.{name}" or module.startswith(f"fusion.{name}."):
             return name
     return "core"

@@ -17,8 +17,8 @@ import sys
 import warnings
 from pathlib import Path
 
-from . import datasets
-from .selection import note
+from fusion import datasets
+from fusion.selection import note
 
 
 def _add_data_args(parser: argparse.ArgumentParser) -> None:
