@@ -358,12 +358,14 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
     symmetric. With T = F[:3] P (3 x N): the block [:3, :3] is T F[:3]^T, the block [:3, 3:]
     is T[:, 3:] (and its mirror [3:, :3]), the block [3:, 3:] is P's own (T: 3 x N scratch).
     The dense product costs 2 N^3 multiplications, this one 3 n N + 6 n."""
-    for i in range(3):  # T = F[:3, :n] P[:n]
-        for c in range(N):
-            v = 0.0
-            for j in range(n):
-                v += F[i, j] * P[j, c]
-            T[i, c] = v
+    for c in range(N):  # T = F[:3, :n] P[:n]
+        v0, v1, v2 = 0.0, 0.0, 0.0
+        for j in range(n):
+            pj = P[j, c]
+            v0 += F[0, j] * pj
+            v1 += F[1, j] * pj
+            v2 += F[2, j] * pj
+        T[0, c], T[1, c], T[2, c] = v0, v1, v2
     hh = h * h
     for i in range(N):  # the upper triangle, mirrored
         for c in range(i, N):
@@ -383,6 +385,33 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
             P[c, i] = v
 
 
+@_jit
+def weighted_outer_sum(E, WE, P, m, n):
+    """P = sum_i E[i]^T WE[i] (n x n) over the m rows of E and WE (= Wc E), symmetric: the upper
+    triangle, mirrored. Four entries of a row at a time: each sums its terms in the rows' order
+    (as one entry at a time would, to the bit), but the four chains of additions overlap."""
+    for a in range(n):
+        c = a
+        while c + 3 < n:
+            v0, v1, v2, v3 = 0.0, 0.0, 0.0, 0.0
+            for i in range(m):
+                ea = E[i, a]
+                v0 += ea * WE[i, c]
+                v1 += ea * WE[i, c + 1]
+                v2 += ea * WE[i, c + 2]
+                v3 += ea * WE[i, c + 3]
+            P[a, c], P[a, c + 1], P[a, c + 2], P[a, c + 3] = v0, v1, v2, v3
+            c += 4
+        while c < n:
+            v = 0.0
+            for i in range(m):
+                v += E[i, a] * WE[i, c]
+            P[a, c] = v
+            c += 1
+        for c in range(a + 1, n):
+            P[c, a] = P[a, c]
+
+
 # Where the disturbance state array (`AccDisturbance.state`) holds the lag N_b, N_s (row by row).
 _LAG = 23
 
@@ -396,9 +425,9 @@ def lag_step(st, rate, fresh, h, updated, lowpass_s):
         for c in range(_LAG, _LAG + 18):
             st[c] = 0.0
         return
-    qi = (st[5], st[6], st[7], st[8])
+    R = _rotation((st[5], st[6], st[7], st[8]))  # R_I, row by row
     for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
-        cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
+        cx, cy, cz = R[j], R[3 + j], R[6 + j]
         gj = rate[1, j] * h
         uj = rate[0, j] * h
         st[_LAG + j] += cx * gj
@@ -1112,6 +1141,7 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
     Ep = np.empty((2 * n, 4))  # q exp(+-e_i / 2), i < 3 (step 3)
     err = np.empty((m, 3))
     res = np.empty((m, n))
+    Wres = np.empty((m, n))
     dZ = np.empty((m, 3))
     WdZ = np.empty((m, 3))
     S = np.empty((3, 3))
@@ -1227,13 +1257,11 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
             x[j + 1] = v
             for i in range(m):
                 res[i, j] = sig[i, j + 1] - v
-        for a in range(n):  # P_pred = sum Wc e_i e_i^T (symmetric: the upper triangle, mirrored)
-            for c in range(a, n):
-                v = 0.0
-                for i in range(m):
-                    v += res[i, a] * (Wc[i] * res[i, c])
-                P[a, c] = v
-                P[c, a] = v
+        # P_pred = sum Wc e_i e_i^T, symmetric: the upper triangle, mirrored (Wc e_i once per point)
+        for i in range(m):
+            for c in range(n):
+                Wres[i, c] = Wc[i] * res[i, c]
+        weighted_outer_sum(res, Wres, P, m, n)
         # ---- rest update (ukf-bias)
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
@@ -1282,17 +1310,22 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 for j in range(3):
                     WdZ[i, j] = Wc[i] * dZ[i, j]
             for a in range(3):  # step 8: P_zz
-                for c in range(3):
-                    v = 0.0
-                    for i in range(m):
-                        v += dZ[i, a] * WdZ[i, c]
-                    S[a, c] = v + (r if a == c else 0.0)
+                v0, v1, v2 = 0.0, 0.0, 0.0
+                for i in range(m):
+                    za = dZ[i, a]
+                    v0 += za * WdZ[i, 0]
+                    v1 += za * WdZ[i, 1]
+                    v2 += za * WdZ[i, 2]
+                S[a, 0], S[a, 1], S[a, 2] = v0, v1, v2
+                S[a, a] = S[a, a] + r
             for a in range(n):  # step 8: P_xz
-                for c in range(3):
-                    v = 0.0
-                    for i in range(m):
-                        v += res[i, a] * WdZ[i, c]
-                    Pxz[a, c] = v
+                v0, v1, v2 = 0.0, 0.0, 0.0
+                for i in range(m):
+                    ra = res[i, a]
+                    v0 += ra * WdZ[i, 0]
+                    v1 += ra * WdZ[i, 1]
+                    v2 += ra * WdZ[i, 2]
+                Pxz[a, 0], Pxz[a, 1], Pxz[a, 2] = v0, v1, v2
             inv_sym3(S, Sinv)
             for a in range(n):  # step 9: K = P_xz P_zz^-1
                 for c in range(3):
