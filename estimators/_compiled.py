@@ -270,7 +270,18 @@ def cholesky(A, L, n):
             return False
         d = math.sqrt(s)
         L[j, j] = d
-        for i in range(j + 1, n):
+        i = j + 1
+        while i + 1 < n:  # two rows at a time (each entry sums as alone; the two chains overlap)
+            t0 = A[i, j]
+            t1 = A[i + 1, j]
+            for k in range(j):
+                ljk = L[j, k]
+                t0 -= L[i, k] * ljk
+                t1 -= L[i + 1, k] * ljk
+            L[i, j] = t0 / d
+            L[i + 1, j] = t1 / d
+            i += 2
+        if i < n:
             t = A[i, j]
             for k in range(j):
                 t -= L[i, k] * L[j, k]
