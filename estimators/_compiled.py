@@ -20,9 +20,13 @@ rounding, and `tests/test_compiled.py` checks that both paths give the same quat
 diagnostics to 1e-10 on real and simulated recordings with every option. The equations and
 their papers are cited in `ekf`, `ukf` and `_attitude`; the kernels cite the step of the
 reference they implement. Where the compiled path is organised differently it says so: the
-EKF's covariance prediction uses the block structure of F (the reference multiplies the full
-matrices; zero blocks contribute exact zeros), and the Joseph form is expanded as
-`M = P - K (H P)`, `P = M - (M H^T) K^T + R K K^T`.
+EKF's covariance prediction uses the block structure of F (`predict_covariance`: the reference
+multiplies the full matrices; zero blocks contribute exact zeros, identity blocks copies), the
+accelerometer's P H^T only H's non-zero columns; the Joseph form is expanded for a symmetric P
+as `P - K (P H^T)^T + (K S - P H^T) K^T` (`joseph`, `heading_update`); the covariances are
+computed on their upper triangle and mirrored (the reference symmetrises P at the end of each
+step); the UKF's sigma points take the attitude exponential only where the Cholesky factor has
+an attitude part (step 3). These change the rounding only (1e-14 relative on the recordings).
 
 Constants that decide the maths (the small-angle limits of `fusion.quaternion`, the covariance
 floors of `_attitude`, the chi-square bound of `ekf`) are passed in at run time from the
@@ -266,7 +270,18 @@ def cholesky(A, L, n):
             return False
         d = math.sqrt(s)
         L[j, j] = d
-        for i in range(j + 1, n):
+        i = j + 1
+        while i + 1 < n:  # two rows at a time (each entry sums as alone; the two chains overlap)
+            t0 = A[i, j]
+            t1 = A[i + 1, j]
+            for k in range(j):
+                ljk = L[j, k]
+                t0 -= L[i, k] * ljk
+                t1 -= L[i + 1, k] * ljk
+            L[i, j] = t0 / d
+            L[i + 1, j] = t1 / d
+            i += 2
+        if i < n:
             t = A[i, j]
             for k in range(j):
                 t -= L[i, k] * L[j, k]
@@ -325,29 +340,102 @@ def repair_covariance(P, n, o, L):
 
 
 @_jit
-def joseph(P, K, H, r, n, G, M):
-    """P <- (I - K H) P (I - K H)^T + r K K^T for H (3 x n) (the Joseph form of `ekf` and of
-    `_attitude.bias_rest_update`), as M = P - K (H P), P = M - (M H^T) K^T + r K K^T."""
-    for j in range(3):  # G = H P
-        for c in range(n):
+def joseph(P, K, PHt, S, n, D):
+    """P <- (I - K H) P (I - K H)^T + K R K^T for a measurement of up to three rows (the Joseph
+    form of `ekf`, `EKF._velocity_step` and `_attitude.bias_rest_update`), any gain K (n x 3),
+    from PHt = P H^T (n x 3) and S = H P H^T + R (3 x 3); a measurement of fewer rows has zero
+    columns in K and PHt and zero rows and columns in S. For a symmetric P the product expands
+    to P - K PHt^T - PHt K^T + K S K^T = P - K PHt^T + D K^T with D = K S - PHt: six products
+    per entry instead of the 3 n of (I - K H) P (I - K H)^T, computed on the upper triangle and
+    mirrored (D: n x 3 scratch)."""
+    for a in range(n):  # D = K S - PHt
+        for j in range(3):
+            D[a, j] = K[a, 0] * S[0, j] + K[a, 1] * S[1, j] + K[a, 2] * S[2, j] - PHt[a, j]
+    for a in range(n):
+        k0, k1, k2 = K[a, 0], K[a, 1], K[a, 2]
+        d0, d1, d2 = D[a, 0], D[a, 1], D[a, 2]
+        for c in range(a, n):
+            v = (P[a, c] - (k0 * PHt[c, 0] + k1 * PHt[c, 1] + k2 * PHt[c, 2])
+                 + (d0 * K[c, 0] + d1 * K[c, 1] + d2 * K[c, 2]))
+            P[a, c] = v
+            P[c, a] = v
+
+
+@_jit
+def joseph2(P, K, PHt, S, n, D):
+    """`joseph` for a two-row measurement (the velocity pseudo-measurement): K, PHt (n x 2 used),
+    S (2 x 2 used); four products per entry instead of six (D: n x 3 scratch, two columns used)."""
+    for a in range(n):  # D = K S - PHt
+        D[a, 0] = K[a, 0] * S[0, 0] + K[a, 1] * S[1, 0] - PHt[a, 0]
+        D[a, 1] = K[a, 0] * S[0, 1] + K[a, 1] * S[1, 1] - PHt[a, 1]
+    for a in range(n):
+        k0, k1, d0, d1 = K[a, 0], K[a, 1], D[a, 0], D[a, 1]
+        for c in range(a, n):
+            v = P[a, c] - (k0 * PHt[c, 0] + k1 * PHt[c, 1]) + (d0 * K[c, 0] + d1 * K[c, 1])
+            P[a, c] = v
+            P[c, a] = v
+
+
+@_jit
+def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
+    """P <- F P F^T + Q (`EKF.step`, Sola 2017, Sec. 5.4) for F = [[A, B, 0], [0, I]]: A (3 x 3) and
+    B (3 x (n - 3)) in F's first three rows, the velocity columns zero, the identity below (only
+    F[:3, :n] is read), and Q = Qrate dt (+ Qbad dt^2 without a usable gyro) with Qrate, Qbad
+    symmetric. With T = F[:3] P (3 x N): the block [:3, :3] is T F[:3]^T, the block [:3, 3:]
+    is T[:, 3:] (and its mirror [3:, :3]), the block [3:, 3:] is P's own (T: 3 x N scratch).
+    The dense product costs 2 N^3 multiplications, this one 3 n N + 6 n."""
+    for c in range(N):  # T = F[:3, :n] P[:n]
+        v0, v1, v2 = 0.0, 0.0, 0.0
+        for j in range(n):
+            pj = P[j, c]
+            v0 += F[0, j] * pj
+            v1 += F[1, j] * pj
+            v2 += F[2, j] * pj
+        T[0, c], T[1, c], T[2, c] = v0, v1, v2
+    hh = h * h
+    for i in range(N):  # the upper triangle, mirrored
+        for c in range(i, N):
+            if c < 3:
+                v = 0.0
+                for j in range(n):
+                    v += T[i, j] * F[c, j]
+            elif i < 3:
+                v = T[i, c]
+            else:
+                v = P[i, c]
+            qn = Qrate[i, c] * h
+            if not ok:  # no rate integration: the attitude noise is inflated
+                qn = qn + Qbad[i, c] * hh
+            v = v + qn
+            P[i, c] = v
+            P[c, i] = v
+
+
+@_jit
+def weighted_outer_sum(E, WE, P, m, n):
+    """P = sum_i E[i]^T WE[i] (n x n) over the m rows of E and WE (= Wc E), symmetric: the upper
+    triangle, mirrored. Four entries of a row at a time: each sums its terms in the rows' order
+    (as one entry at a time would, to the bit), but the four chains of additions overlap."""
+    for a in range(n):
+        c = a
+        while c + 3 < n:
+            v0, v1, v2, v3 = 0.0, 0.0, 0.0, 0.0
+            for i in range(m):
+                ea = E[i, a]
+                v0 += ea * WE[i, c]
+                v1 += ea * WE[i, c + 1]
+                v2 += ea * WE[i, c + 2]
+                v3 += ea * WE[i, c + 3]
+            P[a, c], P[a, c + 1], P[a, c + 2], P[a, c + 3] = v0, v1, v2, v3
+            c += 4
+        while c < n:
             v = 0.0
-            for i in range(n):
-                v += H[j, i] * P[i, c]
-            G[j, c] = v
-    for i in range(n):  # M = P - K G
-        for c in range(n):
-            M[i, c] = P[i, c] - (K[i, 0] * G[0, c] + K[i, 1] * G[1, c] + K[i, 2] * G[2, c])
-    for i in range(n):
-        e0 = 0.0
-        e1 = 0.0
-        e2 = 0.0
-        for j in range(n):  # (M H^T)[i]
-            e0 += M[i, j] * H[0, j]
-            e1 += M[i, j] * H[1, j]
-            e2 += M[i, j] * H[2, j]
-        for c in range(n):
-            P[i, c] = (M[i, c] - (e0 * K[c, 0] + e1 * K[c, 1] + e2 * K[c, 2])
-                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1] + K[i, 2] * K[c, 2]))
+            for i in range(m):
+                v += E[i, a] * WE[i, c]
+            P[a, c] = v
+            c += 1
+        for c in range(a + 1, n):
+            P[c, a] = P[a, c]
 
 
 # Where the disturbance state array (`AccDisturbance.state`) holds the lag N_b, N_s (row by row).
@@ -363,9 +451,9 @@ def lag_step(st, rate, fresh, h, updated, lowpass_s):
         for c in range(_LAG, _LAG + 18):
             st[c] = 0.0
         return
-    qi = (st[5], st[6], st[7], st[8])
+    R = _rotation((st[5], st[6], st[7], st[8]))  # R_I, row by row
     for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
-        cx, cy, cz = rotate(qi, 1.0 if j == 0 else 0.0, 1.0 if j == 1 else 0.0, 1.0 if j == 2 else 0.0)
+        cx, cy, cz = R[j], R[3 + j], R[6 + j]
         gj = rate[1, j] * h
         uj = rate[0, j] * h
         st[_LAG + j] += cx * gj
@@ -593,12 +681,13 @@ def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float
 
 
 @_jit
-def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, H, G, M):
-    """`_attitude.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0] (3 x n,
-    written into H); P updated in place (Joseph form), the correction into dx (n,)."""
+def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, PHt, D):
+    """`_attitude.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0] (3 x n),
+    so that P H^T = P[:, 3:6] and H P H^T = P[3:6, 3:6]; P updated in place (Joseph form,
+    `joseph`), the correction into dx (n,) (PHt, D: n x 3 scratch)."""
+    for i in range(n):
+        PHt[i, 0], PHt[i, 1], PHt[i, 2] = P[i, 3], P[i, 4], P[i, 5]
     for i in range(3):
-        for j in range(n):
-            H[i, j] = 1.0 if j == 3 + i else 0.0
         for j in range(3):
             S[i, j] = P[3 + i, 3 + j] + (r if i == j else 0.0)
     inv_sym3(S, Sinv)
@@ -607,7 +696,7 @@ def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, H, G, M):
         for j in range(3):
             K[i, j] = P[i, 3] * Sinv[0, j] + P[i, 4] * Sinv[1, j] + P[i, 5] * Sinv[2, j]
         dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
-    joseph(P, K, H, r, n, G, M)
+    joseph(P, K, PHt, S, n, D)
 
 
 @_jit
@@ -800,18 +889,19 @@ def hard_iron_fit(s, residual_ut, coverage, out, a):
 
 
 @_jit
-def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
+def heading_update(P, n, N, q, east, north, r, K, G, dx):
     """`_attitude.heading_update`: the heading-only update with H = [v^T, 0] (v = R(q)^T e_z), the
     gain restricted to v on the attitude and bias rows and 0 on the velocity rows, Joseph form for a scalar
-    measurement (M = P - K (H P), P = M - (M H^T) K^T + r K K^T); the correction into dx (N,)
-    (K, G: (N,) scratch; M: N x N scratch)."""
+    measurement, expanded as in `joseph` for a symmetric P: with g = P H^T and s = H P H^T + r,
+    P <- P - K g^T - g K^T + s K K^T = P - K g^T + (s K - g) K^T (upper triangle, mirrored); the
+    correction into dx (N,) (K, G: (N,) scratch)."""
     vx, vy, vz = gravity(q)
     psi = math.atan2(-east, north)
-    for i in range(N):  # P H^T
-        K[i] = P[i, 0] * vx + P[i, 1] * vy + P[i, 2] * vz
-    S = vx * K[0] + vy * K[1] + vz * K[2] + r
+    for i in range(N):  # g = P H^T
+        G[i] = P[i, 0] * vx + P[i, 1] * vy + P[i, 2] * vz
+    S = vx * G[0] + vy * G[1] + vz * G[2] + r
     for i in range(N):
-        K[i] = K[i] / S
+        K[i] = G[i] / S
     vk = vx * K[0] + vy * K[1] + vz * K[2]
     K[0], K[1], K[2] = vx * vk, vy * vk, vz * vk
     if n > 3:
@@ -819,25 +909,24 @@ def heading_update(P, n, N, q, east, north, r, K, G, dx, M):
         K[3], K[4], K[5] = vx * vk, vy * vk, vz * vk
     for i in range(n, N):
         K[i] = 0.0
-    for c in range(N):  # G = H P
-        G[c] = vx * P[0, c] + vy * P[1, c] + vz * P[2, c]
     for i in range(N):
-        for c in range(N):
-            M[i, c] = P[i, c] - K[i] * G[c]
-    for i in range(N):
-        e = M[i, 0] * vx + M[i, 1] * vy + M[i, 2] * vz
-        for c in range(N):
-            P[i, c] = M[i, c] - e * K[c] + r * K[i] * K[c]
+        ka = K[i]
+        da = S * ka - G[i]
+        for c in range(i, N):
+            v = P[i, c] - ka * G[c] + da * K[c]
+            P[i, c] = v
+            P[c, i] = v
     for i in range(N):
         dx[i] = -psi * K[i]
 
 
 @_jit
-def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
+def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
     the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
-    pseudo-measurement v = 0 (variance vb^2 / dt, H = [0, I]) in Joseph form; the correction
-    into dx (N,) (K: N x 3 scratch, its third column unused; M: N x N scratch)."""
+    pseudo-measurement v = 0 (variance vb^2 / dt, H = [0, I], so that P H^T = P[:, n:] and
+    H P H^T = P[n:, n:]) in Joseph form (`joseph2`); the correction into dx (N,) (K, PHt, D:
+    N x 3 scratch, two columns used; S: 3 x 3 scratch, its upper-left 2 x 2 used)."""
     r00, r01, r02, r10, r11, r12, _, _, _ = _rotation(q)  # the first two rows of R(q)
     if math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az):
         g = o.gravity * h
@@ -866,13 +955,10 @@ def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M):
             _project_heading(K, 3, hx, hy, hz)
     for i in range(N):
         dx[i] = -(K[i, 0] * v[0] + K[i, 1] * v[1])
-    for i in range(N):  # M = P - K (H P), H P = P[n:]
-        for c in range(N):
-            M[i, c] = P[i, c] - (K[i, 0] * P[n, c] + K[i, 1] * P[n + 1, c])
-    for i in range(N):  # P = M - (M H^T) K^T + r K K^T
-        for c in range(N):
-            P[i, c] = (M[i, c] - (M[i, n] * K[c, 0] + M[i, n + 1] * K[c, 1])
-                       + r * (K[i, 0] * K[c, 0] + K[i, 1] * K[c, 1]))
+    for i in range(N):  # P H^T
+        PHt[i, 0], PHt[i, 1] = P[i, n], P[i, n + 1]
+    S[0, 0], S[0, 1], S[1, 0], S[1, 1] = s00, s01, s10, s11  # H P H^T + r I
+    joseph2(P, K, PHt, S, N, D)
 
 
 @_jit
@@ -891,8 +977,9 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
     n = o.n
     N = n + o.nv
     small = o.small_angle
-    F = np.zeros((N, N))
-    FP = np.empty((N, N))
+    # Work arrays, allocated once for the whole recording.
+    F = np.zeros((3, N))  # the first three rows of F; the others are [0, I]
+    T = np.empty((3, N))
     J = np.empty((3, 3))
     H = np.zeros((3, N))
     with_lag = o.lag
@@ -901,9 +988,8 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
     S = np.empty((3, 3))
     Sinv = np.empty((3, 3))
     K = np.empty((N, 3))
+    D = np.empty((N, 3))
     dx = np.empty(N)
-    G = np.empty((3, N))
-    M = np.empty((N, N))
     L = np.empty((N, N))
     q = (qio[0], qio[1], qio[2], qio[3])
     use_mag = mag.shape[0] > 0
@@ -955,38 +1041,14 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
                         F[i, 6 + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
                     else:
                         F[i, 3 + j] = -J[i, j]
-        for i in range(3, N):
-            F[i, i] = 1.0
-        # P <- F P F^T + Q, with F = [[F_top], [0, I]]: rows and columns 3.. pass through.
-        for i in range(3):
-            for c in range(N):
-                acc_ = 0.0
-                for j in range(N):
-                    acc_ += F[i, j] * P[j, c]
-                FP[i, c] = acc_
-        for i in range(3, N):
-            for c in range(N):
-                FP[i, c] = P[i, c]
-        hh = h * h
-        for i in range(N):
-            for c in range(N):
-                if c < 3:
-                    acc_ = 0.0
-                    for j in range(N):
-                        acc_ += FP[i, j] * F[c, j]
-                else:
-                    acc_ = FP[i, c]
-                qn = Qrate[i, c] * h
-                if not ok:
-                    qn = qn + Qbad[i, c] * hh
-                P[i, c] = acc_ + qn
+        predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T)  # P <- F P F^T + Q
         if N > n:  # the velocity model (`EKF._velocity_step`)
-            velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, M)
+            velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D)
             q = _inject(q, b, s, v, dx, n, N, small)
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
             # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
-            bias_rest_update(P, N, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
+            bias_rest_update(P, N, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, PHt, D)
             q = _inject(q, b, s, v, dx, n, N, small)
             at_rest = True
         var = math.nan
@@ -1005,16 +1067,17 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
             gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_attitude.LowpassLag`)
                 lag_jacobian(H, dist, n)
+            nh = n if with_lag and lowpassed else 3  # H's columns nh.. are zero
             for i in range(N):  # P H^T
                 for j in range(3):
                     acc_ = 0.0
-                    for c in range(N):
+                    for c in range(nh):
                         acc_ += P[i, c] * H[j, c]
                     PHt[i, j] = acc_
             for i in range(3):  # H P H^T + R
                 for j in range(3):
                     acc_ = 0.0
-                    for c in range(N):
+                    for c in range(nh):
                         acc_ += H[i, c] * PHt[c, j]
                     S[i, j] = acc_
                 S[i, i] += r
@@ -1037,7 +1100,7 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
             for i in range(N):
                 dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
             q = _inject(q, b, s, v, dx, n, N, small)
-            joseph(P, K, H, r, N, G, M)
+            joseph(P, K, PHt, S, N, D)  # Joseph form
         else:
             skipped += 1
             if o.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
@@ -1050,7 +1113,7 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
                 usable, east, north, hi_used = mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
                 if usable:
                     r_mag = heading_variance(q, tx, ty, tz, h, o)
-                    heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx, M)
+                    heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx)
                     q = _inject(q, b, s, v, dx, n, N, small)
                     mag_used = True
         if n > 3:
@@ -1099,8 +1162,10 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
     L = np.empty((n, n))
     off = np.zeros((m, n))
     sig = np.empty((m, n + 1))
+    Ep = np.empty((2 * n, 4))  # q exp(+-e_i / 2), i < 3 (step 3)
     err = np.empty((m, 3))
     res = np.empty((m, n))
+    Wres = np.empty((m, n))
     dZ = np.empty((m, 3))
     WdZ = np.empty((m, 3))
     S = np.empty((3, 3))
@@ -1110,8 +1175,6 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
     KS = np.empty((n, 3))
     dx = np.empty(n)
     H = np.zeros((3, n))
-    G = np.empty((3, n))
-    M = np.empty((n, n))
     with_lag = o.lag
     rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
     use_mag = mag.shape[0] > 0
@@ -1151,7 +1214,8 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
             dq = (1.0, 0.0, 0.0, 0.0)
             disturbance_lose_frame(dist)
         # ---- predict (steps 1-5)
-        if sqrt_psd(A, L, n, o.sqrt_floor):  # step 2: +- columns of sqrt(c (P + Q))
+        recovered = sqrt_psd(A, L, n, o.sqrt_floor)
+        if recovered:  # step 2: +- columns of sqrt(c (P + Q))
             sqrt_recovered += 1
         for i in range(n):
             for j in range(n):
@@ -1159,8 +1223,20 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 off[1 + i, j] = v
                 off[1 + n + i, j] = -v
         xq = (x[0], x[1], x[2], x[3])
+        # step 3: X_i = q exp(e_i / 2) for the attitude part e_i of offset i. Offset 0 is zero, and
+        # a Cholesky factor is lower triangular: the columns 3.. of L have no attitude part, so
+        # X_i = q there (exp(0) = 1 exactly); and exp(-e / 2) is the conjugate of exp(e / 2), so
+        # only the first three columns need an exponential (all n after the eigen fallback).
+        n_att = n if recovered else 3
+        for i in range(n_att):
+            E = qexp(off[1 + i, 0], off[1 + i, 1], off[1 + i, 2], small)
+            Ep[i, 0], Ep[i, 1], Ep[i, 2], Ep[i, 3] = qmul(xq, E)
+            Ep[n + i, 0], Ep[n + i, 1], Ep[n + i, 2], Ep[n + i, 3] = qmul(xq, (E[0], -E[1], -E[2], -E[3]))
         for i in range(m):
-            X = qmul(xq, qexp(off[i, 0], off[i, 1], off[i, 2], small))  # step 3
+            if i == 0 or (i - 1) % n >= n_att:
+                X = xq
+            else:
+                X = (Ep[i - 1, 0], Ep[i - 1, 1], Ep[i - 1, 2], Ep[i - 1, 3])
             if not ok:
                 sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = X
                 for j in range(3, n):
@@ -1205,16 +1281,15 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
             x[j + 1] = v
             for i in range(m):
                 res[i, j] = sig[i, j + 1] - v
-        for a in range(n):  # P_pred = sum Wc e_i e_i^T
+        # P_pred = sum Wc e_i e_i^T, symmetric: the upper triangle, mirrored (Wc e_i once per point)
+        for i in range(m):
             for c in range(n):
-                v = 0.0
-                for i in range(m):
-                    v += res[i, a] * (Wc[i] * res[i, c])
-                P[a, c] = v
+                Wres[i, c] = Wc[i] * res[i, c]
+        weighted_outer_sum(res, Wres, P, m, n)
         # ---- rest update (ukf-bias)
         at_rest = False
         if n > 3 and ok and o.rest_on and rest_update(rest, gx, gy, gz, ax, ay, az, h, o):
-            bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, H, G, M)
+            bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Pxz, KS)
             qn4 = qnormalize(qmul((x[0], x[1], x[2], x[3]), qexp(dx[0], dx[1], dx[2], small)))
             x[0], x[1], x[2], x[3] = qn4
             for j in range(3, n):
@@ -1259,17 +1334,22 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 for j in range(3):
                     WdZ[i, j] = Wc[i] * dZ[i, j]
             for a in range(3):  # step 8: P_zz
-                for c in range(3):
-                    v = 0.0
-                    for i in range(m):
-                        v += dZ[i, a] * WdZ[i, c]
-                    S[a, c] = v + (r if a == c else 0.0)
+                v0, v1, v2 = 0.0, 0.0, 0.0
+                for i in range(m):
+                    za = dZ[i, a]
+                    v0 += za * WdZ[i, 0]
+                    v1 += za * WdZ[i, 1]
+                    v2 += za * WdZ[i, 2]
+                S[a, 0], S[a, 1], S[a, 2] = v0, v1, v2
+                S[a, a] = S[a, a] + r
             for a in range(n):  # step 8: P_xz
-                for c in range(3):
-                    v = 0.0
-                    for i in range(m):
-                        v += res[i, a] * WdZ[i, c]
-                    Pxz[a, c] = v
+                v0, v1, v2 = 0.0, 0.0, 0.0
+                for i in range(m):
+                    ra = res[i, a]
+                    v0 += ra * WdZ[i, 0]
+                    v1 += ra * WdZ[i, 1]
+                    v2 += ra * WdZ[i, 2]
+                Pxz[a, 0], Pxz[a, 1], Pxz[a, 2] = v0, v1, v2
             inv_sym3(S, Sinv)
             for a in range(n):  # step 9: K = P_xz P_zz^-1
                 for c in range(3):
@@ -1280,20 +1360,14 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 _project_heading(K, 0, hx, hy, hz)
                 if n > 3:
                     _project_heading(K, 3, hx, hy, hz)
-                # P - K Pxz^T - Pxz K^T + K S K^T (the covariance of a general gain)
-                for a in range(n):
-                    for c in range(3):
-                        KS[a, c] = K[a, 0] * S[0, c] + K[a, 1] * S[1, c] + K[a, 2] * S[2, c]
-                for a in range(n):
-                    for c in range(n):
-                        kp_ac = K[a, 0] * Pxz[c, 0] + K[a, 1] * Pxz[c, 1] + K[a, 2] * Pxz[c, 2]
-                        kp_ca = K[c, 0] * Pxz[a, 0] + K[c, 1] * Pxz[a, 1] + K[c, 2] * Pxz[a, 2]
-                        ksk = KS[a, 0] * K[c, 0] + KS[a, 1] * K[c, 1] + KS[a, 2] * K[c, 2]
-                        P[a, c] = P[a, c] - kp_ac - kp_ca + ksk
+                # P - K Pxz^T - Pxz K^T + K S K^T (the covariance of a general gain: `joseph`)
+                joseph(P, K, Pxz, S, n, KS)
             else:
-                for a in range(n):  # step 9: P - K P_zz K^T = P - P_xz K^T
-                    for c in range(n):
-                        P[a, c] = P[a, c] - (Pxz[a, 0] * K[c, 0] + Pxz[a, 1] * K[c, 1] + Pxz[a, 2] * K[c, 2])
+                for a in range(n):  # step 9: P - K P_zz K^T = P - P_xz K^T (upper triangle, mirrored)
+                    for c in range(a, n):
+                        v = P[a, c] - (Pxz[a, 0] * K[c, 0] + Pxz[a, 1] * K[c, 1] + Pxz[a, 2] * K[c, 2])
+                        P[a, c] = v
+                        P[c, a] = v
             yx, yy, yz = mx - zx, my - zy, mz - zz
             for a in range(n):
                 dx[a] = K[a, 0] * yx + K[a, 1] * yy + K[a, 2] * yz
@@ -1315,7 +1389,7 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 usable, east, north, hi_used = mag_input(q4, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
                 if usable:
                     r_mag = heading_variance(q4, wx * h, wy * h, wz * h, h, o)
-                    heading_update(P, n, n, q4, east, north, r_mag, Km, Gm, dx, M)
+                    heading_update(P, n, n, q4, east, north, r_mag, Km, Gm, dx)
                     qn4 = qnormalize(qmul(q4, qexp(dx[0], dx[1], dx[2], small)))
                     x[0], x[1], x[2], x[3] = qn4
                     for j in range(3, n):
