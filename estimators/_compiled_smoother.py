@@ -52,6 +52,7 @@ numba's cache finds a kernel's signature again only if its types can be looked u
 from __future__ import annotations
 
 import math
+import weakref
 from collections import namedtuple
 from dataclasses import dataclass
 
@@ -264,6 +265,21 @@ def calibration(p, theta):
     return b, k
 
 
+@_jit
+def keep_step(keep, t, u, r):
+    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1)."""
+    for i in range(4):
+        keep[t, 0, i] = u[i]
+    for i in range(3):
+        keep[t, 1, i] = r[i]
+
+
+@_jit
+def kept_step(kept, t):
+    """(u_t, r_m,t) as `keep_step` stored them."""
+    return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
+
+
 # ============================================================================ cost
 @_jit
 def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
@@ -280,11 +296,13 @@ def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
 
 
 @_jit
-def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
+def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
     """The cost (`SmootherProblem.cost`) at q (T, 4), v (T, V) m/s, theta (P,); or, with
     kind 1 (geodesic) or 2 (normalise), at the point moved by alpha times the step x (T, B):
     q_out_t = retraction of q_t by alpha x_t[:3] (`gd.GradientDescentSmoother.retract`,
-    `quaternion.retract`), v_out = v + alpha x[:, 3:], both written."""
+    `quaternion.retract`), v_out = v + alpha x[:, 3:], both written. If keep (T, 5, 5) has rows,
+    each step's u_t = exp(phi_t / 2) and motion residual r_m,t are written to it (`keep_step`),
+    for the linearisation at this point (`linearize_kernel`'s `kept`)."""
     T = q.shape[0]
     V = v.shape[1]
     b, k = calibration(p, theta)
@@ -330,7 +348,10 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
                 v_out[t + 1, i] = v[t + 1, i] + alpha * x[t + 1, 3 + i]
         fill3(Rn, rotation(qn))
         phi = step_rotvec(p, b, k, t)
-        r = motion_residual(qt, qn, qexp(phi[0], phi[1], phi[2], o.small_angle))
+        u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+        r = motion_residual(qt, qn, u)
+        if keep.shape[0]:
+            keep_step(keep, t, u, r)
         cost_motion += p.w_motion[t] * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
         if V:
             dt = p.dt[t]
@@ -417,7 +438,7 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
 
 @_jit
 def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad):
+                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept):
     """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
@@ -430,6 +451,10 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     rows, or 2 to keep only the running ones) and the Schur complement schur (F, F) with its
     right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T S_t^-1 b'_t (with the Schur
     complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
+
+    kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t at this very point
+    (q, theta), as `cost_kernel` computed them for a trial step here (`keep_step`): read, not
+    computed again (the same numbers). It may be M itself: row t is read before M's row t is written.
     """
     T = q.shape[0]
     V = v.shape[1]
@@ -542,8 +567,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             fill3(Rn, rn)
             # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
             phi = step_rotvec(p, b, k, t)
-            u = qexp(phi[0], phi[1], phi[2], o.small_angle)
-            r = motion_residual(qt, qn, u)
+            if kept.shape[0]:  # computed by the trial that reached this point
+                u, r = kept_step(kept, t)
+            else:
+                u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+                r = motion_residual(qt, qn, u)
             wm = p.w_motion[t]
             cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
             fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
@@ -858,6 +886,12 @@ class CompiledOps:
     step `solve` returns is written over c: it is valid until the next elimination (the solvers
     use it before they linearise again). blocks: linearisations with a Hessian also carry the
     reference's blocks (`Linearization`: for `gd`'s "block" preconditioner).
+
+    Between a `solve` and the next elimination M is not needed: a `trial` writes there each step's
+    u_t = exp(phi_t / 2) and motion residual r_m,t at the point it tries (their sine, cosine and
+    arctangent are most of a sample's transcendental functions), and the linearisation at that
+    point, if the solver accepts it, reads them instead of computing them again: the same numbers,
+    no extra memory.
     """
 
     def __init__(self, problem: SmootherProblem, blocks: bool = False):
@@ -872,12 +906,13 @@ class CompiledOps:
         self._held = None
         self._schur = None
         self._slope = None  # (lin, g.p) of the last solve with lin's own gradient
+        self._kept = None  # (weak reference to q, theta) of the trial whose u_t, r_m,t M holds (`trial`)
 
     # ---------------------------------------------------------------- cost
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         """The cost at (q (T, 4), theta (P,), v (T, V) m/s)."""
         none = np.zeros((0, 5))
-        return cost_kernel(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none)
+        return cost_kernel(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none, _NO_STORAGE[0])
 
     def trial(self, q, v, theta, d_q, d_theta, alpha: float, update: str = "geodesic"):
         """(q, v, theta) moved by alpha times the step (d_q (T, B), d_theta (P,)), retracted
@@ -887,8 +922,14 @@ class CompiledOps:
         theta_new = theta + alpha * d_theta
         if self._storage is not None and d_q.base is self._storage[1]:
             d_q = self._storage[1]  # the step `solve` returned: its (T, 5) storage, handed over whole
+        # With no eliminated system waiting for its `solve`, M is free until the next elimination: the
+        # trial keeps each step's u_t and motion residual there, for `linearize` at q_new (if accepted).
+        keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
+        self._kept = None
         cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
-                           1 if update == "geodesic" else 2, q_new, v_new)
+                           1 if update == "geodesic" else 2, q_new, v_new, keep)
+        if keep.shape[0]:
+            self._kept = (weakref.ref(q_new), theta_new.copy())
         return q_new, v_new, theta_new, cost
 
     def slope(self, lin: Linearization, d_q, d_theta) -> float:
@@ -973,7 +1014,15 @@ class CompiledOps:
         return linearize_kernel(
             self.arrays, self.consts, q, v, theta, mode, shift, _NO_INDEX if index is None else index,
             *(_NO_RHS if rhs is None else (np.ascontiguousarray(rhs[0], float), np.ascontiguousarray(rhs[1], float))),
-            grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR))
+            grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR),
+            self._kept_at(q, theta))
+
+    def _kept_at(self, q, theta) -> np.ndarray:
+        """M, if it holds the u_t and r_m,t of a trial at exactly (q, theta) (`trial`), else no rows."""
+        kept = self._kept
+        if kept is not None and kept[0]() is q and np.array_equal(kept[1], theta):
+            return self._storage[0]
+        return _NO_STORAGE[0]
 
     def _eliminate(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
         F = len(index)
@@ -984,6 +1033,7 @@ class CompiledOps:
         self._schur = np.empty((F, F)), np.empty(F), np.empty(1)
         cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
                             storage=self._storage, schur=self._schur)
+        self._kept = None  # M now holds the elimination
         self._check(cost)
         return cost
 
