@@ -280,6 +280,21 @@ def kept_step(kept, t):
     return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
 
 
+@_jit
+def keep_mag(keep, t, m):
+    """Store sample t's magnetometer residual and its Jacobian's factors (`mag_residual`: r_h, k0, k1,
+    k2) and its (cost term, IRLS weight) (`acc_term`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0])."""
+    for i in range(5):
+        keep[t, 2, i] = m[i]
+    keep[t, 3, 0] = m[5]
+
+
+@_jit
+def kept_mag(kept, t):
+    """What `keep_mag` stored."""
+    return kept[t, 2, 0], kept[t, 2, 1], kept[t, 2, 2], kept[t, 2, 3], kept[t, 2, 4], kept[t, 3, 0]
+
+
 # ============================================================================ cost
 @_jit
 def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
@@ -301,8 +316,9 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
     kind 1 (geodesic) or 2 (normalise), at the point moved by alpha times the step x (T, B):
     q_out_t = retraction of q_t by alpha x_t[:3] (`gd.GradientDescentSmoother.retract`,
     `quaternion.retract`), v_out = v + alpha x[:, 3:], both written. If keep (T, 5, 5) has rows,
-    each step's u_t = exp(phi_t / 2) and motion residual r_m,t are written to it (`keep_step`),
-    for the linearisation at this point (`linearize_kernel`'s `kept`)."""
+    each step's u_t = exp(phi_t / 2) and motion residual r_m,t (`keep_step`), each sample's
+    accelerometer cost term and IRLS weight (keep[t, 1, 3:5]) and magnetometer residual
+    (`keep_mag`) are written to it, for the linearisation at this point (`linearize_kernel`'s `kept`)."""
     T = q.shape[0]
     V = v.shape[1]
     b, k = calibration(p, theta)
@@ -332,12 +348,16 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
         r0 = p.acc[t, 0] - R[2, 0]
         r1 = p.acc[t, 1] - R[2, 1]
         r2 = p.acc[t, 2] - R[2, 2]
-        c, _ = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+        c, w = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
         cost_acc += c
+        if keep.shape[0]:
+            keep[t, 1, 3], keep[t, 1, 4] = c, w
         if len(p.w_mag) and p.w_mag[t] > 0.0:
-            rh, _, _, _ = mag_residual(p, t, qt)
-            c, _ = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            rh, k0, k1, k2 = mag_residual(p, t, qt)
+            c, w = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
             cost_mag += c
+            if keep.shape[0]:
+                keep_mag(keep, t, (rh, k0, k1, k2, c, w))
         if V:
             cost_vzero += p.w_vzero[t] * (vv[t, 0] * vv[t, 0] + vv[t, 1] * vv[t, 1])
         if t == T - 1:
@@ -452,9 +472,10 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T S_t^-1 b'_t (with the Schur
     complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
 
-    kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t at this very point
-    (q, theta), as `cost_kernel` computed them for a trial step here (`keep_step`): read, not
-    computed again (the same numbers). It may be M itself: row t is read before M's row t is written.
+    kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
+    accelerometer term and magnetometer residual at this very point (q, theta), as `cost_kernel`
+    computed them for a trial step here (`keep_step`, `keep_mag`): read, not computed again (the
+    same numbers). It may be M itself: row t is read before M's row t is written.
     """
     T = q.shape[0]
     V = v.shape[1]
@@ -526,7 +547,10 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
         h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
         r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
-        ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+        if kept.shape[0]:
+            ca, wa = kept[t, 1, 3], kept[t, 1, 4]
+        else:
+            ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
         cost_acc += ca
         y0, y1, y2 = wa * r0, wa * r1, wa * r2
         g[0] += h1 * y2 - h2 * y1
@@ -538,8 +562,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
         if len(p.w_mag) and p.w_mag[t] > 0.0:
             # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
-            rh, k0, k1, k2 = mag_residual(p, t, qt)
-            cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            if kept.shape[0]:
+                rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+            else:
+                rh, k0, k1, k2 = mag_residual(p, t, qt)
+                cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
             cost_mag += cm
             jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
                   R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
@@ -888,10 +915,11 @@ class CompiledOps:
     reference's blocks (`Linearization`: for `gd`'s "block" preconditioner).
 
     Between a `solve` and the next elimination M is not needed: a `trial` writes there each step's
-    u_t = exp(phi_t / 2) and motion residual r_m,t at the point it tries (their sine, cosine and
-    arctangent are most of a sample's transcendental functions), and the linearisation at that
-    point, if the solver accepts it, reads them instead of computing them again: the same numbers,
-    no extra memory.
+    u_t = exp(phi_t / 2) and motion residual r_m,t, each sample's robust accelerometer term and
+    magnetometer residual at the point it tries (their sines, cosines, arctangents and square
+    roots are most of a sample's transcendental functions), and the linearisation at that point,
+    if the solver accepts it, reads them instead of computing them again: the same numbers, no
+    extra memory.
     """
 
     def __init__(self, problem: SmootherProblem, blocks: bool = False):
