@@ -934,7 +934,7 @@ class CompiledOps:
         self._held = None
         self._schur = None
         self._slope = None  # (lin, g.p) of the last solve with lin's own gradient
-        self._kept = None  # (weak reference to q, theta) of the trial whose u_t, r_m,t M holds (`trial`)
+        self._kept = None  # (weak reference to q, theta) of the trial whose per-sample terms M holds (`trial`)
 
     # ---------------------------------------------------------------- cost
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
@@ -951,7 +951,7 @@ class CompiledOps:
         if self._storage is not None and d_q.base is self._storage[1]:
             d_q = self._storage[1]  # the step `solve` returned: its (T, 5) storage, handed over whole
         # With no eliminated system waiting for its `solve`, M is free until the next elimination: the
-        # trial keeps each step's u_t and motion residual there, for `linearize` at q_new (if accepted).
+        # trial keeps its per-sample terms there (`cost_kernel`'s keep), for `linearize` at q_new (if accepted).
         keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
         self._kept = None
         cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
@@ -1046,7 +1046,7 @@ class CompiledOps:
             self._kept_at(q, theta))
 
     def _kept_at(self, q, theta) -> np.ndarray:
-        """M, if it holds the u_t and r_m,t of a trial at exactly (q, theta) (`trial`), else no rows."""
+        """M, if it holds the per-sample terms of a trial at exactly (q, theta) (`trial`), else no rows."""
         kept = self._kept
         if kept is not None and kept[0]() is q and np.array_equal(kept[1], theta):
             return self._storage[0]
