@@ -52,6 +52,7 @@ numba's cache finds a kernel's signature again only if its types can be looked u
 from __future__ import annotations
 
 import math
+import weakref
 from collections import namedtuple
 from dataclasses import dataclass
 
@@ -264,6 +265,36 @@ def calibration(p, theta):
     return b, k
 
 
+@_jit
+def keep_step(keep, t, u, r):
+    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1)."""
+    for i in range(4):
+        keep[t, 0, i] = u[i]
+    for i in range(3):
+        keep[t, 1, i] = r[i]
+
+
+@_jit
+def kept_step(kept, t):
+    """(u_t, r_m,t) as `keep_step` stored them."""
+    return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
+
+
+@_jit
+def keep_mag(keep, t, m):
+    """Store sample t's magnetometer residual and its Jacobian's factors (`mag_residual`: r_h, k0, k1,
+    k2) and its (cost term, IRLS weight) (`acc_term`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0])."""
+    for i in range(5):
+        keep[t, 2, i] = m[i]
+    keep[t, 3, 0] = m[5]
+
+
+@_jit
+def kept_mag(kept, t):
+    """What `keep_mag` stored."""
+    return kept[t, 2, 0], kept[t, 2, 1], kept[t, 2, 2], kept[t, 2, 3], kept[t, 2, 4], kept[t, 3, 0]
+
+
 # ============================================================================ cost
 @_jit
 def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
@@ -280,11 +311,14 @@ def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
 
 
 @_jit
-def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
+def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
     """The cost (`SmootherProblem.cost`) at q (T, 4), v (T, V) m/s, theta (P,); or, with
     kind 1 (geodesic) or 2 (normalise), at the point moved by alpha times the step x (T, B):
     q_out_t = retraction of q_t by alpha x_t[:3] (`gd.GradientDescentSmoother.retract`,
-    `quaternion.retract`), v_out = v + alpha x[:, 3:], both written."""
+    `quaternion.retract`), v_out = v + alpha x[:, 3:], both written. If keep (T, 5, 5) has rows,
+    each step's u_t = exp(phi_t / 2) and motion residual r_m,t (`keep_step`), each sample's
+    accelerometer cost term and IRLS weight (keep[t, 1, 3:5]) and magnetometer residual
+    (`keep_mag`) are written to it, for the linearisation at this point (`linearize_kernel`'s `kept`)."""
     T = q.shape[0]
     V = v.shape[1]
     b, k = calibration(p, theta)
@@ -314,12 +348,16 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
         r0 = p.acc[t, 0] - R[2, 0]
         r1 = p.acc[t, 1] - R[2, 1]
         r2 = p.acc[t, 2] - R[2, 2]
-        c, _ = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+        c, w = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
         cost_acc += c
+        if keep.shape[0]:
+            keep[t, 1, 3], keep[t, 1, 4] = c, w
         if len(p.w_mag) and p.w_mag[t] > 0.0:
-            rh, _, _, _ = mag_residual(p, t, qt)
-            c, _ = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            rh, k0, k1, k2 = mag_residual(p, t, qt)
+            c, w = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
             cost_mag += c
+            if keep.shape[0]:
+                keep_mag(keep, t, (rh, k0, k1, k2, c, w))
         if V:
             cost_vzero += p.w_vzero[t] * (vv[t, 0] * vv[t, 0] + vv[t, 1] * vv[t, 1])
         if t == T - 1:
@@ -330,7 +368,10 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out):
                 v_out[t + 1, i] = v[t + 1, i] + alpha * x[t + 1, 3 + i]
         fill3(Rn, rotation(qn))
         phi = step_rotvec(p, b, k, t)
-        r = motion_residual(qt, qn, qexp(phi[0], phi[1], phi[2], o.small_angle))
+        u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+        r = motion_residual(qt, qn, u)
+        if keep.shape[0]:
+            keep_step(keep, t, u, r)
         cost_motion += p.w_motion[t] * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
         if V:
             dt = p.dt[t]
@@ -417,7 +458,7 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
 
 @_jit
 def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad):
+                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept):
     """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
@@ -430,6 +471,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     rows, or 2 to keep only the running ones) and the Schur complement schur (F, F) with its
     right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T S_t^-1 b'_t (with the Schur
     complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
+
+    kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
+    accelerometer term and magnetometer residual at this very point (q, theta), as `cost_kernel`
+    computed them for a trial step here (`keep_step`, `keep_mag`): read, not computed again (the
+    same numbers). It may be M itself: row t is read before M's row t is written.
     """
     T = q.shape[0]
     V = v.shape[1]
@@ -501,7 +547,10 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
         h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
         r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
-        ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+        if kept.shape[0]:
+            ca, wa = kept[t, 1, 3], kept[t, 1, 4]
+        else:
+            ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
         cost_acc += ca
         y0, y1, y2 = wa * r0, wa * r1, wa * r2
         g[0] += h1 * y2 - h2 * y1
@@ -513,8 +562,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
         if len(p.w_mag) and p.w_mag[t] > 0.0:
             # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
-            rh, k0, k1, k2 = mag_residual(p, t, qt)
-            cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            if kept.shape[0]:
+                rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+            else:
+                rh, k0, k1, k2 = mag_residual(p, t, qt)
+                cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
             cost_mag += cm
             jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
                   R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
@@ -542,8 +594,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             fill3(Rn, rn)
             # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
             phi = step_rotvec(p, b, k, t)
-            u = qexp(phi[0], phi[1], phi[2], o.small_angle)
-            r = motion_residual(qt, qn, u)
+            if kept.shape[0]:  # computed by the trial that reached this point
+                u, r = kept_step(kept, t)
+            else:
+                u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+                r = motion_residual(qt, qn, u)
             wm = p.w_motion[t]
             cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
             fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
@@ -858,6 +913,13 @@ class CompiledOps:
     step `solve` returns is written over c: it is valid until the next elimination (the solvers
     use it before they linearise again). blocks: linearisations with a Hessian also carry the
     reference's blocks (`Linearization`: for `gd`'s "block" preconditioner).
+
+    Between a `solve` and the next elimination M is not needed: a `trial` writes there each step's
+    u_t = exp(phi_t / 2) and motion residual r_m,t, each sample's robust accelerometer term and
+    magnetometer residual at the point it tries (their sines, cosines, arctangents and square
+    roots are most of a sample's transcendental functions), and the linearisation at that point,
+    if the solver accepts it, reads them instead of computing them again: the same numbers, no
+    extra memory.
     """
 
     def __init__(self, problem: SmootherProblem, blocks: bool = False):
@@ -872,12 +934,13 @@ class CompiledOps:
         self._held = None
         self._schur = None
         self._slope = None  # (lin, g.p) of the last solve with lin's own gradient
+        self._kept = None  # (weak reference to q, theta) of the trial whose per-sample terms M holds (`trial`)
 
     # ---------------------------------------------------------------- cost
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         """The cost at (q (T, 4), theta (P,), v (T, V) m/s)."""
         none = np.zeros((0, 5))
-        return cost_kernel(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none)
+        return cost_kernel(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none, _NO_STORAGE[0])
 
     def trial(self, q, v, theta, d_q, d_theta, alpha: float, update: str = "geodesic"):
         """(q, v, theta) moved by alpha times the step (d_q (T, B), d_theta (P,)), retracted
@@ -887,8 +950,14 @@ class CompiledOps:
         theta_new = theta + alpha * d_theta
         if self._storage is not None and d_q.base is self._storage[1]:
             d_q = self._storage[1]  # the step `solve` returned: its (T, 5) storage, handed over whole
+        # With no eliminated system waiting for its `solve`, M is free until the next elimination: the
+        # trial keeps its per-sample terms there (`cost_kernel`'s keep), for `linearize` at q_new (if accepted).
+        keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
+        self._kept = None
         cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
-                           1 if update == "geodesic" else 2, q_new, v_new)
+                           1 if update == "geodesic" else 2, q_new, v_new, keep)
+        if keep.shape[0]:
+            self._kept = (weakref.ref(q_new), theta_new.copy())
         return q_new, v_new, theta_new, cost
 
     def slope(self, lin: Linearization, d_q, d_theta) -> float:
@@ -973,7 +1042,15 @@ class CompiledOps:
         return linearize_kernel(
             self.arrays, self.consts, q, v, theta, mode, shift, _NO_INDEX if index is None else index,
             *(_NO_RHS if rhs is None else (np.ascontiguousarray(rhs[0], float), np.ascontiguousarray(rhs[1], float))),
-            grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR))
+            grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR),
+            self._kept_at(q, theta))
+
+    def _kept_at(self, q, theta) -> np.ndarray:
+        """M, if it holds the per-sample terms of a trial at exactly (q, theta) (`trial`), else no rows."""
+        kept = self._kept
+        if kept is not None and kept[0]() is q and np.array_equal(kept[1], theta):
+            return self._storage[0]
+        return _NO_STORAGE[0]
 
     def _eliminate(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
         F = len(index)
@@ -984,6 +1061,7 @@ class CompiledOps:
         self._schur = np.empty((F, F)), np.empty(F), np.empty(1)
         cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
                             storage=self._storage, schur=self._schur)
+        self._kept = None  # M now holds the elimination
         self._check(cost)
         return cost
 
