@@ -90,11 +90,6 @@ from .smoother_cost import robust_loss, sample_durations
 # IRLS passes of the heading-error smoother (the robust weights settle in a few).
 IRLS_PASSES = 4
 
-# `gravity_in_body` takes the rows in blocks of this many: its matrix product over a whole recording
-# makes OpenBLAS wake a worker thread, which then spins for about 0.1 s of CPU time after the call.
-# Below 65,536 * 4 multiply-adds (T * 12 * 4) OpenBLAS stays on the calling thread.
-GRAVITY_ROWS = 4096
-
 
 @dataclass(frozen=True)
 class MagSettings:
@@ -131,13 +126,6 @@ def world_field(q: np.ndarray, mag_ut: np.ndarray) -> tuple[np.ndarray, np.ndarr
     m_w = (rotation_matrix(q) @ mag_ut[:, :, None])[:, :, 0]
     horizontal = np.hypot(m_w[:, 0], m_w[:, 1])
     return np.linalg.norm(m_w, axis=1), np.arctan2(-m_w[:, 2], horizontal), m_w[:, 0], m_w[:, 1]
-
-
-def gravity_in_body(q: np.ndarray) -> np.ndarray:
-    """`quaternion.gravity_in_body` of q (T, 4), block by block (`GRAVITY_ROWS`): the same numbers
-    (each row is its own), without the spinning BLAS thread."""
-    return np.concatenate([quat.gravity_in_body(q[i:i + GRAVITY_ROWS]) for i in range(0, len(q), GRAVITY_ROWS)]
-                          or [np.zeros((0, 3))])
 
 
 def reference(norm: np.ndarray, dip: np.ndarray, s: MagSettings) -> tuple[float, float]:
@@ -267,7 +255,7 @@ def measurements(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[np.nda
     # eq. (2): the rate about the vertical from the gyro (the interval rates; the last sample takes the last step's)
     rate, _ = imu.interval_rates()
     rate = np.concatenate([rate, rate[-1:]]) if len(rate) else np.zeros((T, 3))
-    w_up = np.sum(gravity_in_body(q) * np.nan_to_num(rate), axis=1)  # R(q)^T e_z: the vertical, body
+    w_up = np.sum(quat.gravity_in_body(q) * np.nan_to_num(rate), axis=1)  # R(q)^T e_z: the vertical, body
     dt = sample_durations(t)
     base_info = np.where(used, dt / (s.heading_noise_rad2_s * (1.0 + (w_up / s.rate_rad_s) ** 2)), 0.0)
     return psi, base_info, diagnostics
