@@ -81,7 +81,10 @@ class Gate(Estimator):
         if self.params.started:
             folder = Path(self.params.started)
             n = len(list(folder.glob(f"started-{os.getpid()}-*")))
-            (folder / f"started-{os.getpid()}-{n}").write_text(str(os.getpid()))
+            # written under another name and renamed: a reader never sees the file empty
+            partial = folder / f".partial-{os.getpid()}-{n}"
+            partial.write_text(str(os.getpid()))
+            os.replace(partial, folder / f"started-{os.getpid()}-{n}")
         if self.params.wait_for:
             deadline = time.monotonic() + self.params.limit_s
             while not Path(self.params.wait_for).exists():
