@@ -438,6 +438,20 @@ def weighted_outer_sum(E, WE, P, m, n):
             P[c, a] = P[a, c]
 
 
+@_jit
+def weighted_cross3(E, WZ, out, n, m):
+    """out[:n, :3] = sum_i E[i, :n]^T WZ[i, :3] over the m rows (the UKF's P_zz and P_xz, step 8):
+    the three entries of a row at a time, each summed in the rows' order."""
+    for a in range(n):
+        v0, v1, v2 = 0.0, 0.0, 0.0
+        for i in range(m):
+            ea = E[i, a]
+            v0 += ea * WZ[i, 0]
+            v1 += ea * WZ[i, 1]
+            v2 += ea * WZ[i, 2]
+        out[a, 0], out[a, 1], out[a, 2] = v0, v1, v2
+
+
 # Where the disturbance state array (`AccDisturbance.state`) holds the lag N_b, N_s (row by row).
 _LAG = 23
 
@@ -1333,23 +1347,10 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                 dZ[i, 2] -= zz
                 for j in range(3):
                     WdZ[i, j] = Wc[i] * dZ[i, j]
-            for a in range(3):  # step 8: P_zz
-                v0, v1, v2 = 0.0, 0.0, 0.0
-                for i in range(m):
-                    za = dZ[i, a]
-                    v0 += za * WdZ[i, 0]
-                    v1 += za * WdZ[i, 1]
-                    v2 += za * WdZ[i, 2]
-                S[a, 0], S[a, 1], S[a, 2] = v0, v1, v2
+            weighted_cross3(dZ, WdZ, S, 3, m)  # step 8: P_zz
+            for a in range(3):
                 S[a, a] = S[a, a] + r
-            for a in range(n):  # step 8: P_xz
-                v0, v1, v2 = 0.0, 0.0, 0.0
-                for i in range(m):
-                    ra = res[i, a]
-                    v0 += ra * WdZ[i, 0]
-                    v1 += ra * WdZ[i, 1]
-                    v2 += ra * WdZ[i, 2]
-                Pxz[a, 0], Pxz[a, 1], Pxz[a, 2] = v0, v1, v2
+            weighted_cross3(res, WdZ, Pxz, n, m)  # step 8: P_xz
             inv_sym3(S, Sinv)
             for a in range(n):  # step 9: K = P_xz P_zz^-1
                 for c in range(3):
