@@ -77,31 +77,20 @@ def canonical(q: np.ndarray) -> np.ndarray:
 def from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     """exp: unit quaternion `exp([0, v / 2])` of rotation vectors. (..., 3) rad -> (..., 4).
 
-    Exact at zero angle (the exp rule of the module docstring: no division by |v|).
+    Exact at zero angle (the exp rule of the module docstring: no division by |v|); `exp_floats`
+    on the components.
     """
     v = np.asarray(rotvec, dtype=float)
-    flat = v.reshape(-1, 3)
-    angle = np.sqrt(np.einsum("ij,ij->i", flat, flat))
-    half = 0.5 * angle
-    ratio = np.divide(np.sin(half), angle, out=np.full(len(flat), 0.5), where=angle > SMALL_ANGLE)
-    out = np.empty((len(flat), 4))
-    out[:, 0] = np.cos(half)
-    out[:, 1:] = flat * ratio[:, None]
-    return out.reshape(v.shape[:-1] + (4,))
+    return np.stack(exp_floats(v[..., 0], v[..., 1], v[..., 2]), axis=-1)
 
 
 def to_rotvec(q: np.ndarray) -> np.ndarray:
     """log: rotation vectors `2 log(q)` of unit quaternions, shortest path. (..., 4) -> (..., 3) rad.
 
-    Angle in [0, pi]; q and -q give the same result (the log rule of the module docstring).
+    Angle in [0, pi]; q and -q give the same result (the log rule of the module docstring);
+    `log_floats` on the components.
     """
-    q = np.asarray(q, dtype=float)
-    flat = q.reshape(-1, 4)
-    vec = flat[:, 1:]
-    s = np.sqrt(np.einsum("ij,ij->i", vec, vec))
-    w = flat[:, 0]
-    scale = 2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300)
-    return (vec * np.copysign(scale, w)[:, None]).reshape(q.shape[:-1] + (3,))
+    return np.stack(log_floats(_parts(q)), axis=-1)
 
 
 def relative_rotvec(q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
@@ -230,21 +219,23 @@ def multiply_floats(a: tuple, b: tuple) -> Floats4:
 
 
 def exp_floats(vx: float, vy: float, vz: float, small: float = SMALL_ANGLE) -> Floats4:
-    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats (the exp rule; `small` is
-    `SMALL_ANGLE`, an argument so that the compiled kernels take it as their other constants)."""
-    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if angle <= small:
-        return 1.0, 0.5 * vx, 0.5 * vy, 0.5 * vz
-    s = math.sin(0.5 * angle) / angle
-    return math.cos(0.5 * angle), vx * s, vy * s, vz * s
+    """`exp([0, v / 2])` of one rotation vector v (rad), as four floats (or of arrays of them:
+    `from_rotvec` calls it so; the compiled kernels compile it). The exp rule without a branch:
+    below `small` (`SMALL_ANGLE`, an argument so that the kernels take it as their other
+    constants) the angle in the ratio is `small` itself, where sin(a / 2) / a is 1/2 exactly."""
+    angle = np.sqrt(vx * vx + vy * vy + vz * vz)
+    floor = np.maximum(angle, small)
+    ratio = np.sin(0.5 * floor) / floor
+    return np.cos(0.5 * angle), vx * ratio, vy * ratio, vz * ratio
 
 
 def log_floats(q: tuple) -> tuple[float, float, float]:
-    """`2 log(q)`: the rotation vector (rad) of one quaternion given as 4 floats, shortest path,
-    q and -q alike (the log rule; the scalar path of `to_rotvec`)."""
+    """`2 log(q)`: the rotation vector (rad) of one quaternion given as 4 floats (or 4 arrays:
+    `to_rotvec` calls it so; the compiled kernels compile it), shortest path, q and -q alike
+    (the log rule)."""
     w, x, y, z = q
-    s = math.sqrt(x * x + y * y + z * z)
-    scale = math.copysign(2.0 * math.atan2(s, abs(w)) / max(s, 1e-300), w)
+    s = np.sqrt(x * x + y * y + z * z)
+    scale = np.copysign(2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300), w)
     return x * scale, y * scale, z * scale
 
 
