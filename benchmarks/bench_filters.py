@@ -37,7 +37,7 @@ from fusion import datasets  # noqa: E402
 
 SPECS = (
     "ekf", "ukf", "ukf-bias",  # compiled (the defaults)
-    "ekf:vb=inf",  # ekf without its velocity states (9 states, the model of ukf-bias)
+    "ekf:Rv=inf",  # ekf without its velocity states (9 states, the model of ukf-bias)
     "ukf:sigma=julier,kappa=2", "ukf-bias:sigma=merwe,alpha=1,kappa=0.5",
     "ekf:impl=numpy", "ukf:impl=numpy", "ukf-bias:impl=numpy",  # the numpy references
     "ukf:impl=filterpy", "ukf-bias:impl=filterpy,hf=false",  # FilterPy's update

@@ -23,7 +23,7 @@ What it shows on BROAD's fast-translation trial (15): the two smoothers (`gd`, o
 follow the gyro above 0.5 Hz, and there the gyro-integrated tilt differs from the truth by an
 amount that moves with the translation (0.33 deg per g of horizontal acceleration, which
 explains 0.40 of the band's 0.42 deg). No weighting of the accelerometer or of the velocity
-model changes that band (`gd:sa=...`, `gd:vb=inf`: the same 0.42 deg). VQF's causal filter
+model changes that band (`gd:R=...`, `gd:Rv=inf`: the same 0.42 deg). VQF's causal filter
 shows less of it (0.12 deg per g): its correction, the low-passed inertial-frame
 acceleration, still carries a small part of the translation's acceleration, and on this trial
 that part leans against the error.

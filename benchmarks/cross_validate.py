@@ -37,10 +37,10 @@ GRIDS = {
     "taulp": ["0.3", "1.0", "1.5", "2.0", "3.0", "10.0"],  # accelerometer low-pass time constant, s
     "Qb": ["1e-9", "1e-8", "1e-7"],  # gyro bias random walk, rad^2/s^3
     "Ps0": ["1e-3", "1e-2", "3e-2"],  # gyro scale prior variance (3 %, 10 %, 17 %)
-    "vb": ["0.5", "1.0", "2.0"],  # velocity bound density, m/s sqrt(s) (ekf only)
-    "sv": ["0.003", "0.01", "0.03"],  # velocity states' acceleration noise, g sqrt(s) (ekf only)
+    "Rv": ["0.25", "1.0", "4.0"],  # velocity bound density, m^2/s (ekf only)
+    "Qv": ["9e-6", "1e-4", "9e-4"],  # velocity states' acceleration noise density, g^2 s (ekf only)
 }
-VELOCITY_ONLY = {"vb", "sv"}
+VELOCITY_ONLY = {"Rv", "Qv"}
 
 
 def default_values(estimator: str) -> dict[str, float]:

@@ -83,7 +83,7 @@ def _jit(func):
 # Options of a kernel run, all scalars (one compiled signature serves every parameter set).
 Settings = namedtuple("Settings", [
     "n",  # error-state dimension without the velocity: 3, 6 or 9
-    "nv", "vel_bound", "gravity",  # ekf: velocity states (0 or 2), vb^2 (m^2/s), 1 g in m/s^2
+    "nv", "vel_bound", "gravity",  # ekf: velocity states (0 or 2), Rv (m^2/s), 1 g in m/s^2
     "use_acc", "gate", "gate_g",  # accelerometer update on, gate (0 off, 1 skip, 2 inflate), gate_g (g)
     "acc_noise", "corr_s", "dist_window",  # R (g^2 s), disturbance correlation time and window (s)
     "lowpass_s", "lowpass_window", "process_noise",  # accelerometer low-pass (s), its variance window (s), Q (rad^2/s)
@@ -109,7 +109,7 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
     rest_on = bias and rest is not None
     nv = int(getattr(p, "velocity_states", 0))
     return Settings(
-        int(n), nv, float(p.velocity_bound_m_sqrt_s) ** 2 if nv else 0.0, float(STANDARD_GRAVITY_M_S2), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
+        int(n), nv, float(p.velocity_bound_m2_s) if nv else 0.0, float(STANDARD_GRAVITY_M_S2), bool(p.use_acc), _GATES[p.gate], float(p.gate_g),
         float(p.acc_noise_g2_s), float(p.disturbance_corr_s), float(p.disturbance_window_s),
         float(p.acc_lowpass_s), float(p.acc_lowpass_window_s), float(p.process_noise_rad2_s),
         bool(models_lag(p, n)), bool(p.heading_free),
@@ -938,7 +938,7 @@ def heading_update(P, n, N, q, east, north, r, K, G, dx):
 def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
     the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
-    pseudo-measurement v = 0 (variance vb^2 / dt, H = [0, I], so that P H^T = P[:, n:] and
+    pseudo-measurement v = 0 (variance Rv / dt, H = [0, I], so that P H^T = P[:, n:] and
     H P H^T = P[n:, n:]) in Joseph form (`joseph2`); the correction into dx (N,) (K, PHt, D:
     N x 3 scratch, two columns used; S: 3 x 3 scratch, its upper-left 2 x 2 used)."""
     r00, r01, r02, r10, r11, r12, _, _, _ = _rotation(q)  # the first two rows of R(q)

@@ -117,7 +117,7 @@ def load() -> None:
     from .smoother_cost import Weights
 
     imu = ImuSamples(np.array([0.0, 0.01]), np.zeros((2, 3)), np.tile([0.0, 0.0, 1.0], (2, 1)))
-    weights = Weights(bias_axes="x", scale_axes="y", velocity_acc_noise_g_sqrt_s=0.01, velocity_bound_m_sqrt_s=0.5)
+    weights = Weights(bias_axes="x", scale_axes="y", velocity_acc_noise_g2_s=1e-4, velocity_bound_m2_s=0.25)
     problem = SmootherProblem.from_imu(imu, quat.IDENTITY, weights, rest=np.ones(1, bool))
     ops = CompiledOps(problem, blocks=True)
     q, theta, v = np.tile(quat.IDENTITY, (2, 1)), np.zeros(2), np.zeros((2, 2))

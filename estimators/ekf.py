@@ -49,22 +49,22 @@ The scale factors become observable through the accelerometer whenever the board
 about a body axis that is not vertical (the z scale needs the z axis tilted while turning).
 
 Velocity (after the prediction, before the rest and accelerometer updates; off with
-`velocity_bound_m_sqrt_s` = inf or `use_acc` = False): a hand-held, worn or carried IMU moves
+`velocity_bound_m2_s` = inf or `use_acc` = False): a hand-held, worn or carried IMU moves
 with a bounded velocity, so the accelerometer's horizontal specific force, integrated, must
 stay bounded too. This is the smoothers' velocity model (`fusion.estimators.smoother_cost`),
 after what VQF exploits with its low-pass in an almost inertial frame (Laidig & Seel 2023,
 Sec. 3.2), as states of the filter (strapdown velocity integration, Titterton & Weston 2004,
 Ch. 3; Sola 2017, Sec. 5.3.3 for its error-state Jacobian):
     v <- v + (R(q) a)_xy g dt,   P <- V P V^T,  V = I but dv/de = -(R(q) [a]x)_xy g dt
-        (white acceleration noise of density sv g in Q: (sv g)^2 dt on v)
-    pseudo-measurement v = 0 with the variance vb^2 / dt (density vb), H = [0, 0, 0, I],
+        (white acceleration noise of variance density Qv g^2 in Q: Qv g^2 dt on v)
+    pseudo-measurement v = 0 with the variance Rv / dt (density Rv), H = [0, 0, 0, I],
         heading-free gain and Joseph form as for the accelerometer
 A tilt error e turns 1 g into the horizontal acceleration g e, which a bounded velocity
 cannot absorb for long, while a linear acceleration that averages out over seconds can: the
 velocity states follow the translation (`tests/test_ekf.py`) instead of the attitude taking it
-for gravity. vb = 1 m/s sqrt(s), looser than the smoothers' 0.5: BROAD's fast translation
-trials move at about 1 m/s (the choice is checked by `benchmarks/cross_validate.py`; compare
-`fusion compare --estimators ekf:vb=0.5,ekf,ekf:vb=2,ekf:vb=inf`).
+for gravity. Rv = 1 m^2/s, looser than the smoothers' 0.25: BROAD's fast translation trials
+move at about 1 m/s (the choice is checked by `benchmarks/cross_validate.py`; compare
+`fusion compare --estimators ekf:Rv=0.25,ekf,ekf:Rv=4,ekf:Rv=inf`).
 
 Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
 accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
@@ -117,7 +117,7 @@ FilterPy's per-call cost (column-vector bookkeeping, `deepcopy(z)`). The update 
 Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
 
 Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate,
-no bias or scale coupling, attitude noise inflated by `invalid_gyr_std_rad_s^2 dt^2`),
+no bias or scale coupling, attitude noise inflated by `invalid_gyr_var_rad2_s2 dt^2`),
 non-finite accelerometer samples skip the update, the optional fixed gating (`gate`,
 `gate_g`; off by default) inflates R or skips the update when `| |a| - 1 g |` is large, and
 the covariance is symmetrised (eigenvalues clipped if needed) every step.
@@ -127,7 +127,7 @@ definition of the filter, and what `reset`/`step` (the streaming interface) alwa
 `"compiled"` (the default) makes `estimate` run the whole recording in one numba kernel,
 `_compiled.ekf_kernel`, which does the same arithmetic in explicit loops over the small
 matrices and records the same diagnostics, with or without the velocity states (11 x 11
-matrices with them; `ekf:vb=inf` leaves them out). numpy's per-call overhead dominates the
+matrices with them; `ekf:Rv=inf` leaves them out). numpy's per-call overhead dominates the
 reference step; timings of both: `python benchmarks/bench_filters.py --dataset ...` (see
 `_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
 checks that the two agree to 1e-10.
@@ -170,11 +170,11 @@ class EKFParams(BiasFilterParams):
 
     estimate_bias (bias): False drops the bias from the state (and needs scale=false); the
         bias and rest-detection fields apply only with it.
-    velocity_acc_noise_g_sqrt_s (sv): density of the white acceleration noise in the velocity
-        states' integration, g sqrt(s) (the smoothers' default).
-    velocity_bound_m_sqrt_s (vb): density of the pseudo-measurement v = 0, m/s sqrt(s): per
-        second, one observation "v = 0" of std vb m/s (inf: no velocity states; see the
-        module docstring).
+    velocity_acc_noise_g2_s (Qv): density of the white acceleration noise in the velocity
+        states' integration, g^2 s (the smoothers' default).
+    velocity_bound_m2_s (Rv): density of the pseudo-measurement v = 0, m^2/s: per second, one
+        observation "v = 0" of variance Rv (m/s)^2 (inf: no velocity states; see the module
+        docstring).
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
@@ -187,22 +187,24 @@ class EKFParams(BiasFilterParams):
     """
 
     owner: ClassVar[str] = "ekf"
+    former_std: ClassVar[tuple[str, ...]] = BiasFilterParams.former_std + (
+        "velocity_acc_noise_g_sqrt_s", "sv", "velocity_bound_m_sqrt_s", "vb")
 
     acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp"})
 
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
-    velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
-    velocity_bound_m_sqrt_s: float = field(default=1.0, metadata={"alias": "vb"})
+    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv"})
+    velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
         super()._check()
-        if not (self.velocity_acc_noise_g_sqrt_s > 0.0 and math.isfinite(self.velocity_acc_noise_g_sqrt_s)):
-            raise ValueError(f"ekf: velocity_acc_noise_g_sqrt_s must be a finite number > 0, "
-                             f"got {self.velocity_acc_noise_g_sqrt_s!r}")
-        if not self.velocity_bound_m_sqrt_s > 0.0:
-            raise ValueError(f"ekf: velocity_bound_m_sqrt_s must be > 0 (inf: no velocity model), "
-                             f"got {self.velocity_bound_m_sqrt_s!r}")
+        if not (self.velocity_acc_noise_g2_s > 0.0 and math.isfinite(self.velocity_acc_noise_g2_s)):
+            raise ValueError(f"ekf: velocity_acc_noise_g2_s must be a finite number > 0, "
+                             f"got {self.velocity_acc_noise_g2_s!r}")
+        if not self.velocity_bound_m2_s > 0.0:
+            raise ValueError(f"ekf: velocity_bound_m2_s must be > 0 (inf: no velocity model), "
+                             f"got {self.velocity_bound_m2_s!r}")
         if self.impl not in ("compiled", "numpy"):
             raise ValueError(f"ekf: impl must be compiled or numpy, got {self.impl!r}")
         if self.estimate_scale and not self.estimate_bias:
@@ -216,9 +218,9 @@ class EKFParams(BiasFilterParams):
 
     @property
     def velocity_states(self) -> int:
-        """2 with the velocity model (a finite `velocity_bound_m_sqrt_s` and the accelerometer
-        in use), else 0."""
-        return 2 if math.isfinite(self.velocity_bound_m_sqrt_s) and self.use_acc else 0
+        """2 with the velocity model (a finite `velocity_bound_m2_s` and the accelerometer in
+        use), else 0."""
+        return 2 if math.isfinite(self.velocity_bound_m2_s) and self.use_acc else 0
 
 
 # Normalised innovation squared above which the bias and scale are not corrected: the 99.9 %
@@ -249,9 +251,9 @@ class EKF(KalmanFilter):
         self.P, self._Qrate, self._Qbad = np.zeros((N, N)), np.zeros((N, N)), np.zeros((N, N))
         self.P[:n, :n], self._Qrate[:n, :n], self._Qbad[:n, :n] = P0, Qrate, Qbad
         self.v = np.zeros(2)
-        if N > n:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density sv g
+        if N > n:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density Qv g^2
             self.P[n:, n:] = np.eye(2) * VELOCITY_INIT_STD_M_S**2
-            self._Qrate[n:, n:] = np.eye(2) * (STANDARD_GRAVITY_M_S2 * p.velocity_acc_noise_g_sqrt_s) ** 2
+            self._Qrate[n:, n:] = np.eye(2) * STANDARD_GRAVITY_M_S2**2 * p.velocity_acc_noise_g2_s
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
@@ -400,7 +402,7 @@ class EKF(KalmanFilter):
             V = np.eye(self.N)
             V[n:, :3] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (STANDARD_GRAVITY_M_S2 * dt_s)
             P = V @ P @ V.T
-        r = p.velocity_bound_m_sqrt_s**2 / dt_s
+        r = p.velocity_bound_m2_s / dt_s
         S = P[n:, n:] + r * np.eye(2)
         K = P[:, n:] @ np.linalg.inv(S)
         if p.heading_free:  # as the accelerometer update: no turn about the vertical h

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
+from .params import FormerSpellings
 
 Gate = Literal["off", "skip", "inflate"]
 
@@ -38,7 +39,7 @@ def _text(value: Any) -> str:
 
 
 @dataclass(frozen=True)
-class FilterParams:
+class FilterParams(FormerSpellings):
     """Fields of every recursive attitude filter (units in the names; aliases in brackets).
 
     Noise is given as continuous-time densities, so one set means the same at 100 Hz and at
@@ -67,10 +68,18 @@ class FilterParams:
         default (the adaptive R replaces it); gate_g applies only with gate=skip or inflate.
     heading_free (hf): the accelerometer correction does not turn the estimate about the
         predicted vertical (see the `ukf` and `ekf` module docstrings).
-    invalid_gyr_std_rad_s (Qbad): assumed rate uncertainty on invalid gyro samples, rad/s.
+    invalid_gyr_var_rad2_s2 (Qinvalid): assumed rate variance on invalid gyro samples,
+        (rad/s)^2 (4: a 2 rad/s standard deviation).
+
+    Every noise and prior parameter is a variance (a variance density for continuous-time
+    noise), here and in the smoothers; a datasheet's noise density n, given as a standard
+    deviation density in rad/s/sqrt(Hz), is Q = n^2 rad^2/s. The former standard-deviation
+    spellings (`Qbad`, `invalid_gyr_std_rad_s`) are accepted for one release, squared, with a
+    warning (`fusion.estimators.params.FORMERLY_STD`).
     """
 
     owner: ClassVar[str] = "filter"  # the registry name in error messages
+    former_std: ClassVar[tuple[str, ...]] = ("invalid_gyr_std_rad_s", "Qbad")  # `AcceptsFormerSpellings`
 
     process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
     acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
@@ -83,7 +92,7 @@ class FilterParams:
     gate: Gate = "off"
     gate_g: float = 0.2
     heading_free: bool = field(default=True, metadata={"alias": "hf"})
-    invalid_gyr_std_rad_s: float = field(default=2.0, metadata={"alias": "Qbad"})
+    invalid_gyr_var_rad2_s2: float = field(default=4.0, metadata={"alias": "Qinvalid"})
 
     def __post_init__(self) -> None:
         self._check()
@@ -97,7 +106,7 @@ class FilterParams:
             process_noise_rad2_s=self.process_noise_rad2_s,
             acc_noise_g2_s=self.acc_noise_g2_s,
             init_var_rad2=self.init_var_rad2,
-            invalid_gyr_std_rad_s=self.invalid_gyr_std_rad_s,
+            invalid_gyr_var_rad2_s2=self.invalid_gyr_var_rad2_s2,
         )
         if self.use_acc and self.acc_noise_g2_s <= 0.0:
             raise ValueError(f"{owner}: acc_noise_g2_s (R) must be > 0 when the accelerometer is used, got {self.acc_noise_g2_s}")

@@ -16,8 +16,8 @@ projected onto the sphere's tangent space at q_t.
 
 Why plain gradient descent is slow here. Its rate is set by the condition number of the
 Hessian (Nocedal & Wright 2006, "Numerical Optimization", 2nd ed., sec. 3.3). The motion term
-ties each quaternion to its neighbours with the weight 1 / (sigma_g^2 dt), 250,000 at 100 Hz;
-the accelerometer ties it to gravity with dt / sigma_a^2, 0.25: a ratio of 10^6. A gradient
+ties each quaternion to its neighbours with the weight 1 / (Q dt), 1,000,000 at 100 Hz;
+the accelerometer ties it to gravity with dt / R, 0.25: a ratio of 4 10^6. A gradient
 step changes a quaternion through its two neighbours only, so a correction travels about one
 sample per iteration along the chain, and the number of iterations grows with the recording
 (precond="none" below: after 200 iterations on 56 s of data still far above the minimum).
@@ -84,7 +84,7 @@ Analytic gradients only (no autodiff). Cost per iteration -> diagnostics["loss"]
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
@@ -111,6 +111,8 @@ class GDParams(SmootherParams):
     max_iter (iters), tol: stop when an iteration with a freshly built preconditioner lowers
         the cost by less than the fraction tol, or after max_iter iterations.
     """
+
+    owner: ClassVar[str] = "gd"
 
     max_iter: int = field(default=100, metadata={"alias": "iters"})
     precond: Literal["chain", "block", "none"] = "chain"

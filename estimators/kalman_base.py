@@ -38,12 +38,12 @@ def error_state_covariances(p: Any, n: int) -> tuple[np.ndarray, np.ndarray, np.
     Q_rate: the process-noise densities (a step of dt adds `Q_rate dt`): gyro noise
         `process_noise_rad2_s`, bias walk `bias_walk_rad2_s3`, scale walk `scale_walk_1_s`.
     Q_invalid: what a step without a usable gyro reading adds per dt^2 on the attitude
-        (`invalid_gyr_std_rad_s^2`).
+        (`invalid_gyr_var_rad2_s2`).
     """
     P0, Q_rate, Q_invalid = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
     P0[:3, :3] = np.eye(3) * p.init_var_rad2
     Q_rate[:3, :3] = np.eye(3) * p.process_noise_rad2_s
-    Q_invalid[:3, :3] = np.eye(3) * p.invalid_gyr_std_rad_s**2
+    Q_invalid[:3, :3] = np.eye(3) * p.invalid_gyr_var_rad2_s2
     if n > 3:
         P0[3:6, 3:6] = np.eye(3) * p.init_bias_var_rad2_s2
         Q_rate[3:6, 3:6] = np.eye(3) * p.bias_walk_rad2_s3

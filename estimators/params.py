@@ -10,8 +10,75 @@ from __future__ import annotations
 
 import dataclasses
 import typing
+import warnings
 from dataclasses import dataclass
 from typing import Any
+
+# Noise and prior parameters are variances (variance densities for continuous-time noise), in
+# the filters and the smoothers alike: the Q and R of the Kalman literature. Those that used to
+# be standard deviations, by their former name and alias -> (their name and alias now); a former
+# spelling is accepted for one release, with a FutureWarning, and its value squared.
+FORMERLY_STD: dict[str, tuple[str, str]] = {
+    "gyro_noise_rad_sqrt_s": ("process_noise_rad2_s", "Q"), "sg": ("process_noise_rad2_s", "Q"),
+    "acc_noise_g_sqrt_s": ("acc_noise_g2_s", "R"), "sa": ("acc_noise_g2_s", "R"),
+    "prior_std_rad": ("init_var_rad2", "P0"), "p0": ("init_var_rad2", "P0"),
+    "dropout_noise_rad_sqrt_s": ("dropout_noise_rad2_s", "Qdrop"), "sdrop": ("dropout_noise_rad2_s", "Qdrop"),
+    "bias_prior_rad_s": ("init_bias_var_rad2_s2", "Pb0"),
+    "scale_prior": ("init_scale_var", "Ps0"),
+    "velocity_acc_noise_g_sqrt_s": ("velocity_acc_noise_g2_s", "Qv"), "sv": ("velocity_acc_noise_g2_s", "Qv"),
+    "velocity_bound_m_sqrt_s": ("velocity_bound_m2_s", "Rv"), "vb": ("velocity_bound_m2_s", "Rv"),
+    "rest_noise_rad_sqrt_s": ("rest_noise_rad2_s", "Rrest"), "srest": ("rest_noise_rad2_s", "Rrest"),
+    "mag_heading_walk_rad_sqrt_s": ("mag_heading_walk_rad2_s", "Qm"), "mwalk": ("mag_heading_walk_rad2_s", "Qm"),
+    "invalid_gyr_std_rad_s": ("invalid_gyr_var_rad2_s2", "Qinvalid"), "Qbad": ("invalid_gyr_var_rad2_s2", "Qinvalid"),
+}
+
+# The former spellings of the smoothers (`SmootherParams`, `Weights`): all but the filters' own.
+SMOOTHER_FORMER_STD = tuple(name for name in FORMERLY_STD if name not in ("invalid_gyr_std_rad_s", "Qbad"))
+
+
+def former_spellings(cls: type, values: dict[str, Any]) -> dict[str, Any]:
+    """`values` with every former standard-deviation spelling that `cls` had (its `former_std`,
+    names and aliases of `FORMERLY_STD`) replaced by the variance it stands for, each with a
+    FutureWarning."""
+    out = dict(values)
+    for old in [key for key in values if key in getattr(cls, "former_std", ())]:
+        new, alias = FORMERLY_STD[old]
+        value = out.pop(old)
+        if new in out:
+            raise ValueError(f"{old} and {new} ({alias}) are one parameter: give {alias} only")
+        if not (isinstance(value, (int, float)) and value >= 0.0):
+            raise ValueError(f"{old} must be a number >= 0 (a standard deviation), got {value!r}")
+        out[new] = float(value) ** 2
+        owner = getattr(cls, "owner", cls.__name__)
+        warnings.warn(f"{owner}: {old}={value:g} (a standard deviation) is now {alias}={out[new]:g} ({new}, its square, "
+                      f"as every noise and prior parameter); {old} will be removed in the next release",
+                      FutureWarning, stacklevel=3)
+    return out
+
+
+class AcceptsFormerSpellings(type):
+    """Metaclass of `FormerSpellings`: `Params(old_name=std)` builds `Params(new_name=std**2)`
+    with a FutureWarning (`former_spellings`)."""
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        return super().__call__(*args, **former_spellings(cls, kwargs))
+
+
+class FormerSpellings(metaclass=AcceptsFormerSpellings):
+    """Base of the parameter dataclasses whose former standard-deviation spellings (the class's
+    `former_std`) are still taken for one release: as keywords (squared) and as attributes
+    (the square root of the variance), each with a FutureWarning."""
+
+    __slots__ = ()
+    former_std: tuple[str, ...] = ()
+
+    def __getattr__(self, name: str) -> Any:  # only called for names the instance does not have
+        if name not in type(self).former_std or "_" not in name:  # field names only, not aliases
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        new, alias = FORMERLY_STD[name]
+        warnings.warn(f"{name} (a standard deviation) is now {new} ({alias}), its square; {name} will be "
+                      "removed in the next release", FutureWarning, stacklevel=2)
+        return getattr(self, new) ** 0.5
 
 
 @dataclass(frozen=True)
@@ -97,6 +164,10 @@ def make_params(params_cls: type, overrides: tuple[tuple[str, str], ...] | dict[
     typed: dict[str, str] = {}  # field name -> the key as typed (a field name or its alias)
     for key, text in items:
         name = aliases.get(key, key)
+        if key in getattr(params_cls, "former_std", ()):  # a former spelling, converted by the class
+            values[key] = _convert(text, float, f"estimator {owner!r} parameter {key!r}")
+            typed[FORMERLY_STD[key][0]] = key
+            continue
         if name not in fields:
             valid = sorted(set(fields) | set(aliases))
             raise ValueError(

@@ -19,7 +19,7 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.stats import chi2
@@ -32,7 +32,7 @@ from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
 from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
-from .params import make_params, parse_specs
+from .params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, parse_specs
 from .smoother_mag import MagSettings, heading_correction, measurements
 from .smoother_cost import (AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
                             theta_posterior_std)
@@ -43,24 +43,29 @@ INIT_ESTIMATORS: dict[str, type[Estimator]] = {"dr": DeadReckoning, "ukf": UKF, 
 
 
 @dataclass(frozen=True)
-class SmootherParams:
+class SmootherParams(FormerSpellings):
     """Parameters shared by `gn` and `gd` (the cost), plus the initialisation.
 
-    All noise levels are densities of continuous-time white noise, so one value means the
-    same at any sampling rate (see `fusion.estimators.smoother_cost.Weights`):
-    gyro_noise_rad_sqrt_s (sg): gyro noise density, rad/sqrt(s); a step of dt s has angle
-        variance sg^2 dt.
-    acc_noise_g_sqrt_s (sa): accelerometer noise density, g sqrt(s); a sample standing for dt s
-        has variance sa^2 / dt.
+    Every noise and prior parameter is a variance, as in the filters (`FilterParams`, with the
+    same names where the two mean the same), and noise levels are variance densities of
+    continuous-time white noise, so one value means the same at any sampling rate (see
+    `fusion.estimators.smoother_cost.Weights`); the former standard-deviation spellings (sg,
+    sa, p0, sdrop, sv, vb, srest, mwalk, bias_prior_rad_s, scale_prior) are accepted for one
+    release, squared, with a warning (`fusion.estimators.params.FORMERLY_STD`):
+    process_noise_rad2_s (Q): gyro noise density, rad^2/s; a step of dt s has angle variance
+        Q dt.
+    acc_noise_g2_s (R): accelerometer noise density, g^2 s; a sample standing for dt s has
+        variance R / dt.
     loss: robust loss on the accelerometer residual: "huber", "cauchy", "geman-mcclure", "none".
     loss_scale_g (huber, the alias it had when the loss was always Huber): the loss's scale on
         the accelerometer residual norm, g (inf: plain least squares).
-    prior_std_rad (p0): std of the anchor of the first orientation at the initial one, rad.
-    dropout_noise_rad_sqrt_s (sdrop): angle random walk density where `gyr_valid` is False.
+    init_var_rad2 (P0): variance of the anchor of the first orientation at the initial one, rad^2.
+    dropout_noise_rad2_s (Qdrop): angle random walk density where `gyr_valid` is False, rad^2/s.
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" or "none": none). scale_axes (scale):
         scale errors, likewise.
-    bias_prior_rad_s, scale_prior: prior std of those variables around zero.
+    init_bias_var_rad2_s2 (Pb0), init_scale_var (Ps0): prior variance of those variables
+        around zero, (rad/s)^2 and dimensionless.
     scale_release_ratio (release): a requested scale error is estimated only if the recording
         determines it: its posterior std at the stage-1 solution (scales held at zero) is
         below this fraction of its prior std (`released_scales`); the others stay zero.
@@ -71,22 +76,23 @@ class SmootherParams:
     scale_max: a scale error estimated beyond this (in either direction) is not a gyro's but
         the fit absorbing motion the cost does not model; that axis is solved again with its
         scale error held at zero (diagnostics "scale_rejected").
-    velocity_acc_noise_g_sqrt_s (sv), velocity_bound_m_sqrt_s (vb): the horizontal velocity
-        model (see `fusion.estimators.smoother_cost`); inf switches it off.
+    velocity_acc_noise_g2_s (Qv), velocity_bound_m2_s (Rv): the horizontal velocity model (see
+        `fusion.estimators.smoother_cost`), g^2 s and m^2/s; inf switches it off.
     rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (the filters' `RestDetector`, with
-        their thresholds); rest_noise_rad_sqrt_s (srest): density of the gyro reading at rest
-        in the rest term (`smoother_cost`). Where the recording is at rest, the biases with a
+        their thresholds); rest_noise_rad2_s (Rrest): density of the gyro reading at rest in
+        the rest term (`smoother_cost`), rad^2/s. Where the recording is at rest, the biases with a
         variable are pulled to what the gyro reads there; an axis without one takes that
         reading as a fixed bias. Rest detection is off with weighting="scalar" or no bias axes.
 
     Defaults, one set for every IMU: the accelerometer is trusted as a gravity sensor only on
-    average (sa = 0.2 g sqrt(s): a hand-held or body-worn motion's linear accelerations are
-    tenths of a g, correlated over fractions of a second), while the velocity model keeps the
-    world-frame linear acceleration's integral bounded (the fact VQF's inertial-frame low-pass
-    rests on: Laidig & Seel 2023); the x and y gyro biases and scale errors are variables
-    (prior std 0.05 rad/s and 10 %, a consumer MEMS gyro's tolerances), the z bias is read at
-    rest (as VQF's rest bias estimation, Sec. 3.4, does), and the rest term is loose (srest =
-    0.01 rad/sqrt(s)): a MEMS bias moves between rests, and a tight term forces one constant
+    average (R = 0.04 g^2 s, a standard deviation density of 0.2 g sqrt(s): a hand-held or
+    body-worn motion's linear accelerations are tenths of a g, correlated over fractions of a
+    second), while the velocity model keeps the world-frame linear acceleration's integral
+    bounded (the fact VQF's inertial-frame low-pass rests on: Laidig & Seel 2023); the x and y
+    gyro biases and scale errors are variables (prior standard deviations 0.05 rad/s and 10 %,
+    a consumer MEMS gyro's tolerances), the z bias is read at
+    rest (as VQF's rest bias estimation, Sec. 3.4, does), and the rest term is loose (Rrest =
+    1e-4 rad^2/s): a MEMS bias moves between rests, and a tight term forces one constant
     bias on the motion between them. A z bias variable would see the z axis's scale error and
     the dropouts on the course board, which spoil its heading. Scale errors are kept only where
     the recording determines them and they lower the cost significantly: on the course board
@@ -94,7 +100,7 @@ class SmootherParams:
     without the significance test, the fast-translation trial fits -5 and -4 % and loses 0.3
     deg of inclination. The figures these defaults reach are in the README's Results section
     and `docs/results.md`, with the commands.
-    weighting: "noise" (information matrices from the noise stds above) or "scalar" (one
+    weighting: "noise" (information matrices from the noise variances above) or "scalar" (one
         scalar weight per term: motion `scalar_motion_weight`, accelerometer 1, no robust loss,
         no velocity model). "seed", its former name, is still accepted, with a warning.
     scalar_motion_weight (wm): the motion term's weight with weighting="scalar".
@@ -115,19 +121,19 @@ class SmootherParams:
     the cost (`smoother_cost`, the magnetometer term), with the gates, hard-iron fit and measured
     headings of `fusion.estimators.smoother_mag.measurements` taken at the 6-D solution, which
     the cost is then solved again from; the motion term then sets how fast the heading may
-    follow the magnetometer (sqrt(Rm) / gyro_noise_rad_sqrt_s, about 30 s). mag_term="stage"
+    follow the magnetometer (sqrt(Rm / Q), about 30 s). mag_term="stage"
     instead corrects the 6-D solution afterwards (`smoother_mag.heading_correction`: a
-    heading-error random walk of density mwalk, started at the anchor's `prior_std_rad`,
+    heading-error random walk of density Qm, started at the anchor's variance `init_var_rad2`,
     smoothed over the same headings), a rotation about the world vertical that leaves the
     inclination exactly as in 6-D.
     mag_term (mterm): "cost" or "stage", as above.
     mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
         (sample variance Rm / dt).
-    mag_heading_walk_rad_sqrt_s (mwalk): mag_term="stage" only: density of the 6-D solution's
-        heading-error random walk, rad/sqrt(s); more than the gyro's noise density, since it
-        also carries what the 6-D cost leaves unmodelled about the vertical (the z gyro's
-        scale error, its bias between rests). With Rm it sets the stage's time constant,
-        sqrt(Rm) / mwalk (about 10 s).
+    mag_heading_walk_rad2_s (Qm): mag_term="stage" only: density of the 6-D solution's
+        heading-error random walk, rad^2/s; more than the gyro's noise density, since it also
+        carries what the 6-D cost leaves unmodelled about the vertical (the z gyro's scale
+        error, its bias between rests). With Rm it sets the stage's time constant,
+        sqrt(Rm / Qm) (about 10 s).
     mag_rate_rad_s (mrate): that variance grows as (1 + (w / mrate)^2), w the rate about the
         vertical, rad/s (a magnetometer lagging the gyro; inf: constant).
     mag_loss (mloss), mag_loss_scale_rad (mhuber): robust loss on the heading residual and its
@@ -144,26 +150,29 @@ class SmootherParams:
     The magnetometer's defaults are the filters' (`BiasFilterParams`) where they mean the same.
     """
 
-    gyro_noise_rad_sqrt_s: float = field(default=0.01, metadata={"alias": "sg"})
-    acc_noise_g_sqrt_s: float = field(default=0.2, metadata={"alias": "sa"})
+    owner: ClassVar[str] = "gn"  # the registry name in messages
+    former_std: ClassVar[tuple[str, ...]] = SMOOTHER_FORMER_STD  # `AcceptsFormerSpellings`
+
+    process_noise_rad2_s: float = field(default=1e-4, metadata={"alias": "Q"})
+    acc_noise_g2_s: float = field(default=0.04, metadata={"alias": "R"})
     loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
     loss_scale_g: float = field(default=0.1, metadata={"alias": "huber"})
-    prior_std_rad: float = field(default=0.01, metadata={"alias": "p0"})
-    dropout_noise_rad_sqrt_s: float = field(default=0.3, metadata={"alias": "sdrop"})
+    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
+    dropout_noise_rad2_s: float = field(default=0.09, metadata={"alias": "Qdrop"})
     use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
     bias_axes: str = field(default="xy", metadata={"alias": "bias"})
     scale_axes: str = field(default="xy", metadata={"alias": "scale"})
-    bias_prior_rad_s: float = 0.05
-    scale_prior: float = 0.1
+    init_bias_var_rad2_s2: float = field(default=2.5e-3, metadata={"alias": "Pb0"})
+    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
     scale_max: float = 0.2
     scale_release_ratio: float = field(default=0.5, metadata={"alias": "release"})
     scale_significance: float = field(default=0.05, metadata={"alias": "sig"})
-    velocity_acc_noise_g_sqrt_s: float = field(default=0.01, metadata={"alias": "sv"})
-    velocity_bound_m_sqrt_s: float = field(default=0.5, metadata={"alias": "vb"})
+    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv"})
+    velocity_bound_m2_s: float = field(default=0.25, metadata={"alias": "Rv"})
     rest_gyr_rad_s: float = REST_GYR_RAD_S
     rest_acc_g: float = REST_ACC_G
     rest_time_s: float = REST_TIME_S
-    rest_noise_rad_sqrt_s: float = field(default=1e-2, metadata={"alias": "srest"})
+    rest_noise_rad2_s: float = field(default=1e-4, metadata={"alias": "Rrest"})
     weighting: Literal["noise", "scalar", "seed"] = "noise"
     scalar_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
     init: str = "dr"
@@ -173,7 +182,7 @@ class SmootherParams:
     progress: bool = True
     impl: Literal["compiled", "numpy"] = "compiled"
     mag_heading_noise_rad2_s: float = field(default=0.1, metadata={"alias": "Rm"})
-    mag_heading_walk_rad_sqrt_s: float = field(default=0.03, metadata={"alias": "mwalk"})
+    mag_heading_walk_rad2_s: float = field(default=9e-4, metadata={"alias": "Qm"})
     mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
     mag_loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = field(default="huber", metadata={"alias": "mloss"})
     mag_loss_scale_rad: float = field(default=0.1, metadata={"alias": "mhuber"})
@@ -191,9 +200,9 @@ class SmootherParams:
             warnings.warn('weighting="seed" is now called "scalar"; "seed" will be removed in the next release',
                           FutureWarning, stacklevel=3)
             object.__setattr__(self, "weighting", "scalar")
-        for name in ("gyro_noise_rad_sqrt_s", "acc_noise_g_sqrt_s", "loss_scale_g", "prior_std_rad", "dropout_noise_rad_sqrt_s",
-                     "bias_prior_rad_s", "scale_prior", "scalar_motion_weight", "velocity_acc_noise_g_sqrt_s",
-                     "velocity_bound_m_sqrt_s", "rest_noise_rad_sqrt_s"):
+        for name in ("process_noise_rad2_s", "acc_noise_g2_s", "loss_scale_g", "init_var_rad2", "dropout_noise_rad2_s",
+                     "init_bias_var_rad2_s2", "init_scale_var", "scalar_motion_weight", "velocity_acc_noise_g2_s",
+                     "velocity_bound_m2_s", "rest_noise_rad2_s"):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"{name}={value!r}: must be positive")
@@ -216,7 +225,7 @@ class SmootherParams:
             raise ValueError(f"tol={self.tol!r}: must be >= 0")
         if self.impl not in ("compiled", "numpy"):
             raise ValueError(f"impl={self.impl!r}: must be compiled or numpy")
-        for name in ("mag_heading_noise_rad2_s", "mag_heading_walk_rad_sqrt_s", "mag_loss_scale_rad", "mag_norm_gate_frac", "mag_dip_gate_rad",
+        for name in ("mag_heading_noise_rad2_s", "mag_heading_walk_rad2_s", "mag_loss_scale_rad", "mag_norm_gate_frac", "mag_dip_gate_rad",
                      "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 < value < np.inf):
@@ -233,8 +242,8 @@ class SmootherParams:
     def mag_settings(self) -> MagSettings:
         """The magnetometer stage's settings (`fusion.estimators.smoother_mag`)."""
         return MagSettings(
-            heading_noise_rad2_s=self.mag_heading_noise_rad2_s, heading_walk_rad_sqrt_s=self.mag_heading_walk_rad_sqrt_s,
-            init_std_rad=self.prior_std_rad, rate_rad_s=self.mag_rate_rad_s, loss=self.mag_loss,
+            heading_noise_rad2_s=self.mag_heading_noise_rad2_s, heading_walk_rad2_s=self.mag_heading_walk_rad2_s,
+            init_var_rad2=self.init_var_rad2, rate_rad_s=self.mag_rate_rad_s, loss=self.mag_loss,
             loss_scale_rad=self.mag_loss_scale_rad, norm_gate_frac=self.mag_norm_gate_frac,
             dip_gate_rad=self.mag_dip_gate_rad, min_undisturbed_s=self.mag_min_undisturbed_s,
             hard_iron=self.mag_hard_iron, hard_iron_window_s=self.mag_hard_iron_window_s,
@@ -245,15 +254,15 @@ class SmootherParams:
         """The cost's `Weights` (one scalar weight per term when weighting="scalar")."""
         scalar = self.weighting == "scalar"
         return Weights(
-            gyro_noise_rad_sqrt_s=self.gyro_noise_rad_sqrt_s, acc_noise_g_sqrt_s=self.acc_noise_g_sqrt_s,
+            process_noise_rad2_s=self.process_noise_rad2_s, acc_noise_g2_s=self.acc_noise_g2_s,
             loss="none" if scalar else self.loss, loss_scale_g=np.inf if scalar else self.loss_scale_g,
-            prior_std_rad=self.prior_std_rad, dropout_noise_rad_sqrt_s=self.dropout_noise_rad_sqrt_s,
+            init_var_rad2=self.init_var_rad2, dropout_noise_rad2_s=self.dropout_noise_rad2_s,
             motion_weight=self.scalar_motion_weight if scalar else None, acc_weight=1.0 if scalar else None,
-            bias_axes=self.bias_axes, scale_axes=self.scale_axes, bias_prior_rad_s=self.bias_prior_rad_s,
-            scale_prior=self.scale_prior,
-            velocity_acc_noise_g_sqrt_s=np.inf if scalar else self.velocity_acc_noise_g_sqrt_s,
-            velocity_bound_m_sqrt_s=np.inf if scalar else self.velocity_bound_m_sqrt_s,
-            rest_noise_rad_sqrt_s=self.rest_noise_rad_sqrt_s,
+            bias_axes=self.bias_axes, scale_axes=self.scale_axes,
+            init_bias_var_rad2_s2=self.init_bias_var_rad2_s2, init_scale_var=self.init_scale_var,
+            velocity_acc_noise_g2_s=np.inf if scalar else self.velocity_acc_noise_g2_s,
+            velocity_bound_m2_s=np.inf if scalar else self.velocity_bound_m2_s,
+            rest_noise_rad2_s=self.rest_noise_rad2_s,
         )
 
 

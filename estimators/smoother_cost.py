@@ -16,10 +16,11 @@ The cost over the whole recording (weighted least squares with a robust accelero
     r_v,t = v_{t+1} - v_t - G P (R(q_t) a_t + R(q_{t+1}) a_{t+1}) dt_t / 2   (m/s; P: world x, y)
 
 Weights are those of continuous-time white noise, so one parameter set means the same at
-any sampling rate: gyro noise density sigma_g (rad/sqrt(s)) integrates to an angle random
-walk, w_m,t = 1 / (sigma_g^2 dt_t) (the angle random walk of IEEE Std 952-1997, Annex C);
-accelerometer noise density sigma_a (g sqrt(s)) gives a sample that stands for dt_t
-seconds the variance sigma_a^2 / dt_t, w_a,t = dt_t / sigma_a^2, so that the information
+any sampling rate: gyro noise of variance density Q (rad^2/s) integrates to an angle random
+walk, w_m,t = 1 / (Q dt_t) (the angle random walk of IEEE Std 952-1997, Annex C; Q is the
+square of the standard-deviation density a datasheet gives in rad/s/sqrt(Hz));
+accelerometer noise of density R (g^2 s) gives a sample that stands for dt_t seconds the
+variance R / dt_t, w_a,t = dt_t / R, so that the information
 per second of accelerometer is rate independent. `rho` is a robust loss (`robust_loss`),
 used through iteratively reweighted least squares. Where the gyro sample is invalid
 (`gyr_valid` False) the step predicts no rotation and its density is the dropout density.
@@ -29,7 +30,7 @@ almost inertial frame (Laidig & Seel 2023, "VQF: Highly accurate IMU orientation
 with bias estimation and magnetic disturbance rejection", Information Fusion 91): linear
 acceleration integrates to a bounded velocity. The horizontal world-frame specific force is
 integrated (trapezoidal rule) into a velocity v_t (2 variables per sample, m/s), and a
-pseudo-measurement v_t = 0 of density D (w_z,t = dt_t / D^2) keeps it bounded. A tilt error
+pseudo-measurement v_t = 0 of density Rv (w_z,t = dt_t / Rv) keeps it bounded. A tilt error
 delta turns 1 g into a horizontal acceleration g delta, which the velocity cannot absorb
 for long; a linear acceleration that averages out over seconds, can. Each increment touches
 two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks).
@@ -37,7 +38,7 @@ two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks)
 At rest the true rate is zero, so the gyro reads its bias (the rest part of VQF's bias
 estimation, Laidig & Seel 2023, Sec. 3.4): on steps that a rest detector flags
 (`_compiled.rest_steps`, the one the filters use), the rate w_t itself is a residual with the
-density sigma_r of the gyro noise at rest (w_r,t = dt_t / sigma_r^2), on the axes that have a
+density Rrest of the gyro noise at rest (w_r,t = dt_t / Rrest), on the axes that have a
 bias variable. It touches only the calibration variables. An axis without a bias variable
 takes the mean rest reading as a fixed bias (`from_imu`): about the vertical, nothing but the
 gyro sees a rotation, so the rest is the only place its bias can be read.
@@ -76,6 +77,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -84,6 +86,7 @@ from scipy.linalg import solveh_banded
 from fusion import quaternion as quat
 from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
+from .params import SMOOTHER_FORMER_STD, FormerSpellings
 
 AXES = "xyz"
 
@@ -128,46 +131,50 @@ def sample_durations(t: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class Weights:
+class Weights(FormerSpellings):
     """Noise model and robust loss of the cost, in continuous time.
 
-    gyro_noise_rad_sqrt_s: gyro noise density sigma_g, rad/sqrt(s) (= rad/s/sqrt(Hz)); the
-        motion residual of a step of dt seconds has variance sigma_g^2 dt (integrated white
-        rate noise: a random walk in angle).
-    acc_noise_g_sqrt_s: accelerometer noise density sigma_a, g sqrt(s) (= g/sqrt(Hz)); a
-        sample standing for dt seconds has variance sigma_a^2 / dt, so the information per
-        second of accelerometer data does not depend on the sampling rate.
+    Every noise and prior level is a variance (a variance density for continuous-time noise),
+    as in `SmootherParams` and the filters:
+    process_noise_rad2_s: gyro noise density Q, rad^2/s (= (rad/s)^2/Hz); the motion residual
+        of a step of dt seconds has variance Q dt (integrated white rate noise: a random walk
+        in angle).
+    acc_noise_g2_s: accelerometer noise density R, g^2 s (= g^2/Hz); a sample standing for dt
+        seconds has variance R / dt, so the information per second of accelerometer data does
+        not depend on the sampling rate.
     loss: robust loss on the accelerometer residual ("none", "huber", "cauchy", "geman-mcclure").
     loss_scale_g: the loss's scale c on the residual norm, g (inf: plain least squares).
-    prior_std_rad: std of the anchor of q_0 at the initial orientation.
-    dropout_noise_rad_sqrt_s: density of the angle random walk where the gyro is invalid.
+    init_var_rad2: variance of the anchor of q_0 at the initial orientation, rad^2.
+    dropout_noise_rad2_s: density of the angle random walk where the gyro is invalid, rad^2/s.
     motion_weight / acc_weight: fixed scalar information per term instead of the noise model
         (scalar weighting: motion 10, accelerometer 1); None uses the noise model.
     bias_axes / scale_axes: which gyro biases / scale errors are variables ("", "xy", "xyz").
-    bias_prior_rad_s / scale_prior: priors (std) of those variables around zero.
-    velocity_acc_noise_g_sqrt_s: density of the accelerometer noise in the horizontal velocity
-        increments, g sqrt(s) (inf: no velocity model).
-    velocity_bound_m_sqrt_s: density D of the pseudo-measurement v = 0, m/s sqrt(s): per
-        second of recording, one observation "v = 0" of std D m/s (inf: no velocity model).
-    rest_noise_rad_sqrt_s: density sigma_r of the gyro reading at rest, rad/sqrt(s): a step of
-        dt seconds flagged at rest observes "true rate = 0" with variance sigma_r^2 / dt.
+    init_bias_var_rad2_s2 / init_scale_var: prior variances of those variables around zero.
+    velocity_acc_noise_g2_s: density Qv of the accelerometer noise in the horizontal velocity
+        increments, g^2 s (inf: no velocity model).
+    velocity_bound_m2_s: density Rv of the pseudo-measurement v = 0, m^2/s: per second of
+        recording, one observation "v = 0" of variance Rv (m/s)^2 (inf: no velocity model).
+    rest_noise_rad2_s: density Rrest of the gyro reading at rest, rad^2/s: a step of dt
+        seconds flagged at rest observes "true rate = 0" with variance Rrest / dt.
     """
 
-    gyro_noise_rad_sqrt_s: float = 0.02
-    acc_noise_g_sqrt_s: float = 0.005
+    former_std: ClassVar[tuple[str, ...]] = SMOOTHER_FORMER_STD  # `AcceptsFormerSpellings`
+
+    process_noise_rad2_s: float = 4e-4
+    acc_noise_g2_s: float = 2.5e-5
     loss: str = "huber"
     loss_scale_g: float = 0.1
-    prior_std_rad: float = 0.01
-    dropout_noise_rad_sqrt_s: float = 0.3
+    init_var_rad2: float = 1e-4
+    dropout_noise_rad2_s: float = 0.09
     motion_weight: float | None = None
     acc_weight: float | None = None
     bias_axes: str = ""
     scale_axes: str = ""
-    bias_prior_rad_s: float = 0.05
-    scale_prior: float = 0.2
-    velocity_acc_noise_g_sqrt_s: float = np.inf
-    velocity_bound_m_sqrt_s: float = np.inf
-    rest_noise_rad_sqrt_s: float = 1e-2
+    init_bias_var_rad2_s2: float = 2.5e-3
+    init_scale_var: float = 0.04
+    velocity_acc_noise_g2_s: float = np.inf
+    velocity_bound_m2_s: float = np.inf
+    rest_noise_rad2_s: float = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,16 +250,16 @@ class SmootherProblem:
             valid = np.ones(len(dt), bool)
         if weights.motion_weight is not None:
             w_motion = np.full(len(dt), float(weights.motion_weight))
-            w_motion[~valid] = weights.motion_weight * (weights.gyro_noise_rad_sqrt_s / weights.dropout_noise_rad_sqrt_s) ** 2
+            w_motion[~valid] = weights.motion_weight * (weights.process_noise_rad2_s / weights.dropout_noise_rad2_s)
         else:
-            # Angle random walk: variance sigma^2 dt per step (rad^2).
-            density = np.where(valid, weights.gyro_noise_rad_sqrt_s, weights.dropout_noise_rad_sqrt_s)
-            w_motion = 1.0 / (density**2 * dt)
+            # Angle random walk: variance Q dt per step (rad^2).
+            density = np.where(valid, weights.process_noise_rad2_s, weights.dropout_noise_rad2_s)
+            w_motion = 1.0 / (density * dt)
         if weights.acc_weight is not None:
             w_acc = np.full(len(imu.t), float(weights.acc_weight))
         else:
-            # White accelerometer noise of density sigma_a: variance sigma_a^2 / dt per sample.
-            w_acc = sample_durations(imu.t) / weights.acc_noise_g_sqrt_s**2
+            # White accelerometer noise of density R: variance R / dt per sample.
+            w_acc = sample_durations(imu.t) / weights.acc_noise_g2_s
         if weights.loss not in LOSSES:
             raise ValueError(f"loss={weights.loss!r}: expected one of {', '.join(LOSSES)}")
         # A non-finite accelerometer sample carries no information: weight 0 (its value is zeroed
@@ -262,24 +269,24 @@ class SmootherProblem:
         bias_idx = np.array([AXES.index(a) for a in weights.bias_axes], int)
         scale_idx = np.array([AXES.index(a) for a in weights.scale_axes], int)
         w_theta = np.concatenate(
-            [np.full(len(bias_idx), weights.bias_prior_rad_s**-2), np.full(len(scale_idx), weights.scale_prior**-2)]
+            [np.full(len(bias_idx), 1.0 / weights.init_bias_var_rad2_s2), np.full(len(scale_idx), 1.0 / weights.init_scale_var)]
         )
-        velocity = np.isfinite(weights.velocity_acc_noise_g_sqrt_s) and np.isfinite(weights.velocity_bound_m_sqrt_s)
+        velocity = np.isfinite(weights.velocity_acc_noise_g2_s) and np.isfinite(weights.velocity_bound_m2_s)
         if velocity:
-            # Horizontal velocity increments: white acceleration noise of density G sigma (m/s^2 sqrt(s))
-            # integrated over dt has variance (G sigma)^2 dt; a step touching a missing sample has none.
-            w_vel = 1.0 / ((STANDARD_GRAVITY_M_S2 * weights.velocity_acc_noise_g_sqrt_s) ** 2 * dt)
+            # Horizontal velocity increments: white acceleration noise of density G^2 Qv ((m/s^2)^2 s)
+            # integrated over dt has variance G^2 Qv dt; a step touching a missing sample has none.
+            w_vel = 1.0 / (STANDARD_GRAVITY_M_S2**2 * weights.velocity_acc_noise_g2_s * dt)
             w_vel = np.where(acc_ok[:-1] & acc_ok[1:], w_vel, 0.0)
-            # "Velocity stays bounded": v = 0 observed with density D (m/s sqrt(s)), variance D^2 / dt.
-            w_vzero = sample_durations(imu.t) / weights.velocity_bound_m_sqrt_s**2
+            # "Velocity stays bounded": v = 0 observed with density Rv (m^2/s), variance Rv / dt.
+            w_vzero = sample_durations(imu.t) / weights.velocity_bound_m2_s
         else:
             w_vel, w_vzero = np.zeros(0), np.zeros(0)
         if rest is not None:
             rest = np.asarray(rest, bool)
             if rest.shape != dt.shape:
                 raise ValueError(f"{imu.source}: rest mask has shape {rest.shape}, expected {dt.shape}")
-            # Zero true rate observed with density sigma_r: variance sigma_r^2 / dt per step.
-            w_rest = np.where(rest & valid, dt / weights.rest_noise_rad_sqrt_s**2, 0.0)
+            # Zero true rate observed with density Rrest: variance Rrest / dt per step.
+            w_rest = np.where(rest & valid, dt / weights.rest_noise_rad2_s, 0.0)
             # An axis without a bias variable takes the bias its rest steps read (their mean rate), fixed.
             if np.any(w_rest):
                 fixed = np.setdiff1d(np.arange(3), bias_idx)
@@ -293,7 +300,7 @@ class SmootherProblem:
             w_motion=w_motion, w_acc=np.where(acc_ok, w_acc, 0.0),
             loss=weights.loss if np.isfinite(weights.loss_scale_g) else "none", loss_c=float(weights.loss_scale_g),
             init_quat=quat.normalize(np.asarray(init_quat_wxyz, float)),
-            w_prior=weights.prior_std_rad**-2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
+            w_prior=1.0 / weights.init_var_rad2, bias_idx=bias_idx, scale_idx=scale_idx, w_theta=w_theta,
         )
 
     def with_magnetometer(self, w_mag: np.ndarray, psi: np.ndarray, q_ref: np.ndarray, loss: str,

@@ -47,25 +47,25 @@ sample that passes the gates by chance still carries the offset). Without a trus
 stretch stays gated out.
 
 Heading-error smoother (`heading_correction`). The 6-D heading error is modelled as a random
-walk of density sigma_h (`mag_heading_walk_rad_sqrt_s`: the gyro's noise about the vertical and
+walk of density Qm (`mag_heading_walk_rad2_s`: the gyro's noise about the vertical and
 what the 6-D cost leaves unmodelled there, the z gyro's scale error and its bias between rests):
 
-    e_{t+1} = e_t + w_t,   w_t ~ N(0, sigma_h^2 dt_t);   e_0 ~ N(0, p0^2)          (3)
+    e_{t+1} = e_t + w_t,   w_t ~ N(0, Qm dt_t);   e_0 ~ N(0, P0)          (3)
 
-(p0: the anchor std of the 6-D cost, `prior_std_rad`: the given start is trusted as much as
+(P0: the anchor variance of the 6-D cost, `init_var_rad2`: the given start is trusted as much as
 there), observed by psi_t = e_t + v_t, v_t ~ N(0, r_t / (g_t k_t)), g_t the gate weight (0 or 1)
 and k_t a robust weight. The posterior mean of e given all samples is the Kalman filter run
 forward followed by the Rauch-Tung-Striebel backward pass (Rauch, Tung & Striebel 1965,
 "Maximum likelihood estimates of linear dynamic systems", AIAA Journal 3(8), the smoother's
 recursion; for a scalar random walk, with filtered mean/variance m_t, P_t and predicted
-P_{t+1|t} = P_t + sigma_h^2 dt_t: C_t = P_t / P_{t+1|t},
+P_{t+1|t} = P_t + Qm dt_t: C_t = P_t / P_{t+1|t},
 s_t = m_t + C_t (s_{t+1} - m_t), S_t = P_t + C_t^2 (S_{t+1} - P_{t+1|t})). Innovations are
 wrapped to (-pi, pi]. The robust weights come from iteratively reweighted least squares with
 the Huber loss on the residual wrap(psi_t - s_t) at scale `mag_loss_scale_rad` (`k_t` =
 `smoother_cost.robust_loss`'s rho', the same loss family as the accelerometer's term).
 The minimised cost is therefore
 
-    1/2 sum_t (e_{t+1} - e_t)^2 / (sigma_h^2 dt_t) + 1/2 e_0^2 / p0^2
+    1/2 sum_t (e_{t+1} - e_t)^2 / (Qm dt_t) + 1/2 e_0^2 / P0
       + 1/2 sum_t g_t dt_t / (Rm (1 + (w_up,t / mrate)^2)) c^2 rho(|psi_t - e_t|^2 / c^2).
 
 Correction (`heading_correction`). q_t <- Rz(-s_t) q_t: a rotation about the world vertical on
@@ -96,8 +96,8 @@ class MagSettings:
     """The magnetometer stage's settings (`SmootherParams`' mag_* fields; see the module docstring).
 
     heading_noise_rad2_s: Rm, density of the heading measurement, rad^2 s.
-    heading_walk_rad_sqrt_s: sigma_h, density of the 6-D heading error's random walk, rad/sqrt(s).
-    init_std_rad: p0, std of the heading error at the first sample, rad.
+    heading_walk_rad2_s: Qm, density of the 6-D heading error's random walk, rad^2/s.
+    init_var_rad2: P0, variance of the heading error at the first sample, rad^2.
     rate_rad_s: mrate of eq. (2), rad/s (inf: constant variance).
     loss, loss_scale_rad: robust loss on the heading residual and its scale, rad.
     norm_gate_frac, dip_gate_rad, min_undisturbed_s: the gates.
@@ -106,8 +106,8 @@ class MagSettings:
     """
 
     heading_noise_rad2_s: float
-    heading_walk_rad_sqrt_s: float
-    init_std_rad: float
+    heading_walk_rad2_s: float
+    init_var_rad2: float
     rate_rad_s: float
     loss: str
     loss_scale_rad: float
@@ -274,8 +274,8 @@ def heading_correction(imu: ImuSamples, q: np.ndarray, s: MagSettings) -> tuple[
     if not diagnostics["mag_used"].any():
         diagnostics["mag_heading_correction_rad"] = np.zeros(T)
         return np.array(q, dtype=float), diagnostics
-    walk_var = s.heading_walk_rad_sqrt_s**2 * np.diff(t)
-    init_var = s.init_std_rad**2
+    walk_var = s.heading_walk_rad2_s * np.diff(t)
+    init_var = s.init_var_rad2
     robust = np.ones(T)
     c2 = s.loss_scale_rad**2
     for _ in range(IRLS_PASSES if s.loss != "none" else 1):

@@ -91,7 +91,7 @@ whose centre weight would be negative are refused with a ValueError: a negative 
 makes the quaternion mean an extrapolation that the iterative mean cannot guarantee.
 
 Robustness (all filters): gyro samples with `gyr_valid` False or non-finite values are
-not integrated (zero rate) and add `invalid_gyr_std_rad_s`^2 dt^2 to the attitude process
+not integrated (zero rate) and add `invalid_gyr_var_rad2_s2` dt^2 to the attitude process
 noise; non-finite accelerometer samples skip the update; the matrix square root falls back
 from Cholesky to a clipped eigen-decomposition and the covariance is symmetrised (and
 eigenvalue-clipped if needed) after every update; counts of these recoveries are in the
@@ -220,7 +220,7 @@ class UKFOptions(FilterParams):
 class UKFParams(UKFOptions):
     """Parameters of `ukf`, the quaternion UKF after Kraft 2003.
 
-    The fields of `FilterParams` (Q, R, P0, tauc, tauw, acc, gate, gate_g, hf, Qbad) and
+    The fields of `FilterParams` (Q, R, P0, tauc, tauw, acc, gate, gate_g, hf, Qinvalid) and
     `UKFOptions` (sigma, kappa, alpha, beta, tol, iters, impl), with these defaults of its own:
     process_noise_rad2_s (Q) = 1e-3 rad^2/s, disturbance_corr_s (tauc) = 0.5 s, gate_g = 0.1 g,
     heading_free (hf) = False (not in Kraft 2003; see the module docstring), acc_lowpass_s

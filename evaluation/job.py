@@ -145,7 +145,7 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     estimator = entry.build().for_recording(recording.id)
     q0 = initial_orientation(recording, init)
     start = time.perf_counter()
-    # Parameters far outside their range (`ekf:Q=1e308`, `gn:sa=1e-300`) overflow inside a filter:
+    # Parameters far outside their range (`ekf:Q=1e308`, `gn:R=1e-300`) overflow inside a filter:
     # numpy's floating-point warnings are silenced here and the result judged by its finiteness,
     # and a numerical exception becomes one line naming the estimator and the recording.
     where = f"{recording.id}: estimator {entry.label!r}"

@@ -32,7 +32,7 @@ SPECS = (
     "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
     # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
-    "ekf:vb=inf", "ekf:vb=0.3,sv=0.05", "ekf:bias=false,scale=false,vb=0.5",
+    "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25",
     # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
     # accelerometer low-pass on (with and without the scale noise in its drift density)
     "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
@@ -50,7 +50,7 @@ SPECS = (
 # so that the simulator's motion reaches it), and with fewer states
 MAG_SPECS = (
     "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
-    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:vb=inf,Rm=0.01",
+    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01",
     "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0",
 )
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
@@ -226,7 +226,7 @@ def test_covariance_repair_and_square_root_recovery_agree(spec):
 
     imu, truth = synthetic(200, noise=0.01)
     imu = broken(imu)
-    zero = "Q=0,P0=0,Qbad=0" + (",Pb0=0,Qb=0,Ps0=0,Qsw=0" if spec != "ukf" else ",Qs=0")
+    zero = "Q=0,P0=0,Qinvalid=0" + (",Pb0=0,Qb=0,Ps0=0,Qsw=0" if spec != "ukf" else ",Qs=0")
     spec = f"{spec}:{zero}"
     a, b = build(spec).estimate(imu, truth[0]), build(reference(spec)).estimate(imu, truth[0])
     assert_same(a, b)

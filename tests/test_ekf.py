@@ -144,7 +144,7 @@ def test_the_velocity_states_follow_the_translation(impl):
 
 def test_without_the_velocity_model_there_are_no_velocity_states():
     imu, truth = _fast_turning_with_translation(seconds=5.0)
-    for spec in ("ekf:vb=inf", "ekf:acc=false"):
+    for spec in ("ekf:Rv=inf", "ekf:acc=false"):
         est = build(spec).estimate(imu, truth[0])
         assert est.diagnostics["cov"].shape[1:] == (9, 9)
         np.testing.assert_array_equal(est.diagnostics["velocity_m_s"], 0.0)

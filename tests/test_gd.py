@@ -36,7 +36,7 @@ def test_gd_cost_defaults_are_gn_s():
     """One cost for both solvers: gd's defaults (noise weighting, Huber loss, bias and scale
     variables, velocity model) are those of `SmootherParams`, i.e. gn's."""
     assert GDParams().weights() == SmootherParams().weights()
-    assert GDParams().weighting == "noise" and GDParams().velocity_bound_m_sqrt_s < np.inf
+    assert GDParams().weighting == "noise" and GDParams().velocity_bound_m2_s < np.inf
 
 
 def test_gd_reaches_gn_s_cost_on_the_simulator():
@@ -110,8 +110,8 @@ def _small_problem(T: int = 30, seed: int = 0) -> tuple[SmootherProblem, np.ndar
     rng = np.random.default_rng(seed)
     t = np.cumsum(0.01 + 0.002 * rng.random(T))
     imu = ImuSamples(t, rng.normal(size=(T, 3)), rng.normal(size=(T, 3)) * 0.3 + [0, 0, 1])
-    weights = Weights(gyro_noise_rad_sqrt_s=0.02, acc_noise_g_sqrt_s=0.05, loss_scale_g=0.2, bias_axes="xy",
-                      scale_axes="xy", velocity_acc_noise_g_sqrt_s=0.01, velocity_bound_m_sqrt_s=0.5)
+    weights = Weights(process_noise_rad2_s=4e-4, acc_noise_g2_s=2.5e-3, loss_scale_g=0.2, bias_axes="xy",
+                      scale_axes="xy", velocity_acc_noise_g2_s=1e-4, velocity_bound_m2_s=0.25)
     problem = SmootherProblem.from_imu(imu, quat.IDENTITY, weights)
     q = quat.cumulative_product(np.concatenate([quat.IDENTITY[None], quat.from_rotvec(rng.normal(size=(T - 1, 3)) * 0.05)]))
     return problem, q, rng.normal(size=(T, 2)) * 0.1, rng.normal(size=problem.n_theta) * 0.01

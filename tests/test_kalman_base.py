@@ -34,7 +34,7 @@ def test_error_state_covariances_are_the_documented_blocks(spec, n):
         np.testing.assert_array_equal(m, np.diag(np.diag(m)))  # block diagonal, diagonal blocks
     np.testing.assert_array_equal(np.diag(P0)[:3], p.init_var_rad2)
     np.testing.assert_array_equal(np.diag(Q)[:3], p.process_noise_rad2_s)
-    np.testing.assert_array_equal(np.diag(Qbad), [p.invalid_gyr_std_rad_s**2] * 3 + [0.0] * (n - 3))
+    np.testing.assert_array_equal(np.diag(Qbad), [p.invalid_gyr_var_rad2_s2] * 3 + [0.0] * (n - 3))
     if n > 3:
         np.testing.assert_array_equal(np.diag(P0)[3:6], p.init_bias_var_rad2_s2)
         np.testing.assert_array_equal(np.diag(Q)[3:6], p.bias_walk_rad2_s3)

@@ -220,7 +220,7 @@ def test_the_inputs_are_untouched(sim, term):
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("bad", ["mterm=both", "Rm=0", "mwalk=-1", "mnorm=-0.1", "mdip=inf", "mtime=-1", "mrate=0", "mhuber=0",
+@pytest.mark.parametrize("bad", ["mterm=both", "Rm=0", "Qm=-1", "mnorm=-0.1", "mdip=inf", "mtime=-1", "mrate=0", "mhuber=0",
                                  "mloss=l1"])
 def test_bad_magnetometer_parameters_raise(bad):
     with pytest.raises(ValueError, match="mag_|mloss|mterm"):
@@ -267,7 +267,7 @@ def _mag_problem(loss: str, T: int = 30, seed: int = 0):
     t = np.cumsum(0.005 + 0.01 * rng.random(T))
     q = quat.normalize(rng.normal(size=(T, 4)))
     imu = ImuSamples(t, rng.normal(size=(T, 3)), quat.gravity_in_body(q) + rng.normal(size=(T, 3)) * 0.05)
-    weights = Weights(bias_axes="xy", scale_axes="x", velocity_acc_noise_g_sqrt_s=0.01, velocity_bound_m_sqrt_s=0.5)
+    weights = Weights(bias_axes="xy", scale_axes="x", velocity_acc_noise_g2_s=1e-4, velocity_bound_m2_s=0.25)
     problem = SmootherProblem.from_imu(imu, q[0], weights)
     q_ref = quat.normalize(q + rng.normal(size=(T, 4)) * 0.2)
     w_mag = rng.uniform(1e3, 1e5, T) * (np.arange(T) % 4 != 0)

@@ -65,3 +65,71 @@ def test_filter_params_share_one_base_with_one_alias_per_field():
             cls(process_noise_rad2_s=-1.0)
     with pytest.raises(ValueError, match="^ekf: scale_max must be in"):
         EKFParams(scale_max=1.5)
+
+
+def test_filters_and_smoothers_spell_each_noise_one_way():
+    """Every noise and prior parameter is a variance, and one physical quantity has one name and
+    alias in the filters and the smoothers alike."""
+    import dataclasses as dc
+
+    from fusion.estimators.ekf import EKFParams
+    from fusion.estimators.params import FORMERLY_STD
+    from fusion.estimators.smoother import SmootherParams
+
+    filt = {f.name: f.metadata.get("alias") for f in dc.fields(EKFParams)}
+    smooth = {f.name: f.metadata.get("alias") for f in dc.fields(SmootherParams)}
+    shared = {"process_noise_rad2_s", "acc_noise_g2_s", "init_var_rad2", "init_bias_var_rad2_s2", "init_scale_var",
+              "rest_noise_rad2_s", "mag_heading_noise_rad2_s", "velocity_acc_noise_g2_s", "velocity_bound_m2_s"}
+    assert shared <= set(filt) & set(smooth)
+    assert all(filt[name] == smooth[name] for name in shared)
+    # No field of either is still a standard deviation of a noise or prior.
+    assert not (set(filt) | set(smooth)) & set(FORMERLY_STD)
+
+
+@pytest.mark.parametrize("old, new, name, value", [
+    ("gn:sa=0.2", "gn:R=0.04", "acc_noise_g2_s", 0.04),
+    ("gn:vb=0.5,sg=0.01", "gn:Rv=0.25,Q=1e-4", "velocity_bound_m2_s", 0.25),
+    ("gd:bias_prior_rad_s=0.1", "gd:Pb0=0.01", "init_bias_var_rad2_s2", 0.01),
+    ("ekf:Qbad=2", "ekf:Qinvalid=4", "invalid_gyr_var_rad2_s2", 4.0),
+    ("ekf:vb=inf", "ekf:Rv=inf", "velocity_bound_m2_s", float("inf")),
+])
+def test_former_standard_deviations_are_squared_with_a_warning(old, new, name, value):
+    from fusion.estimators import build
+
+    with pytest.warns(FutureWarning, match=r"\(a standard deviation\) is now .* removed in the next release"):
+        params = build(old).params
+    assert getattr(params, name) == pytest.approx(value, rel=1e-15)
+    assert getattr(build(new).params, name) == pytest.approx(value, rel=1e-15)
+
+
+def test_former_spellings_in_python_and_their_errors():
+    from fusion.estimators import build
+    from fusion.estimators.smoother import SmootherParams
+    from fusion.estimators.smoother_cost import Weights
+
+    with pytest.warns(FutureWarning, match="^gn: gyro_noise_rad_sqrt_s=0.02"):
+        assert SmootherParams(gyro_noise_rad_sqrt_s=0.02).process_noise_rad2_s == pytest.approx(4e-4, rel=1e-15)
+    with pytest.warns(FutureWarning):
+        assert Weights(acc_noise_g_sqrt_s=0.1).acc_noise_g2_s == pytest.approx(0.01, rel=1e-15)
+    with pytest.raises(ValueError, match="'sa'.* must be a number >= 0 \\(a standard deviation\\), got -1.0"):
+        build("gn:sa=-1")
+    with pytest.raises(ValueError, match="one parameter: give R only"):
+        build("gn:sa=0.2,R=0.04")
+    with pytest.raises(ValueError, match="unknown parameter 'sa'"):  # ukf never had it
+        build("ukf:sa=0.2")
+
+
+def test_former_attributes_read_as_standard_deviations_with_a_warning():
+    import pickle
+
+    from fusion.estimators.ekf import EKFParams
+    from fusion.estimators.smoother import SmootherParams
+
+    params = SmootherParams()
+    with pytest.warns(FutureWarning, match="^acc_noise_g_sqrt_s .* is now acc_noise_g2_s"):
+        assert params.acc_noise_g_sqrt_s == pytest.approx(0.2, rel=1e-15)
+    with pytest.warns(FutureWarning):
+        assert EKFParams().invalid_gyr_std_rad_s == 2.0
+    with pytest.raises(AttributeError):  # an alias was never an attribute
+        params.sa
+    assert pickle.loads(pickle.dumps(params)) == params

@@ -31,7 +31,7 @@ def random_point(problem: SmootherProblem, seed: int = 1) -> tuple[np.ndarray, n
     return q, rng.normal(size=problem.n_theta) * 0.05
 
 
-WEIGHTS = Weights(gyro_noise_rad_sqrt_s=0.02, acc_noise_g_sqrt_s=0.01, loss_scale_g=0.15, bias_axes="xyz", scale_axes="xy")
+WEIGHTS = Weights(process_noise_rad2_s=4e-4, acc_noise_g2_s=1e-4, loss_scale_g=0.15, bias_axes="xyz", scale_axes="xy")
 
 
 def test_gradient_matches_finite_differences():
@@ -71,7 +71,7 @@ def test_jacobian_blocks_match_finite_differences():
     """Without the robust loss, the assembled normal-equation blocks equal J^T J of the
     finite-difference Jacobian of the weighted residuals."""
     imu = random_imu(T=15)
-    weights = Weights(gyro_noise_rad_sqrt_s=0.02, acc_noise_g_sqrt_s=0.01, loss_scale_g=np.inf, bias_axes="z", scale_axes="xy")
+    weights = Weights(process_noise_rad2_s=4e-4, acc_noise_g2_s=1e-4, loss_scale_g=np.inf, bias_axes="z", scale_axes="xy")
     problem = SmootherProblem.from_imu(imu, quat.normalize(np.array([0.9, 0.1, -0.2, 0.3])), weights)
     q, theta = random_point(problem)
     T, P = len(q), problem.n_theta
@@ -126,8 +126,8 @@ def test_zero_accelerometer_weight_gives_dead_reckoning():
     q0 = quat.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
     dr = build("dr").estimate(imu, q0).quat_wxyz
     # the motion term alone: no accelerometer (nor the velocity model built on it), no calibration
-    gn = GaussNewtonSmoother(SmootherParams(acc_noise_g_sqrt_s=np.inf, bias_axes="", scale_axes="",
-                                            velocity_acc_noise_g_sqrt_s=np.inf, velocity_bound_m_sqrt_s=np.inf,
+    gn = GaussNewtonSmoother(SmootherParams(acc_noise_g2_s=np.inf, bias_axes="", scale_axes="",
+                                            velocity_acc_noise_g2_s=np.inf, velocity_bound_m2_s=np.inf,
                                             progress=False))
     problem = gn.problem(imu, q0)
     assert problem.cost(dr) < 1e-20  # dead reckoning is an exact zero of the cost
@@ -220,13 +220,13 @@ def test_self_calibration_recovers_the_observable_scales():
     (-0.0875, -0.0410 measured vs -0.0826, -0.0385)."""
     imu, _, q0 = _sim_imu(60.0)
     # the cost as it was measured: accelerometer density 0.005 g sqrt(s), no bias or velocity model
-    est = build("gn:scale=xy,bias=none,sv=inf,vb=inf,sa=0.005,scale_prior=0.2,tol=1e-7,progress=false").estimate(imu, q0)
+    est = build("gn:scale=xy,bias=none,Qv=inf,Rv=inf,R=2.5e-5,Ps0=0.04,tol=1e-7,progress=false").estimate(imu, q0)
     k = est.diagnostics["gyr_scale_error"]
     np.testing.assert_allclose(k[:2], [1 / 1.09 - 1, 1 / 1.04 - 1], atol=0.01)
     assert np.all(est.diagnostics["theta_std"] < 0.1 * est.diagnostics["theta_prior_std"])
 
 
-@pytest.mark.parametrize("text", ["gn:sg=-1", "gn:bias=xw", "gn:scale=xx", "gn:iters=0", "gd:bias=xw", "gd:every=0", "gn:init=gn",
+@pytest.mark.parametrize("text", ["gn:Q=-1", "gn:bias=xw", "gn:scale=xx", "gn:iters=0", "gd:bias=xw", "gd:every=0", "gn:init=gn",
                                   "gn:level=-1", "gd:level=inf"])
 def test_bad_parameters_raise(text):
     with pytest.raises(ValueError):

@@ -37,8 +37,8 @@ def test_rest_term_derivatives_match_finite_differences():
     """With a rest mask, the cost's gradient in theta and its theta block (exact for this
     linear residual) agree with central differences of the cost."""
     imu = random_imu(T=30, dropout=False)
-    weights = Weights(gyro_noise_rad_sqrt_s=0.02, acc_noise_g_sqrt_s=0.01, loss_scale_g=np.inf, bias_axes="xyz",
-                      scale_axes="xy", rest_noise_rad_sqrt_s=0.05)
+    weights = Weights(process_noise_rad2_s=4e-4, acc_noise_g2_s=1e-4, loss_scale_g=np.inf, bias_axes="xyz",
+                      scale_axes="xy", rest_noise_rad2_s=2.5e-3)
     rest = np.zeros(len(imu) - 1, bool)
     rest[5:17] = True
     problem = SmootherProblem.from_imu(imu, quat.normalize(np.array([0.9, 0.1, -0.2, 0.3])), weights, rest=rest)

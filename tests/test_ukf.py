@@ -213,7 +213,7 @@ def test_without_accelerometer_and_noise_equals_dead_reckoning(cls, kw):
     valid[100:130] = False  # invalid gyro samples are not integrated, as in dr
     imu = imu.replace(gyr_valid=valid)
     q0 = np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3])
-    params = cls.Params(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, invalid_gyr_std_rad_s=0.0, **kw)
+    params = cls.Params(use_acc=False, process_noise_rad2_s=0.0, init_var_rad2=0.0, invalid_gyr_var_rad2_s2=0.0, **kw)
     est = cls(params).estimate(imu, q0)
     ref = DeadReckoning().estimate(imu, q0)
     assert np.max(np.abs(quat.canonical(est.quat_wxyz) - quat.canonical(ref.quat_wxyz))) < 1e-9

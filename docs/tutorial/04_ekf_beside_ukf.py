@@ -16,12 +16,12 @@
 # quaternion, the same body-frame rotation-vector error $e$ with $q_\text{true} = q \otimes \operatorname{Exp}(e)$, the
 # same gyro bias and scale-factor states and noise model as `ukf-bias`. By default `ekf` also
 # carries two horizontal velocity states, which `ukf-bias` does not, and low-passes the
-# accelerometer over 2 s instead of 1 s; without them and with 1 s (`ekf:vb=inf,taulp=1`) the two
+# accelerometer over 2 s instead of 1 s; without them and with 1 s (`ekf:Rv=inf,taulp=1`) the two
 # differ *only* in how the covariance is propagated. In this notebook:
 #
 # 1. the Jacobians, each checked against finite differences;
 # 2. the unscented transform against the linearisation, as the uncertainty grows;
-# 3. `ekf:vb=inf,taulp=1` and `ukf-bias` on the course recordings: how far apart they are, and why;
+# 3. `ekf:Rv=inf,taulp=1` and `ukf-bias` on the course recordings: how far apart they are, and why;
 # 4. what the velocity states add, and what the filter believes about them.
 #
 # Reference for the error-state formulation: J. Sola, "Quaternion kinematics for the error-state
@@ -165,7 +165,7 @@ plt.show()
 # The two filters share `BiasFilterParams`: the same noise densities, the same adaptive
 # accelerometer variance, the same zero-rate bias update at rest, the same gain projection
 # (`heading_free`). To compare the propagations alone, `ekf` runs without its velocity states and
-# with `ukf-bias`'s 1 s low-pass (`ekf:vb=inf,taulp=1`, the model `ukf-bias` has; section 4.4 adds
+# with `ukf-bias`'s 1 s low-pass (`ekf:Rv=inf,taulp=1`, the model `ukf-bias` has; section 4.4 adds
 # the velocity states back). Run both:
 
 # %%
@@ -176,7 +176,7 @@ def timed(spec, recording):
     return trajectory, (time.perf_counter() - start) / len(recording.imu) * 1e6
 
 
-EKF_AS_UKF = "ekf:vb=inf,taulp=1"  # the ekf with ukf-bias's model: no velocity states, its 1 s low-pass
+EKF_AS_UKF = "ekf:Rv=inf,taulp=1"  # the ekf with ukf-bias's model: no velocity states, its 1 s low-pass
 ekf, us_ekf = timed(EKF_AS_UKF, rec)
 ukfb, us_ukf = timed("ukf-bias", rec)
 apart = np.degrees(np.linalg.norm(quat.relative_rotvec(ekf.quat_wxyz, ukfb.quat_wxyz), axis=1))
@@ -226,7 +226,7 @@ plt.show()
 # %% [markdown]
 # Until the gyro freeze the two filters agree to about $10^{-3}$ degrees: the tilt $\sigma$ is below a degree
 # and the linearisation is exact for all practical purposes. Inside the freeze the filters
-# integrate nothing and inflate the attitude noise (`invalid_gyr_std_rad_s`, 2 rad/s): the tilt
+# integrate nothing and inflate the attitude noise (`invalid_gyr_var_rad2_s2`, a 2 rad/s standard deviation): the tilt
 # $\sigma$ jumps to 5-7 degrees, where section 4.2 showed the two propagations part. They come out of
 # it with slightly different attitudes and gyro bias and scale estimates (the printed differences
 # above). From then on the difference rises and falls with the motion, since a scale estimate that
@@ -318,13 +318,13 @@ plt.show()
 # The same on every course recording, with and without the velocity states:
 
 # %%
-print(f"{'recording':<12} {'inclination RMSE ekf / ekf:vb=inf (deg)':>40}")
+print(f"{'recording':<12} {'inclination RMSE ekf / ekf:Rv=inf (deg)':>40}")
 rows = []
 for rid in course_recordings():
     r_i = rec if rid == rec.id else datasets.load(rid)
     if r_i.truth is None:
         continue
-    pair = [score(r_i.truth, timed(spec, r_i)[0]).rmse_deg["inclination"] for spec in ("ekf", "ekf:vb=inf")]
+    pair = [score(r_i.truth, timed(spec, r_i)[0]).rmse_deg["inclination"] for spec in ("ekf", "ekf:Rv=inf")]
     rows.append(pair)
     print(f"{rid:<12} {pair[0]:27.3f} / {pair[1]:.3f}")
 if rows:
@@ -342,7 +342,7 @@ if rows:
 #   and the noise; the EKF propagates the covariance with $F = R(\theta)^\top$ (and $-J_r \Delta t$ for the
 #   bias) and $H = [h]_\times$, the UKF with sigma points.
 # * The linearisation error grows like $\sigma^2$; at a filter's usual $\sigma$ of a degree it is
-#   negligible, so `ekf:vb=inf,taulp=1` and `ukf-bias` agree to hundredths of a degree on real data (at most
+#   negligible, so `ekf:Rv=inf,taulp=1` and `ukf-bias` agree to hundredths of a degree on real data (at most
 #   0.04 degrees on ece276a/1, 0.32 on the worst course recording), and part mainly when a gyro
 #   freeze blows up $P$.
 # * At that agreement, the cheaper filter wins: the EKF takes about half the time per sample.

@@ -68,8 +68,8 @@ t = imu.t - imu.t[0]
 #   reading as a fixed bias.
 #
 # The weights are those of continuous-time white noise, so one setting means the same at any
-# sampling rate: $w_{m,t} = 1/(\sigma_g^2 \Delta t_t)$ (an angle random walk) and
-# $w_{a,t} = \Delta t_t / \sigma_a^2$. `BatchSmoother.problem` builds the cost of a recording from the
+# sampling rate: $w_{m,t} = 1/(Q \Delta t_t)$ (an angle random walk of variance density $Q$, the
+# filters' Q) and $w_{a,t} = \Delta t_t / R$. `BatchSmoother.problem` builds the cost of a recording from the
 # estimator's parameters; we evaluate it on dead reckoning (the starting point) and on the result.
 
 # %%
@@ -263,5 +263,5 @@ plt.show()
 #   a preconditioner; without it, it crawls.
 # * `diagnostics["loss"]` (and `elapsed_s`) record the descent of every solver.
 #
-# **Try it:** `gn:loss=none` (plain least squares) or `gn:sa=0.02` (trust the accelerometer ten
-# times more): what happens to the inclination error during the hand's accelerations?
+# **Try it:** `gn:loss=none` (plain least squares) or `gn:R=4e-4` (an accelerometer variance a hundred
+# times smaller): what happens to the inclination error during the hand's accelerations?
