@@ -356,3 +356,13 @@ def test_recording_with_a_camera_file(tmp_path):
     scores = panorama_scores(rec, truth)
     assert scores["frames_used"] == 12 and scores["psnr_db"] == math.inf
     assert math.isnan(scores["scene_psnr_db"])
+
+
+def test_stitching_takes_arrays_and_one_module_reads_the_recordings_files():
+    """The stitching and its scores work on arrays (`stitching`: no camera file or scene read
+    there); `panorama` reads a recording's camera file or scene and offers the stitching's names."""
+    from fusion.evaluation import panorama, stitching
+
+    assert not {"load_camera", "camsim", "scene_for"} & set(vars(stitching))
+    assert {"load_camera", "camsim"} <= set(vars(panorama))
+    assert panorama.Stitcher is stitching.Stitcher and panorama.stitch is stitching.stitch
