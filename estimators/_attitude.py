@@ -416,6 +416,69 @@ class RestDetector:
         return self.time_still >= self.min_time
 
 
+# ------------------------------------------------------------------ stuck gyro (online)
+STUCK_STATE = 21  # `stuck_gyro_update`'s state: see `stuck_gyro_state`
+
+
+def stuck_gyro_state() -> np.ndarray:
+    """(21,) float64, a fresh state of `stuck_gyro_update`: `[resolution (3), previous reading (3),
+    has previous, run's gyro low (3) and high (3), its accelerometer low (3) and high (3),
+    run duration s, has run]`; the resolution starts unknown (inf)."""
+    state = np.zeros(STUCK_STATE)
+    state[:3] = np.inf
+    return state
+
+
+def stuck_gyro_update(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, dt_s: float, valid: bool,
+                      window_s: float, steps: float, acc_p2p_g: float) -> bool:
+    """One step of the online stuck-gyro check; -> whether this gyro reading is stuck.
+
+    The causal form of `fusion.checks.detect_freezes` (the same thresholds,
+    `fusion.checks.FreezeDetector`), for a gyro freeze nobody flagged: a gyro whose three
+    channels stay within `steps` steps of their resolution for `window_s` seconds while the
+    accelerometer moves by more than `acc_p2p_g` (peak to peak, g) is not measuring the motion
+    the accelerometer sees, since a real gyro's noise moves it by more than that in a moving
+    hand. The resolution of each channel is the smallest non-zero change between two
+    consecutive readings seen so far (one ADC count on the course board); until a channel has
+    shown one, it is not judged (a gyro without noise, a simulation, is never called stuck).
+    The run restarts at any reading that leaves the band, and at an invalid or non-finite one.
+    s: the state (`stuck_gyro_state`), advanced in place; gyr (3,) rad/s, acc (3,) g.
+    The same function runs in the numpy `step` and, compiled, in the batch path.
+    """
+    if not (valid and math.isfinite(gyr[0] + gyr[1] + gyr[2] + acc[0] + acc[1] + acc[2])):
+        s[20] = 0.0
+        return False
+    if s[6] > 0.0:
+        for c in range(3):
+            d = abs(gyr[c] - s[3 + c])
+            if 0.0 < d < s[c]:
+                s[c] = d
+    for c in range(3):
+        s[3 + c] = gyr[c]
+    s[6] = 1.0
+    extends = s[20] > 0.0
+    for c in range(3):
+        if not extends:
+            break
+        band = max(s[10 + c], gyr[c]) - min(s[7 + c], gyr[c])
+        extends = math.isfinite(s[c]) and band <= steps * s[c] * (1.0 + 1e-9)
+    if extends:
+        for c in range(3):
+            s[7 + c] = min(s[7 + c], gyr[c])
+            s[10 + c] = max(s[10 + c], gyr[c])
+            s[13 + c] = min(s[13 + c], acc[c])
+            s[16 + c] = max(s[16 + c], acc[c])
+        s[19] += dt_s
+    else:
+        for c in range(3):
+            s[7 + c] = s[10 + c] = gyr[c]
+            s[13 + c] = s[16 + c] = acc[c]
+        s[19] = 0.0
+        s[20] = 1.0
+    moved = max(s[16] - s[13], s[17] - s[14], s[18] - s[15])
+    return s[19] >= window_s and moved > acc_p2p_g
+
+
 def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r_rad2_s2: float) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with the rest pseudo-measurement `gyr = b + noise` (true rate zero).
 

@@ -54,10 +54,11 @@ from fusion.types import STANDARD_GRAVITY_M_S2
 
 from ._attitude import (COV_FLOOR, COV_RESET_VAR, HARD_IRON_STATE, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector,
                         models_lag)
+from . import _attitude
 from ._kernel_cache import forget_stale_kernels
 from .filter_params import BiasFilterParams
 
-forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
+forget_stale_kernels(__file__, [quat.__file__, _attitude.__file__])  # the kernels compile functions of both
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 _OPTIONS = dict(error_model="numpy", nogil=True)
@@ -210,6 +211,19 @@ def load() -> None:
 # `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels
 # (`_kernel_cache.forget_stale_kernels` drops this module's cache when that module changes).
 qmul = _jit(quat.multiply_floats)
+_stuck_update = _jit(_attitude.stuck_gyro_update)
+
+
+@_jit
+def stuck_intervals(gyr, dt, acc_end, valid, state, window_s, steps, acc_p2p_g):
+    """(N - 1,) bool: `_attitude.stuck_gyro_update` over every step (gyro reading, interval,
+    accelerometer sample at its end, validity), advancing `state` in place."""
+    out = np.zeros(len(dt), dtype=np.bool_)
+    for k in range(len(dt)):
+        out[k] = _stuck_update(state, gyr[k], acc_end[k], dt[k], valid[k], window_s, steps, acc_p2p_g)
+    return out
+
+
 qexp = _jit(quat.exp_floats)  # (vx, vy, vz, small): small is `quaternion.SMALL_ANGLE`
 qlog = _jit(quat.log_floats)
 qnormalize = _jit(quat.normalize_floats)

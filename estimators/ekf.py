@@ -158,6 +158,7 @@ from ._attitude import (
     magnetometer_input,
     models_lag,
     repair_covariance,
+    stuck_gyro_state,
 )
 from .filter_params import BiasFilterParams
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
@@ -258,6 +259,7 @@ class EKF(KalmanFilter):
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
+        self._stuck = stuck_gyro_state()
         self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
         self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self._F = np.eye(N)
@@ -278,6 +280,7 @@ class EKF(KalmanFilter):
         uT, body frame, or None (no magnetometer, or no valid sample): the heading update."""
         p = self.params
         n = self.n
+        gyr_valid = self._usable(gyr_rad_s, dt_s, acc_g, gyr_valid)
         self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
         self.mag_used = self.hard_iron_used = False
         Q = self._Qrate * dt_s

@@ -70,6 +70,11 @@ class FilterParams(FormerSpellings):
         predicted vertical (see the `ukf` and `ekf` module docstrings).
     invalid_gyr_var_rad2_s2 (Qinvalid): assumed rate variance on invalid gyro samples,
         (rad/s)^2 (4: a 2 rad/s standard deviation).
+    stuck_gyro_check (stuck): a gyro reading found stuck online (`_attitude.stuck_gyro_update`:
+        all channels flat within their resolution while the accelerometer moves, the causal
+        form of `fusion.checks.detect_freezes`) is treated as invalid, so that a freeze that
+        nobody flagged (`--dropouts off`, or an IMU whose freezes the loader does not know)
+        does not hold the attitude still while the board turns.
 
     Every noise and prior parameter is a variance (a variance density for continuous-time
     noise), here and in the smoothers; a datasheet's noise density n, given as a standard
@@ -93,6 +98,7 @@ class FilterParams(FormerSpellings):
     gate_g: float = 0.2
     heading_free: bool = field(default=True, metadata={"alias": "hf"})
     invalid_gyr_var_rad2_s2: float = field(default=4.0, metadata={"alias": "Qinvalid"})
+    stuck_gyro_check: bool = field(default=True, metadata={"alias": "stuck"})
 
     def __post_init__(self) -> None:
         self._check()

@@ -13,9 +13,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from fusion.checks import FreezeDetector
 from fusion.types import ImuSamples, Trajectory
 
-from ._attitude import UNESTIMATED_VAR, axes_mask
+from ._attitude import UNESTIMATED_VAR, axes_mask, stuck_gyro_state, stuck_gyro_update
 from .base import RecursiveEstimator
 
 
@@ -63,8 +64,11 @@ class KalmanFilter(RecursiveEstimator):
     it implements `_run_kernel`, and names in `LAST_ROW`
     the per-sample attributes of `current()` that the kernel records (diagnostics key ->
     attribute), so that after a compiled run the filter is in the state of the last sample, as
-    after the loop of `step`.
+    after the loop of `step`. Its `step` takes the gyro reading through `_usable` (the online
+    stuck-gyro check), which the compiled path applies to the whole recording first.
     """
+
+    FREEZES: ClassVar[FreezeDetector] = FreezeDetector()  # the stuck-gyro check's thresholds
 
     LAST_ROW: ClassVar[dict[str, str]] = {"acc_var_g2": "acc_var", "at_rest": "at_rest", "nis": "nis",
                                           "acc_lowpassed": "lowpassed"}
@@ -75,6 +79,31 @@ class KalmanFilter(RecursiveEstimator):
             from . import _compiled  # numba is imported when a compiled filter is built
 
             _compiled.load()  # compile or load the kernels here, not in the first (timed) estimate
+
+    def _usable(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> bool:
+        """Whether `step` integrates this gyro reading: `gyr_valid`, and with `stuck_gyro_check`
+        not stuck (`_attitude.stuck_gyro_update`, whose state `reset` starts afresh)."""
+        if not self.params.stuck_gyro_check:
+            return gyr_valid
+        f = self.FREEZES
+        stuck = stuck_gyro_update(self._stuck, gyr_rad_s, acc_g, dt_s, gyr_valid, f.window_s, f.gyro_p2p_steps,
+                                  f.acc_p2p_g)
+        return gyr_valid and not stuck
+
+    def _unstuck(self, kernels: Any, imu: ImuSamples) -> ImuSamples:
+        """`imu` with the readings `_usable` would refuse marked invalid (the compiled check over
+        the whole recording, from the reset state, which it advances as `step` would)."""
+        if not self.params.stuck_gyro_check:
+            return imu
+        (gyr, valid), f = imu.interval_rates(), self.FREEZES
+        stuck = kernels.stuck_intervals(gyr, imu.dt, np.ascontiguousarray(imu.acc_g[1:]), valid, self._stuck,
+                                        f.window_s, f.gyro_p2p_steps, f.acc_p2p_g)
+        if not stuck.any():
+            return imu
+        first = 1 if imu.gyr_timing == "end" else 0
+        gyr_valid = np.array(imu.gyr_valid)
+        gyr_valid[first:first + len(stuck)] &= ~stuck
+        return imu.replace(gyr_valid=gyr_valid)
 
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
                     rest: np.ndarray) -> None:
@@ -91,6 +120,7 @@ class KalmanFilter(RecursiveEstimator):
         from . import _compiled  # numba is imported on first use
 
         self.reset_for(imu, np.asarray(init_quat_wxyz, dtype=float))
+        imu = self._unstuck(_compiled, imu)
         out = _compiled.outputs(len(imu), len(self.current()["cov"]), init_quat_wxyz, self.current())
         dist = self._dist.state()
         rest = self._rest.state() if self._rest is not None else np.zeros(5)

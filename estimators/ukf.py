@@ -150,6 +150,7 @@ from ._attitude import (
     inv_sym3,
     models_lag,
     repair_covariance,
+    stuck_gyro_state,
     sqrt_psd,
 )
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
@@ -607,6 +608,7 @@ class UKF(KalmanFilter):
         self._with_lag = models_lag(p, n)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
+        self._stuck = stuck_gyro_state()
         if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
             self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
             self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
@@ -625,6 +627,7 @@ class UKF(KalmanFilter):
         """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
         uT, body frame, or None: the heading update of `ukf-bias` in 9-D (`ukf` ignores it)."""
         p, kf, n = self.params, self.kf, self.n
+        gyr_valid = self._usable(gyr_rad_s, dt_s, acc_g, gyr_valid)
         self.acc_var, self.at_rest, self.nis, self.lowpassed = math.nan, False, math.nan, False
         self.mag_used = self.hard_iron_used = False
         Q = self._Qrate * dt_s
