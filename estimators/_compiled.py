@@ -204,6 +204,7 @@ def load() -> None:
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
                out["mag_hard_iron"])
+    stuck_intervals(*inputs_[:1], inputs_[2], inputs_[3][1:], inputs_[1], _attitude.stuck_gyro_state(), 0.2, 2.0, 0.08)
     _loaded = True
 
 
@@ -211,6 +212,14 @@ def load() -> None:
 # `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels
 # (`_kernel_cache.forget_stale_kernels` drops this module's cache when that module changes).
 qmul = _jit(quat.multiply_floats)
+qexp = _jit(quat.exp_floats)  # (vx, vy, vz, small): small is `quaternion.SMALL_ANGLE`
+qlog = _jit(quat.log_floats)
+qnormalize = _jit(quat.normalize_floats)
+gravity = _jit(quat.gravity_floats)  # R(q)^T e_z
+_rotation = _jit(quat.rotation_floats)
+
+
+# The online stuck-gyro check of the filters (`_attitude`), compiled over a whole recording.
 _stuck_update = _jit(_attitude.stuck_gyro_update)
 
 
@@ -222,13 +231,6 @@ def stuck_intervals(gyr, dt, acc_end, valid, state, window_s, steps, acc_p2p_g):
     for k in range(len(dt)):
         out[k] = _stuck_update(state, gyr[k], acc_end[k], dt[k], valid[k], window_s, steps, acc_p2p_g)
     return out
-
-
-qexp = _jit(quat.exp_floats)  # (vx, vy, vz, small): small is `quaternion.SMALL_ANGLE`
-qlog = _jit(quat.log_floats)
-qnormalize = _jit(quat.normalize_floats)
-gravity = _jit(quat.gravity_floats)  # R(q)^T e_z
-_rotation = _jit(quat.rotation_floats)
 
 
 @_jit
