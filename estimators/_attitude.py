@@ -17,6 +17,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from fusion import quaternion as quat
+from fusion.checks import FreezeDetector
 
 SQRT_FLOOR = 0.0  # eigenvalues of a failed square root are clipped to this (sqrt_psd)
 COV_FLOOR = 1e-15  # eigenvalues of a repaired covariance are clipped to this (repair_covariance)
@@ -418,6 +419,8 @@ class RestDetector:
 
 # ------------------------------------------------------------------ stuck gyro (online)
 STUCK_STATE = 21  # `stuck_gyro_update`'s state: see `stuck_gyro_state`
+# Its thresholds (window_s, steps, acc_p2p_g): the offline detector's (`FreezeDetector`).
+STUCK_THRESHOLDS = (FreezeDetector.window_s, FreezeDetector.gyro_p2p_steps, FreezeDetector.acc_p2p_g)
 
 
 def stuck_gyro_state() -> np.ndarray:
@@ -434,7 +437,7 @@ def stuck_gyro_update(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, dt_s: flo
     """One step of the online stuck-gyro check; -> whether this gyro reading is stuck.
 
     The causal form of `fusion.checks.detect_freezes` (the same thresholds,
-    `fusion.checks.FreezeDetector`), for a gyro freeze nobody flagged: a gyro whose three
+    `STUCK_THRESHOLDS`), for a gyro freeze nobody flagged: a gyro whose three
     channels stay within `steps` steps of their resolution for `window_s` seconds while the
     accelerometer moves by more than `acc_p2p_g` (peak to peak, g) is not measuring the motion
     the accelerometer sees, since a real gyro's noise moves it by more than that in a moving

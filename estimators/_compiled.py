@@ -204,7 +204,8 @@ def load() -> None:
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
                out["mag_hard_iron"])
-    stuck_intervals(*inputs_[:1], inputs_[2], inputs_[3][1:], inputs_[1], _attitude.stuck_gyro_state(), 0.2, 2.0, 0.08)
+    gyr, valid, dt, acc = inputs_
+    stuck_intervals(gyr, dt, acc[1:], valid, _attitude.stuck_gyro_state(), *_attitude.STUCK_THRESHOLDS)
     _loaded = True
 
 

@@ -13,10 +13,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from fusion.checks import FreezeDetector
 from fusion.types import ImuSamples, Trajectory
 
-from ._attitude import UNESTIMATED_VAR, axes_mask, stuck_gyro_state, stuck_gyro_update
+from ._attitude import STUCK_THRESHOLDS, UNESTIMATED_VAR, axes_mask, stuck_gyro_update
 from .base import RecursiveEstimator
 
 
@@ -68,8 +67,6 @@ class KalmanFilter(RecursiveEstimator):
     stuck-gyro check), which the compiled path applies to the whole recording first.
     """
 
-    FREEZES: ClassVar[FreezeDetector] = FreezeDetector()  # the stuck-gyro check's thresholds
-
     LAST_ROW: ClassVar[dict[str, str]] = {"acc_var_g2": "acc_var", "at_rest": "at_rest", "nis": "nis",
                                           "acc_lowpassed": "lowpassed"}
 
@@ -85,19 +82,16 @@ class KalmanFilter(RecursiveEstimator):
         not stuck (`_attitude.stuck_gyro_update`, whose state `reset` starts afresh)."""
         if not self.params.stuck_gyro_check:
             return gyr_valid
-        f = self.FREEZES
-        stuck = stuck_gyro_update(self._stuck, gyr_rad_s, acc_g, dt_s, gyr_valid, f.window_s, f.gyro_p2p_steps,
-                                  f.acc_p2p_g)
-        return gyr_valid and not stuck
+        return gyr_valid and not stuck_gyro_update(self._stuck, gyr_rad_s, acc_g, dt_s, gyr_valid, *STUCK_THRESHOLDS)
 
     def _unstuck(self, kernels: Any, imu: ImuSamples) -> ImuSamples:
         """`imu` with the readings `_usable` would refuse marked invalid (the compiled check over
         the whole recording, from the reset state, which it advances as `step` would)."""
         if not self.params.stuck_gyro_check:
             return imu
-        (gyr, valid), f = imu.interval_rates(), self.FREEZES
+        gyr, valid = imu.interval_rates()
         stuck = kernels.stuck_intervals(gyr, imu.dt, np.ascontiguousarray(imu.acc_g[1:]), valid, self._stuck,
-                                        f.window_s, f.gyro_p2p_steps, f.acc_p2p_g)
+                                        *STUCK_THRESHOLDS)
         if not stuck.any():
             return imu
         first = 1 if imu.gyr_timing == "end" else 0

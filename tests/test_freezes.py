@@ -82,6 +82,16 @@ def test_the_detector_checks_its_settings():
         FreezeDetector(noise_ratio=-1)
 
 
+def online_stuck(imu: ImuSamples, rates: np.ndarray) -> np.ndarray:
+    """The filters' online check over a recording, compiled: step k integrates `rates[k]` (the
+    reading k + 1) with the accelerometer sample k + 1; -> (N - 1,) stuck flags."""
+    from fusion.estimators import _compiled
+    from fusion.estimators._attitude import STUCK_THRESHOLDS, stuck_gyro_state
+
+    return _compiled.stuck_intervals(np.ascontiguousarray(rates), np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
+                                     np.ones(len(imu) - 1, bool), stuck_gyro_state(), *STUCK_THRESHOLDS)
+
+
 @pytest.mark.parametrize("rate_hz", [100.0, 285.7])
 @pytest.mark.parametrize("seconds, value_deg_s, step", [(1.0, [3.0, -7.5, 120.0], 0.0), (3.0, [0.0, 0.0, 0.0], 0.0),
                                                         (1.5, [11.0, 9.0, 8.0], 0.97)])
@@ -89,43 +99,29 @@ def test_the_filters_online_check_finds_a_stuck_gyro_as_it_happens(rate_hz, seco
     """The filters' causal check (`_attitude.stuck_gyro_update`, the thresholds of `FreezeDetector`)
     marks a stuck gyro from `window_s` after it sticks to its end, and nothing else; the numpy
     step's loop and the compiled batch loop agree."""
-    from fusion.estimators import _compiled
-    from fusion.estimators._attitude import stuck_gyro_state, stuck_gyro_update
+    from fusion.estimators._attitude import STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
 
     imu = moving_imu(rate_hz, step_deg_s=step)
     first, stop = int(8.0 * rate_hz), int((8.0 + seconds) * rate_hz)
     gyr = np.array(imu.gyr_rad_s)
     gyr[first:stop] = np.radians(value_deg_s)
-    d = FreezeDetector()
-    acc_end, dt, valid = imu.acc_g[1:], np.diff(imu.t), np.ones(len(imu) - 1, bool)
-    rates = gyr[1:]  # step k integrates reading k + 1 (gyr_timing "end")
-    compiled = _compiled.stuck_intervals(rates, dt, np.ascontiguousarray(acc_end), valid, stuck_gyro_state(),
-                                         d.window_s, d.gyro_p2p_steps, d.acc_p2p_g)
+    rates, acc_end, dt = gyr[1:], imu.acc_g[1:], np.diff(imu.t)
+    compiled = online_stuck(imu, rates)
     state = stuck_gyro_state()
-    loop = np.array([stuck_gyro_update(state, rates[k], acc_end[k], dt[k], True, d.window_s, d.gyro_p2p_steps,
-                                       d.acc_p2p_g) for k in range(len(dt))])
+    loop = np.array([stuck_gyro_update(state, rates[k], acc_end[k], dt[k], True, *STUCK_THRESHOLDS)
+                     for k in range(len(dt))])
     np.testing.assert_array_equal(compiled, loop)
     flagged = np.flatnonzero(loop) + 1  # as reading indices
     assert flagged.min() >= first and flagged.max() < stop
-    lag = int(np.ceil(d.window_s * rate_hz)) + 2
+    lag = int(np.ceil(FreezeDetector().window_s * rate_hz)) + 2
     assert set(range(first + lag, stop)) <= set(flagged)
-    clean = _compiled.stuck_intervals(np.ascontiguousarray(imu.gyr_rad_s[1:]), dt, np.ascontiguousarray(acc_end), valid,
-                                      stuck_gyro_state(), d.window_s, d.gyro_p2p_steps, d.acc_p2p_g)
-    assert not clean.any()
+    assert not online_stuck(imu, imu.gyr_rad_s[1:]).any()
 
 
 def test_the_filters_online_check_leaves_a_noise_free_gyro_alone():
     """A constant exact rate (a simulation) while the accelerometer moves: no resolution to judge by."""
-    from fusion.estimators import _compiled
-    from fusion.estimators._attitude import stuck_gyro_state
-
     imu = moving_imu(100.0)
-    exact = np.repeat(np.radians([[10.0, 0.0, 0.0]]), len(imu) - 1, axis=0)
-    d = FreezeDetector()
-    stuck = _compiled.stuck_intervals(exact, np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
-                                      np.ones(len(imu) - 1, bool), stuck_gyro_state(), d.window_s,
-                                      d.gyro_p2p_steps, d.acc_p2p_g)
-    assert not stuck.any()
+    assert not online_stuck(imu, np.repeat(np.radians([[10.0, 0.0, 0.0]]), len(imu) - 1, axis=0)).any()
 
 
 def test_with_the_freezes_left_in_the_filters_keep_the_course_inclination(data_dir):
