@@ -24,6 +24,7 @@ from .calibration import BoardModel
 from .types import STANDARD_GRAVITY_M_S2, GyrTiming, RawImu, Trajectory, _check_timing
 
 T0_S = 1_700_000_000.0  # a unix-like start time, as in the real files
+_BLOCK = 65536  # samples computed at a time
 
 
 @dataclass(frozen=True)
@@ -138,26 +139,33 @@ def simulate(settings: SimSettings = SimSettings(), board: BoardModel = BoardMod
     stamps = T0_S + t_true
     t_true = stamps - T0_S  # exact (Sterbenz): the rates below are for the stamps the estimators see
 
-    rot = motion.rotation(t_true)
     # Interval edges: the stamps plus one nominal step before and after (at rest).
     step = 1.0 / s.imu_rate_hz
     edges = np.concatenate([[t_true[0] - step], t_true, [t_true[-1] + step]])
-    r_edges = motion.rotation(edges)
-    mean_rate = (r_edges[:-1].inv() * r_edges[1:]).as_rotvec() / np.diff(edges)[:, None]  # row j: [edges[j], edges[j+1]]
-    gyr = mean_rate[1:] if s.gyr_timing == "start" else mean_rate[:-1]
-    acc = rot.inv().apply(motion.linear_acc_g(t_true) + [0.0, 0.0, 1.0])  # specific force, g
-
     gain = board.scale / np.concatenate([s.acc_sensitivity_ratio, s.gyro_sensitivity_ratio])  # true units per count
     bias = np.concatenate([s.acc_bias_counts, s.gyro_bias_counts])
     noise = np.r_[[s.acc_noise_counts] * 3, [s.gyro_noise_counts] * 3]
-    counts = bias + np.column_stack([acc, gyr]) / gain + rng.normal(size=(n, 6)) * noise
+    counts = rng.normal(size=(n, 6))  # the unit noise, then the counts in place
+    # The signals a block of samples at a time (each sample's value does not depend on the block),
+    # so that an hour's recording needs no more than its output.
+    for a in range(0, n, _BLOCK):
+        b = min(a + _BLOCK, n)
+        rot = motion.rotation(t_true[a:b])
+        r_edges = motion.rotation(edges[a:b + 2])
+        mean_rate = (r_edges[:-1].inv() * r_edges[1:]).as_rotvec() / np.diff(edges[a:b + 2])[:, None]  # row j: [edges[j], edges[j+1]]
+        gyr = mean_rate[1:] if s.gyr_timing == "start" else mean_rate[:-1]
+        acc = rot.inv().apply(motion.linear_acc_g(t_true[a:b]) + [0.0, 0.0, 1.0])  # specific force, g
+        counts[a:b] = bias + np.column_stack([acc, gyr]) / gain + counts[a:b] * noise
     for start, stop in s.freezes_s:
         frozen = (t_true >= start) & (t_true < stop)
         counts[frozen, 3:] = np.asarray(s.freeze_counts) + rng.integers(-1, 2, (frozen.sum(), 3))
     if s.quantise:
-        counts = np.clip(np.round(counts), 0, board.adc_full_scale_counts)
+        np.clip(np.round(counts, out=counts), 0, board.adc_full_scale_counts, out=counts)
 
     m = int(round(s.duration_s * s.truth_rate_hz))
     t_truth = np.arange(m) / s.truth_rate_hz
-    truth = Trajectory.from_rotation(T0_S + t_truth + s.truth_clock_offset_s, motion.rotation(t_truth))
+    quat = np.empty((m, 4))
+    for a in range(0, m, _BLOCK):
+        quat[a:a + _BLOCK] = motion.rotation(t_truth[a:a + _BLOCK]).as_quat(scalar_first=True)
+    truth = Trajectory(T0_S + t_truth + s.truth_clock_offset_s, quat)
     return RawImu(stamps, counts, source="sim", gyr_timing=s.gyr_timing), truth
