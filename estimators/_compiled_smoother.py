@@ -33,6 +33,13 @@ the others the same arithmetic as a 3 x 3 system. Within the sweep, the blocks l
 small arrays that are filled in place, never reassigned (numba counts references on every
 assignment of an array variable, which costs more than the arithmetic here).
 
+The cost of a trial point (`cost_kernel`, a third of an iteration) needs no recursion over the
+samples: on a recording of `SPLIT_MIN_SAMPLES` or more it runs as two ranges of samples on two
+threads (`range_cost`; the kernels release the GIL), each writing its own rows, and their sums
+are added in a fixed order. The split depends on the number of samples alone, so every result is
+the same on any machine; it changes the wall time, not the CPU time. The linearisation's
+elimination is a recursion and stays on one thread.
+
 The numpy code is the reference: every kernel line implements a line of `smoother_cost` (or of
 `fusion.quaternion`), and `tests/test_compiled_smoother.py` checks the kernels against it
 (cost, gradient, blocks, solves) and both solvers' iterations and final costs against their
@@ -52,6 +59,7 @@ numba's cache finds a kernel's signature again only if its types can be looked u
 from __future__ import annotations
 
 import math
+import threading
 import weakref
 from collections import namedtuple
 from dataclasses import dataclass
@@ -311,14 +319,18 @@ def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
 
 
 @_jit
-def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
-    """The cost (`SmootherProblem.cost`) at q (T, 4), v (T, V) m/s, theta (P,); or, with
-    kind 1 (geodesic) or 2 (normalise), at the point moved by alpha times the step x (T, B):
-    q_out_t = retraction of q_t by alpha x_t[:3] (`gd.GradientDescentSmoother.retract`,
-    `quaternion.retract`), v_out = v + alpha x[:, 3:], both written. If keep (T, 5, 5) has rows,
-    each step's u_t = exp(phi_t / 2) and motion residual r_m,t (`keep_step`), each sample's
-    accelerometer cost term and IRLS weight (keep[t, 1, 3:5]) and magnetometer residual
-    (`keep_mag`) are written to it, for the linearisation at this point (`linearize_kernel`'s `kept`)."""
+def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
+    """The cost's terms (`SmootherProblem.cost`) over the samples t0 <= t < t1 and their steps to
+    t + 1, at q (T, 4), v (T, V) m/s, theta (P,); or, with kind 1 (geodesic) or 2 (normalise), at
+    the point moved by alpha times the step x (T, B): q_out_t = retraction of q_t by alpha x_t[:3]
+    (`gd.GradientDescentSmoother.retract`, `quaternion.retract`), v_out = v + alpha x[:, 3:], both
+    written for t0 <= t < t1 (the step from t1 - 1 reads q_t1 moved, and leaves it to its own range).
+    sums[:7] = the sums of the terms: acc (with its 1/2), motion, velocity, zero velocity, rest
+    (weighted squares), magnetometer (with its 1/2), and the anchor's |r_0|^2 (0 unless t0 = 0):
+    `total_cost` of them is the cost (`range_cost`). If keep (T, 5, 5) has rows, each step's
+    u_t = exp(phi_t / 2) and motion residual r_m,t (`keep_step`), each sample's accelerometer cost
+    term and IRLS weight (keep[t, 1, 3:5]) and magnetometer residual (`keep_mag`) are written to
+    it, for the linearisation at this point (`linearize_kernel`'s `kept`)."""
     T = q.shape[0]
     V = v.shape[1]
     b, k = calibration(p, theta)
@@ -332,12 +344,12 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
     Rn = np.empty((3, 3))
     qn = (0.0, 0.0, 0.0, 0.0)
     qt = (0.0, 0.0, 0.0, 0.0)
-    for t in range(T):
-        if t == 0:
-            qt = moved(q, x, alpha, kind, 0, o, q_out)
+    for t in range(t0, t1):
+        if t == t0:
+            qt = moved(q, x, alpha, kind, t, o, q_out, True)
             if kind:
                 for i in range(V):
-                    v_out[0, i] = v[0, i] + alpha * x[0, 3 + i]
+                    v_out[t, i] = v[t, i] + alpha * x[t, 3 + i]
             fill3(R, rotation(qt))
         else:
             qt = qn
@@ -362,10 +374,15 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
             cost_vzero += p.w_vzero[t] * (vv[t, 0] * vv[t, 0] + vv[t, 1] * vv[t, 1])
         if t == T - 1:
             break
-        qn = moved(q, x, alpha, kind, t + 1, o, q_out)
-        if kind:
-            for i in range(V):
-                v_out[t + 1, i] = v[t + 1, i] + alpha * x[t + 1, 3 + i]
+        mine = t + 1 < t1  # sample t + 1 is in this range: written here
+        qn = moved(q, x, alpha, kind, t + 1, o, q_out, mine)
+        vn0, vn1 = 0.0, 0.0  # v_t+1 (V = 2)
+        if V:
+            vn0, vn1 = v[t + 1, 0], v[t + 1, 1]
+            if kind:
+                vn0, vn1 = vn0 + alpha * x[t + 1, 3], vn1 + alpha * x[t + 1, 4]
+                if mine:
+                    v_out[t + 1, 0], v_out[t + 1, 1] = vn0, vn1
         fill3(Rn, rotation(qn))
         phi = step_rotvec(p, b, k, t)
         u = qexp(phi[0], phi[1], phi[2], o.small_angle)
@@ -380,7 +397,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
             for i in range(2):
                 f0 = R[i, 0] * a0[0] + R[i, 1] * a0[1] + R[i, 2] * a0[2]
                 f1 = Rn[i, 0] * a1[0] + Rn[i, 1] * a1[1] + Rn[i, 2] * a1[2]
-                rv = vv[t + 1, i] - vv[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
+                rv = (vn0 if i == 0 else vn1) - vv[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
                 cost_vel += p.w_vel[t] * rv * rv
         if len(p.w_rest) and p.w_rest[t] > 0:
             s = 0.0
@@ -388,16 +405,76 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep):
                 rr, _ = rest_residual(p, b, k, t, i)
                 s += rr * rr
             cost_rest += p.w_rest[t] * s
-    r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
-                  (q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3]) if kind else load_quat(q, 0)))
-    prior_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-    return total_cost(p, theta, V, cost_acc, cost_motion, prior_sq, cost_vel, cost_vzero, cost_rest) + cost_mag
+    prior_sq = 0.0
+    if t0 == 0:
+        r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
+                      (q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3]) if kind else load_quat(q, 0)))
+        prior_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+    sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6] = \
+        cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_mag, prior_sq
 
 
 @_jit
-def moved(q, x, alpha, kind, t, o, q_out):
+def cost_of_sums(p, theta, V, sums):
+    """The cost from `cost_kernel`'s sums of its ranges (R, 7), added in the ranges' order."""
+    total = np.zeros(7)
+    for i in range(sums.shape[0]):
+        for j in range(7):
+            total[j] += sums[i, j]
+    acc, motion, vel, vzero, rest, mag, prior_sq = total
+    return total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest) + mag
+
+
+# A long recording's cost is computed as two ranges of samples on two threads (the kernels release
+# the GIL). Where it is split depends on the number of samples alone, so the sum, and every result
+# that depends on it, is the same on any machine.
+SPLIT_MIN_SAMPLES = 8192
+
+
+def cost_ranges(T: int) -> tuple[int, ...]:
+    """The bounds of `range_cost`'s ranges for T samples."""
+    return (0, T) if T < SPLIT_MIN_SAMPLES else (0, T // 2, T)
+
+
+def range_cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep) -> float:
+    """`cost_kernel` over the whole recording, in the ranges of `cost_ranges` (the second one on a
+    thread of its own): the cost, with q_out, v_out and keep written as `cost_kernel` says."""
+    bounds = cost_ranges(len(q))
+    sums = np.zeros((len(bounds) - 1, 7))
+    beside = [run_beside(cost_kernel, p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, a, b, sums[i])
+              for i, (a, b) in enumerate(zip(bounds[1:-1], bounds[2:]), start=1)]
+    cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, 0, bounds[1], sums[0])
+    for join in beside:
+        join()
+    return cost_of_sums(p, theta, v.shape[1], sums)
+
+
+def run_beside(work, *args):
+    """Start work(*args) on a new thread; returns the function that waits for it and re-raises
+    what it raised. A thread per call, not a pool: a pool's thread does not survive a fork."""
+    raised = []
+
+    def target():
+        try:
+            work(*args)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            raised.append(exc)
+
+    thread = threading.Thread(target=target, name="fusion-smoother-range", daemon=True)
+    thread.start()
+
+    def join():
+        thread.join()
+        if raised:
+            raise raised[0]
+
+    return join
+
+
+@_jit
+def moved(q, x, alpha, kind, t, o, q_out, write):
     """q_t (kind 0), or q_t retracted by alpha x_t[:3] (kind 1: q exp([0, alpha x / 2]); kind 2:
-    normalise(q + q * [0, alpha x / 2])), then written to q_out[t]."""
+    normalise(q + q * [0, alpha x / 2])), then written to q_out[t] if `write`."""
     qt = load_quat(q, t)
     if kind == 0:
         return qt
@@ -407,8 +484,9 @@ def moved(q, x, alpha, kind, t, o, q_out):
     else:
         d = qmul(qt, (0.0, dx, dy, dz))
         m = qnormalize((qt[0] + 0.5 * d[0], qt[1] + 0.5 * d[1], qt[2] + 0.5 * d[2], qt[3] + 0.5 * d[3]))
-    for i in range(4):
-        q_out[t, i] = m[i]
+    if write:
+        for i in range(4):
+            q_out[t, i] = m[i]
     return m
 
 
@@ -940,7 +1018,7 @@ class CompiledOps:
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         """The cost at (q (T, 4), theta (P,), v (T, V) m/s)."""
         none = np.zeros((0, 5))
-        return cost_kernel(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none, _NO_STORAGE[0])
+        return range_cost(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none, _NO_STORAGE[0])
 
     def trial(self, q, v, theta, d_q, d_theta, alpha: float, update: str = "geodesic"):
         """(q, v, theta) moved by alpha times the step (d_q (T, B), d_theta (P,)), retracted
@@ -954,8 +1032,8 @@ class CompiledOps:
         # trial keeps its per-sample terms there (`cost_kernel`'s keep), for `linearize` at q_new (if accepted).
         keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
         self._kept = None
-        cost = cost_kernel(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
-                           1 if update == "geodesic" else 2, q_new, v_new, keep)
+        cost = range_cost(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
+                          1 if update == "geodesic" else 2, q_new, v_new, keep)
         if keep.shape[0]:
             self._kept = (weakref.ref(q_new), theta_new.copy())
         return q_new, v_new, theta_new, cost

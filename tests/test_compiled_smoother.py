@@ -113,6 +113,31 @@ def test_trial_point_and_its_cost_equal_the_reference(config, update):
         assert got[3] == pytest.approx(ref[3], rel=1e-13)
 
 
+@pytest.mark.parametrize("kind", [0, 1, 2])
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_the_cost_in_two_ranges_is_the_cost_in_one(config, kind, monkeypatch):
+    """A long recording's cost pass runs as two ranges of samples on two threads (`range_cost`):
+    the moved point and the kept per-sample terms are those of one pass, bit for bit (each sample
+    computes the same numbers; the step across the split reads its next sample without writing
+    it), and the cost differs only in the order of the sum."""
+    problem, q, theta, v = _problem(config)
+    arrays, consts = cs.problem_arrays(problem), cs.constants()
+    x = np.random.default_rng(5).normal(size=(len(q), 5)) * 0.05
+    out = {}
+    for split in (False, True):
+        monkeypatch.setattr(cs, "SPLIT_MIN_SAMPLES", 2 if split else 10**9)
+        assert len(cs.cost_ranges(len(q))) == (3 if split else 2)
+        q_out, v_out, keep = np.full_like(q, np.nan), np.full_like(v, np.nan), np.full((len(q), 5, 5), np.nan)
+        cost = cs.range_cost(arrays, consts, q, v, theta, x, 0.5, kind, q_out, v_out, keep)
+        out[split] = cost, q_out, v_out, keep
+    (one, *written_one), (two, *written_two) = out[False], out[True]
+    for a, b in zip(written_one, written_two):
+        np.testing.assert_array_equal(a, b)
+    if kind:
+        assert np.all(np.isfinite(written_two[0])) and np.all(np.isfinite(written_two[1]))
+    assert two == pytest.approx(one, rel=1e-14)
+
+
 @pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
 def test_elimination_solves_the_normal_equations(config):
     """The damped Gauss-Newton step of gn (solve_normal_equations, with held calibration
