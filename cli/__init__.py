@@ -9,6 +9,10 @@ one line `fusion: error: ...` and exit code 1, never a traceback; SIGTERM stops 
 """
 from __future__ import annotations
 
+from fusion import check_package_name
+
+check_package_name(__name__, "fusion.cli")
+
 import argparse
 import contextlib
 import shlex

@@ -7,6 +7,10 @@ Every later stage (the runner, its workers, the reports) uses that object.
 """
 from __future__ import annotations
 
+from fusion import check_package_name
+
+check_package_name(__name__, "fusion.estimators")
+
 import dataclasses
 import hashlib
 from dataclasses import dataclass

@@ -197,3 +197,17 @@ def test_the_core_folder_is_the_floor():
              and layer(m) != LAYERS.index("core")]
     assert not above, f"modules of fusion/ above the core layer: {above}"
     assert MODULES["fusion.cli"] == ROOT / "cli" / "__init__.py"
+
+
+@pytest.mark.parametrize("folder", ["estimators", "evaluation", "cli"])
+def test_a_folder_imported_under_its_own_name_is_refused(folder):
+    """From the project's root, `import estimators` would find the folder as a second package:
+    refused with a line naming the package to import (its kernels would otherwise write types
+    under a name other processes cannot import into numba's disk cache)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", f"import {folder}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines()[-1] == \
+        f"ImportError: {folder}: this folder is the package fusion.{folder}; import fusion.{folder} instead"
