@@ -443,9 +443,11 @@ def range_cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep) -> float:
     sums = np.zeros((len(bounds) - 1, 7))
     beside = [run_beside(cost_kernel, p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, a, b, sums[i])
               for i, (a, b) in enumerate(zip(bounds[1:-1], bounds[2:]), start=1)]
-    cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, 0, bounds[1], sums[0])
-    for join in beside:
-        join()
+    try:
+        cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, 0, bounds[1], sums[0])
+    finally:  # the other ranges write into the caller's arrays: never leave them running
+        for join in beside:
+            join()
     return cost_of_sums(p, theta, v.shape[1], sums)
 
 
