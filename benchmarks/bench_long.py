@@ -4,10 +4,12 @@ of one hour at 100 Hz (360,000 samples), and whether memory grows linearly (10, 
     python benchmarks/bench_long.py                      # every estimator, 10/30/60 min
     python benchmarks/bench_long.py --estimators dr --minutes 60
     python benchmarks/bench_long.py --check              # exit 1 if a target is missed
+    python benchmarks/bench_long.py --estimators gn,gd --minutes 60 --one-thread   # the trial cost unsplit
 
 Each (estimator, duration) runs in a fresh subprocess, so estimators do not share a peak:
 the worker simulates the recording (`fusion.sim`), calibrates it, runs the estimator, scores
-it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase, its peak resident
+it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase (and the CPU time of the
+estimate: the smoothers' trial cost runs on two threads, `_compiled_smoother.range_cost`), its peak resident
 memory (`VmHWM` from /proc/self/status, or `ru_maxrss`) and, for the smoothers, the number of
 iterations. The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
@@ -50,8 +52,9 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
-def worker(name: str, duration_s: float) -> dict:
-    """One pipeline run in this (fresh) process; returns the figures as a dict."""
+def worker(name: str, duration_s: float, one_thread: bool = False) -> dict:
+    """One pipeline run in this (fresh) process; returns the figures as a dict. one_thread: the
+    smoothers' trial cost on one thread (`_compiled_smoother.SPLIT_MIN_SAMPLES` out of reach)."""
     import numpy as np
 
     from fusion import estimators
@@ -74,10 +77,14 @@ def worker(name: str, duration_s: float) -> dict:
             estimator = estimators.build(name)
         except ImportError as exc:
             return {**out, "skipped": str(exc)}
+        if one_thread:
+            from fusion.estimators import _compiled_smoother
+
+            _compiled_smoother.SPLIT_MIN_SAMPLES = sys.maxsize
         rot, _ = truth.interpolate(imu.t[:1])
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         traj = estimator.estimate(imu, rot[0].as_quat(scalar_first=True))
-        out["estimate_s"] = time.perf_counter() - t3
+        out["estimate_s"], out["estimate_cpu_s"] = time.perf_counter() - t3, time.process_time() - c3
         out["causal"] = type(estimator).causal
         iterations = traj.diagnostics.get("iterations") if traj.diagnostics else None
         out["iterations"] = None if iterations is None else int(iterations)
@@ -88,8 +95,9 @@ def worker(name: str, duration_s: float) -> dict:
     return out
 
 
-def run_worker(name: str, duration_s: float, timeout_s: float) -> dict:
+def run_worker(name: str, duration_s: float, timeout_s: float, one_thread: bool = False) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", name, "--duration-s", str(duration_s)]
+    cmd += ["--one-thread"] if one_thread else []
     start = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
@@ -115,12 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout-s", type=float, default=1800.0, help="per run")
     parser.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
     parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
+    parser.add_argument("--one-thread", action="store_true",
+                        help="the smoothers' trial cost on one thread, as before it was split in two (for comparison)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--duration-s", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.worker:
-        print(json.dumps(worker(args.worker, args.duration_s)))
+        print(json.dumps(worker(args.worker, args.duration_s, args.one_thread)))
         return 0
 
     from fusion import estimators
@@ -130,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in [BASELINE, *names]:
         for m in minutes:
-            row = run_worker(name, 60.0 * m, args.timeout_s)
+            row = run_worker(name, 60.0 * m, args.timeout_s, args.one_thread)
             rows.append(row)
             print(f"  {name:>10} {m:>4g} min: " + (row.get("error") or row.get("skipped") or
                   f"estimate {fmt(row.get('estimate_s'), '.2f')} s, peak {row['peak_mb']:.0f} MB, "
@@ -138,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     header = f"{'estimator':>10} {'min':>4} {'samples':>8} {'sim s':>6} {'calib s':>7} {'estimate s':>10} " \
-             f"{'us/sample':>9} {'iters':>5} {'score s':>7} {'peak MB':>8} {'RMSE deg':>8}"
+             f"{'cpu s':>6} {'us/sample':>9} {'iters':>5} {'score s':>7} {'peak MB':>8} {'RMSE deg':>8}"
     print(header)
     print("-" * len(header))
     for r in rows:
@@ -147,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         us = None if r["estimate_s"] is None else 1e6 * r["estimate_s"] / r["samples"]
         print(f"{r['estimator']:>10} {r['duration_s'] / 60:>4g} {r['samples']:>8} {r['sim_s']:>6.2f} {r['calib_s']:>7.2f} "
-              f"{fmt(r['estimate_s'], '.2f'):>10} {fmt(us, '.2f'):>9} {fmt(r.get('iterations'), 'd'):>5} {r['score_s']:>7.2f} {r['peak_mb']:>8.0f} "
+              f"{fmt(r['estimate_s'], '.2f'):>10} {fmt(r.get('estimate_cpu_s'), '.2f'):>6} {fmt(us, '.2f'):>9} {fmt(r.get('iterations'), 'd'):>5} {r['score_s']:>7.2f} {r['peak_mb']:>8.0f} "
               f"{r['rmse_total_deg']:>8.2f}")
 
     print()
