@@ -4,12 +4,12 @@ of one hour at 100 Hz (360,000 samples), and whether memory grows linearly (10, 
     python benchmarks/bench_long.py                      # every estimator, 10/30/60 min
     python benchmarks/bench_long.py --estimators dr --minutes 60
     python benchmarks/bench_long.py --check              # exit 1 if a target is missed
-    python benchmarks/bench_long.py --estimators gn,gd --minutes 60 --one-thread   # the trial cost unsplit
+    python benchmarks/bench_long.py --estimators gn,gd --minutes 60 --one-thread   # the smoothers on one thread
 
 Each (estimator, duration) runs in a fresh subprocess, so estimators do not share a peak:
 the worker simulates the recording (`fusion.sim`), calibrates it, runs the estimator, scores
 it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase (and the CPU time of the
-estimate: the smoothers' trial cost runs on two threads, `_compiled_smoother.range_cost`), its peak resident
+estimate: the smoothers run on two threads, `_compiled_smoother.range_cost` and `_eliminate_in_ranges`), its peak resident
 memory (`VmHWM` from /proc/self/status, or `ru_maxrss`) and, for the smoothers, the number of
 iterations. The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
@@ -54,7 +54,7 @@ def peak_rss_mb() -> float:
 
 def worker(name: str, duration_s: float, one_thread: bool = False) -> dict:
     """One pipeline run in this (fresh) process; returns the figures as a dict. one_thread: the
-    smoothers' trial cost on one thread (`_compiled_smoother.SPLIT_MIN_SAMPLES` out of reach)."""
+    smoothers on one thread (`_compiled_smoother.SPLIT_MIN_SAMPLES` and `RANGE_SAMPLES` out of reach)."""
     import numpy as np
 
     from fusion import estimators
@@ -81,6 +81,7 @@ def worker(name: str, duration_s: float, one_thread: bool = False) -> dict:
             from fusion.estimators import _compiled_smoother
 
             _compiled_smoother.SPLIT_MIN_SAMPLES = sys.maxsize
+            _compiled_smoother.RANGE_SAMPLES = (sys.maxsize, sys.maxsize)
         rot, _ = truth.interpolate(imu.t[:1])
         t3, c3 = time.perf_counter(), time.process_time()
         traj = estimator.estimate(imu, rot[0].as_quat(scalar_first=True))
@@ -124,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
     parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
     parser.add_argument("--one-thread", action="store_true",
-                        help="the smoothers' trial cost on one thread, as before it was split in two (for comparison)")
+                        help="the smoothers on one thread, as before their passes were split in two (for comparison)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--duration-s", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

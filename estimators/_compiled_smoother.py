@@ -38,7 +38,10 @@ samples: on a recording of `SPLIT_MIN_SAMPLES` or more it runs as two ranges of 
 threads (`range_cost`; the kernels release the GIL), each writing its own rows, and their sums
 are added in a fixed order. The split depends on the number of samples alone, so every result is
 the same on any machine; it changes the wall time, not the CPU time. The linearisation's
-elimination is a recursion and stays on one thread.
+elimination is a recursion; on a long recording (`linearize_ranges`) the Jacobian blocks of one
+range of samples are computed (mode BLOCKS) while those of the range before are eliminated from
+them (mode FROM_BLOCKS): the same arithmetic in the same order as the one fused pass, bit for bit,
+for a quarter less wall time and a fifth more CPU time (`CompiledOps._eliminate_in_ranges`).
 
 The numpy code is the reference: every kernel line implements a line of `smoother_cost` (or of
 `fusion.quaternion`), and `tests/test_compiled_smoother.py` checks the kernels against it
@@ -74,7 +77,7 @@ from ._kernel_cache import forget_stale_kernels
 from .smoother_cost import LOSSES, Linearization, SmootherProblem
 
 # Modes of `linearize_kernel`.
-GRADIENT, BLOCKS, ELIMINATE = 0, 1, 2
+GRADIENT, BLOCKS, ELIMINATE, FROM_BLOCKS = 0, 1, 2, 3
 
 # The problem as the kernels read it (`problem_arrays`), and the constants of the maths.
 SmootherArrays = namedtuple("SmootherArrays", [
@@ -431,6 +434,20 @@ def cost_of_sums(p, theta, V, sums):
 SPLIT_MIN_SAMPLES = 8192
 
 
+def linearize_ranges(T: int) -> list[int]:
+    """The bounds of `CompiledOps._eliminate_in_ranges`'s ranges for T samples: eight or more ranges
+    of `RANGE_SAMPLES` samples (two ranges' blocks take less memory than the trial's trajectory), or
+    one range below 8 x 8,192 samples. Writing and reading the blocks costs about a fifth more CPU
+    time than the one fused pass; only on long recordings does the overlap gain more wall time than
+    that (one hour at 100 Hz: 25 % less wall time; 52,556 samples: 6 % less, `bench_long.py`,
+    `bench_smoother.py`). The results do not depend on the ranges."""
+    size = min(max(T // 8, RANGE_SAMPLES[0]), RANGE_SAMPLES[1])
+    return [0, T] if T < 8 * RANGE_SAMPLES[0] else [*range(0, T, size), T]
+
+
+RANGE_SAMPLES = (8192, 12288)
+
+
 def cost_ranges(T: int) -> tuple[int, ...]:
     """The bounds of `range_cost`'s ranges for T samples."""
     return (0, T) if T < SPLIT_MIN_SAMPLES else (0, T // 2, T)
@@ -452,13 +469,14 @@ def range_cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep) -> float:
 
 
 def run_beside(work, *args):
-    """Start work(*args) on a new thread; returns the function that waits for it and re-raises
-    what it raised. A thread per call, not a pool: a pool's thread does not survive a fork."""
-    raised = []
+    """Start work(*args) on a new thread; returns the function that waits for it and returns what
+    it returned or re-raises what it raised. A thread per call, not a pool: a pool's thread does not
+    survive a fork."""
+    raised, returned = [], []
 
     def target():
         try:
-            work(*args)
+            returned.append(work(*args))
         except BaseException as exc:  # noqa: BLE001 - handed to the caller
             raised.append(exc)
 
@@ -469,6 +487,7 @@ def run_beside(work, *args):
         thread.join()
         if raised:
             raise raised[0]
+        return returned[0]
 
     return join
 
@@ -538,7 +557,8 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
 
 @_jit
 def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept):
+                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept,
+                     t0, t1, carry):
     """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
@@ -556,6 +576,15 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     accelerometer term and magnetometer residual at this very point (q, theta), as `cost_kernel`
     computed them for a trial step here (`keep_step`, `keep_mag`): read, not computed again (the
     same numbers). It may be M itself: row t is read before M's row t is written.
+
+    Ranges (`CompiledOps._eliminate_in_ranges`): the samples t0 <= t < t1 only. Mode BLOCKS over a
+    range writes its blocks and gradient at rows t - t0 and, before T, returns 0 and leaves in carry
+    (`range_carry_size`) what the next range continues from (what the last step adds to its next
+    sample, the cost's sums, the calibration block and gradient); the range that ends at T returns
+    the cost, theta_block and grad_theta. Mode FROM_BLOCKS eliminates those blocks (grad_q, diag,
+    off, cross: the BLOCKS range's rows; theta_block, grad_theta: the last range's) as ELIMINATE
+    would have, the same arithmetic in the same order, with H[t-1, t] in carry[:25] between ranges;
+    returns 0 (nan: not positive definite). A whole pass is t0 = 0, t1 = T, carry without rows.
     """
     T = q.shape[0]
     V = v.shape[1]
@@ -565,6 +594,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     b, k = calibration(p, theta)
     rows = M.shape[0]
     external = rhs_q.shape[0] > 0
+    ranged = carry.shape[0] > 0
     cost_acc = 0.0
     cost_motion = 0.0
     cost_vel = 0.0
@@ -600,198 +630,234 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     Cf = np.zeros((5, F))
     X0 = np.zeros((2, 3))
     X1 = np.zeros((2, 3))
-    quad[0] = 0.0
-    for i in range(F):
-        schur_rhs[i] = 0.0
-        for j in range(F):
-            schur[i, j] = 0.0
-    qn = load_quat(q, 0)
-    rn = rotation(qn)
-    for t in range(T):
-        qt = qn
-        rt = rn
-        fill3(R, rt)
-        # What step t-1 added to sample t becomes sample t's; only lower triangles of the symmetric
-        # diagonal blocks are formed (mirrored for BLOCKS).
+    if t0 == 0:
+        quad[0] = 0.0
+        for i in range(F):
+            schur_rhs[i] = 0.0
+            for j in range(F):
+                schur[i, j] = 0.0
+    elif mode == FROM_BLOCKS:
         for i in range(5):
-            g[i] = gn[i]
-            gn[i] = 0.0
-            for j in range(i + 1):
-                D[i, j] = Dn[i, j]
-                Dn[i, j] = 0.0
             for j in range(5):
-                O[i, j] = 0.0
-            for j in range(P):
-                C[i, j] = Cn[i, j]
-                Cn[i, j] = 0.0
-        # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
-        h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
-        r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
-        if kept.shape[0]:
-            ca, wa = kept[t, 1, 3], kept[t, 1, 4]
+                Op[i, j] = carry[5 * i + j]
+    else:  # BLOCKS, continued from the range before
+        for i in range(5):
+            gn[i] = carry[25 + i]
+            for j in range(5):
+                Dn[i, j] = carry[5 * i + j]
+            for m in range(P):
+                Cn[i, m] = carry[30 + P * i + m]
+        at = 30 + 5 * P
+        cost_acc, cost_motion, cost_vel, cost_vzero = carry[at], carry[at + 1], carry[at + 2], carry[at + 3]
+        cost_rest, cost_prior, cost_mag = carry[at + 4], carry[at + 5], carry[at + 6]
+        for m in range(P):
+            gth[m] = carry[at + 7 + m]
+            for n in range(P):
+                G[m, n] = carry[at + 7 + P + P * m + n]
+    qn = load_quat(q, t0)
+    rn = rotation(qn)
+    for t in range(t0, t1):
+        if mode == FROM_BLOCKS:  # the blocks a BLOCKS pass over this range wrote (row t - t0)
+            tr = t - t0
+            for i in range(5):
+                g[i] = grad_q[tr, i] if i < B else 0.0
+                for j in range(i + 1):
+                    D[i, j] = diag[tr, i, j] if i < B else 0.0
+                for j in range(5):
+                    O[i, j] = off[tr, i, j] if i < B and j < B and t < T - 1 else 0.0
+                for m in range(P):
+                    C[i, m] = cross[tr, i, m] if i < B else 0.0
         else:
-            ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
-        cost_acc += ca
-        y0, y1, y2 = wa * r0, wa * r1, wa * r2
-        g[0] += h1 * y2 - h2 * y1
-        g[1] += h2 * y0 - h0 * y2
-        g[2] += h0 * y1 - h1 * y0
-        hh = (h0, h1, h2)
-        for i in range(3):
-            for j in range(i + 1):
-                D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
-        if len(p.w_mag) and p.w_mag[t] > 0.0:
-            # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
+            qt = qn
+            rt = rn
+            fill3(R, rt)
+            # What step t-1 added to sample t becomes sample t's; only lower triangles of the symmetric
+            # diagonal blocks are formed (mirrored for BLOCKS).
+            for i in range(5):
+                g[i] = gn[i]
+                gn[i] = 0.0
+                for j in range(i + 1):
+                    D[i, j] = Dn[i, j]
+                    Dn[i, j] = 0.0
+                for j in range(5):
+                    O[i, j] = 0.0
+                for j in range(P):
+                    C[i, j] = Cn[i, j]
+                    Cn[i, j] = 0.0
+            # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
+            h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
+            r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
             if kept.shape[0]:
-                rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+                ca, wa = kept[t, 1, 3], kept[t, 1, 4]
             else:
-                rh, k0, k1, k2 = mag_residual(p, t, qt)
-                cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
-            cost_mag += cm
-            jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
-                  R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
+                ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+            cost_acc += ca
+            y0, y1, y2 = wa * r0, wa * r1, wa * r2
+            g[0] += h1 * y2 - h2 * y1
+            g[1] += h2 * y0 - h0 * y2
+            g[2] += h0 * y1 - h1 * y0
+            hh = (h0, h1, h2)
             for i in range(3):
-                g[i] += wh * rh * jh[i]
                 for j in range(i + 1):
-                    D[i, j] += wh * jh[i] * jh[j]
-        if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
-            r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
-            cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-            fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
-            for i in range(3):
-                g[i] += p.w_prior * (A[0, i] * r[0] + A[1, i] * r[1] + A[2, i] * r[2])
-                for j in range(i + 1):
-                    D[i, j] += p.w_prior * (A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j])
-        if V:
-            wz = p.w_vzero[t]
-            cost_vzero += wz * (v[t, 0] * v[t, 0] + v[t, 1] * v[t, 1])
-            for i in range(2):
-                g[3 + i] += wz * v[t, i]
-                D[3 + i, 3 + i] += wz
-        if t < T - 1:
-            qn = load_quat(q, t + 1)
-            rn = rotation(qn)
-            fill3(Rn, rn)
-            # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
-            phi = step_rotvec(p, b, k, t)
-            if kept.shape[0]:  # computed by the trial that reached this point
-                u, r = kept_step(kept, t)
-            else:
-                u = qexp(phi[0], phi[1], phi[2], o.small_angle)
-                r = motion_residual(qt, qn, u)
-            wm = p.w_motion[t]
-            cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-            fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
-            fill3(Ru, rotation(u))
-            wr = (wm * r[0], wm * r[1], wm * r[2])
-            atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
-                   A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
-                   A[0, 2] * wr[0] + A[1, 2] * wr[1] + A[2, 2] * wr[2])
-            for i in range(3):
-                g[i] += Ru[i, 0] * atw[0] + Ru[i, 1] * atw[1] + Ru[i, 2] * atw[2]
-                gn[i] -= A[i, 0] * wr[0] + A[i, 1] * wr[1] + A[i, 2] * wr[2]
-                for j in range(3):
-                    J0[i, j] = A[i, 0] * Ru[j, 0] + A[i, 1] * Ru[j, 1] + A[i, 2] * Ru[j, 2]
-            for i in range(3):
-                for j in range(3):
-                    if j <= i:
-                        D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
-                        Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
-                    O[i, j] = -wm * (J0[0, i] * A[j, 0] + J0[1, i] * A[j, 1] + J0[2, i] * A[j, 2])
-            if P:
-                # d r_m / d theta = A J_r(phi) d phi / d theta, d phi / d theta: -dt (bias), g dt (scale):
-                # column a of A J_r(phi) once per gyro axis, times each variable's d phi_a / d theta.
-                fill3(Jr, right_jacobian(phi[0], phi[1], phi[2], o))
-                for a in range(3):
-                    if used[a]:
-                        for i in range(3):
-                            AJ[i, a] = A[i, 0] * Jr[0, a] + A[i, 1] * Jr[1, a] + A[i, 2] * Jr[2, a]
-                        for i in range(3):
-                            J0AJ[i, a] = J0[0, i] * AJ[0, a] + J0[1, i] * AJ[1, a] + J0[2, i] * AJ[2, a]
-                            AAJ[i, a] = A[i, 0] * AJ[0, a] + A[i, 1] * AJ[1, a] + A[i, 2] * AJ[2, a]
-                        for e in range(a + 1):
-                            if used[e]:
-                                JJ[a, e] = JJ[e, a] = AJ[0, a] * AJ[0, e] + AJ[1, a] * AJ[1, e] + AJ[2, a] * AJ[2, e]
-                dt = p.dt[t]
-                for m in range(P):
-                    ax = p.theta_axis[m]
-                    d = 0.0
-                    if p.valid[t]:
-                        d = -dt if m < p.n_bias else p.gyr[t, ax] * dt
-                    dm[m] = d
-                    gth[m] += d * (AJ[0, ax] * wr[0] + AJ[1, ax] * wr[1] + AJ[2, ax] * wr[2])
-                    wd = wm * d
-                    for i in range(3):
-                        C[i, m] += wd * J0AJ[i, ax]
-                        Cn[i, m] -= wd * AAJ[i, ax]
-                for m in range(P):
-                    wd = wm * dm[m]
-                    for n in range(P):
-                        G[m, n] += wd * dm[n] * JJ[p.theta_axis[m], p.theta_axis[n]]
+                    D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
+            if len(p.w_mag) and p.w_mag[t] > 0.0:
+                # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
+                if kept.shape[0]:
+                    rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+                else:
+                    rh, k0, k1, k2 = mag_residual(p, t, qt)
+                    cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+                cost_mag += cm
+                jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
+                      R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
+                for i in range(3):
+                    g[i] += wh * rh * jh[i]
+                    for j in range(i + 1):
+                        D[i, j] += wh * jh[i] * jh[j]
+            if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
+                r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
+                cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+                fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
+                for i in range(3):
+                    g[i] += p.w_prior * (A[0, i] * r[0] + A[1, i] * r[1] + A[2, i] * r[2])
+                    for j in range(i + 1):
+                        D[i, j] += p.w_prior * (A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j])
             if V:
-                # Velocity increments: d r_v / d delta_t = X0 = G dt P R_t [a_t]x / 2 (rows: R_t,i x a_t),
-                # / d delta_{t+1} = X1 likewise, / d v_t = -I, / d v_{t+1} = I.
-                dt = p.dt[t]
-                half = 0.5 * o.gravity * dt
-                wv = p.w_vel[t]
-                a0x, a0y, a0z = p.acc[t, 0], p.acc[t, 1], p.acc[t, 2]
-                a1x, a1y, a1z = p.acc[t + 1, 0], p.acc[t + 1, 1], p.acc[t + 1, 2]
+                wz = p.w_vzero[t]
+                cost_vzero += wz * (v[t, 0] * v[t, 0] + v[t, 1] * v[t, 1])
                 for i in range(2):
-                    f0 = R[i, 0] * a0x + R[i, 1] * a0y + R[i, 2] * a0z
-                    f1 = Rn[i, 0] * a1x + Rn[i, 1] * a1y + Rn[i, 2] * a1z
-                    rv = v[t + 1, i] - v[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
-                    cost_vel += wv * rv * rv
-                    X0[i, 0] = half * (R[i, 1] * a0z - R[i, 2] * a0y)
-                    X0[i, 1] = half * (R[i, 2] * a0x - R[i, 0] * a0z)
-                    X0[i, 2] = half * (R[i, 0] * a0y - R[i, 1] * a0x)
-                    X1[i, 0] = half * (Rn[i, 1] * a1z - Rn[i, 2] * a1y)
-                    X1[i, 1] = half * (Rn[i, 2] * a1x - Rn[i, 0] * a1z)
-                    X1[i, 2] = half * (Rn[i, 0] * a1y - Rn[i, 1] * a1x)
-                    w = wv * rv
+                    g[3 + i] += wz * v[t, i]
+                    D[3 + i, 3 + i] += wz
+            if t < T - 1:
+                qn = load_quat(q, t + 1)
+                rn = rotation(qn)
+                fill3(Rn, rn)
+                # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
+                phi = step_rotvec(p, b, k, t)
+                if kept.shape[0]:  # computed by the trial that reached this point
+                    u, r = kept_step(kept, t)
+                else:
+                    u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+                    r = motion_residual(qt, qn, u)
+                wm = p.w_motion[t]
+                cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+                fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
+                fill3(Ru, rotation(u))
+                wr = (wm * r[0], wm * r[1], wm * r[2])
+                atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
+                       A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
+                       A[0, 2] * wr[0] + A[1, 2] * wr[1] + A[2, 2] * wr[2])
+                for i in range(3):
+                    g[i] += Ru[i, 0] * atw[0] + Ru[i, 1] * atw[1] + Ru[i, 2] * atw[2]
+                    gn[i] -= A[i, 0] * wr[0] + A[i, 1] * wr[1] + A[i, 2] * wr[2]
                     for j in range(3):
-                        g[j] += X0[i, j] * w
-                        gn[j] += X1[i, j] * w
-                    g[3 + i] -= w
-                    gn[3 + i] += w
+                        J0[i, j] = A[i, 0] * Ru[j, 0] + A[i, 1] * Ru[j, 1] + A[i, 2] * Ru[j, 2]
                 for i in range(3):
                     for j in range(3):
                         if j <= i:
-                            D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
-                            Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
-                        O[i, j] += wv * (X0[0, i] * X1[0, j] + X0[1, i] * X1[1, j])
+                            D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
+                            Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
+                        O[i, j] = -wm * (J0[0, i] * A[j, 0] + J0[1, i] * A[j, 1] + J0[2, i] * A[j, 2])
+                if P:
+                    # d r_m / d theta = A J_r(phi) d phi / d theta, d phi / d theta: -dt (bias), g dt (scale):
+                    # column a of A J_r(phi) once per gyro axis, times each variable's d phi_a / d theta.
+                    fill3(Jr, right_jacobian(phi[0], phi[1], phi[2], o))
+                    for a in range(3):
+                        if used[a]:
+                            for i in range(3):
+                                AJ[i, a] = A[i, 0] * Jr[0, a] + A[i, 1] * Jr[1, a] + A[i, 2] * Jr[2, a]
+                            for i in range(3):
+                                J0AJ[i, a] = J0[0, i] * AJ[0, a] + J0[1, i] * AJ[1, a] + J0[2, i] * AJ[2, a]
+                                AAJ[i, a] = A[i, 0] * AJ[0, a] + A[i, 1] * AJ[1, a] + A[i, 2] * AJ[2, a]
+                            for e in range(a + 1):
+                                if used[e]:
+                                    JJ[a, e] = JJ[e, a] = AJ[0, a] * AJ[0, e] + AJ[1, a] * AJ[1, e] + AJ[2, a] * AJ[2, e]
+                    dt = p.dt[t]
+                    for m in range(P):
+                        ax = p.theta_axis[m]
+                        d = 0.0
+                        if p.valid[t]:
+                            d = -dt if m < p.n_bias else p.gyr[t, ax] * dt
+                        dm[m] = d
+                        gth[m] += d * (AJ[0, ax] * wr[0] + AJ[1, ax] * wr[1] + AJ[2, ax] * wr[2])
+                        wd = wm * d
+                        for i in range(3):
+                            C[i, m] += wd * J0AJ[i, ax]
+                            Cn[i, m] -= wd * AAJ[i, ax]
+                    for m in range(P):
+                        wd = wm * dm[m]
+                        for n in range(P):
+                            G[m, n] += wd * dm[n] * JJ[p.theta_axis[m], p.theta_axis[n]]
+                if V:
+                    # Velocity increments: d r_v / d delta_t = X0 = G dt P R_t [a_t]x / 2 (rows: R_t,i x a_t),
+                    # / d delta_{t+1} = X1 likewise, / d v_t = -I, / d v_{t+1} = I.
+                    dt = p.dt[t]
+                    half = 0.5 * o.gravity * dt
+                    wv = p.w_vel[t]
+                    a0x, a0y, a0z = p.acc[t, 0], p.acc[t, 1], p.acc[t, 2]
+                    a1x, a1y, a1z = p.acc[t + 1, 0], p.acc[t + 1, 1], p.acc[t + 1, 2]
+                    for i in range(2):
+                        f0 = R[i, 0] * a0x + R[i, 1] * a0y + R[i, 2] * a0z
+                        f1 = Rn[i, 0] * a1x + Rn[i, 1] * a1y + Rn[i, 2] * a1z
+                        rv = v[t + 1, i] - v[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
+                        cost_vel += wv * rv * rv
+                        X0[i, 0] = half * (R[i, 1] * a0z - R[i, 2] * a0y)
+                        X0[i, 1] = half * (R[i, 2] * a0x - R[i, 0] * a0z)
+                        X0[i, 2] = half * (R[i, 0] * a0y - R[i, 1] * a0x)
+                        X1[i, 0] = half * (Rn[i, 1] * a1z - Rn[i, 2] * a1y)
+                        X1[i, 1] = half * (Rn[i, 2] * a1x - Rn[i, 0] * a1z)
+                        X1[i, 2] = half * (Rn[i, 0] * a1y - Rn[i, 1] * a1x)
+                        w = wv * rv
+                        for j in range(3):
+                            g[j] += X0[i, j] * w
+                            gn[j] += X1[i, j] * w
+                        g[3 + i] -= w
+                        gn[3 + i] += w
+                    for i in range(3):
+                        for j in range(3):
+                            if j <= i:
+                                D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
+                                Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
+                            O[i, j] += wv * (X0[0, i] * X1[0, j] + X0[1, i] * X1[1, j])
+                        for m in range(2):
+                            D[3 + m, i] -= wv * X0[m, i]
+                            Dn[3 + m, i] += wv * X1[m, i]
+                            O[i, 3 + m] += wv * X0[m, i]
+                            O[3 + m, i] -= wv * X1[m, i]
                     for m in range(2):
-                        D[3 + m, i] -= wv * X0[m, i]
-                        Dn[3 + m, i] += wv * X1[m, i]
-                        O[i, 3 + m] += wv * X0[m, i]
-                        O[3 + m, i] -= wv * X1[m, i]
-                for m in range(2):
-                    D[3 + m, 3 + m] += p.w_vel[t]
-                    Dn[3 + m, 3 + m] += p.w_vel[t]
-                    O[3 + m, 3 + m] -= p.w_vel[t]
-            if len(p.w_rest) and p.w_rest[t] > 0:  # the rest term (`rest_terms`): theta only
-                w = p.w_rest[t]
-                for i in range(p.n_bias):
-                    rr, ax = rest_residual(p, b, k, t, i)
-                    cost_rest += w * rr * rr
-                    for m in range(P):  # d r / d theta_m: -1 (this axis's bias), g_t (its scale)
-                        jm = -1.0 if m == i else (p.gyr[t, ax] if m >= p.n_bias and p.theta_axis[m] == ax else 0.0)
-                        if jm != 0.0:
-                            gth[m] += w * rr * jm
-                            for n in range(P):
-                                jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
-                                G[m, n] += w * jm * jn
-        if grad_q.shape[0]:
+                        D[3 + m, 3 + m] += p.w_vel[t]
+                        Dn[3 + m, 3 + m] += p.w_vel[t]
+                        O[3 + m, 3 + m] -= p.w_vel[t]
+                if len(p.w_rest) and p.w_rest[t] > 0:  # the rest term (`rest_terms`): theta only
+                    w = p.w_rest[t]
+                    for i in range(p.n_bias):
+                        rr, ax = rest_residual(p, b, k, t, i)
+                        cost_rest += w * rr * rr
+                        for m in range(P):  # d r / d theta_m: -1 (this axis's bias), g_t (its scale)
+                            jm = -1.0 if m == i else (p.gyr[t, ax] if m >= p.n_bias and p.theta_axis[m] == ax else 0.0)
+                            if jm != 0.0:
+                                gth[m] += w * rr * jm
+                                for n in range(P):
+                                    jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
+                                    G[m, n] += w * jm * jn
+        if grad_q.shape[0] and mode != FROM_BLOCKS:
             for i in range(B):
-                grad_q[t, i] = g[i]
+                grad_q[t - t0, i] = g[i]
         if mode == BLOCKS:
+            tr = t - t0
             for i in range(B):
-                for j in range(B):
-                    diag[t, i, j] = D[i, j] if j <= i else D[j, i]
-                    if t < T - 1:
-                        off[t, i, j] = O[i, j]
+                if ranged:  # for FROM_BLOCKS, which reads the lower triangle
+                    for j in range(i + 1):
+                        diag[tr, i, j] = D[i, j]
+                else:
+                    for j in range(B):
+                        diag[tr, i, j] = D[i, j] if j <= i else D[j, i]
+                if t < T - 1:
+                    for j in range(B):
+                        off[tr, i, j] = O[i, j]
                 for m in range(P):
-                    cross[t, i, m] = C[i, m]
-        elif mode == ELIMINATE:
+                    cross[tr, i, m] = C[i, m]
+        elif mode == ELIMINATE or mode == FROM_BLOCKS:
             row, prev = (t, t - 1) if rows == T else (t & 1, (t - 1) & 1)
             for i in range(5):
                 D[i, i] = D[i, i] * (1.0 + shift) if i < B else 1.0  # the padding variables: identity
@@ -842,20 +908,54 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 for i in range(5):
                     for j in range(5):
                         Op[i, j] = O[i, j]
-    for m in range(P):
-        gth[m] += p.w_theta[m] * theta[m]
-        G[m, m] += p.w_theta[m]
-        grad_theta[m] = gth[m]
-        if mode == BLOCKS:
+    if mode == FROM_BLOCKS:
+        for i in range(5):
+            for j in range(5):
+                carry[5 * i + j] = Op[i, j]
+        if t1 < T:
+            return 0.0
+        for m in range(P):  # the calibration block and gradient of the BLOCKS pass, prior included
+            gth[m] = grad_theta[m]
             for n in range(P):
-                theta_block[m, n] = G[m, n]
-    if mode == ELIMINATE:
+                G[m, n] = theta_block[m, n]
+    elif t1 < T:  # BLOCKS: what the next range continues from
+        for i in range(5):
+            carry[25 + i] = gn[i]
+            for j in range(5):
+                carry[5 * i + j] = Dn[i, j]
+            for m in range(P):
+                carry[30 + P * i + m] = Cn[i, m]
+        at = 30 + 5 * P
+        carry[at], carry[at + 1], carry[at + 2], carry[at + 3] = cost_acc, cost_motion, cost_vel, cost_vzero
+        carry[at + 4], carry[at + 5], carry[at + 6] = cost_rest, cost_prior, cost_mag
+        for m in range(P):
+            carry[at + 7 + m] = gth[m]
+            for n in range(P):
+                carry[at + 7 + P + P * m + n] = G[m, n]
+        return 0.0
+    else:
+        for m in range(P):
+            gth[m] += p.w_theta[m] * theta[m]
+            G[m, m] += p.w_theta[m]
+            grad_theta[m] = gth[m]
+            if mode == BLOCKS:
+                for n in range(P):
+                    theta_block[m, n] = G[m, n]
+    if mode == ELIMINATE or mode == FROM_BLOCKS:
         for n in range(F):
             for m in range(n):
                 schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
             schur[n, n] = G[free[n], free[n]] * (1.0 + shift) - schur[n, n]
             schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
+    if mode == FROM_BLOCKS:
+        return 0.0
     return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest) + cost_mag
+
+
+def range_carry_size(P: int) -> int:
+    """The length of `linearize_kernel`'s carry between the ranges of a BLOCKS pass with P
+    calibration variables (at least the 25 of FROM_BLOCKS)."""
+    return 37 + 6 * P + P * P
 
 
 @_jit
@@ -1118,12 +1218,12 @@ class CompiledOps:
         return np.arange(self.P, dtype=np.int64) if free is None else np.flatnonzero(free).astype(np.int64)
 
     def _kernel(self, q, v, theta, mode, grad_q, grad_theta, shift=0.0, index=None, rhs=None, blocks=None,
-                storage=None, schur=None) -> float:
+                storage=None, schur=None, kept=None, span=None, carry=None) -> float:
         return linearize_kernel(
             self.arrays, self.consts, q, v, theta, mode, shift, _NO_INDEX if index is None else index,
-            *(_NO_RHS if rhs is None else (np.ascontiguousarray(rhs[0], float), np.ascontiguousarray(rhs[1], float))),
-            grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE), *(schur or _NO_SCHUR),
-            self._kept_at(q, theta))
+            *(_NO_RHS if rhs is None else rhs), grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE),
+            *(schur or _NO_SCHUR), self._kept_at(q, theta) if kept is None else kept, *(span or (0, self.T)),
+            _NO_CARRY if carry is None else carry)
 
     def _kept_at(self, q, theta) -> np.ndarray:
         """M, if it holds the per-sample terms of a trial at exactly (q, theta) (`trial`), else no rows."""
@@ -1139,11 +1239,55 @@ class CompiledOps:
             self._storage = None  # the old N goes before the new one comes
             self._storage = M, c, np.empty((self.T, 5, F))
         self._schur = np.empty((F, F)), np.empty(F), np.empty(1)
-        cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
-                            storage=self._storage, schur=self._schur)
+        if rhs is not None:
+            rhs = np.ascontiguousarray(rhs[0], float), np.ascontiguousarray(rhs[1], float)
+        if len(linearize_ranges(self.T)) > 2:
+            cost = self._eliminate_in_ranges(q, v, theta, shift, index, rhs, grad_q, grad_theta)
+        else:
+            cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
+                                storage=self._storage, schur=self._schur)
         self._kept = None  # M now holds the elimination
         self._check(cost)
         return cost
+
+    def _eliminate_in_ranges(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
+        """`_eliminate` on two threads: the blocks of one range of samples (`linearize_ranges`) are
+        computed (mode BLOCKS) while those of the range before are eliminated (FROM_BLOCKS), in two
+        buffers taken in turn. The same numbers as one ELIMINATE pass, bit for bit."""
+        P = self.P
+        bounds = linearize_ranges(self.T)
+        buffers = self._range_buffers(max(b - a for a, b in zip(bounds, bounds[1:])))
+        kept = self._kept_at(q, theta)  # read by the BLOCKS ranges only, before FROM_BLOCKS writes the same rows
+        theta_block, carries = np.empty((P, P)), (np.zeros(range_carry_size(P)), np.zeros(range_carry_size(P)))
+
+        def blocks(k):  # mode BLOCKS over range k, into buffer k % 2
+            return self._kernel(q, v, theta, BLOCKS, buffers[k % 2][3], grad_theta,
+                                blocks=(*buffers[k % 2][:3], theta_block), kept=kept,
+                                span=(bounds[k], bounds[k + 1]), carry=carries[0])
+
+        cost = blocks(0)
+        for k in range(len(bounds) - 1):
+            following = run_beside(blocks, k + 1) if k + 2 < len(bounds) else None
+            try:
+                diag, off, cross, grad = buffers[k % 2]
+                done = self._kernel(q, v, theta, FROM_BLOCKS, grad, grad_theta, shift=shift, index=index, rhs=rhs,
+                                    blocks=(diag, off, cross, theta_block), storage=self._storage, schur=self._schur,
+                                    kept=_NO_STORAGE[0], span=(bounds[k], bounds[k + 1]), carry=carries[1])
+                if len(grad_q):
+                    grad_q[bounds[k]:bounds[k + 1]] = grad[:bounds[k + 1] - bounds[k]]
+            finally:
+                if following is not None:
+                    cost = following()
+            if math.isnan(done):
+                return done
+        return cost
+
+    def _range_buffers(self, R: int) -> tuple:
+        """Two sets of the blocks (diag, off, cross, grad) of a range of R samples, for
+        `_eliminate_in_ranges`, every entry it reads written before. Allocated for each elimination
+        and dropped after it, so that they never add to the trial's trajectories (the peak)."""
+        B, P = self.B, self.P
+        return tuple((np.empty((R, B, B)), np.empty((R, B, B)), np.empty((R, B, P)), np.empty((R, B))) for _ in range(2))
 
     def _check(self, cost: float) -> None:
         if math.isnan(cost):
@@ -1151,6 +1295,7 @@ class CompiledOps:
 
 
 _NO_INDEX = np.zeros(0, np.int64)
+_NO_CARRY = np.zeros(0)
 _NO_RHS = (np.zeros((0, 5)), np.zeros(0))
 _NO_BLOCKS = (np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
 _NO_STORAGE = (np.zeros((0, 5, 5)), np.zeros((0, 5)), np.zeros((0, 5, 0)))

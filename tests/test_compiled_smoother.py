@@ -187,6 +187,52 @@ def test_elimination_solves_the_normal_equations(config):
             ops.slope(ops.linearize(q, theta, v, shift=RIDGE, gradient=False), d_q, d_theta)  # not its step
 
 
+def _factors(ops) -> list:
+    """Copies of what an elimination stored: M (its last row is never written), c and N."""
+    M, c, N = ops._storage
+    return [M[:-1].copy(), c.copy(), N.copy()]
+
+
+def _eliminations(problem, q, theta, v):
+    """Every elimination the solvers make, with what each leaves behind: gn's damped step with all
+    and with held calibration variables, at the point and at a trial point (reading the trial's
+    kept terms), gd's direction for another right-hand side, the posterior std."""
+    P = problem.n_theta
+    rng = np.random.default_rng(4)
+    out = []
+    for shift, free in [(1e-6, None), (0.1, (np.arange(P) < P // 2) if P > 1 else None)]:
+        ops = cs.CompiledOps(problem)
+        lin = ops.linearize(q, theta, v, shift=shift, free=free, gradient=True)
+        out += [lin.cost, lin.grad_q.copy(), lin.grad_theta.copy(), *_factors(ops), *ops._schur]
+        d_q, d_theta = ops.solve(lin, shift, free)
+        out += [d_q.copy(), d_theta.copy(), ops.slope(lin, d_q, d_theta) if len(lin.grad_q) == 0 else 0.0]
+        q2, v2, theta2, cost2 = ops.trial(q, v, theta, d_q * 0.3, d_theta * 0.3, 1.0)
+        lin2 = ops.linearize(q2, theta2, v2, shift=shift, free=free, gradient=False)
+        out += [lin2.cost, *_factors(ops), *ops._schur]  # (cost2: summed in two ranges, another order)
+        other = (rng.normal(size=(len(q), 3 + problem.n_vel)), rng.normal(size=P))
+        out += [x.copy() for x in ops.solve(lin2, shift, free, grad=other)]
+        out += [ops.theta_std(q2, theta2, v2)]
+    return out
+
+
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_the_elimination_in_ranges_is_the_elimination_in_one_pass(config, monkeypatch):
+    """A long recording's linearisation runs on two threads: the blocks of a range of samples
+    are computed while those of the range before are eliminated (`_eliminate_in_ranges`). Ranges
+    of 7 samples (the last one shorter) give the cost, the gradient, the stored factors, the
+    Schur complement, the steps and the posterior std of one pass, bit for bit."""
+    problem, q, theta, v = _problem(config)
+    one = _eliminations(problem, q, theta, v)
+    monkeypatch.setattr(cs, "SPLIT_MIN_SAMPLES", 2)
+    monkeypatch.setattr(cs, "RANGE_SAMPLES", (7, 7))
+    ranges = _eliminations(problem, q, theta, v)
+    assert len(one) == len(ranges)
+    for a, b in zip(one, ranges):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(np.linalg.LinAlgError):
+        cs.CompiledOps(problem).linearize(q, theta, v, shift=-2.0)  # not positive definite, found in a range
+
+
 def test_a_matrix_that_is_not_positive_definite_is_an_error():
     problem, q, theta, v = _problem(CONFIGS["default"])
     ops = cs.CompiledOps(problem)
