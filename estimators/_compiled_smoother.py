@@ -40,8 +40,9 @@ are added in a fixed order. The split depends on the number of samples alone, so
 the same on any machine; it changes the wall time, not the CPU time. The linearisation's
 elimination is a recursion; on a long recording (`linearize_ranges`) the Jacobian blocks of one
 range of samples are computed (mode BLOCKS) while those of the range before are eliminated from
-them (mode FROM_BLOCKS): the same arithmetic in the same order as the one fused pass, bit for bit,
-for a quarter less wall time and a fifth more CPU time (`CompiledOps._eliminate_in_ranges`).
+them (mode FROM_BLOCKS): the same arithmetic in the same order as the one fused pass, bit for bit
+(`CompiledOps._eliminate_in_ranges`). On an hour at 100 Hz the two take a quarter off the
+smoothers' wall time, for a sixth more CPU time.
 
 The numpy code is the reference: every kernel line implements a line of `smoother_cost` (or of
 `fusion.quaternion`), and `tests/test_compiled_smoother.py` checks the kernels against it
@@ -436,11 +437,13 @@ SPLIT_MIN_SAMPLES = 8192
 
 def linearize_ranges(T: int) -> list[int]:
     """The bounds of `CompiledOps._eliminate_in_ranges`'s ranges for T samples: eight or more ranges
-    of `RANGE_SAMPLES` samples (two ranges' blocks take less memory than the trial's trajectory), or
-    one range below 8 x 8,192 samples. Writing and reading the blocks costs about a fifth more CPU
-    time than the one fused pass; only on long recordings does the overlap gain more wall time than
-    that (one hour at 100 Hz: 25 % less wall time; 52,556 samples: 6 % less, `bench_long.py`,
-    `bench_smoother.py`). The results do not depend on the ranges."""
+    of 8,192 to 12,288 samples (`RANGE_SAMPLES`; two ranges' blocks take less memory than the
+    trial's trajectory), or one range below 8 x 8,192 samples. Writing and reading the blocks takes
+    about a quarter more CPU time than the one fused pass; only on long recordings does the overlap
+    gain more wall time than that: one hour at 100 Hz, 27 % less wall time for the whole estimate
+    (`bench_long.py` against `--one-thread`); BROAD trial 15, 52,556 samples in ranges of 6,569
+    (measured while choosing this bound), 6 % less wall time for 25 % more CPU time. The results do
+    not depend on the ranges."""
     size = min(max(T // 8, RANGE_SAMPLES[0]), RANGE_SAMPLES[1])
     return [0, T] if T < 8 * RANGE_SAMPLES[0] else [*range(0, T, size), T]
 
