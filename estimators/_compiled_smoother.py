@@ -435,22 +435,6 @@ def cost_of_sums(p, theta, V, sums):
 SPLIT_MIN_SAMPLES = 8192
 
 
-def linearize_ranges(T: int) -> list[int]:
-    """The bounds of `CompiledOps._eliminate_in_ranges`'s ranges for T samples: eight or more ranges
-    of 8,192 to 12,288 samples (`RANGE_SAMPLES`; two ranges' blocks take less memory than the
-    trial's trajectory), or one range below 8 x 8,192 samples. Writing and reading the blocks takes
-    about a quarter more CPU time than the one fused pass; only on long recordings does the overlap
-    gain more wall time than that: one hour at 100 Hz, 27 % less wall time for the whole estimate
-    (`bench_long.py` against `--one-thread`); BROAD trial 15, 52,556 samples in ranges of 6,569
-    (measured while choosing this bound), 6 % less wall time for 25 % more CPU time. The results do
-    not depend on the ranges."""
-    size = min(max(T // 8, RANGE_SAMPLES[0]), RANGE_SAMPLES[1])
-    return [0, T] if T < 8 * RANGE_SAMPLES[0] else [*range(0, T, size), T]
-
-
-RANGE_SAMPLES = (8192, 12288)
-
-
 def cost_ranges(T: int) -> tuple[int, ...]:
     """The bounds of `range_cost`'s ranges for T samples."""
     return (0, T) if T < SPLIT_MIN_SAMPLES else (0, T // 2, T)
@@ -493,6 +477,23 @@ def run_beside(work, *args):
         return returned[0]
 
     return join
+
+
+# The linearisation of a long recording in ranges on two threads (`CompiledOps._eliminate_in_ranges`).
+RANGE_SAMPLES = (8192, 12288)  # the smallest and the largest range
+
+
+def linearize_ranges(T: int) -> list[int]:
+    """The bounds of `CompiledOps._eliminate_in_ranges`'s ranges for T samples: eight or more ranges
+    of 8,192 to 12,288 samples (`RANGE_SAMPLES`; two ranges' blocks take less memory than the
+    trial's trajectory), or one range below 8 x 8,192 samples. Writing and reading the blocks takes
+    about a quarter more CPU time than the one fused pass; only on long recordings does the overlap
+    gain more wall time than that: one hour at 100 Hz, 27 % less wall time for the whole estimate
+    (`bench_long.py` against `--one-thread`); BROAD trial 15, 52,556 samples in ranges of 6,569
+    (measured while choosing this bound), 6 % less wall time for 25 % more CPU time. The results do
+    not depend on the ranges."""
+    size = min(max(T // 8, RANGE_SAMPLES[0]), RANGE_SAMPLES[1])
+    return [0, T] if T < 8 * RANGE_SAMPLES[0] else [*range(0, T, size), T]
 
 
 @_jit
