@@ -441,17 +441,17 @@ def cost_ranges(T: int) -> tuple[int, ...]:
 
 
 def range_cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep) -> float:
-    """`cost_kernel` over the whole recording, in the ranges of `cost_ranges` (the second one on a
-    thread of its own): the cost, with q_out, v_out and keep written as `cost_kernel` says."""
+    """`cost_kernel` over the whole recording, in the one or two ranges of `cost_ranges` (the second
+    on a thread of its own): the cost, with q_out, v_out and keep written as `cost_kernel` says."""
     bounds = cost_ranges(len(q))
     sums = np.zeros((len(bounds) - 1, 7))
-    beside = [run_beside(cost_kernel, p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, a, b, sums[i])
-              for i, (a, b) in enumerate(zip(bounds[1:-1], bounds[2:]), start=1)]
+    args = (p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep)
+    second = run_beside(cost_kernel, *args, bounds[1], bounds[2], sums[1]) if len(bounds) == 3 else None
     try:
-        cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, 0, bounds[1], sums[0])
-    finally:  # the other ranges write into the caller's arrays: never leave them running
-        for join in beside:
-            join()
+        cost_kernel(*args, 0, bounds[1], sums[0])
+    finally:  # the second range writes into the caller's arrays: never leave it running
+        if second is not None:
+            second()
     return cost_of_sums(p, theta, v.shape[1], sums)
 
 
@@ -641,23 +641,11 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             for j in range(F):
                 schur[i, j] = 0.0
     elif mode == FROM_BLOCKS:
-        for i in range(5):
-            for j in range(5):
-                Op[i, j] = carry[5 * i + j]
+        carry_block(carry, 0, Op, False)
     else:  # BLOCKS, continued from the range before
-        for i in range(5):
-            gn[i] = carry[25 + i]
-            for j in range(5):
-                Dn[i, j] = carry[5 * i + j]
-            for m in range(P):
-                Cn[i, m] = carry[30 + P * i + m]
-        at = 30 + 5 * P
-        cost_acc, cost_motion, cost_vel, cost_vzero = carry[at], carry[at + 1], carry[at + 2], carry[at + 3]
-        cost_rest, cost_prior, cost_mag = carry[at + 4], carry[at + 5], carry[at + 6]
-        for m in range(P):
-            gth[m] = carry[at + 7 + m]
-            for n in range(P):
-                G[m, n] = carry[at + 7 + P + P * m + n]
+        sums = np.empty(7)
+        carry_state(carry, False, Dn, gn, Cn, sums, gth, G)
+        cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_prior, cost_mag = sums
     qn = load_quat(q, t0)
     rn = rotation(qn)
     for t in range(t0, t1):
@@ -913,9 +901,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     for j in range(5):
                         Op[i, j] = O[i, j]
     if mode == FROM_BLOCKS:
-        for i in range(5):
-            for j in range(5):
-                carry[5 * i + j] = Op[i, j]
+        carry_block(carry, 0, Op, True)
         if t1 < T:
             return 0.0
         for m in range(P):  # the calibration block and gradient of the BLOCKS pass, prior included
@@ -923,19 +909,8 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             for n in range(P):
                 G[m, n] = theta_block[m, n]
     elif t1 < T:  # BLOCKS: what the next range continues from
-        for i in range(5):
-            carry[25 + i] = gn[i]
-            for j in range(5):
-                carry[5 * i + j] = Dn[i, j]
-            for m in range(P):
-                carry[30 + P * i + m] = Cn[i, m]
-        at = 30 + 5 * P
-        carry[at], carry[at + 1], carry[at + 2], carry[at + 3] = cost_acc, cost_motion, cost_vel, cost_vzero
-        carry[at + 4], carry[at + 5], carry[at + 6] = cost_rest, cost_prior, cost_mag
-        for m in range(P):
-            carry[at + 7 + m] = gth[m]
-            for n in range(P):
-                carry[at + 7 + P + P * m + n] = G[m, n]
+        sums = np.array([cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_prior, cost_mag])
+        carry_state(carry, True, Dn, gn, Cn, sums, gth, G)
         return 0.0
     else:
         for m in range(P):
@@ -956,10 +931,35 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest) + cost_mag
 
 
+@_jit
+def carry_block(carry, at, block, store):
+    """Copy the C-contiguous array `block` to carry[at:] (store) or from there; -> the offset after it."""
+    flat = block.reshape(-1)
+    for i in range(flat.size):
+        if store:
+            carry[at + i] = flat[i]
+        else:
+            flat[i] = carry[at + i]
+    return at + flat.size
+
+
+@_jit
+def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
+    """A BLOCKS range's state to its carry (store) or from it, in one layout: what the last step
+    adds to the next sample (Dn 5 x 5, gn 5, Cn 5 x P), the cost's seven sums, the calibration
+    gradient gth (P) and block G (P x P): `range_carry_size` numbers."""
+    at = carry_block(carry, 0, Dn, store)
+    at = carry_block(carry, at, gn, store)
+    at = carry_block(carry, at, Cn, store)
+    at = carry_block(carry, at, sums, store)
+    at = carry_block(carry, at, gth, store)
+    carry_block(carry, at, G, store)
+
+
 def range_carry_size(P: int) -> int:
-    """The length of `linearize_kernel`'s carry between the ranges of a BLOCKS pass with P
-    calibration variables (at least the 25 of FROM_BLOCKS)."""
-    return 37 + 6 * P + P * P
+    """The length of `linearize_kernel`'s carry (`carry_state`) with P calibration variables; at
+    least the 25 of FROM_BLOCKS's H[t-1, t]."""
+    return 25 + 5 + 5 * P + 7 + P + P * P
 
 
 @_jit
