@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from fusion import quaternion as quat
 from fusion.quaternion import rotation_matrix
@@ -536,7 +536,7 @@ class BatchSmoother(Estimator):
         q1, theta1, v1, cost1, theta_std1 = stage1
         lr = 2.0 * (cost1 - float(diagnostics["loss"][-1]))
         diagnostics["scale_lr"] = lr
-        if lr > chi2.ppf(1.0 - self.params.scale_significance, int(released.sum())):
+        if lr > chdtri(int(released.sum()), self.params.scale_significance):
             return q, diagnostics
         diagnostics.update(solution_diagnostics(problem, theta1, theta_std1, np.zeros_like(released), v1))
         return q1, diagnostics

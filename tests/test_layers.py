@@ -211,3 +211,25 @@ def test_a_folder_imported_under_its_own_name_is_refused(folder):
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines()[-1] == \
         f"ImportError: {folder}: this folder is the package fusion.{folder}; import fusion.{folder} instead"
+
+
+def test_filterpy_and_scipy_stats_are_imported_only_for_a_ukf():
+    """FilterPy imports SciPy's statistics package (about 34 MB resident): a process that builds
+    and runs a smoother or `ekf` does not hold it (`fusion.estimators.quaternion_ukf` is
+    imported when a UKF is built), one that builds a UKF does."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from fusion import estimators\n"
+            "from fusion.calibration import calibrate\n"
+            "from fusion.sim import SimSettings, simulate\n"
+            "raw, truth = simulate(SimSettings(duration_s=3.0))\n"
+            "for name in ('gn', 'gd', 'ekf'):\n"
+            "    estimators.build(name).estimate(calibrate(raw).apply(raw), truth.quat_wxyz[0])\n"
+            "print(sorted(m for m in ('filterpy', 'scipy.stats') if m in sys.modules))\n"
+            "estimators.build('ukf')\n"
+            "print(sorted(m for m in ('filterpy', 'scipy.stats') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == ["[]", "['filterpy', 'scipy.stats']"]

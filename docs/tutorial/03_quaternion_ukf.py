@@ -13,7 +13,7 @@
 # E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking", Proc. 6th
 # Int. Conf. Information Fusion, 2003: the filter most orientation courses teach. The toolkit's
 # `ukf` estimator implements it on top of FilterPy's `UnscentedKalmanFilter`
-# (`fusion.estimators.ukf.QuaternionUKF`). In this notebook we take one real sample of a
+# (`fusion.estimators.quaternion_ukf.QuaternionUKF`). In this notebook we take one real sample of a
 # recording and run Kraft's steps by hand, printing every number, with the library's own
 # pieces (`QuaternionSigmaPoints`, `quaternion_mean`, `fusion.quaternion`), and check that the
 # result is exactly what the filter computes. Then the whole recording, with the filter's
@@ -48,7 +48,7 @@ import numpy as np
 from fusion import estimators
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators.ukf import QuaternionSigmaPoints, QuaternionUKF, quaternion_mean, unscented_transform_state
+from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints, QuaternionUKF, quaternion_mean, unscented_transform_state
 from fusion.evaluation import consistency
 from tutorial_data import load_recording
 
@@ -62,8 +62,8 @@ q0 = initial_orientation(rec)
 # ## 3.1 Kraft's steps, the library's steps
 #
 # The module docstring of `estimators/ukf.py` numbers the steps of one filter cycle 1-9; the code
-# refers to those numbers. The table says what each step is in Kraft's filter, and where the
-# library differs from it.
+# (`estimators/quaternion_ukf.py`) refers to those numbers. The table says what each step is in
+# Kraft's filter, and where the library differs from it.
 #
 # | `ukf.py` step | operation | Kraft 2003 |
 # |---|---|---|

@@ -38,7 +38,7 @@ import numpy as np
 from fusion import datasets, estimators
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators.ukf import QuaternionSigmaPoints
+from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints
 from fusion.evaluation.metrics import score
 from fusion.types import STANDARD_GRAVITY_M_S2
 from tutorial_data import course_recordings, load_recording
