@@ -1065,7 +1065,7 @@ def dead_reckoned(imu, init_quat_wxyz: np.ndarray) -> np.ndarray:
     gyr, valid = imu.interval_rates()
     q = np.empty((len(imu), 4))
     dead_reckoning(np.ascontiguousarray(gyr, float), np.ascontiguousarray(valid, bool), np.ascontiguousarray(imu.dt, float),
-                   np.asarray(init_quat_wxyz, float), float(quat.SMALL_ANGLE), q)
+                   np.array(init_quat_wxyz, float), float(quat.SMALL_ANGLE), q)  # a writable copy: `load`'s signature
     return q
 
 
