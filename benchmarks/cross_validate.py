@@ -39,11 +39,12 @@ GRIDS = {
     "Ps0": ["1e-3", "1e-2", "3e-2"],  # gyro scale prior variance (3 %, 10 %, 17 %)
     "Rv": ["0.25", "1.0", "4.0"],  # velocity bound density, m^2/s (ekf only)
     "Qv": ["9e-6", "1e-4", "9e-4"],  # velocity states' acceleration noise density, g^2 s (ekf only)
+    "lpcal": ["false", "true"],  # the low-passed sample corrects the calibration beside the velocity (ekf only)
 }
-VELOCITY_ONLY = {"Rv", "Qv"}
+VELOCITY_ONLY = {"Rv", "Qv", "lpcal"}
 
 
-def default_values(estimator: str) -> dict[str, float]:
+def default_values(estimator: str) -> dict[str, float | bool]:
     """alias -> the estimator's default value (from its Params dataclass)."""
     from dataclasses import fields
 
@@ -51,6 +52,11 @@ def default_values(estimator: str) -> dict[str, float]:
 
     params = resolve(estimator).params
     return {f.metadata["alias"]: getattr(params, f.name) for f in fields(params) if "alias" in f.metadata}
+
+
+def is_value(text: str, value: float | bool) -> bool:
+    """Whether a grid entry (`"1e-4"`, `"true"`) is the parameter value `value`."""
+    return text == str(value).lower() if isinstance(value, bool) else float(text) == value
 
 
 def main() -> None:
@@ -89,7 +95,7 @@ def main() -> None:
           f"{'folds on default':>16}")
     for name in names:
         grid = {v: np.array([table[(f"{args.estimator}{join}{name}={v}", d)] for d in recordings]) for v in GRIDS[name]}
-        default_value = next((v for v in grid if float(v) == defaults[name]), None)
+        default_value = next((v for v in grid if is_value(v, defaults[name])), None)
         values = list(grid)
         means = np.array([grid[v].mean() for v in values])
         best = int(np.argmin(means))

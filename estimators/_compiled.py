@@ -93,6 +93,7 @@ Settings = namedtuple("Settings", [
     "rest_on", "rest_gyr", "rest_acc", "rest_time", "rest_window", "rest_noise",  # rest detection + update
     "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
     "chi2",  # ekf: NIS above which bias and scale are not corrected (inf: never)
+    "lowpass_calibration",  # ekf: the low-passed sample corrects bias and scale (always without velocity states)
     "scale_noise",  # ukf: Qs, s
     "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
     "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
@@ -118,7 +119,8 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         float(rest.min_time) if rest_on else math.inf, float(rest.window_s) if rest_on else 1.0,
         float(p.rest_noise_rad2_s) if bias else 0.0,
         float(p.bias_max_rad_s) if bias else math.inf, float(p.scale_max) if bias else math.inf,
-        float(chi2), float(scale_noise), float(sqrt_c), float(mean_tol), int(mean_max_iter),
+        float(chi2), bool(nv == 0 or getattr(p, "lowpass_calibration", True)),
+        float(scale_noise), float(sqrt_c), float(mean_tol), int(mean_max_iter),
         float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD),
         tuple(float(c) for c in quat._A[1]), tuple(float(c) for c in quat._B[1]),
         float(COV_FLOOR), float(COV_RESET_VAR), float(SQRT_FLOOR),
@@ -1122,8 +1124,8 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
                     _project_heading(K, 3, hx, hy, hz)
             yx, yy, yz = mx - hx, my - hy, mz - hz
             nis = _nis(yx, yy, yz, Sinv)
-            if n > 3 and nis > o.chi2:  # inconsistent innovation: correct the attitude only
-                guarded = True
+            guarded = n > 3 and nis > o.chi2  # inconsistent innovation: correct the attitude only
+            if guarded or (n > 3 and lowpassed and not o.lowpass_calibration):  # ... or the velocity's to correct
                 for i in range(3, n):
                     K[i, 0] = 0.0
                     K[i, 1] = 0.0

@@ -39,7 +39,8 @@ injection, reset with the reset Jacobian taken as I):
                   rate noise's drift of the frame; the lag by which the low-pass trails gravity
                   when the frame drifts with a bias or scale error is modelled, not added as
                   noise: H = [[h]x, H_b, H_s] (`_attitude.LowpassLag`), so that the low-passed
-                  sample measures the calibration in motion
+                  sample's prediction carries the calibration's uncertainty (and, without the
+                  velocity states, measures the calibration in motion; with them, see Velocity)
     S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
     heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
                   predicted vertical; the Joseph form below is exact for any gain)
@@ -65,6 +66,20 @@ velocity states follow the translation (`tests/test_ekf.py`) instead of the atti
 for gravity. Rv = 1 m^2/s, looser than the smoothers' 0.25: BROAD's fast translation trials
 move at about 1 m/s (the choice is checked by `benchmarks/cross_validate.py`; compare
 `fusion compare --estimators ekf:Rv=0.25,ekf,ekf:Rv=4,ekf:Rv=inf`).
+
+With the velocity states, the low-passed accelerometer sample corrects the attitude and the
+velocity, not the gyro bias and scale (`lowpass_calibration`, `lpcal`; their gain rows are zero,
+which the Joseph form keeps exact): the velocity integrates the same accelerometer samples that
+the low-pass averages, both measure the strapdown frame's drift, and taken as two independent
+measurements of the calibration they would count that information twice. The velocity
+pseudo-measurement, the raw samples and the rest update correct the calibration. Measured in 6-D
+(inclination, `fusion compare --estimators ekf,ekf:lpcal=true --mag off`): BROAD's fourteen trials
+0.699 against 0.719 with the calibration corrected by both (ahead on 12 of them, behind on 21
+and 28), the course's nine recordings 1.555 against 1.559; the other way round, the velocity
+pseudo-measurement leaving the calibration to the low-passed sample, BROAD's mean is 1.13.
+Without the velocity states the low-passed sample is the only correction of the calibration in
+motion and keeps it (leaving it out took `ekf:Rv=inf` from 0.78 to 1.00 on BROAD). `python
+benchmarks/cross_validate.py --params lpcal` prints the choice by leave-one-recording-out.
 
 Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
 accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
@@ -176,6 +191,10 @@ class EKFParams(BiasFilterParams):
     velocity_bound_m2_s (Rv): density of the pseudo-measurement v = 0, m^2/s: per second, one
         observation "v = 0" of variance Rv (m/s)^2 (inf: no velocity states; see the module
         docstring).
+    lowpass_calibration (lpcal): whether, with the velocity states, the low-passed accelerometer
+        sample also corrects the gyro bias and scale (False, the default: the attitude and
+        velocity only; see "Velocity" in the module docstring). Without the velocity states it
+        always does.
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
@@ -196,6 +215,7 @@ class EKFParams(BiasFilterParams):
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
     velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv"})
     velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv"})
+    lowpass_calibration: bool = field(default=False, metadata={"alias": "lpcal"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
@@ -355,6 +375,10 @@ class EKF(KalmanFilter):
                 # The innovation is inconsistent with the predicted covariance (a gyro freeze
                 # or a large error): correct the attitude only, not the bias and scale through
                 # their linearised correlations. Any gain is exact in the Joseph form.
+                K[3:n] = 0.0
+            if n > 3 and self.lowpassed and self.N > n and not p.lowpass_calibration:
+                # The velocity states measure the frame's drift from the same accelerometer samples
+                # the low-pass averages: the calibration is theirs to correct (module docstring).
                 K[3:n] = 0.0
             q = self._correct(q, K @ y)
             IKH = self._I - K @ H

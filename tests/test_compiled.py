@@ -32,7 +32,7 @@ SPECS = (
     "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
     # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
-    "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25",
+    "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25", "ekf:lpcal=true",
     # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
     # accelerometer low-pass on (with and without the scale noise in its drift density)
     "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
