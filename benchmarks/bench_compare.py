@@ -19,6 +19,7 @@ import time
 import dask
 from distributed import LocalCluster
 
+from fusion.evaluation.runner import WORKER_ENVIRON
 from fusion.evaluation.runs import run_compare
 
 
@@ -39,10 +40,7 @@ def main() -> None:
     print(f"{len(local.results)} jobs ({len(set(r.dataset for r in local.results))} recordings x "
           f"{len(set(r.estimator for r in local.results))} estimators)")
     print(f"local pool, --jobs 2:        {t_local:6.1f} s")
-    for label, trim in (("default worker environment", {}),
-                        ("pre-spawn environment unset", {"distributed.nanny.pre-spawn-environ": {
-                            name: None for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
-                                                    "OPENBLAS_NUM_THREADS")}})):
+    for label, trim in (("default worker environment", {}), ("pre-spawn environment unset", WORKER_ENVIRON)):
         with dask.config.set(trim):
             start = time.perf_counter()
             with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",

@@ -78,11 +78,10 @@ def main() -> None:
         import dask
         from distributed import LocalCluster
 
-        # docs/dask.md's worker environment (dask's MALLOC_TRIM_THRESHOLD_ and one-thread BLAS unset),
-        # unless --dask-default-environ asks for dask's own
-        environ = {} if args.dask_default_environ else {"distributed.nanny.pre-spawn-environ": {
-            name: None for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}}
-        with dask.config.set(environ):
+        from fusion.evaluation.runner import WORKER_ENVIRON
+
+        # docs/dask.md's worker environment, unless --dask-default-environ asks for dask's own
+        with dask.config.set({} if args.dask_default_environ else WORKER_ENVIRON):
             cluster = LocalCluster(n_workers=args.local_cluster, threads_per_worker=1, processes=True,
                                    dashboard_address=None)
         args.scheduler, args.jobs = cluster.scheduler_address, args.local_cluster

@@ -370,15 +370,13 @@ class EKF(KalmanFilter):
                     K[3:6] -= np.outer(h, h @ K[3:6])
             y = meas - h
             self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
-            if n > 3 and self.nis > _CHI2_3DOF:
-                self.guarded = True
-                # The innovation is inconsistent with the predicted covariance (a gyro freeze
-                # or a large error): correct the attitude only, not the bias and scale through
-                # their linearised correlations. Any gain is exact in the Joseph form.
-                K[3:n] = 0.0
-            if n > 3 and self.lowpassed and self.N > n and not p.lowpass_calibration:
-                # The velocity states measure the frame's drift from the same accelerometer samples
-                # the low-pass averages: the calibration is theirs to correct (module docstring).
+            # The attitude only, not the bias and scale, is corrected when the innovation is
+            # inconsistent with the predicted covariance (a gyro freeze or a large error: not
+            # through their linearised correlations), and for the low-passed sample when the
+            # velocity states, which measure the frame's drift from the same accelerometer
+            # samples, correct the calibration (module docstring). Any gain is exact in the Joseph form.
+            self.guarded = n > 3 and self.nis > _CHI2_3DOF
+            if self.guarded or (n > 3 and self.lowpassed and self.N > n and not p.lowpass_calibration):
                 K[3:n] = 0.0
             q = self._correct(q, K @ y)
             IKH = self._I - K @ H

@@ -59,6 +59,13 @@ from .align import Alignment
 from .job import Job, JobOutput, Result, failed, recording_alignment, run_job, warn_low_coverage
 from .pool import TaskTimeout, WorkerDied, WorkerPool, default_jobs
 
+# docs/dask.md's worker environment, as a dask configuration: dask's nanny starts each worker with
+# MALLOC_TRIM_THRESHOLD_=65536 (freed memory handed back at once, so the smoothers' large arrays are
+# paged in again every iteration) and one BLAS/OpenMP thread; this unsets them. For a LocalCluster
+# started from Python: `with dask.config.set(WORKER_ENVIRON): LocalCluster(...)`.
+WORKER_ENVIRON = {"distributed.nanny.pre-spawn-environ": {
+    name: None for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}}
+
 
 class WorkerState:
     """What one process keeps during a run: the run's recordings (`Source`s or `Recording`s) and
