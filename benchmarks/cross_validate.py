@@ -40,8 +40,10 @@ GRIDS = {
     "Rv": ["0.25", "1.0", "4.0"],  # velocity bound density, m^2/s (ekf only)
     "Qv": ["9e-6", "1e-4", "9e-4"],  # velocity states' acceleration noise density, g^2 s (ekf only)
     "lpcal": ["false", "true"],  # the low-passed sample corrects the calibration beside the velocity (ekf only)
+    "sprt": ["0", "0.05", "0.1", "0.2"],  # the scale test's error probabilities (0: no test; ekf only)
+    "Psc": ["3e-5", "1e-4", "3e-4"],  # the scale test's calibrated prior variance (0.5 %, 1 %, 1.7 %; ekf only)
 }
-VELOCITY_ONLY = {"Rv", "Qv", "lpcal"}
+EKF_ONLY = {"Rv", "Qv", "lpcal", "sprt", "Psc"}
 
 
 def default_values(estimator: str) -> dict[str, float | bool]:
@@ -70,7 +72,7 @@ def main() -> None:
     parser.add_argument("--detail", action="store_true", help="also each value's mean per data set")
     args = parser.parse_args()
     names = args.params.split(",") if args.params else [n for n in GRIDS
-                                                          if args.estimator.startswith("ekf") or n not in VELOCITY_ONLY]
+                                                          if args.estimator.startswith("ekf") or n not in EKF_ONLY]
     unknown = [n for n in names if n not in GRIDS]
     if unknown:
         raise SystemExit(f"--params: no grid for {', '.join(unknown)} (known: {', '.join(GRIDS)})")

@@ -94,6 +94,7 @@ Settings = namedtuple("Settings", [
     "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
     "chi2",  # ekf: NIS above which bias and scale are not corrected (inf: never)
     "lowpass_calibration",  # ekf: the low-passed sample corrects bias and scale (always without velocity states)
+    "scale_test_axes", "scale_test_r", "scale_test_const", "scale_test_bound",  # ekf: `_attitude.ScaleTest` (axes bits, 0: off)
     "scale_noise",  # ukf: Qs, s
     "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
     "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
@@ -104,9 +105,11 @@ Settings = namedtuple("Settings", [
 
 
 def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noise: float = 0.0,
-             sqrt_c: float = 0.0, mean_tol: float = 0.0, mean_max_iter: int = 0) -> Settings:
-    """The kernel options of a filter's parameters `p` (a `FilterParams`), error dimension `n`
-    and rest detector `rest` (the `_attitude.RestDetector` its reset built, or None)."""
+             sqrt_c: float = 0.0, mean_tol: float = 0.0, mean_max_iter: int = 0, scale_test: Any = None) -> Settings:
+    """The kernel options of a filter's parameters `p` (a `FilterParams`), error dimension `n`,
+    rest detector `rest` (the `_attitude.RestDetector` its reset built, or None) and scale test
+    (its `_attitude.ScaleTest`, or None)."""
+    test = scale_test is not None and scale_test.on
     bias = isinstance(p, BiasFilterParams) and n > 3
     rest_on = bias and rest is not None
     nv = int(getattr(p, "velocity_states", 0))
@@ -120,6 +123,8 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         float(p.rest_noise_rad2_s) if bias else 0.0,
         float(p.bias_max_rad_s) if bias else math.inf, float(p.scale_max) if bias else math.inf,
         float(chi2), bool(nv == 0 or getattr(p, "lowpass_calibration", True)),
+        int(sum(1 << int(a) for a in scale_test.axes)) if test else 0, float(scale_test.r) if test else math.inf,
+        float(scale_test.const) if test else 0.0, float(scale_test.bound) if test else math.inf,
         float(scale_noise), float(sqrt_c), float(mean_tol), int(mean_max_iter),
         float(quat.SMALL_ANGLE), float(quat.JACOBIAN_SERIES_RAD),
         tuple(float(c) for c in quat._A[1]), tuple(float(c) for c in quat._B[1]),
@@ -165,6 +170,7 @@ def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[st
         "acc_lowpassed": np.zeros(n_samples, dtype=bool),
         "mag_used": np.zeros(n_samples, dtype=bool),
         "mag_hard_iron": np.zeros(n_samples, dtype=bool),
+        "scale_llr": np.zeros(n_samples),
     }
     out["quat"][0] = init_quat_wxyz
     for key, value in current.items():
@@ -194,10 +200,10 @@ def load() -> None:
     out = outputs(2, n, unit, {})
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
     ekf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), unit.copy(), np.zeros(3), np.zeros(3),
-               np.zeros(2), P, Qrate, Qbad, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), o,
+               np.zeros(2), P, Qrate, Qbad, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), np.zeros(3), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
                out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"],
-               out["mag_hard_iron"])
+               out["mag_hard_iron"], out["scale_llr"])
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
@@ -995,16 +1001,64 @@ def velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D):
 
 
 @_jit
-def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, dist, rest, magst, hist, o,
+def scale_test(P, s, st, q, o, N, K, PHt, S, Sinv, D, dx):
+    """`_attitude.ScaleTest.step` on its state st (3,) `[on, decision, ln L]` while on and
+    undecided, with the attitude q: -> whether it accepted H0 now, with the pseudo-measurement's
+    correction in dx (N,) and P updated in place (Joseph form; heading-free as `EKF.step`). The
+    axes not tested (`o.scale_test_axes`) take a unit diagonal in S, so that its inverse and
+    determinant are those of the tested block, and zero columns in K and PHt (K, PHt, D: N x 3
+    scratch)."""
+    r = o.scale_test_r
+    for i in range(3):
+        on_i = (o.scale_test_axes >> i) & 1
+        for j in range(3):
+            on_j = (o.scale_test_axes >> j) & 1
+            S[i, j] = P[6 + i, 6 + j] + (r if i == j else 0.0) if on_i and on_j else (1.0 if i == j else 0.0)
+    y0 = -s[0] if o.scale_test_axes & 1 else 0.0
+    y1 = -s[1] if o.scale_test_axes & 2 else 0.0
+    y2 = -s[2] if o.scale_test_axes & 4 else 0.0
+    inv_sym3(S, Sinv)
+    det = (S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]) - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
+           + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]))
+    llr = 0.5 * (_nis(y0, y1, y2, Sinv) + math.log(det)) + o.scale_test_const
+    st[2] = llr
+    if llr >= o.scale_test_bound:
+        st[1] = 1.0
+        return False
+    if llr > -o.scale_test_bound:
+        return False
+    st[1] = -1.0
+    for i in range(3):  # H selects the tested scale rows: P H^T = P[:, 6 + i]; S's dummy rows to zero
+        on_i = (o.scale_test_axes >> i) & 1
+        if not on_i:
+            S[i, i] = 0.0
+        for a in range(N):
+            PHt[a, i] = P[a, 6 + i] if on_i else 0.0
+    for a in range(N):
+        for j in range(3):
+            K[a, j] = PHt[a, 0] * Sinv[0, j] + PHt[a, 1] * Sinv[1, j] + PHt[a, 2] * Sinv[2, j]
+    if o.heading_free:  # no turn about the vertical h on the attitude and bias rows
+        hx, hy, hz = gravity(q)
+        _project_heading(K, 0, hx, hy, hz)
+        _project_heading(K, 3, hx, hy, hz)
+    for a in range(N):
+        dx[a] = K[a, 0] * y0 + K[a, 1] * y1 + K[a, 2] * y2
+    joseph(P, K, PHt, S, N, D)
+    return True
+
+
+@_jit
+def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, dist, rest, magst, hist, test, o,
                out_q, out_cov, out_b, out_s, out_v, out_var, out_rest, out_nis, out_guard, out_lowpassed, out_mag,
-               out_hi):
+               out_hi, out_llr):
     """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
     mag (N, 3), uT, and mag_ok (N,) its validity, or both empty (no magnetometer: 6-D).
     State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N) (N = n + nv, the velocity
     last), dist (41,) (`AccDisturbance.state`, with the lag), rest (5,), magst (5,)
-    (`MagReference.state`), hist (22,) (`HardIron.state`). Qrate, Qbad (N, N) as built by `EKF.reset`. Fills rows 1.. of the
+    (`MagReference.state`), hist (22,) (`HardIron.state`), test (3,) (`ScaleTest`'s on, decision
+    and ln L). Qrate, Qbad (N, N) as built by `EKF.reset`. Fills rows 1.. of the
     (samples, ...) outputs; returns (updates skipped, covariance repairs).
     """
     n = o.n
@@ -1143,12 +1197,17 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
         if use_mag and mag_ok[k + 1]:  # 9-D: the gated heading-only update (`EKF.step`)
             mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                if test[1] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
+                    test[0], test[2] = 0.0, math.nan
                 usable, east, north, hi_used = mag_input(q, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
                 if usable:
                     r_mag = heading_variance(q, tx, ty, tz, h, o)
                     heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx)
                     q = _inject(q, b, s, v, dx, n, N, small)
                     mag_used = True
+        # Wald's test: a scale error, or a calibrated gyro? (`_attitude.ScaleTest`)
+        if o.scale_test_axes and test[0] == 1.0 and test[1] == 0.0 and scale_test(P, s, test, q, o, N, K, PHt, S, Sinv, D, dx):
+            q = _inject(q, b, s, v, dx, n, N, small)
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -1170,6 +1229,7 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
         out_lowpassed[k + 1] = lowpassed
         out_mag[k + 1] = mag_used
         out_hi[k + 1] = hi_used
+        out_llr[k + 1] = test[2]
     qio[0], qio[1], qio[2], qio[3] = q
     return skipped, repaired
 

@@ -247,8 +247,10 @@ class UKFBiasParams(UKFOptions, BiasFilterParams):
     The fields of `BiasFilterParams` (those of `FilterParams` plus bias, scale and rest
     detection) and of `UKFOptions`, with their defaults: the state model, the noise
     densities, the adaptive accelerometer noise, the rest bias update and the defaults are
-    those of `ekf`; the two filters differ only in how they propagate the covariance (sigma
-    points here, Jacobians there). heading_free (hf) is on by default.
+    those of `ekf` without its velocity states and scale test (`ekf:Rv=inf,sprt=0`, whose
+    low-pass is 2 s to this filter's 1 s); the two filters then differ only in how they
+    propagate the covariance (sigma points here, Jacobians there). heading_free (hf) is on by
+    default.
     """
 
     owner: ClassVar[str] = "ukf-bias"

@@ -33,6 +33,9 @@ SPECS = (
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
     # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
     "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25", "ekf:lpcal=true",
+    # ekf's scale test off, and deciding within the windows (wide error probabilities), on three axes without
+    # heading_free
+    "ekf:sprt=0", "ekf:sprt=0.3", "ekf:sprt=0.45,saxes=xyz,hf=false",
     # ukf: sigma schemes, heading_free, gating, no scale noise, accelerometer off, iteration cap,
     # accelerometer low-pass on (with and without the scale noise in its drift density)
     "ukf", "ukf:hf=true", "ukf:sigma=julier,kappa=2", "ukf:sigma=merwe,alpha=0.9,beta=2,kappa=2",
@@ -50,7 +53,7 @@ SPECS = (
 # so that the simulator's motion reaches it), and with fewer states
 MAG_SPECS = (
     "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
-    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01",
+    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01", "ekf:sprt=0.3",
     "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0",
 )
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
