@@ -40,10 +40,10 @@ GRIDS = {
     "Rv": ["0.25", "1.0", "4.0"],  # velocity bound density, m^2/s (ekf only)
     "Qv": ["9e-6", "1e-4", "9e-4"],  # velocity states' acceleration noise density, g^2 s (ekf only)
     "lpcal": ["false", "true"],  # the low-passed sample corrects the calibration beside the velocity (ekf only)
-    "sprt": ["0", "0.05", "0.1", "0.2"],  # the scale test's error probabilities (0: no test; ekf only)
-    "Psc": ["3e-5", "1e-4", "3e-4"],  # the scale test's calibrated prior variance (0.5 %, 1 %, 1.7 %; ekf only)
+    "sprt": ["0", "0.05", "0.1", "0.2"],  # the scale test's error probabilities (0: no test)
+    "Psc": ["3e-5", "1e-4", "3e-4"],  # the scale test's calibrated prior variance (0.5 %, 1 %, 1.7 %)
 }
-EKF_ONLY = {"Rv", "Qv", "lpcal", "sprt", "Psc"}
+EKF_ONLY = {"Rv", "Qv", "lpcal"}
 
 
 def default_values(estimator: str) -> dict[str, float | bool]:

@@ -538,6 +538,11 @@ class ScaleTest:
         self.decision = 0  # 0 undecided, 1 a scale error (H1), -1 calibrated (H0)
         self.llr = 0.0 if self.on else math.nan  # ln L of the last step (frozen once decided)
 
+    @classmethod
+    def off(cls) -> "ScaleTest":
+        """A test that never runs (a filter without scale states)."""
+        return cls(1.0, 1.0, 0.0, np.zeros(3, dtype=bool))
+
     def stop(self) -> None:
         """End the test undecided (`ekf` with a magnetometer sample; "Scale test" there)."""
         if self.decision == 0:

@@ -208,10 +208,10 @@ def load() -> None:
     weights[0] = 0.0
     P, Qrate, Qbad, dist, rest = (a.copy() for a in state)
     ukf_kernel(*inputs_, np.zeros((0, 3)), np.zeros(0, dtype=bool), np.concatenate([unit, np.zeros(n - 3)]), P, Qrate,
-               Qbad, weights, weights, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), o,
+               Qbad, weights, weights, dist, rest, np.zeros(5), np.zeros(HARD_IRON_STATE), np.zeros(3), o,
                out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
-               out["mag_hard_iron"])
+               out["mag_hard_iron"], out["scale_llr"])
     gyr, valid, dt, acc = inputs_
     stuck_intervals(gyr, dt, acc[1:], valid, _attitude.stuck_gyro_state(), *_attitude.STUCK_THRESHOLDS)
     _loaded = True
@@ -1236,15 +1236,17 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
 
 # ============================================================================ ukf, ukf-bias
 @_jit
-def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist, rest, magst, hist, o,
-               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed, out_mag, out_hi):
+def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist, rest, magst, hist, test, o,
+               out_q, out_cov, out_b, out_s, out_iter, out_var, out_rest, out_nis, out_lowpassed, out_mag, out_hi,
+               out_llr):
     """`UKF.estimate` with impl=numpy: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
     gyr (N-1, 3), valid (N-1,), dt (N-1,): the interval rates and steps; acc (N, 3), g;
     mag (N, 3), uT, and mag_ok (N,), or both empty (6-D; ukf-bias only, as in `ekf_kernel`).
     State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (41,) (`AccDisturbance.state`,
-    with the lag), rest (5,), magst (5,), hist (22,) (`MagReference`, `HardIron`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
+    with the lag), rest (5,), magst (5,), hist (22,) (`MagReference`, `HardIron`), test (3,)
+    (`ScaleTest`, as in `ekf_kernel`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
     sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, square-root recoveries, covariance repairs, mean-iteration cap hits).
     """
@@ -1465,6 +1467,8 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
         if use_mag and mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
             mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                if test[1] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
+                    test[0], test[2] = 0.0, math.nan
                 q4 = (x[0], x[1], x[2], x[3])
                 usable, east, north, hi_used = mag_input(q4, mx, my, mz, magst, hist, o, h, hi_fit, hi_work)
                 if usable:
@@ -1475,6 +1479,13 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
                     for j in range(3, n):
                         x[j + 1] = x[j + 1] + dx[j]
                     mag_used = True
+        # Wald's test on the scale (`_attitude.ScaleTest`, as in `ekf_kernel`)
+        if o.scale_test_axes and test[0] == 1.0 and test[1] == 0.0:
+            q4 = (x[0], x[1], x[2], x[3])
+            if scale_test(P, x[7:10], test, q4, o, n, K, Pxz, S, Sinv, KS, dx):
+                x[0], x[1], x[2], x[3] = qnormalize(qmul(q4, qexp(dx[0], dx[1], dx[2], small)))
+                for j in range(3, n):
+                    x[j + 1] = x[j + 1] + dx[j]
         if n > 3:
             for i in range(4, 7):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)
@@ -1496,4 +1507,5 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
         out_lowpassed[k + 1] = lowpassed
         out_mag[k + 1] = mag_used
         out_hi[k + 1] = hi_used
+        out_llr[k + 1] = test[2]
     return skipped, sqrt_recovered, repaired, capped

@@ -152,13 +152,19 @@ class BiasFilterParams(FilterParams):
         estimate is zero (calibration removed the bias of the initial rest).
     bias_max_rad_s (bmax): the bias estimate is clipped to this per axis, rad/s (the
         calibration removed the rest bias; a larger one means a wrong update).
-    estimate_scale (scale): gyro scale-factor corrections `s` in the state; the four scale
+    estimate_scale (scale): gyro scale-factor corrections `s` in the state; the six scale
         fields below apply only with it.
     init_scale_var (Ps0): initial scale-factor variance per axis, dimensionless (1e-2: a
         10 % standard deviation, the tolerance of a low-cost MEMS gyro read with its
         datasheet sensitivity).
     scale_walk_1_s (Qsw): scale-factor random-walk density, 1/s (step variance Qsw dt).
     scale_max (smax): the scale correction is clipped to this per axis.
+    scale_test_error (sprt): the error probabilities (alpha = beta) of the sequential test that
+        decides, in 6-D, whether the gyro has a scale error or is calibrated
+        (`_attitude.ScaleTest`; "Scale test" in `fusion.estimators.ekf`; 0: no test, the prior
+        `init_scale_var` throughout).
+    calibrated_scale_var (Psc): the scale-factor variance per axis of a calibrated gyro, the
+        test's H0 (1e-4: 1 %); with `init_scale_var` at or below it there is nothing to test.
     scale_axes (saxes): the body axes whose scale factor is estimated ("xy" by default; the
         others stay at their calibration). With the body z axis near vertical, as a hand-held
         or worn IMU mostly is, z's scale acts on heading alone, which a gyro and an
@@ -202,6 +208,8 @@ class BiasFilterParams(FilterParams):
     init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
     scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
     scale_max: float = field(default=0.2, metadata={"alias": "smax"})
+    scale_test_error: float = field(default=0.1, metadata={"alias": "sprt"})
+    calibrated_scale_var: float = field(default=1e-4, metadata={"alias": "Psc"})
     scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
     rest_gyr_rad_s: float = REST_GYR_RAD_S
     rest_acc_g: float = REST_ACC_G
@@ -233,6 +241,10 @@ class BiasFilterParams(FilterParams):
         check_nonneg(owner, init_scale_var=self.init_scale_var, scale_walk_1_s=self.scale_walk_1_s)
         if not (self.scale_max > 0.0 and self.scale_max < 1.0):
             raise ValueError(f"{owner}: scale_max must be in (0, 1), got {self.scale_max!r}")
+        if not 0.0 <= self.scale_test_error < 0.5:
+            raise ValueError(f"{owner}: scale_test_error must be in [0, 0.5) (0: no test), got {self.scale_test_error!r}")
+        if not (self.calibrated_scale_var > 0.0 and math.isfinite(self.calibrated_scale_var)):
+            raise ValueError(f"{owner}: calibrated_scale_var must be a finite number > 0, got {self.calibrated_scale_var!r}")
         try:
             axes_mask(self.scale_axes)
         except ValueError as exc:
@@ -250,5 +262,5 @@ class BiasFilterParams(FilterParams):
         scale = ("estimate_scale", (True,))
         hard_iron = ("mag_hard_iron", (True,))
         return {**super()._only_with(), "init_scale_var": scale, "scale_walk_1_s": scale, "scale_max": scale,
-                "scale_axes": scale, "mag_hard_iron_window_s": hard_iron, "mag_hard_iron_residual_ut": hard_iron,
+                "scale_axes": scale, "scale_test_error": scale, "calibrated_scale_var": scale, "mag_hard_iron_window_s": hard_iron, "mag_hard_iron_residual_ut": hard_iron,
                 "mag_hard_iron_coverage": hard_iron}

@@ -120,8 +120,10 @@ from ._attitude import (
     HardIron,
     MagReference,
     RestDetector,
+    ScaleTest,
     accelerometer_update_input,
     acc_variance_scale,
+    axes_mask,
     bias_rest_update,
     heading_update,
     heading_variance,
@@ -247,10 +249,10 @@ class UKFBiasParams(UKFOptions, BiasFilterParams):
     The fields of `BiasFilterParams` (those of `FilterParams` plus bias, scale and rest
     detection) and of `UKFOptions`, with their defaults: the state model, the noise
     densities, the adaptive accelerometer noise, the rest bias update and the defaults are
-    those of `ekf` without its velocity states and scale test (`ekf:Rv=inf,sprt=0`, whose
-    low-pass is 2 s to this filter's 1 s); the two filters then differ only in how they
-    propagate the covariance (sigma points here, Jacobians there). heading_free (hf) is on by
-    default.
+    those of `ekf` without its velocity states (`ekf:Rv=inf`, whose low-pass is 2 s to this
+    filter's 1 s), with the same scale test in 6-D ("Scale test" in `fusion.estimators.ekf`);
+    the two filters then differ only in how they propagate the covariance (sigma points here,
+    Jacobians there). heading_free (hf) is on by default.
     """
 
     owner: ClassVar[str] = "ukf-bias"
@@ -283,6 +285,9 @@ class UKF(KalmanFilter):
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self._stuck = stuck_gyro_state()
+        # ukf-bias with scale states: the scale test of `ekf` (6-D)
+        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error, axes_mask(p.scale_axes))
+                            if n > 6 and self.with_bias else ScaleTest.off())
         if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
             self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
             self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
@@ -362,6 +367,7 @@ class UKF(KalmanFilter):
             # linear in the error state, so it is the same Kalman update for every implementation
             x = kf.x
             q = tuple(x[:4].tolist())
+            self._scale_test.stop()  # 9-D: no scale test (as `ekf`)
             usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
                                                                           dt_s)
             if usable:
@@ -371,6 +377,11 @@ class UKF(KalmanFilter):
                 kf.x = np.concatenate([qn, x[4:] + dx[3:]])
                 self.mag_used = True
         x = kf.x
+        # Wald's test on the scale (`_attitude.ScaleTest`, "Scale test" in `fusion.estimators.ekf`)
+        dx, kf.P = self._scale_test.step(x[7:10], kf.P, quat.gravity_in_body(x[:4]) if p.heading_free else None)
+        if dx is not None:
+            qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
+            kf.x = x = np.concatenate([qn, x[4:] + dx[3:]])
         if n > 3:
             np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
         if n > 6:
@@ -399,6 +410,7 @@ class UKF(KalmanFilter):
             out["mag_hard_iron"] = self.hard_iron_used
             if self.n > 6:
                 out["gyr_scale"] = kf.x[7:10]
+            out["scale_llr"] = self._scale_test.llr
         return out
 
     def diagnostics(self) -> dict[str, Any]:
@@ -407,6 +419,7 @@ class UKF(KalmanFilter):
             "sqrt_recoveries": self.n_sqrt_recovered,
             "cov_repairs": self.n_cov_repaired,
             "mean_iteration_cap_hits": self.n_mean_capped,
+            **({"scale_decision": self._scale_test.decision} if self.with_bias else {}),
         }
 
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
@@ -414,15 +427,18 @@ class UKF(KalmanFilter):
         p, kf = self.params, self.kf
         x, P = kf.x.copy(), kf.P.copy()
         o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
-                             mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
+                             mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter, scale_test=self._scale_test)
+        test = np.array([float(self._scale_test.on), float(self._scale_test.decision), self._scale_test.llr])
         mag_state = self._mag.state() if self.with_bias else np.zeros(5)
         hard_iron = self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE)
         (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.ukf_kernel(
             *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), x, P, self._Qrate, self._Qbad, kf.Wm,
-            kf.Wc, dist, rest, mag_state, hard_iron, o,
+            kf.Wc, dist, rest, mag_state, hard_iron, test, o,
             out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"])
+            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"],
+            out["scale_llr"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
+        self._scale_test.on, self._scale_test.decision, self._scale_test.llr = bool(test[0]), int(test[1]), float(test[2])
         if self.with_bias:
             self._mag.set_state(mag_state)
             self._hard_iron.set_state(hard_iron)

@@ -46,6 +46,8 @@ SPECS = (
     "ukf-bias", "ukf-bias:scale=false", "ukf-bias:saxes=xyz", "ukf-bias:sigma=julier,kappa=1",
     "ukf-bias:sigma=merwe,alpha=1,kappa=0.5", "ukf-bias:hf=false", "ukf-bias:gate=skip,gate_g=0.05",
     "ukf-bias:acc=false", "ukf-bias:rest_time_s=0.3", "ukf-bias:iters=2", "ukf-bias:tauc=0", "ukf-bias:taulp=0",
+    # ukf-bias's scale test off, and deciding within the windows
+    "ukf-bias:sprt=0", "ukf-bias:sprt=0.3", "ukf-bias:sprt=0.45,saxes=xyz,hf=false",
 )
 
 
@@ -54,7 +56,7 @@ SPECS = (
 MAG_SPECS = (
     "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
     "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01", "ekf:sprt=0.3",
-    "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0",
+    "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0", "ukf-bias:sprt=0.3",
 )
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
 

@@ -58,10 +58,8 @@ def test_tracks_synthetic_motion(spec, bound):
 
 
 def test_ekf_and_ukf_bias_agree_closely():
-    # ekf's scale test (`sprt`) is its own (here it accepts the calibrated gyro after 4.5 s); without it
-    # the two filters have the same model.
     imu, truth = synthetic(1500, noise=0.01, bias=(0.02, -0.01, 0.03), seed=8)
-    a = build("ekf:sprt=0").estimate(imu, truth[0])
+    a = build("ekf").estimate(imu, truth[0])
     b = build("ukf-bias").estimate(imu, truth[0])
     angle = np.degrees(np.linalg.norm(quat.relative_rotvec(a.quat_wxyz, b.quat_wxyz), axis=1))
     # The same model and densities, covariance propagated by Jacobians or sigma points: 0.016 deg
@@ -174,41 +172,43 @@ def _scale_test_motion(gyr_gain):
     return imu.replace(gyr_rad_s=imu.gyr_rad_s * [gyr_gain, gyr_gain, 1.0]), truth
 
 
-def test_the_scale_test_keeps_a_scale_error_and_accepts_a_calibrated_gyro():
+@pytest.mark.parametrize("name", ["ekf", "ukf-bias"])
+def test_the_scale_test_keeps_a_scale_error_and_accepts_a_calibrated_gyro(name):
     # A gyro reading 8 % high (the course board's error): the test accepts H1 (scale error) and
     # the filter estimates the correction 1/1.08 - 1 = -7.4 % on the tested axes. An exactly
     # calibrated gyro: it accepts H0, and the scale posterior is within the calibrated prior's 1 %.
-    # Measured: H1 after 3.1 s, -7.44 and -7.37 %; H0 after 5.6 s, 0.01 and -0.05 %, sigmas 0.5 and 0.8 %.
+    # Measured (ekf): H1 after 3.1 s, -7.44 and -7.37 %; H0 after 5.6 s, 0.01 and -0.05 %, sigmas 0.5 and 0.8 %.
     # (The numpy step makes the same decisions: `tests/test_compiled.py`, `ekf:sprt=0.3`.)
     imu, truth = _scale_test_motion(1.08)
-    d = build("ekf").estimate(imu, truth[0]).diagnostics
+    d = build(name).estimate(imu, truth[0]).diagnostics
     assert d["scale_decision"] == 1 and d["scale_llr"][-1] >= np.log(9.0)
     np.testing.assert_allclose(d["gyr_scale"][-1, :2], 1 / 1.08 - 1, atol=0.01)
     imu, truth = _scale_test_motion(1.0)
-    est = build("ekf").estimate(imu, truth[0])
+    est = build(name).estimate(imu, truth[0])
     d = est.diagnostics
     decided = np.flatnonzero(d["scale_llr"] <= -np.log(9.0))
     assert d["scale_decision"] == -1 and len(decided) and decided[0] < len(imu) // 2
     assert np.all(np.sqrt(np.diagonal(d["cov"][-1])[6:8]) < 0.01)
     assert np.max(np.abs(d["gyr_scale"][-1])) < 2e-3
     # undecided, the filter is the one without the test
-    off = build("ekf:sprt=0").estimate(imu, truth[0])
+    off = build(f"{name}:sprt=0").estimate(imu, truth[0])
     np.testing.assert_array_equal(est.quat_wxyz[:decided[0]], off.quat_wxyz[:decided[0]])
 
 
-def test_with_a_magnetometer_the_scale_test_does_not_run():
+@pytest.mark.parametrize("name", ["ekf", "ukf-bias"])
+def test_with_a_magnetometer_the_scale_test_does_not_run(name):
     # The 9-D filter keeps the 10 % prior (module docstring): the test ends undecided at the first
     # magnetometer sample, and the filter is the one without the test, bit for bit.
     imu, truth = _scale_test_motion(1.0)
     field_enu_ut = np.array([0.0, 20.0, -40.0])
     imu = imu.replace(mag_ut=Rotation.from_quat(truth, scalar_first=True).inv().apply(field_enu_ut))
-    with_test = build("ekf").estimate(imu, truth[0])
-    without = build("ekf:sprt=0").estimate(imu, truth[0])
+    with_test = build(name).estimate(imu, truth[0])
+    without = build(f"{name}:sprt=0").estimate(imu, truth[0])
     assert with_test.diagnostics["mag_used"].any()
     assert with_test.diagnostics["scale_decision"] == 0 and np.isnan(with_test.diagnostics["scale_llr"][1:]).all()
     np.testing.assert_array_equal(with_test.quat_wxyz, without.quat_wxyz)
     # the same motion without the magnetometer decides (`test_the_scale_test_keeps_...` above)
-    assert build("ekf").estimate(imu.replace(mag_ut=None), truth[0]).diagnostics["scale_decision"] == -1
+    assert build(name).estimate(imu.replace(mag_ut=None), truth[0]).diagnostics["scale_decision"] == -1
 
 
 @pytest.mark.parametrize("impl", ["compiled", "numpy"])

@@ -15,15 +15,13 @@
 # linear maps. The toolkit's `ekf` is a multiplicative (error-state) EKF: the same nominal
 # quaternion, the same body-frame rotation-vector error $e$ with $q_\text{true} = q \otimes \operatorname{Exp}(e)$, the
 # same gyro bias and scale-factor states and noise model as `ukf-bias`. By default `ekf` also
-# carries two horizontal velocity states, which `ukf-bias` does not, low-passes the
-# accelerometer over 2 s instead of 1 s, and tests whether the gyro has a scale error at all (a
-# sequential test that may replace the 10 % scale prior by a calibrated gyro's 1 %); without them,
-# with 1 s and without the test (`ekf:Rv=inf,taulp=1,sprt=0`) the two differ *only* in how the
-# covariance is propagated. In this notebook:
+# carries two horizontal velocity states, which `ukf-bias` does not, and low-passes the
+# accelerometer over 2 s instead of 1 s; without them and with 1 s (`ekf:Rv=inf,taulp=1`) the two
+# differ *only* in how the covariance is propagated. In this notebook:
 #
 # 1. the Jacobians, each checked against finite differences;
 # 2. the unscented transform against the linearisation, as the uncertainty grows;
-# 3. `ekf:Rv=inf,taulp=1,sprt=0` and `ukf-bias` on the course recordings: how far apart they are, and why;
+# 3. `ekf:Rv=inf,taulp=1` and `ukf-bias` on the course recordings: how far apart they are, and why;
 # 4. what the velocity states add, and what the filter believes about them.
 #
 # Reference for the error-state formulation: J. Sola, "Quaternion kinematics for the error-state
@@ -167,8 +165,8 @@ plt.show()
 # The two filters share `BiasFilterParams`: the same noise densities, the same adaptive
 # accelerometer variance, the same zero-rate bias update at rest, the same gain projection
 # (`heading_free`). To compare the propagations alone, `ekf` runs without its velocity states and
-# with `ukf-bias`'s 1 s low-pass, and without its scale test (`ekf:Rv=inf,taulp=1,sprt=0`, the model
-# `ukf-bias` has; section 4.4 adds the velocity states back). Run both:
+# with `ukf-bias`'s 1 s low-pass (`ekf:Rv=inf,taulp=1`, the model `ukf-bias` has; section 4.4 adds
+# the velocity states back). Run both:
 
 # %%
 def timed(spec, recording):
@@ -178,7 +176,7 @@ def timed(spec, recording):
     return trajectory, (time.perf_counter() - start) / len(recording.imu) * 1e6
 
 
-EKF_AS_UKF = "ekf:Rv=inf,taulp=1,sprt=0"  # ukf-bias's model: no velocity states or scale test, a 1 s low-pass
+EKF_AS_UKF = "ekf:Rv=inf,taulp=1"  # the ekf with ukf-bias's model: no velocity states, its 1 s low-pass
 ekf, us_ekf = timed(EKF_AS_UKF, rec)
 ukfb, us_ukf = timed("ukf-bias", rec)
 apart = np.degrees(np.linalg.norm(quat.relative_rotvec(ekf.quat_wxyz, ukfb.quat_wxyz), axis=1))
@@ -344,7 +342,7 @@ if rows:
 #   and the noise; the EKF propagates the covariance with $F = R(\theta)^\top$ (and $-J_r \Delta t$ for the
 #   bias) and $H = [h]_\times$, the UKF with sigma points.
 # * The linearisation error grows like $\sigma^2$; at a filter's usual $\sigma$ of a degree it is
-#   negligible, so `ekf:Rv=inf,taulp=1,sprt=0` and `ukf-bias` agree to hundredths of a degree on real data (at most
+#   negligible, so `ekf:Rv=inf,taulp=1` and `ukf-bias` agree to hundredths of a degree on real data (at most
 #   0.04 degrees on ece276a/1, 0.32 on the worst course recording), and part mainly when a gyro
 #   freeze blows up $P$.
 # * At that agreement, the cheaper filter wins: the EKF takes about half the time per sample.
