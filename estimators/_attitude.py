@@ -544,7 +544,7 @@ class ScaleTest:
         return cls(1.0, 1.0, 0.0, np.zeros(3, dtype=bool))
 
     def stop(self) -> None:
-        """End the test undecided (`ekf` with a magnetometer sample; "Scale test" there)."""
+        """End the test undecided (a filter given a magnetometer sample; "Scale test" in `ekf`)."""
         if self.decision == 0:
             self.on, self.llr = False, math.nan
 

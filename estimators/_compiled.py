@@ -94,7 +94,7 @@ Settings = namedtuple("Settings", [
     "bias_max", "scale_max",  # clipping of bias (rad/s) and scale
     "chi2",  # ekf: NIS above which bias and scale are not corrected (inf: never)
     "lowpass_calibration",  # ekf: the low-passed sample corrects bias and scale (always without velocity states)
-    "scale_test_axes", "scale_test_r", "scale_test_const", "scale_test_bound",  # ekf: `_attitude.ScaleTest` (axes bits, 0: off)
+    "scale_test_axes", "scale_test_r", "scale_test_const", "scale_test_bound",  # `_attitude.ScaleTest` (axes bits; 0: off)
     "scale_noise",  # ukf: Qs, s
     "sqrt_c", "mean_tol", "mean_max_iter",  # ukf: sigma-point scale sqrt(c), iterative-mean stopping rule
     "small_angle", "series_rad", "jac_a", "jac_b",  # fusion.quaternion's small-angle rules
@@ -1206,8 +1206,9 @@ def ekf_kernel(gyr, valid, dt, acc, mag, mag_ok, qio, b, s, v, P, Qrate, Qbad, d
                     q = _inject(q, b, s, v, dx, n, N, small)
                     mag_used = True
         # Wald's test: a scale error, or a calibrated gyro? (`_attitude.ScaleTest`)
-        if o.scale_test_axes and test[0] == 1.0 and test[1] == 0.0 and scale_test(P, s, test, q, o, N, K, PHt, S, Sinv, D, dx):
-            q = _inject(q, b, s, v, dx, n, N, small)
+        if o.scale_test_axes and test[0] == 1.0 and test[1] == 0.0:
+            if scale_test(P, s, test, q, o, N, K, PHt, S, Sinv, D, dx):
+                q = _inject(q, b, s, v, dx, n, N, small)
         if n > 3:
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
@@ -1246,8 +1247,8 @@ def ukf_kernel(gyr, valid, dt, acc, mag, mag_ok, x, P, Qrate, Qbad, Wm, Wc, dist
     mag (N, 3), uT, and mag_ok (N,), or both empty (6-D; ukf-bias only, as in `ekf_kernel`).
     State in and out: x (n + 1,) `[q, b, s]`, P (n, n), dist (41,) (`AccDisturbance.state`,
     with the lag), rest (5,), magst (5,), hist (22,) (`MagReference`, `HardIron`), test (3,)
-    (`ScaleTest`, as in `ekf_kernel`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc (2n + 1,) the
-    sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
+    (`ScaleTest`, as in `ekf_kernel`). Qrate, Qbad (n, n) as built by `UKF.reset`; Wm, Wc
+    (2n + 1,) the sigma-point weights, centre first. Fills rows 1.. of the (N, ...) outputs; returns (updates
     skipped, square-root recoveries, covariance repairs, mean-iteration cap hits).
     """
     n = o.n

@@ -317,7 +317,8 @@ class EKF(KalmanFilter):
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._stuck = stuck_gyro_state()
-        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error, axes_mask(p.scale_axes))
+        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
+                                       axes_mask(p.scale_axes))
                             if n > 6 else ScaleTest.off())
         self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
         self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
@@ -508,4 +509,5 @@ class EKF(KalmanFilter):
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
         self._mag.set_state(mag_state)
         self._hard_iron.set_state(hard_iron)
-        self._scale_test.on, self._scale_test.decision, self._scale_test.llr = bool(test[0]), int(test[1]), float(test[2])
+        test_state = self._scale_test
+        test_state.on, test_state.decision, test_state.llr = bool(test[0]), int(test[1]), float(test[2])

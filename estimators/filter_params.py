@@ -242,9 +242,11 @@ class BiasFilterParams(FilterParams):
         if not (self.scale_max > 0.0 and self.scale_max < 1.0):
             raise ValueError(f"{owner}: scale_max must be in (0, 1), got {self.scale_max!r}")
         if not 0.0 <= self.scale_test_error < 0.5:
-            raise ValueError(f"{owner}: scale_test_error must be in [0, 0.5) (0: no test), got {self.scale_test_error!r}")
+            raise ValueError(f"{owner}: scale_test_error must be in [0, 0.5) (0: no test), "
+                             f"got {self.scale_test_error!r}")
         if not (self.calibrated_scale_var > 0.0 and math.isfinite(self.calibrated_scale_var)):
-            raise ValueError(f"{owner}: calibrated_scale_var must be a finite number > 0, got {self.calibrated_scale_var!r}")
+            raise ValueError(f"{owner}: calibrated_scale_var must be a finite number > 0, "
+                             f"got {self.calibrated_scale_var!r}")
         try:
             axes_mask(self.scale_axes)
         except ValueError as exc:
@@ -262,5 +264,6 @@ class BiasFilterParams(FilterParams):
         scale = ("estimate_scale", (True,))
         hard_iron = ("mag_hard_iron", (True,))
         return {**super()._only_with(), "init_scale_var": scale, "scale_walk_1_s": scale, "scale_max": scale,
-                "scale_axes": scale, "scale_test_error": scale, "calibrated_scale_var": scale, "mag_hard_iron_window_s": hard_iron, "mag_hard_iron_residual_ut": hard_iron,
+                "scale_axes": scale, "scale_test_error": scale, "calibrated_scale_var": scale,
+                "mag_hard_iron_window_s": hard_iron, "mag_hard_iron_residual_ut": hard_iron,
                 "mag_hard_iron_coverage": hard_iron}

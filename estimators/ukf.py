@@ -286,7 +286,8 @@ class UKF(KalmanFilter):
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self._stuck = stuck_gyro_state()
         # ukf-bias with scale states: the scale test of `ekf` (6-D)
-        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error, axes_mask(p.scale_axes))
+        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
+                                       axes_mask(p.scale_axes))
                             if n > 6 and self.with_bias else ScaleTest.off())
         if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
             self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
@@ -438,7 +439,8 @@ class UKF(KalmanFilter):
             out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"],
             out["scale_llr"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
-        self._scale_test.on, self._scale_test.decision, self._scale_test.llr = bool(test[0]), int(test[1]), float(test[2])
+        test_state = self._scale_test
+        test_state.on, test_state.decision, test_state.llr = bool(test[0]), int(test[1]), float(test[2])
         if self.with_bias:
             self._mag.set_state(mag_state)
             self._hard_iron.set_state(hard_iron)

@@ -55,7 +55,8 @@ SPECS = (
 # so that the simulator's motion reaches it), and with fewer states
 MAG_SPECS = (
     "ekf", "ekf:mhi=false", "ekf:mrate=inf,mtime=0", "ekf:mnorm=0.08,mdip=0.12,mref=2,mtime=1",
-    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01", "ekf:sprt=0.3",
+    "ekf:mhiw=3,mhires=5,mhicov=0.05", "ekf:bias=false,scale=false,mhiw=3,mhires=5,mhicov=0.05", "ekf:Rv=inf,Rm=0.01",
+    "ekf:sprt=0.3",
     "ukf-bias", "ukf-bias:mhiw=3,mhires=5,mhicov=0.05", "ukf-bias:scale=false,mrate=inf,mtime=0", "ukf-bias:sprt=0.3",
 )
 FIELD_ENU_UT = np.array([0.0, 16.0, -41.0])
