@@ -502,9 +502,10 @@ def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r
 
 
 class ScaleTest:
-    """Wald's sequential probability ratio test (Wald 1945, Ann. Math. Stat. 16(2), Secs. 3-4)
-    on the gyro's scale factors: is the scale error the size a gyro read with its datasheet
-    sensitivity may have, or is the gyro calibrated?
+    """Wald's sequential probability ratio test ("Sequential tests of statistical hypotheses",
+    Ann. Math. Stat. 16(2), 1945, Sec. 3, with its approximate boundaries (1 - beta) / alpha and
+    beta / (1 - alpha) for the likelihood ratio) on the gyro's scale factors: is the scale error
+    the size a gyro read with its datasheet sensitivity may have, or is the gyro calibrated?
 
     H1: the scale corrections s of the estimated axes have the prior N(0, P1 I) the filter starts
     from (`init_scale_var`, 10 %). H0: they have N(0, P0 I), P0 < P1 (`calibrated_scale_var`,
