@@ -549,6 +549,13 @@ class ScaleTest:
         if self.decision == 0:
             self.on, self.llr = False, math.nan
 
+    def state(self) -> np.ndarray:
+        """(3,) `[on, decision, ln L]`: the state the kernels read and write (`_compiled.scale_test`)."""
+        return np.array([float(self.on), float(self.decision), self.llr])
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.on, self.decision, self.llr = bool(state[0]), int(state[1]), float(state[2])
+
     def log_likelihood_ratio(self, s: np.ndarray, P: np.ndarray) -> float:
         """ln L (class docstring) for the scale estimate s (3,) and the error covariance P."""
         y = s[self.axes]

@@ -273,7 +273,8 @@ def right_jacobian_dt(tx, ty, tz, dt, o, out):
 # ============================================================================ small matrices
 @_jit
 def inv_sym3(S, out):
-    """Inverse of a symmetric 3x3 matrix by its adjugate, from its upper triangle (`_attitude.inv_sym3`)."""
+    """Inverse of a symmetric 3x3 matrix by its adjugate, from its upper triangle (`_attitude.inv_sym3`);
+    -> its determinant."""
     a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
     A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
     det = a * A + b * B + c * C
@@ -281,6 +282,7 @@ def inv_sym3(S, out):
     out[0, 0], out[0, 1], out[0, 2] = A / det, B / det, C / det
     out[1, 0], out[1, 1], out[1, 2] = B / det, D / det, E / det
     out[2, 0], out[2, 1], out[2, 2] = C / det, E / det, F / det
+    return det
 
 
 @_jit
@@ -1017,9 +1019,7 @@ def scale_test(P, s, st, q, o, N, K, PHt, S, Sinv, D, dx):
     y0 = -s[0] if o.scale_test_axes & 1 else 0.0
     y1 = -s[1] if o.scale_test_axes & 2 else 0.0
     y2 = -s[2] if o.scale_test_axes & 4 else 0.0
-    inv_sym3(S, Sinv)
-    det = (S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]) - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
-           + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]))
+    det = inv_sym3(S, Sinv)
     llr = 0.5 * (_nis(y0, y1, y2, Sinv) + math.log(det)) + o.scale_test_const
     st[2] = llr
     if llr >= o.scale_test_bound:

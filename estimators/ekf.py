@@ -498,7 +498,7 @@ class EKF(KalmanFilter):
                     rest: np.ndarray) -> None:
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
         mag_state, hard_iron = self._mag.state(), self._hard_iron.state()
-        test = np.array([float(self._scale_test.on), float(self._scale_test.decision), self._scale_test.llr])
+        test = self._scale_test.state()
         self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
             *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad,
             dist, rest, mag_state, hard_iron, test,
@@ -509,5 +509,4 @@ class EKF(KalmanFilter):
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
         self._mag.set_state(mag_state)
         self._hard_iron.set_state(hard_iron)
-        test_state = self._scale_test
-        test_state.on, test_state.decision, test_state.llr = bool(test[0]), int(test[1]), float(test[2])
+        self._scale_test.set_state(test)

@@ -429,7 +429,7 @@ class UKF(KalmanFilter):
         x, P = kf.x.copy(), kf.P.copy()
         o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                              mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter, scale_test=self._scale_test)
-        test = np.array([float(self._scale_test.on), float(self._scale_test.decision), self._scale_test.llr])
+        test = self._scale_test.state()
         mag_state = self._mag.state() if self.with_bias else np.zeros(5)
         hard_iron = self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE)
         (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.ukf_kernel(
@@ -439,8 +439,7 @@ class UKF(KalmanFilter):
             out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"],
             out["scale_llr"])
         kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
-        test_state = self._scale_test
-        test_state.on, test_state.decision, test_state.llr = bool(test[0]), int(test[1]), float(test[2])
+        self._scale_test.set_state(test)
         if self.with_bias:
             self._mag.set_state(mag_state)
             self._hard_iron.set_state(hard_iron)
