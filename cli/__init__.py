@@ -68,7 +68,8 @@ def _run_options(args: argparse.Namespace) -> dict:
     """The options of `compare` and `ablate`."""
     return dict(init=args.init, protocol=args.protocol, align=args.align, jobs=args.jobs, json_path=args.json,
                 out=args.out, command=_command(args), scheduler=args.scheduler,
-                scatter=True if args.scatter else None, timeout_s=args.timeout, tum=not args.no_tum, **_data(args))
+                scatter=True if args.scatter else None, timeout_s=args.timeout, tum=not args.no_tum,
+                overwrite=args.overwrite, **_data(args))
 
 
 def _print_run(run) -> int:
@@ -194,6 +195,9 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="PATH", help="write the results as JSON (format: docs/json-format.md)")
     parser.add_argument("--out", metavar="DIR", help="write results.json, table, figures, report.html and "
                         "report.md to DIR (re-render later with `fusion report DIR`)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="with --out: replace the earlier run (or discard the unfinished one) that DIR holds; "
+                             "without it a folder holding a run is refused (files you put there are kept either way)")
     parser.add_argument("--no-tum", action="store_true",
                         help="with --out, do not write every estimate and its truth as TUM files under DIR/trajectories "
                              "(a few MB per recording and estimator: a BROAD trial's file is about 6 MB)")

@@ -94,13 +94,14 @@ class Journal:
         return self.run_dir / PARTS / f"{key}.npz"
 
     @classmethod
-    def start(cls, folder: Path, header: dict[str, Any]) -> "Journal":
-        """A new journal in `folder` (an unfinished one there is an error: `resume` continues it)."""
+    def start(cls, folder: Path, header: dict[str, Any], replace: bool = False) -> "Journal":
+        """A new journal in `folder`. An unfinished one there is an error (`resume` continues it),
+        or, with `replace`, discarded."""
         run_dir = Path(folder) / RUN_DIR
-        if (run_dir / JOURNAL).is_file():
+        if (run_dir / JOURNAL).is_file() and not replace:
             done = len(read(run_dir / JOURNAL)[1])
             raise ValueError(f"{folder}: holds an unfinished run ({done} jobs done); continue it with --resume "
-                             f"{folder}, or remove {run_dir} to start afresh")
+                             f"{folder}, or give --overwrite to start afresh")
         if run_dir.exists():
             shutil.rmtree(run_dir)  # ours (a run killed before its first job), never the user's
         (run_dir / PARTS).mkdir(parents=True)

@@ -32,11 +32,13 @@ class OutputFolder:
       (SIGKILL) are removed by the next run that holds the lock.
     - Commit (`commit`): with SIGINT/SIGTERM held back until it is done, results.json is
       removed first, the files of the previous run (those in `DIR/.fusion-manifest.json`) that
-      the new run does not write again are removed, the staged files are moved in (`os.replace`:
-      each file is whole), the manifest is written, and results.json is moved in last. So a
-      folder with results.json is complete; only files listed in the manifest are ever removed,
-      and a staged file would never replace a file the toolkit did not write (an error instead).
-      A folder written before manifests existed has its files overwritten, never removed.
+      the new run regenerates but does not write again are removed, the staged files are moved in
+      (`os.replace`: each file is whole), the manifest is written, and results.json is moved in
+      last. So a folder with results.json is complete; only files listed in the manifest are ever
+      removed, and a staged file would never replace a file the toolkit did not write (an error
+      instead). A folder written before manifests existed has its files overwritten, never removed.
+      A re-render (`fusion report`) regenerates only what it draws (`regenerates`): the run's
+      results, series, journal and exported trajectories stay as they are.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -78,11 +80,17 @@ class OutputFolder:
         """The files (relative paths) the toolkit wrote here, None if there is no manifest."""
         return read_manifest(self.path)
 
-    def commit(self, full: bool) -> None:
+    def holds_run(self) -> bool:
+        """Whether the folder holds the results of a finished run (results.json, or files the
+        toolkit listed in its manifest)."""
+        return (self.path / RESULTS).exists() or bool(self.manifest())
+
+    def commit(self, regenerates: tuple[str, ...] | None = None) -> None:
         """Move the staged files in (see the class docstring).
 
-        full: a whole run (results.json and series are replaced too); False for `fusion report`,
-            which replaces only table, figures and reports.
+        regenerates: the files this commit writes afresh, as relative paths and folder prefixes
+            ending in "/" (`fusion report`: `report.RENDERED`); a file of the previous run outside
+            them is kept. None: a whole run, which replaces every file of the previous run.
         """
         out, stage = self.path, self.staging
         staged = sorted(p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file())
@@ -96,11 +104,15 @@ class OutputFolder:
                                  "another output folder (nothing was changed)")
 
         def regenerated(rel: str) -> bool:
-            return full or not (rel in (RESULTS, "command.txt", "journal.jsonl") or rel.startswith("series/"))
+            return regenerates is None or any(rel == r or (r.endswith("/") and rel.startswith(r))
+                                              for r in regenerates)
 
+        outside = [rel for rel in staged if not regenerated(rel)]
+        if outside:  # a partial commit replaces only what it regenerates
+            raise ValueError(f"{out}: {outside[0]} is not among the files this command rewrites (nothing was changed)")
         keep = [rel for rel in owned if not regenerated(rel) and (out / rel).is_file()]
         with _signals_held():
-            if full and RESULTS in staged and (out / RESULTS).exists():
+            if RESULTS in staged and (out / RESULTS).exists():
                 (out / RESULTS).unlink()  # from here until the end the folder reads as incomplete
             for rel in sorted(owned):
                 target = out / rel

@@ -38,6 +38,10 @@ from .output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atom
 from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table, summary_groups
 from .metrics import KINDS
 
+# What `render` (`fusion report DIR`) writes afresh; everything else in the folder (results.json,
+# series/, trajectories/, journal.jsonl, command.txt, the user's own files) it leaves as it is.
+RENDERED = ("table.txt", "report.md", "report.html", "figures/")
+
 # --- writing a run ---
 
 def git_commit() -> str:
@@ -87,7 +91,7 @@ def write_run(out_dir: "str | Path | OutputFolder", doc: dict[str, Any], series:
     if journal is not None:
         journal.finish(stage)
     _render_into(stage, stage, jobs, progress)
-    folder.commit(full=True)
+    folder.commit()
     return out / "report.html"
 
 
@@ -174,7 +178,7 @@ def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) ->
     read_results(doc_path)  # fail before taking the folder
     with OutputFolder(out) as folder:
         _render_into(out, folder.staging, jobs, progress)
-        folder.commit(full=False)
+        folder.commit(regenerates=RENDERED)
     return out / "report.html"
 
 

@@ -71,7 +71,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
                 resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
-                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = (), tum: bool = True) -> Run:
+                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = (), tum: bool = True,
+                overwrite: bool = False) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -94,6 +95,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         folder with one file per recording).
     tum: with `out`, write every estimate and the truth it was scored against as TUM files
         (`DIR/trajectories/<recording>/<estimator>.tum`, for evo); False: not.
+    overwrite: with `out`, replace the run the folder holds (or discard its unfinished one); without
+        it such a folder is refused before any work. Files the toolkit did not write are kept.
     """
     with _heartbeat(progress):
         entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
@@ -107,7 +110,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                     init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
                     progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
                     scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic,
-                    truth_topic=truth_topic, mag=mag, tum=tum)
+                    truth_topic=truth_topic, mag=mag, tum=tum, overwrite=overwrite)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
@@ -117,7 +120,8 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
                out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
                scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False,
-               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True, tum: bool = True) -> Run:
+               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True, tum: bool = True,
+               overwrite: bool = False) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
@@ -153,7 +157,7 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                     dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
                     json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
                     scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic,
-                    mag=mag, tum=tum)
+                    mag=mag, tum=tum, overwrite=overwrite)
 
 
 def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
@@ -179,7 +183,7 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
              dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
              json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
              scatter: bool | None, timeout_s: float | None, resume: bool, imu_topic: str | None,
-             truth_topic: str | None, mag: bool, tum: bool = True) -> Run:
+             truth_topic: str | None, mag: bool, tum: bool = True, overwrite: bool = False) -> Run:
     """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
     before computing."""
     if resume and not out:
@@ -203,7 +207,10 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
         header = {"call": call, "data_dir": str(root.resolve()),
                   "calibration": str(Path(calibration).resolve()) if calibration else None, "command": command,
                   "jobs_total": len(sources) * len(entries), "versions": versions(), "git_commit": git_commit()}
-        journal = Journal.resume(folder.path) if resume else Journal.start(folder.path, header)
+        if not resume and not overwrite and folder.holds_run():
+            raise ValueError(f"{folder.path}: holds an earlier run (results.json); give --overwrite to replace it, "
+                             "or choose another output folder (nothing was changed)")
+        journal = Journal.resume(folder.path) if resume else Journal.start(folder.path, header, replace=overwrite)
         try:
             if resume:
                 _check_resumable(journal, header)

@@ -67,7 +67,7 @@ def test_rerun_removes_only_its_own_files(first_run, tmp_path, capsys):
     (out / "figures" / "mine.png").write_bytes(b"user figure")
     (out / "series" / "mine.npz").write_bytes(b"user data, not a zip")
     (out / "notes.txt").write_text("mine")
-    code, _, err = compare(capsys, out, "dr")  # dr draws no loss figure: the old one goes
+    code, _, err = compare(capsys, out, "dr", "--overwrite")  # dr draws no loss figure: the old one goes
     assert code == 0, err
     assert (out / "figures" / "mine.png").read_bytes() == b"user figure"
     assert (out / "series" / "mine.npz").read_bytes() == b"user data, not a zip"
@@ -116,7 +116,7 @@ def test_results_json_is_moved_in_last(first_run, tmp_path, capsys, monkeypatch)
         return real(src, dst)
 
     monkeypatch.setattr(output.os, "replace", spy)
-    code, _, err = compare(capsys, out)
+    code, _, err = compare(capsys, out, "dr", "--overwrite")
     assert code == 0, err
     assert moved[-1] == "results.json" and moved[-2] == output.MANIFEST
 
@@ -129,7 +129,7 @@ def test_interrupt_while_writing_leaves_the_folder_as_it_was(first_run, tmp_path
         raise KeyboardInterrupt
 
     monkeypatch.setattr(report.series_io, "save", interrupted)
-    code, _, err = compare(capsys, out, "dr")
+    code, _, err = compare(capsys, out, "dr", "--overwrite")
     assert code == 130 and err.strip().splitlines()[-1] == f"fusion: interrupted; continue with: fusion compare --resume {out}"
     assert snapshot(out) == before
     assert not list(out.glob(output.STAGING_PREFIX + "*"))
@@ -145,7 +145,7 @@ def test_sigterm_stops_the_workers_and_leaves_the_folder_as_it_was(first_run, tm
     started.mkdir()
     hold = f"gate:started={started},wait_for={tmp_path / 'never'}"
     proc = fusion_process("compare", "--estimators", f"{hold},{hold},dr", "--dataset", "sim", "--no-progress",
-                          "--jobs", "2", "--out", str(out))
+                          "--jobs", "2", "--out", str(out), "--overwrite")
     wait_until(lambda: len(started_pids(started)) == 2, "both workers holding a job")
     workers = started_pids(started)
     proc.send_signal(signal.SIGTERM)
@@ -217,3 +217,66 @@ def test_out_naming_a_file_is_refused(tmp_path, capsys):
     code, _, err = compare(capsys, target)
     assert code == 1 and f"{target}: exists and is not a folder" in err
     assert target.read_text() == "mine"
+
+
+def files_of_kind(folder: Path) -> dict[str, list[str]]:
+    """The files of an --out folder by kind (top-level name or folder)."""
+    kinds: dict[str, list[str]] = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_file() and p.name != output.LOCK:
+            rel = p.relative_to(folder)
+            kinds.setdefault(rel.parts[0] if len(rel.parts) > 1 else rel.name, []).append(rel.as_posix())
+    return kinds
+
+
+def test_report_rewrites_only_what_it_draws(first_run, tmp_path, capsys):
+    """`fusion report` re-renders table, figures and reports; every other kind of file an --out
+    folder holds (results, command, journal, series, exported trajectories, the manifest's
+    other entries, the user's files) is there afterwards, byte for byte."""
+    out = copy_of(first_run, tmp_path / "run")
+    (out / "notes.txt").write_text("mine")
+    (out / "trajectories" / "mine").mkdir(parents=True)
+    (out / "trajectories" / "mine" / "by-hand.tum").write_text("0 0 0 0 0 0 0 1\n")
+    kinds = files_of_kind(out)
+    for kind in ("results.json", "table.txt", "command.txt", "journal.jsonl", "report.html", "report.md",
+                 "series", "figures", "trajectories", output.MANIFEST, "notes.txt"):
+        assert kind in kinds, kind  # the fixture's folder holds every kind
+    assert any(f.endswith(".tum") and "/sim/" in f for f in kinds["trajectories"])
+    before = snapshot(out)
+    (out / "table.txt").write_text("stale")
+    code, _, err = run(capsys, "report", str(out), "--no-progress", "--jobs", "1")
+    assert code == 0, err
+    after = snapshot(out)
+    rendered = [rel for rel in before if rel in report.RENDERED or rel.startswith("figures/")]
+    kept = [rel for rel in before if rel not in rendered and rel != output.MANIFEST]
+    assert kept and all(after.get(rel) == before[rel] for rel in kept), [r for r in kept if after.get(r) != before[r]]
+    assert all(rel in after for rel in rendered)
+    assert after["table.txt"] == before["table.txt"]  # drawn again from results.json
+    assert set(output.read_manifest(out)) == set(output.read_manifest(first_run))
+
+
+def test_compare_into_a_folder_holding_a_run_is_refused_without_overwrite(first_run, tmp_path, capsys):
+    out = copy_of(first_run, tmp_path / "run")
+    before = snapshot(out)
+    code, _, err = compare(capsys, out, "dr")
+    assert code == 1
+    assert err.strip().splitlines() == [f"fusion: error: {out}: holds an earlier run (results.json); give --overwrite "
+                                        "to replace it, or choose another output folder (nothing was changed)"]
+    assert snapshot(out) == before
+    code, _, err = run(capsys, "ablate", "--estimator", "ukf", "--param", "R=1e-4,1e-3", "--dataset", "sim",
+                       "--no-progress", "--jobs", "1", "--out", str(out))
+    assert code == 1 and "holds an earlier run" in err and snapshot(out) == before
+    code, _, err = compare(capsys, out, "dr", "--overwrite")
+    assert code == 0, err
+    assert [row["estimator"] for row in json.loads((out / "results.json").read_text())["results"]] == ["dr"]
+
+
+def test_overwrite_discards_an_unfinished_run(tmp_path, capsys):
+    out = tmp_path / "run"
+    header = {"call": {"kind": "compare"}, "data_dir": "", "calibration": None, "command": "", "jobs_total": 1}
+    journal.Journal.start(out, header).close()  # a run stopped before its first job ended
+    code, _, err = compare(capsys, out, "dr")
+    assert code == 1 and "holds an unfinished run" in err and "--resume" in err and "--overwrite" in err
+    code, _, err = compare(capsys, out, "dr", "--overwrite")
+    assert code == 0, err
+    assert (out / "results.json").is_file() and not (out / journal.RUN_DIR).exists()

@@ -141,5 +141,5 @@ def test_a_new_run_on_an_unfinished_one_is_refused(sweep):
     _, err = again.communicate(timeout=60)
     assert again.returncode == 1
     assert err.strip() == (f"fusion: error: {sweep['out']}: holds an unfinished run (2 jobs done); continue it with "
-                           f"--resume {sweep['out']}, or remove {sweep['out'] / '.fusion-run'} to start afresh")
+                           f"--resume {sweep['out']}, or give --overwrite to start afresh")
     assert len(_journal(sweep["out"])) == 3  # untouched
