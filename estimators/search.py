@@ -26,7 +26,8 @@ class Tunable:
     """The range of one tunable parameter.
 
     low, high: the bounds (inclusive), in the field's unit; log: search log(value) (then low > 0);
-    grid: the grid preset's values, each within [low, high]; integer: a whole number (a count).
+    grid: the grid preset's values, each within [low, high]; integer: a whole number (a count);
+    magnetometer: the parameter acts on the magnetometer only (not tuned in 6-D).
     """
 
     low: float
@@ -34,6 +35,7 @@ class Tunable:
     log: bool = True
     grid: tuple[float, ...] = ()
     integer: bool = False
+    magnetometer: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.low) and math.isfinite(self.high) and self.low < self.high):
