@@ -104,7 +104,33 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.resume:
         return _resume(args)
     return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, trajectories=args.trajectory,
-                                  **_run_options(args)))
+                                  tuned=args.tuned, **_run_options(args)))
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    from fusion.evaluation.tune import run_tune
+
+    how = dict(jobs=args.jobs, progress=not args.no_progress)
+    if args.resume:
+        defaults = vars(build_parser().parse_args(["tune"]))
+        given = [k for k, v in vars(args).items()
+                 if k not in (*_RESUME_OPTIONS, "overwrite") and v != defaults.get(k)]
+        if given:
+            raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs or "
+                             f"--no-progress only (not --{given[0].replace('_', '-')})")
+        run = run_tune(out=args.resume, resume=True, json_path=args.json, **how)
+    else:
+        if args.imu_topic or args.truth_topic:
+            raise ValueError("tune: --imu-topic/--truth-topic are not supported here; compare a bag with fusion compare")
+        run = run_tune(args.estimators, args.dataset, train=args.train, test=args.test, by=args.by,
+                       metric=args.metric, search=args.search, budget=args.budget, seed=args.seed,
+                       data_dir=args.data_dir, calibration=args.calibration, init=args.init, protocol=args.protocol,
+                       dropouts=args.dropouts == "on", mag=args.mag == "on", out=args.out, json_path=args.json,
+                       overwrite=args.overwrite, command=_command(args), **how)
+    print(run.table)
+    if run.report is not None:
+        print(f"report: {run.report}", file=sys.stderr)
+    return 0
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
@@ -269,8 +295,47 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="examples:\n"
                               "  fusion ablate --estimator ukf --param R=1e-4,1e-3,1e-2 --param sigma=kraft,julier\n"
                               "  fusion ablate --estimator ./student.py:complementary --param gain=0.01,0.02,0.05\n"
+    p.add_argument("--tuned", metavar="FILE", default=None,
+                   help="run each estimator the file holds with its tuned setting (the tuned.json of "
+                        "`fusion tune --out DIR`); parameters given in a spec win")
                               "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
                               "  fusion ablate --resume runs/sweep",
+    p = sub.add_parser("tune", help="tune estimators by one protocol and score them out of sample",
+                       epilog="examples:\n"
+                              "  fusion tune --estimators madgwick,mahony,vqf --dataset 'broad/*' --out runs/tune\n"
+                              "  fusion tune --estimators all --dataset 'broad/*' --by group --jobs 2\n"
+                              "  fusion tune --estimators ekf --train 'broad/*' --test 'ece276a/*' --metric inclination\n"
+                              "  fusion tune --estimators madgwick --dataset 'broad/*' --search tpe --budget 40\n"
+                              "  fusion compare --estimators madgwick,ekf --dataset 'broad/*' --tuned runs/tune/tuned.json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--estimators", "--estimator", dest="estimators", default="all",
+                   help="the estimators to tune (`fusion list NAME` shows each one's search space); a parameter "
+                        "given in a spec is fixed, not tuned (default: all)")
+    _add_data_args(p)
+    p.add_argument("--train", metavar="SEL", default=None,
+                   help="choose the setting on these recordings (with --test: instead of folds over --dataset)")
+    p.add_argument("--test", metavar="SEL", default=None, help="score the chosen setting on these recordings")
+    p.add_argument("--by", choices=("recording", "group"), default="recording",
+                   help="the folds over --dataset: leave one recording out (default), or one group out (BROAD's "
+                        "motion or disturbance group; another dataset's folder)")
+    p.add_argument("--metric", choices=("total", "inclination", "heading"), default="total",
+                   help="the RMSE minimised and reported (default: total)")
+    p.add_argument("--search", choices=("grid", "tpe"), default="grid",
+                   help="grid: the grid preset each estimator declares (default); tpe: Optuna's seeded TPE sampler "
+                        "with --budget trials per study")
+    p.add_argument("--budget", type=int, default=30, metavar="N", help="TPE trials per study (default: 30)")
+    p.add_argument("--seed", type=int, default=0, help="TPE's seed (default: 0)")
+    p.add_argument("--protocol", choices=("full", "broad"), default=None,
+                   help="scoring, as for compare (default: broad for BROAD trials, else full)")
+    p.add_argument("--json", metavar="PATH", help="write the results as JSON")
+    p.add_argument("--out", metavar="DIR", help="write table, results.json, report and tuned.json (for "
+                   "`compare --tuned`) to DIR, journalling every score so that --resume DIR continues a stopped run")
+    p.add_argument("--overwrite", action="store_true", help="with --out: replace the run DIR holds")
+    p.add_argument("--resume", metavar="DIR", default=None, help="continue the stopped tuning in DIR")
+    p.add_argument("--jobs", type=_jobs, default=0, metavar="N",
+                   help="worker processes; 0 = all cores (default); results do not depend on it")
+    p.set_defaults(func=cmd_tune)
+
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--estimator", "--estimators", dest="estimator",
                    help="the estimator to sweep (ours or your own FILE.py:NAME), optionally with fixed parameters: "
@@ -387,7 +452,7 @@ class Terminated(KeyboardInterrupt):
 
 def _resume_hint(args: argparse.Namespace) -> str:
     folder = getattr(args, "resume", None) or getattr(args, "out", None)
-    if args.command not in ("compare", "ablate") or not folder:
+    if args.command not in ("compare", "ablate", "tune") or not folder:
         return ""
     from fusion.evaluation.journal import JOURNAL, RUN_DIR
 

@@ -211,6 +211,8 @@ def _sweep_text(doc: dict[str, Any]) -> str:
     from .ablate import format_sweep, sweep_summary
 
     summary = sweep_summary(doc["results"], groups=(doc.get("sweep") or {}).get("trial_groups"))
+    tuning = (doc.get("tune") or {}).get("table") if isinstance(doc.get("tune"), dict) else None  # `fusion tune`
+    sweep = "\n\n".join(str(text) for text in (tuning, sweep) if text)
     return format_sweep(summary) if summary else ""
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from fusion import datasets
 from fusion.checks import RecordingCheck
 from fusion.estimators import ResolvedSpec, resolve_all, resolve_trajectory
-from fusion.estimators.params import EstimatorSpec
+from fusion.estimators.params import EstimatorSpec, parse_specs
 from fusion.selection import calibration_settings, load_options, load_selected, note, select_sources
 
 from . import ablate
@@ -72,7 +72,7 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
                 scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
                 resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
                 mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = (), tum: bool = True,
-                overwrite: bool = False) -> Run:
+                overwrite: bool = False, tuned: PathLike | None = None) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
@@ -97,7 +97,14 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         (`DIR/trajectories/<recording>/<estimator>.tum`, for evo); False: not.
     overwrite: with `out`, replace the run the folder holds (or discard its unfinished one); without
         it such a folder is refused before any work. Files the toolkit did not write are kept.
+    tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): each estimator it holds runs
+        with its tuned setting (`fusion.evaluation.tune.apply_tuned`).
     """
+    if tuned:
+        from .tune import apply_tuned
+
+        specs = parse_specs(estimators) if isinstance(estimators, str) else list(estimators)
+        estimators = ",".join(s.label for s in apply_tuned(specs, tuned))
     with _heartbeat(progress):
         entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
     text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries if not e.cls.partial)

@@ -176,6 +176,18 @@ def trial_groups(path: str | Path) -> list[str]:
     return groups
 
 
+def primary_group(path: str | Path) -> str | None:
+    """The trial's motion or disturbance group in BROAD's `trials.json` (`rotation`,
+    `translation`, `combined`, `tapping`, `attached_magnet`, ...: the groups whose category is
+    "motion" or "disturbance"), for leave-one-group-out; None without one."""
+    names = trial_groups(path)
+    if not names:
+        return None
+    doc = json.loads((Path(path).parent / "trials.json").read_text())  # read and checked by trial_groups
+    categories = {g.get("name"): g.get("category") for g in doc.get("groups", []) if isinstance(g, dict)}
+    return next((n for n in names if categories.get(n) in ("motion", "disturbance")), None)
+
+
 class BroadFormat(Format):
     kind = "broad"
     describe = "BROAD trials (.hdf5/.h5, or a .mat not named like a course file)"
