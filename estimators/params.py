@@ -4,11 +4,15 @@ One syntax for every command. A spec is a registry name, optionally followed by
 `:key=value` pairs; further `key=value` tokens after a comma belong to the estimator
 before them. Keys are the parameter dataclass's field names or their short aliases
 (declared as `field(metadata={"alias": "R"})`). An unknown key is an error that lists the
-valid ones; values are converted to the field's type and validated by the dataclass.
+valid ones; values are converted to the field's type and validated by the dataclass. A number
+that overflows a float (`1e400`) is an error, never taken for infinity: `inf` is written as such,
+where a parameter takes it to switch a term off; a count must fit in 64 bits.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
+import sys
 import typing
 import warnings
 from dataclasses import dataclass
@@ -48,7 +52,10 @@ def former_spellings(cls: type, values: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"{old} and {new} ({alias}) are one parameter: give {alias} only")
         if not (isinstance(value, (int, float)) and value >= 0.0):
             raise ValueError(f"{old} must be a number >= 0 (a standard deviation), got {value!r}")
-        out[new] = float(value) ** 2
+        out[new] = float(value) * float(value)  # inf for inf (a model switched off), never an OverflowError
+        if math.isfinite(value) and not math.isfinite(out[new]):
+            raise ValueError(f"{old}={value:g} (a standard deviation) is too large: its square, {alias} ({new}), "
+                             f"exceeds the largest float, {sys.float_info.max:.4g}")
         owner = getattr(cls, "owner", cls.__name__)
         warnings.warn(f"{owner}: {old}={value:g} (a standard deviation) is now {alias}={out[new]:g} ({new}, its square, "
                       f"as every noise and prior parameter); {old} will be removed in the next release",
@@ -144,9 +151,14 @@ def _convert(value: str, annotation: Any, where: str) -> Any:
             number = float(value)
         except ValueError:
             raise ValueError(f"{where}: {value!r} is not a number") from None
+        if math.isinf(number) and value.strip().lstrip("+-").lower() not in ("inf", "infinity"):
+            raise ValueError(f"{where}: {value!r} exceeds the largest float, {sys.float_info.max:.4g} "
+                             "(write inf for infinity where a parameter takes it)")
         if annotation is int:
-            if number != int(number):
+            if not math.isfinite(number) or number != int(number):
                 raise ValueError(f"{where}: {value!r} is not a whole number")
+            if not -2**63 <= number < 2**63:  # the compiled kernels take counts as 64-bit integers
+                raise ValueError(f"{where}: {value!r} is too large for a count (at most 2^63 - 1)")
             return int(number)
         return number
     if annotation is str:

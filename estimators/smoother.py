@@ -206,23 +206,31 @@ class SmootherParams(FormerSpellings):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"{name}={value!r}: must be positive")
+            if value == np.inf and name not in ("acc_noise_g2_s", "loss_scale_g", "velocity_acc_noise_g2_s",
+                                                "velocity_bound_m2_s"):  # inf: no such term (R: no accelerometer)
+                raise ValueError(f"{name}={value!r}: must be finite")
         for name in ("bias_axes", "scale_axes"):  # "none" (as typed on a command line) is ""
             if getattr(self, name) == "none":
                 object.__setattr__(self, name, "")
             axes_mask(getattr(self, name), name)
         if not 0 <= self.init_level_s < np.inf:
             raise ValueError(f"init_level_s={self.init_level_s!r}: must be >= 0 and finite (0: off)")
+        if 0 < self.init_level_s < 0.1:  # one window per level step: a shorter one averages no motion out
+            raise ValueError(f"init_level_s={self.init_level_s!r}: must be 0 (off) or at least 0.1 s")
         for name in ("rest_gyr_rad_s", "rest_acc_g", "rest_time_s", "scale_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)!r}: must be positive (rest_time_s=inf: no rest detection)")
+        for name in ("rest_gyr_rad_s", "rest_acc_g"):
+            if getattr(self, name) == np.inf:
+                raise ValueError(f"{name}={getattr(self, name)!r}: must be finite (rest_time_s=inf: no rest detection)")
         if not 0 < self.scale_significance <= 1:
             raise ValueError(f"scale_significance={self.scale_significance!r}: must be in (0, 1] (1: no test)")
         if not 0 < self.scale_release_ratio <= 1:
             raise ValueError(f"scale_release_ratio={self.scale_release_ratio!r}: must be in (0, 1]")
         if self.max_iter < 1:
             raise ValueError(f"max_iter={self.max_iter}: must be at least 1")
-        if not self.tol >= 0:
-            raise ValueError(f"tol={self.tol!r}: must be >= 0")
+        if not 0 <= self.tol < np.inf:
+            raise ValueError(f"tol={self.tol!r}: must be >= 0 and finite")
         if self.impl not in ("compiled", "numpy"):
             raise ValueError(f"impl={self.impl!r}: must be compiled or numpy")
         for name in ("mag_heading_noise_rad2_s", "mag_heading_walk_rad2_s", "mag_loss_scale_rad", "mag_norm_gate_frac", "mag_dip_gate_rad",

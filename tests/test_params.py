@@ -133,3 +133,52 @@ def test_former_attributes_read_as_standard_deviations_with_a_warning():
     with pytest.raises(AttributeError):  # an alias was never an attribute
         params.sa
     assert pickle.loads(pickle.dumps(params)) == params
+
+
+@pytest.mark.parametrize("spec, named, problem", [
+    ("ekf:Q=nan", "'Q' (process_noise_rad2_s)", "must be a finite number >= 0, got nan"),
+    ("gd:iters=nan", "'iters'", "'nan' is not a whole number"),
+    ("ekf:Qbad=1e308", "'Qbad' (invalid_gyr_var_rad2_s2)", "Qbad=1e+308 (a standard deviation) is too large: its square"),
+    ("ekf:vb=1e200", "'vb' (velocity_bound_m2_s)", "is too large"),  # its square would be inf: no velocity states
+    ("gn:sg=1e200", "'sg' (process_noise_rad2_s)", "is too large"),
+    ("ukf:R=1e400", "'R'", "'1e400' exceeds the largest float"),
+    ("gn:Rv=1e400", "'Rv'", "write inf for infinity"),  # an overflow is not taken for the switch Rv=inf
+    ("ukf:iters=inf", "'iters'", "'inf' is not a whole number"),
+    ("ukf:iters=1e19", "'iters'", "too large for a count"),
+    ("gn:Q=inf", "'Q' (process_noise_rad2_s)", "process_noise_rad2_s=inf: must be finite"),
+    ("gd:P0=inf", "'P0' (init_var_rad2)", "must be finite"),
+    ("gn:Rrest=inf", "'Rrest' (rest_noise_rad2_s)", "must be finite"),
+    ("gn:tol=inf", "'tol'", "must be >= 0 and finite"),
+    ("gn:rest_gyr_rad_s=inf", "'rest_gyr_rad_s'", "must be finite"),
+    ("gn:level=1e-308", "'level' (init_level_s)", "must be 0 (off) or at least 0.1 s"),
+])
+def test_hostile_values_are_one_line_errors_naming_estimator_and_parameter(spec, named, problem):
+    """Values that overflow, or are not finite where a finite value is needed, are refused when the
+    spec is read (not as an OverflowError, nor a failure deep in a run, nor silently taken)."""
+    with pytest.raises(ValueError) as info:
+        resolve(spec)
+    message = str(info.value)
+    assert message.startswith(f"estimator {spec.split(':')[0]!r} parameter {named}: ")
+    assert problem in message and "\n" not in message
+
+
+@pytest.mark.parametrize("spec, name, value", [
+    ("ekf:Q=inf", "process_noise_rad2_s", None),  # refused by the filter's own check, as before
+    ("gn:huber=-1", "loss_scale_g", None),
+    ("ekf:vb=inf", "velocity_bound_m2_s", float("inf")),  # inf where it switches a term off
+    ("gn:R=inf", "acc_noise_g2_s", float("inf")),
+    ("gn:huber=inf", "loss_scale_g", float("inf")),
+    ("gn:Rv=-inf", "velocity_bound_m2_s", None),
+    ("ukf:iters=1e18", "mean_max_iter", 10**18),
+    ("ekf:rest_time_s=Infinity", "rest_time_s", float("inf")),
+])
+def test_infinity_is_taken_only_where_it_means_off(spec, name, value):
+    import warnings
+
+    if value is None:
+        with pytest.raises(ValueError, match=r"^estimator '\w+' parameter '\w+' \(\w+\): "):
+            resolve(spec)
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        assert getattr(resolve(spec).params, name) == value
