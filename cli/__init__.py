@@ -160,12 +160,18 @@ def cmd_panorama(args: argparse.Namespace) -> int:
 def cmd_list(args: argparse.Namespace) -> int:
     from fusion.estimators import available
 
+    if args.name:
+        from fusion.estimators.describe import describe
+
+        print(describe(args.name))
+        return 0
     rows = available()
     width = max(len(name) for name, _, _ in rows)
     for name, what, origin in rows:
         print(f"{name:<{width}}  {what}" + ("" if origin == "fusion" else f"  [{origin}]"))
     print("\nyour own: FILE.py:NAME or package.module:NAME, with parameters as for ours, e.g. "
           "./my_ukf.py:MyUKF:R=1e-3 (README, 'Your estimator in the table')")
+    print("an estimator's parameters, with their units, defaults and search ranges: fusion list NAME")
     return 0
 
 
@@ -349,7 +355,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_args(p)
     p.set_defaults(func=cmd_ablate)
 
-    p = sub.add_parser("list", help="the estimators a spec can name: ours and those installed packages register")
+    p = sub.add_parser("list", help="the estimators a spec can name: ours and those installed packages register; "
+                                    "with NAME, that estimator's parameters",
+                       epilog="examples:\n  fusion list\n  fusion list ekf\n  fusion list ./my_ukf.py:MyUKF",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("name", nargs="?", metavar="NAME",
+                   help="an estimator (a name of `fusion list`, or FILE.py:NAME): one line per parameter with its "
+                        "alias, field name, default, unit, meaning and search range")
     p.set_defaults(func=cmd_list)
 
     p = sub.add_parser("report", help="re-render the report of an --out folder from its results.json and series",

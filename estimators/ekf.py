@@ -214,6 +214,7 @@ from ._attitude import (
 )
 from .filter_params import BiasFilterParams
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from .search import Tunable
 
 
 @dataclass(frozen=True)
@@ -247,11 +248,14 @@ class EKFParams(BiasFilterParams):
     former_std: ClassVar[tuple[str, ...]] = BiasFilterParams.former_std + (
         "velocity_acc_noise_g_sqrt_s", "sv", "velocity_bound_m_sqrt_s", "vb")
 
-    acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp"})
+    # Search ranges (`fusion.estimators.search`): taulp as in `FilterParams` (0.3-10 s, around the
+    # leave-one-out choice); Qv and Rv two decades either side (cross_validate.py tries 9e-6-9e-4 and
+    # 0.25-4; BROAD's fast trials move at about 1 m/s).
+    acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp", "search": Tunable(0.3, 10.0)})
 
     estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
-    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv"})
-    velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv"})
+    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
+    velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv", "search": Tunable(1e-2, 1e2)})
     lowpass_calibration: bool = field(default=False, metadata={"alias": "lpcal"})
     impl: Literal["compiled", "numpy"] = "compiled"
 

@@ -23,6 +23,7 @@ from typing import Any, ClassVar, Literal
 
 from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
 from .params import FormerSpellings
+from .search import Tunable
 
 Gate = Literal["off", "skip", "inflate"]
 
@@ -86,12 +87,20 @@ class FilterParams(FormerSpellings):
     owner: ClassVar[str] = "filter"  # the registry name in error messages
     former_std: ClassVar[tuple[str, ...]] = ("invalid_gyr_std_rad_s", "Qbad")  # `AcceptsFormerSpellings`
 
-    process_noise_rad2_s: float = field(default=3e-4, metadata={"alias": "Q"})
-    acc_noise_g2_s: float = field(default=3e-5, metadata={"alias": "R"})
+    # Search ranges (`fusion.estimators.search`): the noise densities two decades either side of the
+    # default; the grids (Q x R x tauc, 27 settings) are benchmarks/cross_validate.py's, a factor of
+    # about 3 either side of the defaults, which that script checks by leave-one-recording-out.
+    process_noise_rad2_s: float = field(default=3e-4, metadata={
+        "alias": "Q", "search": Tunable(3e-6, 3e-2, grid=(1e-4, 3e-4, 1e-3))})
+    acc_noise_g2_s: float = field(default=3e-5, metadata={
+        "alias": "R", "search": Tunable(3e-7, 3e-3, grid=(1e-5, 3e-5, 1e-4))})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    disturbance_corr_s: float = field(default=0.1, metadata={"alias": "tauc"})
+    # a decade either side of the default (0: no adaptation, outside a log range)
+    disturbance_corr_s: float = field(default=0.1, metadata={
+        "alias": "tauc", "search": Tunable(0.01, 1.0, grid=(0.03, 0.1, 0.3))})
     disturbance_window_s: float = field(default=0.5, metadata={"alias": "tauw"})
-    acc_lowpass_s: float = field(default=1.0, metadata={"alias": "taulp"})
+    # cross_validate.py's span, 0.3-10 s, around VQF's 3 s (Laidig & Seel 2023, Sec. 3.2, tauAcc)
+    acc_lowpass_s: float = field(default=1.0, metadata={"alias": "taulp", "search": Tunable(0.3, 10.0)})
     acc_lowpass_window_s: float = field(default=3.0, metadata={"alias": "taulpw"})
     use_acc: bool = field(default=True, metadata={"alias": "acc"})
     gate: Gate = "off"
@@ -201,21 +210,29 @@ class BiasFilterParams(FilterParams):
         standard deviations along the principal axes, at least this fraction of the radius.
     """
 
-    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb"})
+    # Search ranges, no grid (the grid stays at Q x R x tauc): two decades either side of the default
+    # (benchmarks/cross_validate.py tries 1e-9-1e-7).
+    bias_walk_rad2_s3: float = field(default=1e-8, metadata={"alias": "Qb", "search": Tunable(1e-10, 1e-6)})
     init_bias_var_rad2_s2: float = field(default=1e-5, metadata={"alias": "Pb0"})
     bias_max_rad_s: float = field(default=0.035, metadata={"alias": "bmax"})
     estimate_scale: bool = field(default=True, metadata={"alias": "scale"})
-    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
+    # standard deviations of 1 % to 20 % (scale_max's bound; cross_validate.py tries 3-17 %)
+    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0", "search": Tunable(1e-4, 4e-2)})
     scale_walk_1_s: float = field(default=1e-8, metadata={"alias": "Qsw"})
     scale_max: float = field(default=0.2, metadata={"alias": "smax"})
-    scale_test_error: float = field(default=0.1, metadata={"alias": "sprt"})
-    calibrated_scale_var: float = field(default=1e-4, metadata={"alias": "Psc"})
+    # error probabilities of 1-30 % (Wald's test needs < 50 %; cross_validate.py tries 5-20 %, and 0: no test)
+    scale_test_error: float = field(default=0.1, metadata={"alias": "sprt", "search": Tunable(0.01, 0.3)})
+    # standard deviations of 0.3 % to 3 % (cross_validate.py tries 0.5-1.7 %)
+    calibrated_scale_var: float = field(default=1e-4, metadata={"alias": "Psc", "search": Tunable(1e-5, 1e-3)})
     scale_axes: str = field(default="xy", metadata={"alias": "saxes"})
     rest_gyr_rad_s: float = REST_GYR_RAD_S
     rest_acc_g: float = REST_ACC_G
     rest_time_s: float = REST_TIME_S
     rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
-    mag_heading_noise_rad2_s: float = field(default=0.3, metadata={"alias": "Rm"})
+    # two decades either side of the default (benchmarks/broad_9d.py --leave-one-out tries 0.03-1);
+    # the unit is rad^2 s, not the rad^2/s its suffix reads as elsewhere (a measurement's density)
+    mag_heading_noise_rad2_s: float = field(default=0.3, metadata={
+        "alias": "Rm", "unit": "rad^2 s", "search": Tunable(3e-3, 30.0, magnetometer=True)})
     mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
     mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
     mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})

@@ -33,6 +33,7 @@ from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
 from .params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, parse_specs
+from .search import Tunable
 from .smoother_mag import MagSettings, heading_correction, measurements
 from .smoother_cost import (AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
                             theta_posterior_std)
@@ -153,10 +154,17 @@ class SmootherParams(FormerSpellings):
     owner: ClassVar[str] = "gn"  # the registry name in messages
     former_std: ClassVar[tuple[str, ...]] = SMOOTHER_FORMER_STD  # `AcceptsFormerSpellings`
 
-    process_noise_rad2_s: float = field(default=1e-4, metadata={"alias": "Q"})
-    acc_noise_g2_s: float = field(default=0.04, metadata={"alias": "R"})
+    # Search ranges (`fusion.estimators.search`): noise densities two decades either side of the
+    # default; the grid (Q x R x huber, 27 settings) a factor of about 3 (R: 4) either side. R's grid
+    # is the standard deviation densities 0.1, 0.2 and 0.4 g sqrt(s); the loss scale's spans a decade
+    # either side of 0.1 g, the size of a hand's linear accelerations (tenths of a g).
+    process_noise_rad2_s: float = field(default=1e-4, metadata={
+        "alias": "Q", "search": Tunable(1e-6, 1e-2, grid=(3e-5, 1e-4, 3e-4))})
+    acc_noise_g2_s: float = field(default=0.04, metadata={
+        "alias": "R", "search": Tunable(4e-4, 4.0, grid=(0.01, 0.04, 0.16))})
     loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
-    loss_scale_g: float = field(default=0.1, metadata={"alias": "huber"})
+    loss_scale_g: float = field(default=0.1, metadata={
+        "alias": "huber", "search": Tunable(0.01, 1.0, grid=(0.03, 0.1, 0.3))})
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     dropout_noise_rad2_s: float = field(default=0.09, metadata={"alias": "Qdrop"})
     use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
@@ -167,8 +175,9 @@ class SmootherParams(FormerSpellings):
     scale_max: float = 0.2
     scale_release_ratio: float = field(default=0.5, metadata={"alias": "release"})
     scale_significance: float = field(default=0.05, metadata={"alias": "sig"})
-    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv"})
-    velocity_bound_m2_s: float = field(default=0.25, metadata={"alias": "Rv"})
+    # two decades either side of the defaults, no grid
+    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
+    velocity_bound_m2_s: float = field(default=0.25, metadata={"alias": "Rv", "search": Tunable(2.5e-3, 25.0)})
     rest_gyr_rad_s: float = REST_GYR_RAD_S
     rest_acc_g: float = REST_ACC_G
     rest_time_s: float = REST_TIME_S
@@ -181,7 +190,10 @@ class SmootherParams(FormerSpellings):
     tol: float = 1e-4
     progress: bool = True
     impl: Literal["compiled", "numpy"] = "compiled"
-    mag_heading_noise_rad2_s: float = field(default=0.1, metadata={"alias": "Rm"})
+    # two decades either side (benchmarks/broad_9d_smoothers.py --leave-one-out tries 0.03-0.3); the
+    # unit is rad^2 s, not the rad^2/s its suffix reads as elsewhere (a measurement's density)
+    mag_heading_noise_rad2_s: float = field(default=0.1, metadata={
+        "alias": "Rm", "unit": "rad^2 s", "search": Tunable(1e-3, 10.0, magnetometer=True)})
     mag_heading_walk_rad2_s: float = field(default=9e-4, metadata={"alias": "Qm"})
     mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
     mag_loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = field(default="huber", metadata={"alias": "mloss"})

@@ -135,6 +135,7 @@ from ._attitude import (
 )
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
 from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from .search import Tunable
 
 Sigma = Literal["kraft", "julier", "merwe"]
 Impl = Literal["compiled", "numpy", "filterpy", "lean"]  # "lean": the former name of "numpy", with a warning
@@ -222,12 +223,17 @@ class UKFParams(UKFOptions):
 
     owner: ClassVar[str] = "ukf"
 
-    process_noise_rad2_s: float = field(default=1e-3, metadata={"alias": "Q"})
-    disturbance_corr_s: float = field(default=0.5, metadata={"alias": "tauc"})
+    # Search ranges (`fusion.estimators.search`; R's is `FilterParams`'): Q two decades either side,
+    # its grid the sweep above (Q=1e-4,1e-3,1e-2); tauc a decade either side, its grid a factor of 3.
+    process_noise_rad2_s: float = field(default=1e-3, metadata={
+        "alias": "Q", "search": Tunable(1e-5, 1e-1, grid=(1e-4, 1e-3, 1e-2))})
+    disturbance_corr_s: float = field(default=0.5, metadata={
+        "alias": "tauc", "search": Tunable(0.05, 5.0, grid=(0.15, 0.5, 1.5))})
     gate_g: float = 0.1
     heading_free: bool = field(default=False, metadata={"alias": "hf"})
     acc_lowpass_s: float = field(default=0.0, metadata={"alias": "taulp"})
-    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs"})
+    # two decades either side (0, Kraft's filter, is outside a log range)
+    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs", "search": Tunable(2e-4, 2.0)})
 
     def _check(self) -> None:
         check_nonneg(self.owner, scale_noise_s=self.scale_noise_s)

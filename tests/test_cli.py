@@ -187,3 +187,25 @@ def test_calibrate_without_out_prints_the_result_and_how_to_save_it(tmp_path, ca
     doc = json.loads(out[out.index("{"):])
     assert doc["format"] == "fusion-gyro-calibration" and len(doc["gyro_scale_factor"]) == 3
     assert "--out FILE writes this calibration file" in err
+
+
+def test_list_names_the_estimators_and_points_at_list_name(capsys):
+    code, out, err = run(capsys, "list")
+    assert code == 0 and err == ""
+    names = [line.split()[0] for line in out.splitlines() if line and not line.startswith(("your own", "an estimator"))]
+    assert names[:6] == ["dr", "ukf", "ukf-bias", "ekf", "gd", "gn"]
+    assert out.splitlines()[-1] == "an estimator's parameters, with their units, defaults and search ranges: fusion list NAME"
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("ekf:Qbad=1e308", "fusion: error: estimator 'ekf' parameter 'Qbad' (invalid_gyr_var_rad2_s2): Qbad=1e+308 "
+                       "(a standard deviation) is too large"),
+    ("ukf:iters=inf", "fusion: error: estimator 'ukf' parameter 'iters': 'inf' is not a whole number"),
+    ("gn:level=1e-308", "fusion: error: estimator 'gn' parameter 'level' (init_level_s): init_level_s=1e-308"),
+])
+def test_a_hostile_parameter_value_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, spec, message):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(capsys, "compare", "--estimators", spec, "--dataset", "sim", "--no-progress")
+    assert code == 1 and out == ""
+    assert err.startswith(message) and err.count("\n") == 1 and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,316 @@
+"""An estimator's parameters as a table: what `fusion list NAME` prints.
+
+One row per field of the estimator's `Params` dataclass: the short name a spec uses (the field's
+alias, else its name), the field name, whose suffix gives the unit (`process_noise_rad2_s`:
+rad^2/s, `UNIT_SUFFIXES`), the default, the unit spelled out, a one-line meaning and the search
+range the field declares (`fusion.estimators.search.Tunable`). A field's `"unit"` metadata
+overrides its suffix where the two differ (`mag_heading_noise_rad2_s`, a measurement's density,
+is in rad^2 s).
+
+The meaning has one source per field: the Params class's docstring (or a base's) where it
+documents the field, as an entry `name (alias): meaning ...` on a line of its own or after a
+full stop or a semicolon (several names may share one entry); else the field's `"doc"` metadata
+(for a field no docstring documents); else the clause of an entry that names the field
+(`sigma: ...; kappa, alpha, beta their parameters`). The row shows the first clause, cut to
+`MEANING_WIDTH` characters. The former standard-deviation spellings a class still takes
+(`fusion.estimators.params.FORMERLY_STD`) are listed apart.
+
+    from fusion.estimators.describe import describe
+    print(describe("ekf"))
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+from .params import FORMERLY_STD, parse_specs
+from .search import Tunable
+
+# Field-name suffix -> unit, the longest suffix first (`_rad2_s3` before `_rad2_s` before `_s`).
+UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
+    ("_rad2_s3", "rad^2/s^3"),
+    ("_rad2_s2", "rad^2/s^2"),
+    ("_rad2_s", "rad^2/s"),
+    ("_rad2", "rad^2"),
+    ("_rad_s", "rad/s"),
+    ("_rad", "rad"),
+    ("_deg_s", "deg/s"),
+    ("_deg", "deg"),
+    ("_g2_s", "g^2 s"),
+    ("_g", "g"),
+    ("_m2_s", "m^2/s"),
+    ("_m_s2", "m/s^2"),
+    ("_m_s", "m/s"),
+    ("_m", "m"),
+    ("_1_s", "1/s"),
+    ("_ms", "ms"),
+    ("_s", "s"),
+    ("_hz", "Hz"),
+    ("_ut", "uT"),
+    ("_frac", "fraction"),
+)
+
+MEANING_WIDTH = 72  # characters of the meaning shown; a longer first clause ends in "..."
+FORMER_TITLE = "former spellings (taken with a warning)"
+
+_NAME = r"[a-z_][a-z0-9_]*"
+_HEAD = re.compile(rf"^({_NAME}(?: \([^()]*\))?(?:, {_NAME}(?: \([^()]*\))?)*): (.*)$")
+# a full stop after these does not end a clause
+_ABBREVIATION = re.compile(r"(?:^|[\s(])(?:e\.g|i\.e|etc|al|Secs?|[Ee]q|vs|cf|approx|Ch|ed)$")
+
+
+@dataclass(frozen=True)
+class Row:
+    """One parameter. alias: the key a spec uses (the field name where there is no alias); name:
+    the field name; default: the default as a spec would write it; unit: spelled out ("" where the
+    suffix is not in `UNIT_SUFFIXES` or the field is not a number); meaning: one line; search:
+    `Tunable.describe()`, "" where the field declares no search range."""
+
+    alias: str
+    name: str
+    default: str
+    unit: str
+    meaning: str
+    search: str
+
+
+def unit_of(name: str, metadata: Any = None, annotation: Any = float) -> str:
+    """The unit of field `name` spelled out: its `"unit"` metadata, else its suffix's entry in
+    `UNIT_SUFFIXES`; "" for an unknown suffix or a field that is not a number."""
+    if metadata and "unit" in metadata:
+        return str(metadata["unit"])
+    if annotation not in (int, float):
+        return ""
+    for suffix, unit in UNIT_SUFFIXES:
+        if name.endswith(suffix) and len(name) > len(suffix):
+            return unit
+    return ""
+
+
+def _text(value: Any) -> str:
+    """A value as a spec would write it (`true`, `1e-08`, `inf`, `""`)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, str):
+        return value if value else '""'
+    return "none" if value is None else str(value)
+
+
+def _split(text: str, seps: str) -> list[str]:
+    """`text` cut after each separator in `seps` (";" or ". ") outside brackets and backticks,
+    each part with the separator that ends it; a full stop after an abbreviation (e.g., Sec.) or in
+    an ellipsis does not cut."""
+    parts, depth, quoted, start = [], 0, False, 0
+    for i, c in enumerate(text):
+        if c == "`":
+            quoted = not quoted
+        elif quoted:
+            continue
+        elif c in "([":
+            depth += 1
+        elif c in ")]":
+            depth = max(0, depth - 1)
+        elif depth == 0 and c in seps and (i + 1 == len(text) or text[i + 1] == " "):
+            if c == "." and (text[i - 1:i] == "." or _ABBREVIATION.search(text[start:i])):
+                continue  # an ellipsis or an abbreviation
+            parts.append(text[start:i + 1].strip())
+            start = i + 1
+    parts.append(text[start:].strip())
+    return [p for p in parts if p]
+
+
+def _clauses(text: str) -> list[str]:
+    """`text`'s clauses (cut at top-level ";" and full stops), without their separators."""
+    return [c.rstrip(";.").strip() for c in _split(text, ";.")]
+
+
+_GRAMMAR = {"a", "an", "and", "as", "at", "by", "for", "in", "is", "of", "or", "the", "to", "with"}
+
+
+def _without_remarks(text: str) -> str:
+    """`text` without its top-level parenthetical remarks: a bracket after a space, unless a unit
+    (`(rad/s)^2`), a formula (`Rm / dt (1 + ...)`) or the object of the word before it."""
+    out, i = [], 0
+    while i < len(text):
+        if text[i] == "(" and i > 0 and text[i - 1] == " ":
+            depth, j = 0, i
+            while j < len(text):
+                depth += (text[j] == "(") - (text[j] == ")")
+                if depth == 0:
+                    break
+                j += 1
+            before = text[:i].split()
+            unit = text[j + 1:j + 2] == "^"
+            formula = re.search(r"\^| \+ | = ", text[i:j + 1])
+            if depth == 0 and not unit and not formula and not (before and before[-1].lower() in _GRAMMAR):
+                i = j + 1
+                continue
+        out.append(text[i])
+        i += 1
+    return re.sub(r"\s+([,;:])", r"\1", re.sub(r"\s{2,}", " ", "".join(out))).strip()
+
+
+def _one_line(text: str) -> str:
+    """The first clause of `text` (to the first top-level ";" or full stop), at most
+    `MEANING_WIDTH` characters: without its parenthetical remarks if it is longer, then cut."""
+    clause = (_clauses(text) or [""])[0].rstrip(":,")
+    if len(clause) > MEANING_WIDTH:
+        clause = _without_remarks(clause)
+    if len(clause) <= MEANING_WIDTH:
+        return clause
+    cut = clause[:MEANING_WIDTH - 3].rsplit(" ", 1)[0]
+    return cut.rstrip(",;:") + "..."
+
+
+def _head_names(head: str, fields: set[str]) -> list[str] | None:
+    """The field names of an entry head `name (alias), name2:`; None unless every name is a field."""
+    names = [re.sub(r" \(.*\)$", "", part) for part in re.split(r", (?![^()]*\))", head)]
+    return names if names and all(n in fields for n in names) else None
+
+
+def _entries(doc: str, fields: set[str]) -> list[tuple[list[str], str]]:
+    """The docstring's entries as (field names, text): a line `name (alias), ...: text` whose names
+    are all fields, with the lines indented below it; a sentence inside an entry that starts as a
+    head (`... none). scale_axes (scale): scale errors`) starts its own."""
+    entries: list[tuple[list[str], int, list[str]]] = []
+    current = None
+    for line in inspect.cleandoc(doc).splitlines():
+        indent = len(line) - len(line.lstrip())
+        stripped = line.strip()
+        if current is not None and stripped and indent > current[1]:
+            current[2].append(stripped)
+            continue
+        current = None
+        match = _HEAD.match(stripped)
+        names = _head_names(match.group(1), fields) if match else None
+        if names:
+            current = (names, indent, [match.group(2)])
+            entries.append(current)
+    out: list[tuple[list[str], str]] = []
+    for names, _, lines in entries:
+        text: list[str] = []
+        for part in _split(" ".join(lines), ";."):
+            match = _HEAD.match(part)
+            inner = _head_names(match.group(1), fields) if match and text else None
+            if inner:
+                out.append((names, " ".join(text)))
+                names, text = inner, [match.group(2)]
+            else:
+                text.append(part)
+        out.append((names, " ".join(text)))
+    return out
+
+
+def meanings(params_cls: type) -> dict[str, str]:
+    """Field name -> its one-line meaning (module docstring: the entries of the class's and its
+    bases' docstrings, then the fields' `"doc"` metadata); "" where neither says anything."""
+    if not dataclasses.is_dataclass(params_cls):
+        return {}
+    fields = {f.name: f for f in dataclasses.fields(params_cls)}
+    docs = [c.__doc__ for c in params_cls.__mro__ if c.__dict__.get("__doc__") and c is not object
+            and not c.__doc__.startswith(c.__name__ + "(")]  # not the signature `dataclass` writes
+    entries = [e for doc in docs for e in _entries(doc, set(fields))]
+    out: dict[str, str] = {}
+    for names, text in entries:  # the class's own entries first, then its bases'
+        for name in names:
+            out.setdefault(name, _one_line(text))
+    for name, f in fields.items():
+        if name in out:
+            continue
+        if "doc" in f.metadata:
+            out[name] = _one_line(str(f.metadata["doc"]))
+            continue
+        mention = re.compile(rf"(?<![\w.`]){re.escape(name)}(?![\w])")
+        clause = next((c for _, text in entries for c in _clauses(text) if mention.search(c)), "")
+        out[name] = _one_line(clause)
+    return out
+
+
+def parameter_table(params_cls: type) -> list[Row]:
+    """One `Row` per field of the dataclass `params_cls` (field order); [] for one without fields."""
+    if not dataclasses.is_dataclass(params_cls):
+        return []
+    try:
+        hints = typing.get_type_hints(params_cls)
+    except (NameError, TypeError):  # annotations that do not resolve: no units
+        hints = {}
+    meaning = meanings(params_cls)
+    rows = []
+    for f in dataclasses.fields(params_cls):
+        if f.default is not dataclasses.MISSING:
+            default = _text(f.default)
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            default = _text(f.default_factory())  # type: ignore[misc]
+        else:
+            default = "(required)"
+        search = f.metadata.get("search")
+        rows.append(Row(alias=f.metadata.get("alias", f.name), name=f.name, default=default,
+                        unit=unit_of(f.name, f.metadata, hints.get(f.name)), meaning=meaning.get(f.name, ""),
+                        search=_search_text(search)))
+    return rows
+
+
+def _search_text(search: Any) -> str:
+    """A field's search range as the table shows it: `Tunable.describe()`, and "9-D only" for a
+    parameter that acts on the magnetometer only."""
+    if not isinstance(search, Tunable):
+        return ""
+    return search.describe() + ("; 9-D only" if getattr(search, "magnetometer", False) else "")
+
+
+def former_spellings(params_cls: type) -> list[tuple[tuple[str, ...], str, str]]:
+    """The former standard-deviation spellings `params_cls` still takes, as (the former names,
+    the alias now, the field now), one entry per field, in `FORMERLY_STD`'s order."""
+    taken = getattr(params_cls, "former_std", ())
+    grouped: dict[str, list[str]] = {}
+    for old in (name for name in FORMERLY_STD if name in taken):
+        grouped.setdefault(FORMERLY_STD[old][0], []).append(old)
+    alias = {new: a for new, a in FORMERLY_STD.values()}
+    return [(tuple(sorted(olds, key=len)), alias[new], new) for new, olds in grouped.items()]
+
+
+def format_parameters(params_cls: type, name: str) -> str:
+    """The table `fusion list NAME` prints for the estimator `name` with parameters `params_cls`."""
+    rows = parameter_table(params_cls)
+    if not rows:
+        return f"{name}: no parameters"
+    head = Row("alias", "field", "default", "unit", "meaning", "search range" if any(r.search for r in rows) else "")
+    table = [head, *rows]
+    widths = [max(len(getattr(r, col)) for r in table) for col in ("alias", "name", "default", "unit", "meaning")]
+    lines = [f"{name}: {len(rows)} parameters, set as {name}:ALIAS=VALUE,ALIAS=VALUE (the unit is the field "
+             "name's suffix)"]
+    for r in table:
+        cells = (r.alias, r.name, r.default, r.unit, r.meaning)
+        lines.append(("  ".join(f"{c:<{w}}" for c, w in zip(cells, widths)) + "  " + r.search).rstrip())
+    former = former_spellings(params_cls)
+    if former:
+        lines += ["", f"{FORMER_TITLE}: standard deviations, squared into the variance that replaced them"]
+        width = max(len(", ".join(olds)) for olds, _, _ in former)
+        lines += [f"  {', '.join(olds):<{width}}  ->  {alias} ({new})" for olds, alias, new in former]
+    return "\n".join(lines)
+
+
+def estimator_class(name: str) -> type:
+    """The `Estimator` class a name refers to, as `fusion.estimators.resolve` finds it: a registry
+    name (even a peer whose library is not installed), an installed package's entry point, or a
+    user's `FILE.py:NAME` / `module:NAME`. ValueError for an unknown name or a spec with parameters."""
+    from . import ESTIMATORS, resolve
+
+    specs = parse_specs(name)
+    if len(specs) != 1 or specs[0].overrides:
+        raise ValueError(f"{name!r}: give one estimator's name, without parameters (e.g. ekf, ./my_ukf.py:MyUKF)")
+    if specs[0].name in ESTIMATORS:
+        return ESTIMATORS[specs[0].name]
+    return resolve(specs[0]).cls
+
+
+def describe(name: str) -> str:
+    """`format_parameters` of the estimator `name` (`estimator_class`)."""
+    cls = estimator_class(name)
+    return format_parameters(cls.Params, parse_specs(name)[0].name)
