@@ -295,17 +295,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--panorama", action="store_true",
                    help="also stitch a panorama per estimate (camera frames, or frames rendered from a scene with the "
                         "ground truth) and score it against the ground truth's panorama (PSNR, SSIM)")
-    p.set_defaults(func=cmd_compare)
-
-    p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",
-                       epilog="examples:\n"
-                              "  fusion ablate --estimator ukf --param R=1e-4,1e-3,1e-2 --param sigma=kraft,julier\n"
-                              "  fusion ablate --estimator ./student.py:complementary --param gain=0.01,0.02,0.05\n"
     p.add_argument("--tuned", metavar="FILE", default=None,
                    help="run each estimator the file holds with its tuned setting (the tuned.json of "
                         "`fusion tune --out DIR`); parameters given in a spec win")
-                              "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
-                              "  fusion ablate --resume runs/sweep",
+    p.set_defaults(func=cmd_compare)
+
     p = sub.add_parser("tune", help="tune estimators by one protocol and score them out of sample",
                        epilog="examples:\n"
                               "  fusion tune --estimators madgwick,mahony,vqf --dataset 'broad/*' --out runs/tune\n"
@@ -342,6 +336,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes; 0 = all cores (default); results do not depend on it")
     p.set_defaults(func=cmd_tune)
 
+    p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",
+                       epilog="examples:\n"
+                              "  fusion ablate --estimator ukf --param R=1e-4,1e-3,1e-2 --param sigma=kraft,julier\n"
+                              "  fusion ablate --estimator ./student.py:complementary --param gain=0.01,0.02,0.05\n"
+                              "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
+                              "  fusion ablate --resume runs/sweep",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--estimator", "--estimators", dest="estimator",
                    help="the estimator to sweep (ours or your own FILE.py:NAME), optionally with fixed parameters: "
