@@ -188,6 +188,8 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     results = [Result.from_json(r) for r in doc["results"]]
     table = format_table(results, align=bool(doc["settings"].get("align", False)))
     sweep = _sweep_text(doc)
+    tuning = (doc.get("tune") or {}).get("table") if isinstance(doc.get("tune"), dict) else None  # `fusion tune`
+    sweep = "\n\n".join(str(text) for text in (tuning, sweep) if text)
     (dest / "table.txt").write_text(table + (f"\n\n{sweep}" if sweep else "") + "\n")
     fig_dir = dest / "figures"
     fig_dir.mkdir(exist_ok=True)
@@ -211,8 +213,6 @@ def _sweep_text(doc: dict[str, Any]) -> str:
     from .ablate import format_sweep, sweep_summary
 
     summary = sweep_summary(doc["results"], groups=(doc.get("sweep") or {}).get("trial_groups"))
-    tuning = (doc.get("tune") or {}).get("table") if isinstance(doc.get("tune"), dict) else None  # `fusion tune`
-    sweep = "\n\n".join(str(text) for text in (tuning, sweep) if text)
     return format_sweep(summary) if summary else ""
 
 
