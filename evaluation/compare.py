@@ -26,6 +26,7 @@ from .job import (  # noqa: F401  (the job layer, re-exported: `from fusion.eval
 )
 from .metrics import KINDS, MIN_COVERAGE
 from .runner import run
+from .stats import run_statistics, table_column
 
 
 def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Recording], init: str | None = None,
@@ -74,9 +75,11 @@ def recording_alignments(results: list[Result]) -> list[dict[str, Any]]:
 
 def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, Any]:
     """The document `--json` writes: `results`, `alignments` (one per recording, empty without
-    `--align`), `settings`, `versions`."""
+    `--align`), `statistics` (every metric's, `fusion.evaluation.stats.run_statistics`), `settings`,
+    `versions`."""
     return {"results": [r.to_json() for r in results], "alignments": recording_alignments(results),
-            "settings": settings, "versions": versions()}
+            "statistics": run_statistics(summary_groups(results)).to_json(), "settings": settings,
+            "versions": versions()}
 
 
 ALIGN_NOTE = ("after --align: truth mapped into our frames as A R_truth B, A = R_ourworld_truthworld and "
@@ -103,13 +106,19 @@ def summary_groups(results: list[Result]) -> list[tuple[str | None, list[Result]
     return [(g, [r for r in results if dataset_group(r.dataset) == g]) for g in groups]
 
 
-def format_table(results: list[Result], align: bool | None = None) -> str:
+def format_table(results: list[Result], align: bool | None = None, primary: str = "total") -> str:
     """A readable table: first a mean row per estimator over the recordings that have ground
     truth (per folder when they come from several, see `summary_groups`), then one row per recording x estimator (RMSE in degrees), recordings without ground
     truth last; with alignment, the fitted rotations after it.
 
     align: whether the run used `--align` (None: whether any result carries an alignment).
+    primary: the metric whose statistics the table shows (`fusion.evaluation.stats`): with five
+        recordings or more that every row scored, a column of 95 % intervals of the mean on the mean
+        rows, marked for the rows not significantly worse than the best, and a note saying so; with
+        fewer, a note saying why there are none (the columns as they are).
     """
+    if primary not in KINDS:
+        raise ValueError(f"unknown metric {primary!r}; use one of {', '.join(KINDS)}")
     if align is None:
         align = any(r.alignment for r in results)
     header = ["dataset", "estimator", "total", "inclination", "heading", "coverage", "us/sample"]
@@ -118,7 +127,7 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
         rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["failed" if r.error else "-"] * 3
         rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), "-" if r.error else f"{r.us_per_sample:.1f}"])
     labels = list(dict.fromkeys(r.estimator for r in results))
-    means = []
+    means, keys = [], []  # keys: (group, estimator) of each mean row
     if len({r.dataset for r in results}) >= 2:
         for group, members in summary_groups(results):
             for label in labels:
@@ -130,6 +139,7 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
                 us = np.mean([r.us_per_sample for r in mine if r.error is None] or [np.nan])
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
                 means.append([name, label, *mean, "", f"{us:.1f}", _sensors(scored or mine)])
+                keys.append((group, label))
     for row, r in zip(rows, results):
         row.append(_sensors([r]))
     if any(r.magnetometer for r in results):  # 9-D rows: a column says which rows used the magnetometer
@@ -142,6 +152,12 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
             p = r.panorama or {}
             row += [f"{p.get('psnr_db', float('nan')):.2f}", f"{p.get('ssim', float('nan')):.3f}"]
         means = [row + ["", ""] for row in means]
+    interval, cells, notes = table_column(run_statistics(summary_groups(results), [primary]), primary) if means else (
+        "", {}, [])
+    if cells:  # the interval column after heading, filled on the mean rows
+        header.insert(5, interval)
+        rows = [row[:5] + [""] + row[5:] for row in rows]
+        means = [row[:5] + [cells.get(key, "")] + row[5:] for row, key in zip(means, keys)]
     widths = [max(len(str(row[i])) for row in [header, *rows, *means]) for i in range(len(header))]
 
     def line(row: list[str]) -> str:
@@ -167,6 +183,7 @@ def format_table(results: list[Result], align: bool | None = None) -> str:
         out += [LOW_COVERAGE_NOTE]
     if any(r.magnetometer for r in results):
         out += [NINE_D_NOTE]
+    out += notes
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
     return "\n".join(out)
