@@ -37,6 +37,7 @@ from . import series as series_io
 from .output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
 from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table, summary_groups
 from .metrics import KINDS
+from .stats import Comparison, RunStatistics, dropped_text, run_statistics
 
 # What `render` (`fusion report DIR`) writes afresh; everything else in the folder (results.json,
 # series/, trajectories/, journal.jsonl, command.txt, the user's own files) it leaves as it is.
@@ -168,6 +169,28 @@ def _render_summary(doc: dict[str, Any], fig_dir: str) -> list[tuple[str, str]]:
     return out
 
 
+def _render_statistics(statistics: dict[str, Any], doc: dict[str, Any], fig_dir: str) -> dict[tuple, tuple[str, str]]:
+    """The critical-difference diagram of every comparison with three rows or more
+    (`fusion.evaluation.stats_plots.cd_figure`): (metric, group, imu) -> (caption, file name),
+    `summary-cd-<metric>.png` (`summary-cd-<metric>-<group and imu>.png` when a metric has several)."""
+    from . import plots
+    from .stats_plots import cd_figure
+
+    run = RunStatistics.from_json(statistics)
+    order = list(dict.fromkeys(r["estimator"] for r in doc["results"]))
+    colors = {label: plots.color(i) for i, label in enumerate(order)}
+    out = {}
+    for c in run.comparisons:
+        fig = None if c.statistics is None else cd_figure(c.statistics, f"{c.metric} RMSE", colors)
+        if fig is None:
+            continue
+        name = f"summary-cd-{c.metric}" + (f"-{plots.slug(c.name)}" if len(run.of(c.metric)) > 1 else "") + ".png"
+        _save(fig, Path(fig_dir) / name)
+        out[(c.metric, c.group, c.imu)] = (f"critical-difference diagram, {c.metric} RMSE"
+                                           + (f" ({c.name})" if c.name else ""), name)
+    return out
+
+
 def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) -> Path:
     """(Re)build table.txt, figures/, report.html and report.md from results.json and series/
     (in a staging folder, moved in at the end: see `OutputFolder`)."""
@@ -196,13 +219,15 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     series_paths = series_files(source)
     for path in series_paths:
         check_series(path)
-    tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir)))]
+    statistics = run_statistics(summary_groups(results))  # from the rows: seeded, the same as results.json's
+    tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir))),
+                                           (_render_statistics, (statistics.to_json(), doc, str(fig_dir)))]
     tasks += [(_render_recording, (str(p), str(fig_dir))) for p in series_paths]
     outputs = _run_tasks(tasks, jobs, progress)
-    summary, per_recording = outputs[0], [fig for figs, _ in outputs[1:] for fig in figs]
-    beliefs = [entry for _, entries in outputs[1:] for entry in entries]
-    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs))
-    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs))
+    summary, cd_figures, per_recording = outputs[0], outputs[1], [fig for figs, _ in outputs[2:] for fig in figs]
+    beliefs = [entry for _, entries in outputs[2:] for entry in entries]
+    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs, statistics, cd_figures))
+    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs, statistics, cd_figures))
 
 
 def _sweep_text(doc: dict[str, Any]) -> str:
@@ -501,6 +526,53 @@ def _by_recording(entries: list[dict[str, Any]]) -> list[tuple[str, list[dict[st
     return list(groups.items())
 
 
+STATISTICS_TEXT = (
+    "How sure the differences are, over the recordings every row scored (complete cases; a recording where a row "
+    "failed or was scored on too little is dropped): each row's mean with its 95 % bootstrap confidence interval "
+    "(BCa, the recordings resampled 9999 times with a fixed seed; Efron & Tibshirani 1993, An Introduction to the "
+    "Bootstrap, ch. 14.3); against the best row (the lowest mean) its wins, ties and losses per recording and the "
+    "two-sided Wilcoxon signed-rank p-value, Holm-corrected over the rows compared (Holm 1979, Scand. J. Statist. "
+    "6:65-70); a row whose corrected p is at least 0.05 is not significantly worse than the best. With three rows "
+    "or more, the Friedman test over all rows and Nemenyi's post-hoc test on the average ranks (Demsar 2006, JMLR "
+    "7:1-30, sec. 3.2.2), drawn as a critical-difference diagram: each row at its average rank (1 = lowest error), "
+    "a bar joining the rows Nemenyi's test does not tell apart (p >= 0.05), CD the critical difference of ranks. "
+    "The total and heading errors of 6-D and 9-D rows are compared separately (a 6-D row is scored with its "
+    "heading offset removed). Fewer than 5 complete recordings give no statistics.")
+STATISTICS_HEADER = ["estimator", "mean", "95% CI", "mean rank", "W/T/L vs best", "Wilcoxon p", "Holm p",
+                     "not worse than best"]
+
+
+def _statistics_title(c: Comparison) -> str:
+    return f"{c.metric} RMSE" + (f" ({c.name})" if c.name else "")
+
+
+def _statistics_parts(statistics: RunStatistics, cd_figures: dict[tuple, tuple[str, str]]) -> list[tuple]:
+    """Per comparison (`fusion.evaluation.stats.Comparison`): it, a line saying over what (or why there
+    are no statistics), the table rows and its diagram ((caption, file) or None)."""
+    out = []
+    for c in statistics.comparisons:
+        s = c.statistics
+        if s is None:
+            out.append((c, f"No statistics: {c.reason}.", [], None))
+            continue
+        text = f"{len(s.recordings)} recordings every row scored"
+        text += f" ({dropped_text(s.dropped)})" if s.dropped else ""
+        text += f"; rows without any score, left out: {', '.join(s.left_out)}" if s.left_out else ""
+        text += f"; best (lowest mean): {s.best}"
+        if s.friedman_p is not None:
+            text += f"; Friedman chi-square {s.friedman_statistic:.2f}, p = {s.friedman_p:.2g}"
+        if s.critical_difference is not None:
+            text += f"; Nemenyi critical difference {s.critical_difference:.2f} ranks"
+        rows = []
+        for r in s.rows:
+            best = r.label == s.best
+            rows.append([r.label, f"{r.mean:.2f}", "-" if r.ci_low is None else f"[{r.ci_low:.2f}, {r.ci_high:.2f}]",
+                         f"{r.rank:.2f}", f"{r.wins}/{r.ties}/{r.losses}", "best" if best else f"{r.p_value:.2g}",
+                         "best" if best else f"{r.p_holm:.2g}", "best" if best else "yes" if r.not_worse else "no"])
+        out.append((c, text + ".", rows, cd_figures.get((c.metric, c.group, c.imu))))
+    return out
+
+
 def _title(doc: dict[str, Any]) -> str:
     settings = doc.get("settings", {})
     if settings.get("kind") == "ablate":
@@ -510,7 +582,8 @@ def _title(doc: dict[str, Any]) -> str:
 
 
 def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: list,
-              beliefs: list[dict[str, Any]] = ()) -> str:
+              beliefs: list[dict[str, Any]] = (), statistics: RunStatistics | None = None,
+              cd_figures: dict[tuple, tuple[str, str]] | None = None) -> str:
     header, body, mean_header, means = _tables(doc)
 
     def md_table(head: list[str], rows: list[list[str]]) -> list[str]:
@@ -530,6 +603,12 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
     if _sweep_text(doc):
         lines += ["## Sweep: best common and per-recording best settings", ""] + [
             "    " + line for line in _sweep_text(doc).splitlines()] + [""]
+    if statistics is not None and statistics.comparisons:
+        lines += ["## Statistics", "", STATISTICS_TEXT, ""]
+        for c, text, rows, figure in _statistics_parts(statistics, cd_figures or {}):
+            lines += [f"### {_statistics_title(c)}", "", text, ""]
+            lines += (md_table(STATISTICS_HEADER, rows) + [""]) if rows else []
+            lines += [f"![{figure[0]}](figures/{figure[1]})", ""] if figure else []
     lines += ["## Figures", ""] + [f"![{c}](figures/{n})" for c, n in summary] + [""]
     if per_recording:
         lines += ["## Per recording", ""] + [f"![{c}](figures/{n})" for c, n in per_recording] + [""]
@@ -580,7 +659,8 @@ def _img(fig_dir: Path, caption: str, name: str, embed: bool = True) -> str:
 
 
 def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path,
-          beliefs: list[dict[str, Any]] = ()) -> str:
+          beliefs: list[dict[str, Any]] = (), statistics: RunStatistics | None = None,
+          cd_figures: dict[tuple, tuple[str, str]] | None = None) -> str:
     header, body, mean_header, means = _tables(doc)
     settings = doc.get("settings", {})
     parts = [
@@ -600,8 +680,14 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
           if _alignment_rows(doc) else []),
         *(["<h2>Sweep: best common and per-recording best settings</h2>", f"<pre>{html.escape(_sweep_text(doc))}</pre>"]
           if _sweep_text(doc) else []),
-        "<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary),
     ]
+    if statistics is not None and statistics.comparisons:
+        parts += ['<h2 id="statistics">Statistics</h2>', f"<p>{html.escape(STATISTICS_TEXT)}</p>"]
+        for n, (c, text, rows, figure) in enumerate(_statistics_parts(statistics, cd_figures or {})):
+            parts += [f"<h3>{html.escape(_statistics_title(c))}</h3>", f"<p>{html.escape(text)}</p>"]
+            parts += [_html_table(STATISTICS_HEADER, rows, f"statistics-{n:02d}", 1)] if rows else []
+            parts += [_img(fig_dir, *figure)] if figure else []
+    parts += ["<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary)]
     if per_recording:
         parts += ["<h2>Per recording</h2><p>Grey: no VICON (gaps, outside its span); red: gyro marked invalid. The "
                   "figures are the files in <code>figures/</code> beside this page.</p>",
