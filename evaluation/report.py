@@ -209,7 +209,9 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     """Table, figures and both reports of the run in `source`, written into `dest`."""
     doc = read_results(source / RESULTS)
     results = [Result.from_json(r) for r in doc["results"]]
-    table = format_table(results, align=bool(doc["settings"].get("align", False)))
+    primary = doc["settings"].get("primary")  # the table's statistics metric, when the run chose one
+    table = format_table(results, align=bool(doc["settings"].get("align", False)),
+                         primary=primary if primary in KINDS else "total")
     sweep = _sweep_text(doc)
     tuning = (doc.get("tune") or {}).get("table") if isinstance(doc.get("tune"), dict) else None  # `fusion tune`
     sweep = "\n\n".join(str(text) for text in (tuning, sweep) if text)

@@ -371,3 +371,14 @@ def test_cd_figure_draws_every_row_and_needs_three():
         assert any(t.startswith(f"{r.label} (") or t.endswith(f") {r.label}") for t in texts), r.label
     assert any(t.startswith("CD = ") for t in texts)
     assert cd_figure(paired_statistics(_scores(rows=2, recordings=8))) is None
+
+
+def test_report_table_uses_the_runs_primary_metric(tmp_path):
+    from fusion.evaluation.report import write_run
+
+    results = _results(recordings=6)
+    write_run(tmp_path / "a", results_json(results, {"primary": "inclination"}))
+    write_run(tmp_path / "b", results_json(results, {"primary": "no such metric"}))  # an older or edited file
+    assert (tmp_path / "a" / "table.txt").read_text() == format_table(results, primary="inclination") + "\n"
+    assert (tmp_path / "b" / "table.txt").read_text() == format_table(results) + "\n"
+    assert "inclination 95% CI" in (tmp_path / "a" / "table.txt").read_text()
