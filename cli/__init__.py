@@ -64,12 +64,23 @@ def _command(args: argparse.Namespace) -> str:
     return shlex.join(["fusion", *args.argv])
 
 
+# `RunSettings` fields whose option is spelt or typed otherwise on the command line
+_OPTION_VALUES = {
+    "dropouts": lambda a: a.dropouts == "on", "mag": lambda a: a.mag == "on", "progress": lambda a: not a.no_progress,
+    "tum": lambda a: not a.no_tum, "scatter": lambda a: True if a.scatter else None, "json_path": lambda a: a.json,
+    "timeout_s": lambda a: a.timeout, "command": _command,
+}
+
+
 def _run_options(args: argparse.Namespace) -> dict:
-    """The options of `compare` and `ablate`."""
-    return dict(init=args.init, protocol=args.protocol, align=args.align, jobs=args.jobs, json_path=args.json,
-                out=args.out, command=_command(args), scheduler=args.scheduler,
-                scatter=True if args.scatter else None, timeout_s=args.timeout, tum=not args.no_tum,
-                overwrite=args.overwrite, **_data(args))
+    """The options of `compare` and `ablate`: every field of `fusion.evaluation.settings.RunSettings`
+    but the selection (given by position) and `resume` (`_resume`), from the argument of the same
+    name (`_OPTION_VALUES` for the others); a field the command has no option for keeps its default."""
+    from fusion.evaluation.settings import RunSettings
+
+    fields = [f for f in RunSettings.__dataclass_fields__.values() if f.name not in ("dataset", "resume")]
+    return {f.name: _OPTION_VALUES[f.name](args) if f.name in _OPTION_VALUES else getattr(args, f.name, f.default)
+            for f in fields}
 
 
 def _print_run(run) -> int:
@@ -103,8 +114,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     if args.resume:
         return _resume(args)
-    return _print_run(run_compare(args.estimators, args.dataset, panorama=args.panorama, trajectories=args.trajectory,
-                                  tuned=args.tuned, **_run_options(args)))
+    return _print_run(run_compare(args.estimators, args.dataset, trajectories=args.trajectory, tuned=args.tuned,
+                                  **_run_options(args)))
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -138,8 +149,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
     if args.resume:
         return _resume(args)
-    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset,
-                                 per_recording=args.per_recording, **_run_options(args)))
+    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset, **_run_options(args)))
 
 
 def cmd_report(args: argparse.Namespace) -> int:

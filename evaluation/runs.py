@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import os
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -39,6 +39,7 @@ from .journal import Journal, fingerprint, job_key
 from .output import OutputFolder
 from .report import git_commit, write_run
 from .runner import run, source_paths
+from .settings import COMPUTED, RunSettings
 
 PathLike = str | os.PathLike
 
@@ -65,80 +66,53 @@ class Run:
 
 
 def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] = "all", dataset: str = "all",
-                data_dir: PathLike | None = None, *, init: str | None = None, protocol: str | None = None,
-                align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
-                jobs: int | None = 1, progress: bool = False, panorama: bool = False,
-                json_path: PathLike | None = None, out: PathLike | None = None, command: str | None = None,
-                scheduler: str | None = None, scatter: bool | None = None, timeout_s: float | None = None,
-                resume: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
-                mag: bool = True, trajectories: Sequence[tuple[str, PathLike]] = (), tum: bool = True,
-                overwrite: bool = False, tuned: PathLike | None = None) -> Run:
+                data_dir: PathLike | None = None, *, trajectories: Sequence[tuple[str, PathLike]] = (),
+                tuned: PathLike | None = None, **options: Any) -> Run:
     """`fusion compare`: every estimator on every recording `dataset` names.
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
-    init, protocol, align: as `fusion.evaluation.job.run_one`.
-    jobs: worker processes (None or 0: all cores); results do not depend on it.
-    scheduler: run the jobs on the dask.distributed cluster at this address instead
-        (`tcp://10.0.0.5:8786`); scatter: how its workers get the recordings
-        (`fusion.evaluation.runner.run`: False ships paths, True loaded recordings, None decides).
-    panorama: also stitch and score a panorama per row (`fusion.evaluation.panorama.panorama_scores`).
-    json_path: write the results document there; out: write the report folder there (locked before
-        any computation, written through a staging folder: `fusion.evaluation.output.OutputFolder`),
-        journalling each job as it ends.
-    command: the command line recorded in the document's settings (default: this call).
-    timeout_s: stop a job that runs longer than this; its row says so.
-    resume: continue the unfinished run in `out` (`run_resume` repeats its call for you).
-    imu_topic, truth_topic: the topics a ROS bag is read from (`fusion.selection.load_options`).
-    mag: use the magnetometer where a recording has one (9-D estimation; False: 6-D).
     trajectories: (name, path) pairs: trajectories other programs wrote, in the table as rows
         named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
         folder with one file per recording).
-    tum: with `out`, write every estimate and the truth it was scored against as TUM files
-        (`DIR/trajectories/<recording>/<estimator>.tum`, for evo); False: not.
-    overwrite: with `out`, replace the run the folder holds (or discard its unfinished one); without
-        it such a folder is refused before any work. Files the toolkit did not write are kept.
     tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): each estimator it holds runs
         with its tuned setting (`fusion.evaluation.tune.apply_tuned`).
+    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (init, protocol,
+        align, dropouts, calibration, mag, panorama, timeout_s, imu_topic, truth_topic; out,
+        json_path, tum, command; jobs, progress, scheduler, scatter, overwrite, resume). With `out`
+        the report folder is locked before any computation and written through a staging folder
+        (`fusion.evaluation.output.OutputFolder`), each job journalled as it ends; a folder that
+        holds another run is refused unless `overwrite`; `resume` continues the unfinished run
+        there (`run_resume` repeats its call for you).
     """
+    settings = RunSettings(dataset=dataset, data_dir=data_dir, **{**options, "per_recording": True})
     if tuned:
         from .tune import apply_tuned
 
         specs = parse_specs(estimators) if isinstance(estimators, str) else list(estimators)
-        estimators = ",".join(s.label for s in apply_tuned(specs, tuned))
-    with _heartbeat(progress):
+        estimators = ",".join(s.label if isinstance(s, EstimatorSpec) else s for s in apply_tuned(specs, tuned))
+    with _heartbeat(settings.progress):
         entries = resolve_all(estimators) + [resolve_trajectory(name, path) for name, path in trajectories]
     text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries if not e.cls.partial)
-    call = {"kind": "compare", "estimators": text, "dataset": dataset, "init": init, "protocol": protocol,
-            "align": align, "dropouts": dropouts, "panorama": panorama, "timeout_s": timeout_s,
-            "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag,
-            "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories], **_tum(tum)}
-    command = command or f"run_compare({text!r}, {dataset!r})"
-    return _execute(entries, {"kind": "compare", "estimators": text}, call, dataset, data_dir, command,
-                    init=init, protocol=protocol, align=align, dropouts=dropouts, calibration=calibration, jobs=jobs,
-                    progress=progress, panorama=panorama, json_path=json_path, out=out, per_recording=True,
-                    scheduler=scheduler, scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic,
-                    truth_topic=truth_topic, mag=mag, tum=tum, overwrite=overwrite)
+    kind = {"kind": "compare", "estimators": text,
+            "trajectories": [[name, str(Path(path).resolve())] for name, path in trajectories]}
+    if settings.command is None:
+        settings = replace(settings, command=f"run_compare({text!r}, {dataset!r})")
+    return _execute(entries, kind, {"kind": "compare", "estimators": text}, settings)
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
-               preset: str | None = None, dataset: str = "all", data_dir: PathLike | None = None, *,
-               per_recording: bool = False, init: str | None = None, protocol: str | None = None,
-               align: bool = False, dropouts: bool = datasets.DROPOUTS_DEFAULT, calibration: PathLike | None = None,
-               jobs: int | None = 1, progress: bool = False, json_path: PathLike | None = None,
-               out: PathLike | None = None, command: str | None = None, scheduler: str | None = None,
-               scatter: bool | None = None, timeout_s: float | None = None, resume: bool = False,
-               imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True, tum: bool = True,
-               overwrite: bool = False) -> Run:
+               preset: str | None = None, dataset: str = "all", data_dir: PathLike | None = None,
+               **options: Any) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
     estimator: the estimator to sweep, possibly with fixed parameters (`"ukf:Q=1e-5"`).
     params: the grid, as `"R=1e-4,1e-3"` texts or `("R", ["1e-4", "1e-3"])` pairs.
     preset: a name in `fusion.evaluation.ablate.PRESETS` (instead of estimator and params).
-    per_recording: with `out`, also draw each recording's figures (and, with `tum`, write its TUM
-        files) for every setting.
-    Other arguments as `run_compare`.
+    options: as `run_compare` (`RunSettings`' fields); `per_recording`: with `out`, also draw each
+        recording's figures (and, with `tum`, write its TUM files) for every setting.
     """
+    settings = RunSettings(dataset=dataset, data_dir=data_dir, **options)
     if bool(preset) == bool(estimator):
         raise ValueError("ablate: give either --preset NAME or --estimator NAME with --param NAME=V1,V2,...")
     grid: list[tuple[str, list[str]]] = []
@@ -146,84 +120,88 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
         if params:
             raise ValueError("ablate: --param applies to --estimator, not to --preset")
         specs = ablate.preset_specs(preset)
-        settings = {"kind": "ablate", "preset": preset}
+        document = {"kind": "ablate", "preset": preset}
     else:
         if not params:
             raise ValueError("ablate: --estimator needs at least one --param NAME=V1,V2,...")
         grid = [ablate.parse_param(p) if isinstance(p, str) else (p[0], list(p[1])) for p in params]
         specs = ablate.grid_specs(estimator, grid)
-        settings = {"kind": "ablate", "estimator": estimator, "params": dict(grid)}
-    with _heartbeat(progress):
+        document = {"kind": "ablate", "estimator": estimator, "params": dict(grid)}
+    with _heartbeat(settings.progress):
         entries = resolve_all(specs)
-    settings["estimators"] = ",".join(e.label for e in entries)
-    call = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset, "dataset": dataset,
-            "per_recording": per_recording, "init": init, "protocol": protocol, "align": align, "dropouts": dropouts,
-            "timeout_s": timeout_s, "imu_topic": imu_topic, "truth_topic": truth_topic, "mag": mag, **_tum(tum)}
-    command = command or f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})"
-    return _execute(entries, settings, call, dataset, data_dir, command, init=init, protocol=protocol, align=align,
-                    dropouts=dropouts, calibration=calibration, jobs=jobs, progress=progress, panorama=False,
-                    json_path=json_path, out=out, per_recording=per_recording, scheduler=scheduler,
-                    scatter=scatter, timeout_s=timeout_s, resume=resume, imu_topic=imu_topic, truth_topic=truth_topic,
-                    mag=mag, tum=tum, overwrite=overwrite)
+    document["estimators"] = ",".join(e.label for e in entries)
+    kind = {"kind": "ablate", "estimator": estimator, "params": grid, "preset": preset}
+    if settings.command is None:
+        settings = replace(settings, command=f"run_ablate({estimator!r}, {list(params)!r}, {preset!r}, {dataset!r})")
+    return _execute(entries, kind, document, settings)
 
 
-def run_resume(out: PathLike, *, jobs: int | None = 1, progress: bool = False, scheduler: str | None = None,
-               scatter: bool | None = None, json_path: PathLike | None = None) -> Run:
+def run_resume(out: PathLike, **how: Any) -> Run:
     """`fusion compare --resume DIR` / `fusion ablate --resume DIR`: continue the unfinished run in
-    `out` with the call recorded in its journal (only how it runs may change: jobs, progress,
-    scheduler); the jobs already journalled are not computed again."""
+    `out` with the call recorded in its journal; `how` may change only how it runs (jobs, progress,
+    scheduler, scatter) and where the results document goes (json_path). The jobs already
+    journalled are not computed again."""
     header = Journal.read_header(Path(out))
     call = dict(header["call"])
-    kind = call.pop("kind")
-    common = dict(data_dir=header["data_dir"], calibration=header.get("calibration"), jobs=jobs, progress=progress,
-                  scheduler=scheduler, scatter=scatter, json_path=json_path, out=out, command=header["command"],
-                  resume=True)
-    if kind == "compare":
-        call["trajectories"] = [tuple(pair) for pair in call.get("trajectories", [])]
-        return run_compare(call.pop("estimators"), call.pop("dataset"), **call, **common)
-    grid = [(name, values) for name, values in call.pop("params")]
-    return run_ablate(call.pop("estimator"), grid, call.pop("preset"), call.pop("dataset"), **call, **common)
+    json_path = how.pop("json_path", None)
+    recorded = {**call, "data_dir": header["data_dir"], "calibration": header.get("calibration"),
+                "command": header["command"], "out": os.fspath(out), "json_path": json_path}
+    settings = RunSettings.from_json(recorded, resume=True, **how)
+    options = {f: getattr(settings, f) for f in RunSettings.__dataclass_fields__ if f not in ("dataset", "data_dir")}
+    if call.pop("kind") == "compare":
+        options.pop("per_recording")
+        trajectories = [tuple(pair) for pair in call.get("trajectories", [])]
+        return run_compare(call["estimators"], settings.dataset, settings.data_dir, trajectories=trajectories, **options)
+    grid = [(name, values) for name, values in call["params"]]
+    return run_ablate(call["estimator"], grid, call["preset"], settings.dataset, settings.data_dir, **options)
 
 
-def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[str, Any], dataset: str,
-             data_dir: PathLike | None, command: str, *, init: str | None, protocol: str | None, align: bool,
-             dropouts: bool, calibration: PathLike | None, jobs: int | None, progress: bool, panorama: bool,
-             json_path: PathLike | None, out: PathLike | None, per_recording: bool, scheduler: str | None,
-             scatter: bool | None, timeout_s: float | None, resume: bool, imu_topic: str | None,
-             truth_topic: str | None, mag: bool, tum: bool = True, overwrite: bool = False) -> Run:
-    """Select, run (journalled into `out`), score, and write; an `out` folder is taken (locked)
-    before computing."""
-    if resume and not out:
+# The fields of `RunSettings` that a run's journal records in its call: those the results depend
+# on (data_dir and calibration are recorded resolved, beside the call) and what the folder holds.
+JOURNALLED = tuple(f for f in RunSettings.part(COMPUTED) if f not in ("data_dir", "calibration")) + ("tum", "per_recording")
+
+
+def _journal_call(kind: dict[str, Any], settings: RunSettings) -> dict[str, Any]:
+    """The call a run's journal records: what kind of run (and its estimators or grid), and the
+    journalled settings."""
+    return {**kind, **{name: getattr(settings, name) for name in JOURNALLED}}
+
+
+def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[str, Any], s: RunSettings) -> Run:
+    """Select, run (journalled into `s.out`), score, and write; an `out` folder is taken (locked)
+    before computing. kind: what the journal records besides the settings; document: what the
+    results document's settings record besides them."""
+    if s.resume and not s.out:
         raise ValueError("--resume needs the output folder of the run to continue")
-    sources = select_sources(dataset, data_dir, calibration)
+    sources = select_sources(s.dataset, s.data_dir, s.calibration)
     files = [e for e in entries if e.cls.partial and not Path(e.params.path).is_dir()]
     if files and len(sources) != 1:
         raise ValueError(f"--trajectory {files[0].label}={files[0].params.path}: a file is one recording's "
-                         f"trajectory, and --dataset {dataset!r} selects {len(sources)}; select one, or give a "
+                         f"trajectory, and --dataset {s.dataset!r} selects {len(sources)}; select one, or give a "
                          "folder with one file per recording")
-    root = datasets.data_dir_from(data_dir)
-    load = load_options(calibration, dropouts, imu_topic, truth_topic, mag)
-    options = dict(init=init, protocol=protocol, jobs=jobs, progress=progress, load=load, align=align,
-                   panorama_data_dir=str(root) if panorama else None, scheduler=scheduler, scatter=scatter,
-                   timeout_s=timeout_s)
-    if not out:
+    root = s.resolved_data_dir()
+    load = load_options(s.calibration, s.dropouts, s.imu_topic, s.truth_topic, s.mag)
+    options = dict(init=s.init, protocol=s.protocol, jobs=s.jobs, progress=s.progress, load=load, align=s.align,
+                   panorama_data_dir=str(root) if s.panorama else None, scheduler=s.scheduler, scatter=s.scatter,
+                   timeout_s=s.timeout_s)
+    if not s.out:
         results = run(entries, sources, **options)
-        return _finish(None, None, entries, sources, results, settings, dataset, root, command, calibration,
-                       dropouts, init, align, protocol, json_path, jobs, progress, per_recording, tum=tum)
-    with OutputFolder(out) as folder:
-        header = {"call": call, "data_dir": str(root.resolve()),
-                  "calibration": str(Path(calibration).resolve()) if calibration else None, "command": command,
-                  "jobs_total": len(sources) * len(entries), "versions": versions(), "git_commit": git_commit()}
-        if not resume and not overwrite and folder.holds_run():
+        return _finish(None, None, entries, sources, results, document, s)
+    with OutputFolder(s.out) as folder:
+        if not s.resume and not s.overwrite and folder.holds_run():
             raise ValueError(f"{folder.path}: holds an earlier run (results.json); give --overwrite to replace it, "
                              "or choose another output folder (nothing was changed)")
-        journal = Journal.resume(folder.path) if resume else Journal.start(folder.path, header, replace=overwrite)
+        call = _journal_call(kind, s)
+        header = {"call": call, "data_dir": str(root.resolve()),
+                  "calibration": str(Path(s.calibration).resolve()) if s.calibration else None, "command": s.command,
+                  "jobs_total": len(sources) * len(entries), "versions": versions(), "git_commit": git_commit()}
+        journal = Journal.resume(folder.path) if s.resume else Journal.start(folder.path, header, replace=s.overwrite)
         try:
-            if resume:
+            if s.resume:
                 _check_resumable(journal, header)
-            keys = _job_keys(entries, sources, load, call)
+            keys = _job_keys(entries, sources, load, s)
             done = {n: Result.from_json(journal.done[key].row) for n, key in enumerate(keys) if key in journal.done}
-            if resume:
+            if s.resume:
                 note(f"resuming {folder.path}: {len(done)} of {len(keys)} jobs done, {len(keys) - len(done)} to run")
 
             def record(n: int, output: JobOutput) -> None:
@@ -231,17 +209,10 @@ def _execute(entries: list[ResolvedSpec], settings: dict[str, Any], call: dict[s
                 part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
                 journal.record(keys[n], output.result.to_json(), output.result.error, part or None)
 
-            results = run(entries, sources, **options, series=per_recording, done=done, on_done=record)
-            return _finish(folder, journal, entries, sources, results, settings, dataset, root, command, calibration,
-                           dropouts, init, align, protocol, json_path, jobs, progress, per_recording, keys, tum)
+            results = run(entries, sources, **options, series=s.per_recording, done=done, on_done=record)
+            return _finish(folder, journal, entries, sources, results, document, s, keys)
         finally:
             journal.close()
-
-
-def _tum(tum: bool) -> dict[str, bool]:
-    """The TUM switch as the journal's call records it: only when off, so that a run journalled
-    before the switch existed resumes as the same call."""
-    return {} if tum else {"tum": False}
 
 
 @contextmanager
@@ -275,12 +246,19 @@ def _heartbeat(enabled: bool, first_s: float = 2.0, every_s: float = 4.0) -> Ite
         thread.join()
 
 
-def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, call: dict[str, Any]) -> list[str]:
+def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, s: RunSettings) -> list[str]:
     """Each job's journal key (recording-major, as `fusion.evaluation.runner.run` numbers them)."""
-    options = {k: call.get(k) for k in ("init", "protocol", "align", "panorama")}
-    prints = [fingerprint(source_paths(s), what=s.id) for s in sources]
-    return [job_key(dataset=s.id, files=fp, estimator=e.label, origin=e.describe(), load=repr(load), **options)
-            for s, fp in zip(sources, prints) for e in entries]
+    options = {"init": s.init, "protocol": s.protocol, "align": s.align, "panorama": s.panorama}
+    prints = [fingerprint(source_paths(src), what=src.id) for src in sources]
+    return [job_key(dataset=src.id, files=fp, estimator=e.label, origin=e.describe(), load=repr(load), **options)
+            for src, fp in zip(sources, prints) for e in entries]
+
+
+def _same_call(call: dict[str, Any]) -> dict[str, Any]:
+    """A journalled call as compared on resume: its own keys, and the settings with the defaults of
+    those an older journal lacks."""
+    settings = RunSettings.from_json(call)
+    return {**json.loads(json.dumps(call)), **{name: getattr(settings, name) for name in JOURNALLED}}
 
 
 def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
@@ -289,7 +267,10 @@ def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
 
     before = journal.header
     for key in ("call", "data_dir", "calibration"):
-        if json.loads(json.dumps(header[key])) != before.get(key):
+        now, then = header[key], before.get(key)
+        if key == "call":
+            now, then = _same_call(now), _same_call(then or {})
+        if json.loads(json.dumps(now)) != then:
             raise ValueError(f"{journal.path}: was started with another {key} ({before.get(key)!r}); resume it with "
                              "--resume DIR alone, or write this run to another folder")
     if (before.get("git_commit"), before.get("versions")) != (header["git_commit"], header["versions"]):
@@ -299,38 +280,37 @@ def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
 
 
 def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
-            results: list[Result], settings: dict[str, Any], dataset: str, root: Path, command: str,
-            calibration: PathLike | None, dropouts: bool, init: str | None, align: bool, protocol: str | None,
-            json_path: PathLike | None, jobs: int | None, progress: bool, per_recording: bool,
-            keys: list[str] = (), tum: bool = True) -> Run:
+            results: list[Result], document: dict[str, Any], s: RunSettings, keys: Sequence[str] = ()) -> Run:
     """The table, the results document and the report folder of a finished run."""
-    table = format_table(results, align=align)
+    table = format_table(results, align=s.align)
     sweep = (ablate.sweep_summary([r.to_json() for r in results], groups=_trial_groups(sources))
-             if settings.get("kind") == "ablate" else None)
+             if document.get("kind") == "ablate" else None)
     if sweep:
         table += "\n\n" + ablate.format_sweep(sweep)
-    if not (json_path or folder):
+    if not (s.json_path or folder):
         return Run(results, table)
-    settings = {"command": command, **settings, "dataset": dataset,
+    root = s.resolved_data_dir()
+    settings = {"command": s.command, **document, "dataset": s.dataset,
                 "data_dir": str(root.resolve()),
                 "merged": datasets.merged_ids(sources),
-                "dropouts": "on" if dropouts else "off",
-                "calibration": calibration_settings(calibration),
-                "init": init or ("default (the aligned truth where available, else accel)" if align
-                                 else "default (truth where available, else accel)"),
-                "align": bool(align),
-                "protocol": protocol or "default (broad for recordings with a movement mask, else full)",
+                "dropouts": "on" if s.dropouts else "off",
+                "calibration": calibration_settings(s.calibration),
+                "init": s.init or ("default (the aligned truth where available, else accel)" if s.align
+                                   else "default (truth where available, else accel)"),
+                "align": bool(s.align),
+                "protocol": s.protocol or "default (broad for recordings with a movement mask, else full)",
                 "estimator_details": {e.label: e.describe() for e in entries},
                 "git_commit": git_commit()}
     doc = results_json(results, settings)
     if sweep:
         doc["sweep"] = sweep  # docs/json-format.md
-    if json_path:
-        Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
+    if s.json_path:
+        Path(s.json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
     if folder is not None:
-        series = _series(journal, entries, len(sources), results, keys, folder.staging, tum) if per_recording else None
-        report = write_run(folder, doc, series, journal, jobs=jobs, progress=progress)
+        series = (_series(journal, entries, len(sources), results, list(keys), folder.staging, s.tum)
+                  if s.per_recording else None)
+        report = write_run(folder, doc, series, journal, jobs=s.jobs, progress=s.progress)
         journal.remove()
     return Run(results, table, doc, report)
 

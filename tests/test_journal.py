@@ -100,3 +100,51 @@ def test_resume_with_another_call_is_refused(toy, data, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="was started with another call"):
         runs.run_compare("toy", "all", data, out=out, resume=True)
     assert len(journal.read(out / journal.RUN_DIR / journal.JOURNAL)[1]) == 2  # untouched
+
+
+# A value for every RunSettings field other than its default (the `how` part is not journalled).
+_NOT_DEFAULT = {"init": "accel", "protocol": "full", "align": True, "dropouts": False, "mag": False,
+                "imu_topic": "/imu", "truth_topic": "/pose", "panorama": True, "timeout_s": 600.0,
+                "tum": False, "per_recording": True}
+
+
+def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp_path, monkeypatch):
+    """Each field of `RunSettings` that decides the results is recorded in the journal's call and
+    comes back on `--resume` (an option added to the settings is covered here by construction)."""
+    from fusion.evaluation.settings import COMPUTED, RunSettings
+
+    assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) - {"data_dir", "calibration"}) | {"tum", "per_recording"}
+    assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT), "give the new field a non-default value here"
+    settings = RunSettings(dataset="all", data_dir=str(data), **_NOT_DEFAULT)
+    call = runs._journal_call({"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}, settings)
+    back = RunSettings.from_json(json.loads(json.dumps(call)))
+    assert all(getattr(back, name) == getattr(settings, name) for name in runs.JOURNALLED)
+
+    seen = []
+    monkeypatch.setattr(runs, "_execute", lambda entries, kind, document, s: seen.append(s))
+    out = tmp_path / "run"
+    header = {"call": call, "data_dir": str(data), "calibration": None, "command": "fusion ablate ...",
+              "jobs_total": 3}
+    Journal.start(out, header).close()
+    runs.run_resume(out, jobs=2)
+    (resumed,) = seen
+    assert all(getattr(resumed, name) == getattr(settings, name) for name in runs.JOURNALLED)
+    assert (resumed.jobs, resumed.resume, resumed.out, resumed.command) == (2, True, str(out), "fusion ablate ...")
+
+
+def test_an_older_journal_without_the_newer_settings_resumes_with_their_defaults(toy, data, tmp_path, monkeypatch):
+    from fusion.evaluation.settings import RunSettings
+
+    seen = []
+    monkeypatch.setattr(runs, "_execute", lambda entries, kind, document, s: seen.append(s))
+    out = tmp_path / "run"
+    old_call = {"kind": "compare", "estimators": "toy", "dataset": "all", "init": None, "protocol": None,
+                "align": False, "dropouts": True, "panorama": False, "timeout_s": None}  # before tum, mag, topics
+    Journal.start(out, {"call": old_call, "data_dir": str(data), "calibration": None, "command": "c",
+                        "jobs_total": 3}).close()
+    runs.run_resume(out)
+    (resumed,) = seen
+    defaults = RunSettings()
+    assert (resumed.tum, resumed.mag, resumed.imu_topic) == (defaults.tum, defaults.mag, defaults.imu_topic)
+    with pytest.raises(ValueError, match="--resume changes only how a run runs, not 'mag'"):
+        RunSettings.from_json(old_call, mag=False)
