@@ -235,6 +235,9 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
                         help="scoring: full (every sample with truth) or broad (movement phases only, mean heading "
                              "offset removed); default: broad for recordings with a movement mask (BROAD trials), else full")
     parser.add_argument("--json", metavar="PATH", help="write the results as JSON (format: docs/json-format.md)")
+    parser.add_argument("--primary", choices=("total", "inclination", "heading"), default="total",
+                        help="the metric whose 95 %% interval and significance mark the table shows (default: total; "
+                             "inclination for 6-D comparisons)")
     parser.add_argument("--out", metavar="DIR", help="write results.json, table, figures, report.html and "
                         "report.md to DIR (re-render later with `fusion report DIR`)")
     parser.add_argument("--overwrite", action="store_true",

@@ -39,7 +39,7 @@ from .journal import Journal, fingerprint, job_key
 from .output import OutputFolder
 from .report import git_commit, write_run
 from .runner import run, source_paths
-from .settings import COMPUTED, RunSettings
+from .settings import COMPUTED, WRITTEN, RunSettings
 
 PathLike = str | os.PathLike
 
@@ -156,9 +156,11 @@ def run_resume(out: PathLike, **how: Any) -> Run:
     return run_ablate(call["estimator"], grid, call["preset"], settings.dataset, settings.data_dir, **options)
 
 
-# The fields of `RunSettings` that a run's journal records in its call: those the results depend
-# on (data_dir and calibration are recorded resolved, beside the call) and what the folder holds.
-JOURNALLED = tuple(f for f in RunSettings.part(COMPUTED) if f not in ("data_dir", "calibration")) + ("tum", "per_recording")
+# The fields of `RunSettings` that a run's journal records in its call: what is computed and what is
+# written, but the paths (data_dir and calibration are recorded resolved beside the call; the
+# folder is where the journal is; json_path and command are given again on resume or kept apart).
+JOURNALLED = tuple(f for f in RunSettings.part(COMPUTED) + RunSettings.part(WRITTEN)
+                   if f not in ("data_dir", "calibration", "out", "json_path", "command"))
 
 
 def _journal_call(kind: dict[str, Any], settings: RunSettings) -> dict[str, Any]:
@@ -282,7 +284,7 @@ def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
 def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
             results: list[Result], document: dict[str, Any], s: RunSettings, keys: Sequence[str] = ()) -> Run:
     """The table, the results document and the report folder of a finished run."""
-    table = format_table(results, align=s.align)
+    table = format_table(results, align=s.align, primary=s.primary)
     sweep = (ablate.sweep_summary([r.to_json() for r in results], groups=_trial_groups(sources))
              if document.get("kind") == "ablate" else None)
     if sweep:
@@ -297,7 +299,7 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
                 "calibration": calibration_settings(s.calibration),
                 "init": s.init or ("default (the aligned truth where available, else accel)" if s.align
                                    else "default (truth where available, else accel)"),
-                "align": bool(s.align),
+                "align": bool(s.align), "primary": s.primary,
                 "protocol": s.protocol or "default (broad for recordings with a movement mask, else full)",
                 "estimator_details": {e.label: e.describe() for e in entries},
                 "git_commit": git_commit()}

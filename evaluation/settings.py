@@ -41,7 +41,8 @@ class RunSettings:
     timeout_s (stop a job that runs longer; its row says so).
     Written: out (the report folder), json_path (the results document), tum (TUM files of every
     estimate under out/trajectories), per_recording (per-recording figures; always for compare),
-    command (the command line recorded in the document).
+    primary (the metric whose interval and significance mark the table shows: `total`,
+    `inclination`, `heading`), command (the command line recorded in the document).
     How: jobs (worker processes; None or 0: all cores), progress, scheduler / scatter (a Dask
     cluster: `fusion.evaluation.runner.run`), overwrite (replace the run `out` holds), resume
     (continue the unfinished run in `out`).
@@ -63,6 +64,7 @@ class RunSettings:
     json_path: str | None = _part(WRITTEN, None)
     tum: bool = _part(WRITTEN, True)
     per_recording: bool = _part(WRITTEN, False)
+    primary: str = _part(WRITTEN, "total")
     command: str | None = _part(WRITTEN, None)
     jobs: int | None = _part(HOW, 1)
     progress: bool = _part(HOW, False)
@@ -72,6 +74,10 @@ class RunSettings:
     resume: bool = _part(HOW, False)
 
     def __post_init__(self) -> None:
+        from .metrics import KINDS
+
+        if self.primary not in KINDS:
+            raise ValueError(f"--primary must be one of {', '.join(KINDS)}, got {self.primary!r}")
         for name in ("data_dir", "calibration", "out", "json_path"):  # paths are kept as text (journalled)
             value = getattr(self, name)
             if isinstance(value, os.PathLike):

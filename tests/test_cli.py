@@ -209,3 +209,19 @@ def test_a_hostile_parameter_value_is_one_line_before_any_work(tmp_path, capsys,
     assert code == 1 and out == ""
     assert err.startswith(message) and err.count("\n") == 1 and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_primary_chooses_the_metric_of_the_interval_column_and_is_recorded(data_dir, tmp_path, capsys):
+    """`--primary inclination`: the table's interval and mark are the inclination's, results.json
+    says so, and `fusion report` re-renders the same table."""
+    out = tmp_path / "run"
+    argv = ["compare", "--estimators", "dr,vqf-basic", "--dataset", "ece276a/*", "--data-dir", str(data_dir),
+            "--mag", "off", "--no-progress", "--jobs", "1", "--no-tum"]
+    assert main([*argv, "--primary", "inclination", "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "inclination 95% CI" in table and "total 95% CI" not in table
+    assert json.loads((out / "results.json").read_text())["settings"]["primary"] == "inclination"
+    assert main(["report", str(out), "--no-progress", "--jobs", "1"]) == 0
+    assert (out / "table.txt").read_text().strip() == table.strip()
+    with pytest.raises(SystemExit):  # argparse refuses it, with its usage line
+        main([*argv, "--primary", "yaw"])

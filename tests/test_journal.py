@@ -105,15 +105,16 @@ def test_resume_with_another_call_is_refused(toy, data, tmp_path, monkeypatch):
 # A value for every RunSettings field other than its default (the `how` part is not journalled).
 _NOT_DEFAULT = {"init": "accel", "protocol": "full", "align": True, "dropouts": False, "mag": False,
                 "imu_topic": "/imu", "truth_topic": "/pose", "panorama": True, "timeout_s": 600.0,
-                "tum": False, "per_recording": True}
+                "tum": False, "per_recording": True, "primary": "inclination"}
 
 
 def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp_path, monkeypatch):
     """Each field of `RunSettings` that decides the results is recorded in the journal's call and
     comes back on `--resume` (an option added to the settings is covered here by construction)."""
-    from fusion.evaluation.settings import COMPUTED, RunSettings
+    from fusion.evaluation.settings import COMPUTED, WRITTEN, RunSettings
 
-    assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) - {"data_dir", "calibration"}) | {"tum", "per_recording"}
+    assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) | set(RunSettings.part(WRITTEN))) - {
+        "data_dir", "calibration", "out", "json_path", "command"}
     assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT), "give the new field a non-default value here"
     settings = RunSettings(dataset="all", data_dir=str(data), **_NOT_DEFAULT)
     call = runs._journal_call({"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}, settings)
