@@ -212,9 +212,7 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     primary = doc["settings"].get("primary")  # the table's statistics metric, when the run chose one
     table = format_table(results, align=bool(doc["settings"].get("align", False)),
                          primary=primary if primary in KINDS else "total")
-    sweep = _sweep_text(doc)
-    tuning = (doc.get("tune") or {}).get("table") if isinstance(doc.get("tune"), dict) else None  # `fusion tune`
-    sweep = "\n\n".join(str(text) for text in (tuning, sweep) if text)
+    sweep = "\n\n".join(text for text in (_tuning_text(doc), _sweep_text(doc)) if text)
     (dest / "table.txt").write_text(table + (f"\n\n{sweep}" if sweep else "") + "\n")
     fig_dir = dest / "figures"
     fig_dir.mkdir(exist_ok=True)
@@ -230,6 +228,13 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     beliefs = [entry for _, entries in outputs[2:] for entry in entries]
     (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs, statistics, cd_figures))
     (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs, statistics, cd_figures))
+
+
+def _tuning_text(doc: dict[str, Any]) -> str:
+    """The table of a `fusion tune` run (`fusion.evaluation.tune.format_tuning`, as results.json
+    holds it), "" for other runs."""
+    tune = doc.get("tune")
+    return str(tune.get("table") or "") if isinstance(tune, dict) else ""
 
 
 def _sweep_text(doc: dict[str, Any]) -> str:
@@ -602,6 +607,9 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
               "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
     if _alignment_rows(doc):
         lines += ["## Alignment (--align)", ""] + md_table(ALIGNMENT_HEADER, _alignment_rows(doc)) + [""]
+    if _tuning_text(doc):
+        lines += ["## Tuning: library default, best common setting, per-recording best, out of sample", ""] + [
+            "    " + line for line in _tuning_text(doc).splitlines()] + [""]
     if _sweep_text(doc):
         lines += ["## Sweep: best common and per-recording best settings", ""] + [
             "    " + line for line in _sweep_text(doc).splitlines()] + [""]
@@ -680,6 +688,8 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         *([f"<p>{html.escape(_coverage_text(doc))}</p>"] if _coverage_text(doc) else []),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
+        *(["<h2>Tuning: library default, best common setting, per-recording best, out of sample</h2>",
+           f"<pre>{html.escape(_tuning_text(doc))}</pre>"] if _tuning_text(doc) else []),
         *(["<h2>Sweep: best common and per-recording best settings</h2>", f"<pre>{html.escape(_sweep_text(doc))}</pre>"]
           if _sweep_text(doc) else []),
     ]

@@ -172,6 +172,10 @@ def test_compare_tuned_runs_the_chosen_setting(data_dir, tmp_path, capsys):
     out = tmp_path / "tuned"
     assert main(["tune", "--estimators", "vqf-basic", "--dataset", COURSE, "--data-dir", str(data_dir), "--mag", "off",
                  "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
+    table = (out / "table.txt").read_text()
+    assert "common setting" in table and "## Tuning" in (out / "report.md").read_text()
+    assert main(["report", str(out), "--no-progress", "--jobs", "1"]) == 0  # re-rendered from results.json alone
+    assert (out / "table.txt").read_text() == table and (out / "tuned.json").is_file()
     doc = json.loads((out / "tuned.json").read_text())
     pairs = doc["estimators"]["vqf-basic"]["overrides"]
     assert pairs and all(k in ("tauAcc", "tauMag") for k, _ in pairs)
