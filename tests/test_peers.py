@@ -163,6 +163,12 @@ def test_parameters_use_the_library_names_as_aliases():
     assert build("mahony:kp=2,ki=0").params.k_p == 2.0
     assert build("ahrs-ekf:P0=1e-4").params.init_cov == 1e-4
     assert build("fusion-ahrs:gain=0.2,startup=true").params.startup is True
+    assert build("vqf:tauMag=5").params.tau_mag_s == 5.0
+    assert build("vqf-basic:tauMag=5").params.library_kwargs() == {"tauAcc": 3.0, "tauMag": 5.0}
+    assert build("vqf:magDistRejectionEnabled=false").params.library_kwargs()["magDistRejectionEnabled"] is False
+    assert build("fusion-ahrs:magnetic_rejection=10").params.magnetic_rejection_deg == 10.0
+    assert build("ahrs-ekf:var_mag=0.1").params.mag_var == 0.1
+    assert build("madgwick:impl=library").params.impl == "library"
     with pytest.raises(ValueError, match="tau_acc_s must be positive"):
         build("vqf:tauAcc=-1")
     with pytest.raises(ValueError, match="unknown parameter"):
@@ -180,12 +186,22 @@ def test_parameters_reach_the_library():
     assert errors_deg(truth, b)["inclination"][after_1s] < errors_deg(truth, a)["inclination"][after_1s] - 1.0
 
 
+def refusing_the_peer_libraries(real_import_module):
+    """An `importlib.import_module` that finds none of the peers' libraries and every other module
+    (`peers.importlib` is the `importlib` module itself: SciPy, imported while a test runs, calls it
+    too)."""
+    def refuse(name, *args, **kwargs):
+        if name.partition(".")[0] in set(LIBRARY.values()):
+            raise ModuleNotFoundError(f"No module named {name!r}")
+        return real_import_module(name, *args, **kwargs)
+
+    return refuse
+
+
 def test_missing_library_says_what_to_install(monkeypatch):
     import fusion.estimators.peers as peers
-    def refuse(name, *args, **kwargs):
-        raise ModuleNotFoundError(f"No module named {name!r}")
 
-    monkeypatch.setattr(peers.importlib, "import_module", refuse)
+    monkeypatch.setattr(peers.importlib, "import_module", refusing_the_peer_libraries(peers.importlib.import_module))
     for peer in PEERS:
         with pytest.raises(PeerUnavailable, match=r"pip install -e '\.\[peers\]'"):
             build(peer)
@@ -253,10 +269,7 @@ def test_cli_names_the_missing_extra(monkeypatch, capsys):
     import fusion.estimators.peers as peers
     from fusion.cli import main
 
-    def refuse(name, *args, **kwargs):
-        raise ModuleNotFoundError(f"No module named {name!r}")
-
-    monkeypatch.setattr(peers.importlib, "import_module", refuse)
+    monkeypatch.setattr(peers.importlib, "import_module", refusing_the_peer_libraries(peers.importlib.import_module))
     assert main(["compare", "--estimators", "fusion-ahrs", "--dataset", "sim", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["fusion: error: estimator 'fusion-ahrs' needs the optional package 'imufusion', which is not "
@@ -300,3 +313,88 @@ def test_without_a_magnetometer_the_peers_are_6d_as_before(peer):
     plain = build(peer).estimate(imu, truth.quat_wxyz[0])
     again = build(peer).estimate(with_field(imu, truth).replace(mag_ut=None), truth.quat_wxyz[0])
     np.testing.assert_array_equal(plain.quat_wxyz, again.quat_wxyz)
+
+
+@pytest.mark.parametrize("impl", ["compiled", "library"])
+@pytest.mark.parametrize("peer", ["madgwick", "mahony", "ahrs-ekf"])
+def test_9d_missing_magnetometer_samples_integrate_over_the_real_interval(peer, impl):
+    """At 200 Hz, 2 s of turning with the magnetometer missing (NaN) are tracked: for such a sample
+    the adapters call the library's `updateIMU` with the real dt (its `updateMARG` falls back to
+    `updateIMU` without passing dt on, which would integrate over its default 0.01 s: twice the
+    rotation here, 60 deg off by the end of the gap)."""
+    need(peer)
+    imu, truth = simulate([(2.0, [0, 0, 0]), (4.0, D([0, 0, 30])), (2.0, [0, 0, 0])], euler("xz", [10, 40]),
+                          rate_hz=200.0, jitter_s=0.0002)
+    noise = np.random.default_rng(2).normal(0.0, 1e-4, imu.gyr_rad_s.shape)  # never exactly zero (see above)
+    imu = with_field(imu.replace(gyr_rad_s=imu.gyr_rad_s + noise), truth)
+    mag = np.array(imu.mag_ut)
+    gap = slice(800, 1200)  # 4-6 s: turning
+    mag[gap] = np.nan
+    imu = imu.replace(mag_ut=mag)
+    assert imu.has_mag and not imu.mag_valid[gap].any()
+    err = errors_deg(truth, build(f"{peer}:impl={impl}").estimate(imu, truth.quat_wxyz[0]))["total"]
+    assert err.max() < 1.5, f"{peer} ({impl}): {err.max():.1f} deg off, worst at sample {err.argmax()}"
+
+
+# --- search spaces (`fusion.estimators.search`): declared beside each peer's parameters ----------
+
+# BROAD's best common settings over all 39 trials (9-D), from its example code's grid search
+# (Laidig et al., "BROAD - A Benchmark for Robust Inertial Orientation Estimation", Data 2021).
+BROAD_BEST = {"madgwick": {"gain": 0.12}, "mahony": {"k_p": 0.74, "k_i": 0.0012}}
+TUNED = {
+    "madgwick": {"gain"}, "mahony": {"k_p", "k_i"},
+    "vqf": {"tau_acc_s", "tau_mag_s"}, "vqf-basic": {"tau_acc_s", "tau_mag_s"},
+    "vqf-offline": {"tau_acc_s", "tau_mag_s"},
+    "fusion-ahrs": {"gain", "acceleration_rejection_deg", "magnetic_rejection_deg", "rejection_timeout"},
+    "ahrs-ekf": {"gyr_var_rad2_s2", "acc_var", "mag_var"},
+}
+
+MAGNETOMETER_ONLY = {"tau_mag_s", "magnetic_rejection_deg", "mag_var"}  # not tuned in 6-D
+
+
+@pytest.mark.parametrize("peer", PEERS)
+def test_each_peer_declares_its_search_space(peer):
+    """The tuned parameters, each with a small grid that holds the library's default (Fusion's
+    recovery period aside: it only matters with a threshold on, and its grid's settings with both
+    thresholds off are the default's) and BROAD's published best where there is one; at most 25
+    settings per estimator, and every grid value is a valid parameter."""
+    from dataclasses import replace
+    from math import prod
+
+    from fusion.estimators.search import default_of, search_space
+
+    params = estimators.ESTIMATORS[peer].Params
+    space = search_space(params)
+    assert set(space) == TUNED[peer]
+    for name, tunable in space.items():
+        if name != "rejection_timeout":
+            assert default_of(params, name) in tunable.grid, f"{peer}.{name}: default not in the grid"
+        for value in tunable.grid:
+            replace(params(), **{name: value})  # each value is accepted (`__post_init__`)
+        assert 2 <= len(tunable.grid) <= 7 or name == "rejection_timeout"
+    for name, value in BROAD_BEST.get(peer, {}).items():
+        assert value in space[name].grid, f"{peer}.{name}: BROAD's {value} not in the grid"
+    assert {name for name, t in space.items() if t.magnetometer} == TUNED[peer] & MAGNETOMETER_ONLY
+    assert prod(len(t.grid) for t in space.values()) <= 25  # 9-D
+    assert prod(len(t.grid) for t in space.values() if not t.magnetometer) <= 25  # 6-D
+
+
+def test_the_new_parameters_reach_the_libraries():
+    """tauMag (VQF, BasicVQF), Fusion's magnetic rejection and the EKF's var_mag change a 9-D
+    estimate with a disturbed field; their default values leave it as it was."""
+    for lib in ("vqf", "ahrs", "imufusion"):
+        require_module(lib)
+    imu, truth = simulate([(2.0, [0, 0, 0]), (8.0, D([10, -5, 20])), (10.0, [0, 0, 0])], euler("xz", [10, 40]))
+    noise = np.random.default_rng(3).normal(0.0, 1e-4, imu.gyr_rad_s.shape)
+    imu = with_field(imu.replace(gyr_rad_s=imu.gyr_rad_s + noise), truth)
+    mag = np.array(imu.mag_ut)
+    mag[600:900] += [30.0, -20.0, 10.0]  # a magnet nearby for 3 s
+    imu = imu.replace(mag_ut=mag)
+    seed = truth.quat_wxyz[0]
+    fusion = "fusion-ahrs:rejection_timeout=500"
+    for base, changed in [("vqf", "vqf:tauMag=2"), ("vqf-basic", "vqf-basic:tauMag=2"),
+                          (fusion, fusion + ",magnetic_rejection=10"), ("ahrs-ekf", "ahrs-ekf:var_mag=0.05")]:
+        a, b = build(base).estimate(imu, seed).quat_wxyz, build(changed).estimate(imu, seed).quat_wxyz
+        assert np.max(np.abs(a - b)) > 1e-3, f"{changed} changes nothing"
+    assert build("vqf:tauMag=9,magDistRejectionEnabled=true").params == build("vqf").params
+    assert build("fusion-ahrs:magnetic_rejection=0").params == build("fusion-ahrs").params

@@ -1,0 +1,123 @@
+"""Microseconds per sample of the `ahrs` peers: the library per sample against its compiled twin.
+
+    python benchmarks/bench_peers.py [--data-dir DIR] [--broad ID] [--course ID] [--repeat 5]
+                                     [--library-samples N] [--no-compile-times]
+
+For `madgwick`, `mahony` and `ahrs-ekf`, on a BROAD trial (286 Hz; 6-D with the magnetometer
+dropped, and 9-D) and a course recording (100 Hz, 6-D): the whole-recording `estimate` with
+`impl=library` (the `ahrs` package's update called per sample, the reference; one run, on the
+first `--library-samples` samples if given) and with `impl=compiled` (the numba twin of
+`_compiled_peers`, best of at least `--repeat` runs), their ratio, and VQF's adapter
+(`vqf`, the `vqf` package's C++ `updateBatch`) on the same samples for scale. Then the time to
+compile the twins (`_compiled_peers.load`) in a fresh process with an empty numba cache, and to
+load them from the cache in another. Figures taken while other jobs share the machine are noisy;
+compare them on a quiet machine. Without data the built-in `sim` recording is used (and said so).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fusion import datasets  # noqa: E402
+from fusion.estimators import build  # noqa: E402
+
+PEERS = ("madgwick", "mahony", "ahrs-ekf")
+MIN_SECONDS = 1.0  # the fast runs are repeated until they have run this long
+
+_FIRST_CALL = r"""
+import json, time
+t0 = time.perf_counter()
+from fusion.estimators import _compiled_peers
+t1 = time.perf_counter()
+_compiled_peers.load()
+print(json.dumps({"import": t1 - t0, "kernels": time.perf_counter() - t1}))
+"""
+
+
+def time_estimate(spec: str, imu, q0, repeat: int) -> float:
+    """Best wall time of `estimate`, s, over at least `repeat` runs (one untimed warm-up run first;
+    the estimator is built outside the timing, as a compiled one loads its kernels then)."""
+    build(spec).estimate(imu, q0)
+    best, total, runs = float("inf"), 0.0, 0
+    while runs < repeat or (total < MIN_SECONDS and runs < 50):
+        est = build(spec)
+        start = time.perf_counter()
+        est.estimate(imu, q0)
+        elapsed = time.perf_counter() - start
+        best, total, runs = min(best, elapsed), total + elapsed, runs + 1
+    return best
+
+
+def time_once(spec: str, imu, q0) -> float:
+    """Wall time of one `estimate`, s (the library's runs take seconds to minutes)."""
+    est = build(spec)
+    start = time.perf_counter()
+    est.estimate(imu, q0)
+    return time.perf_counter() - start
+
+
+def compile_times() -> tuple[dict, dict]:
+    """(empty cache, cached): {"import": s, "kernels": s}, each from a fresh process."""
+    with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
+        runs = [subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, capture_output=True, text=True,
+                               check=True, cwd=ROOT) for _ in range(2)]
+    cold, cached = (json.loads(run.stdout.strip().splitlines()[-1]) for run in runs)
+    return cold, cached
+
+
+def load(dataset: str, data_dir: str | None):
+    try:
+        return datasets.load(dataset, data_dir)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"{dataset} not available ({err}); using the simulated recording 'sim'")
+        return datasets.load("sim")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data-dir", default=None, help="the recordings (default: $FUSION_DATA, else ./data)")
+    ap.add_argument("--broad", default="broad/01_undisturbed_slow_rotation_A")
+    ap.add_argument("--course", default="ece276a/1")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--library-samples", type=int, default=None, metavar="N",
+                    help="time the library on the first N samples only (default: the whole recording)")
+    ap.add_argument("--no-compile-times", action="store_true", help="skip the compile-time measurement")
+    args = ap.parse_args(argv)
+    runs = []
+    for dataset in (args.broad, args.course):
+        rec = load(dataset, args.data_dir)
+        q0 = datasets.initial_orientation(rec)
+        runs.append((rec.id, "6-D", rec.imu.replace(mag_ut=None), q0))
+        if rec.imu.has_mag:
+            runs.append((rec.id, "9-D", rec.imu, q0))
+    print("us/sample: library (one run), compiled twin and vqf (best of several runs)")
+    print(f"{'recording':38s} {'':4s} {'samples':>8s} {'estimator':10s} {'library':>9s} {'twin':>7s} "
+          f"{'speed-up':>9s} {'vqf':>6s}")
+    for rid, label, imu, q0 in runs:
+        n = len(imu)
+        lib_imu = imu.window(0, args.library_samples) if args.library_samples else imu
+        vqf = time_estimate("vqf", imu, q0, args.repeat) / n * 1e6
+        for peer in PEERS:
+            library = time_once(f"{peer}:impl=library", lib_imu, q0) / len(lib_imu) * 1e6
+            twin = time_estimate(peer, imu, q0, args.repeat) / n * 1e6
+            print(f"{rid:38s} {label:4s} {n:8d} {peer:10s} {library:9.1f} {twin:7.2f} {library / twin:9.0f} {vqf:6.2f}")
+    if not args.no_compile_times:
+        cold, cached = compile_times()
+        print("numba twins in a fresh process (s):")
+        print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
+        print(f"{'import fusion.estimators._compiled_peers':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
+        print(f"{'compile / load the three kernels':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
+
+
+if __name__ == "__main__":
+    main()
