@@ -470,9 +470,14 @@ def _versions() -> dict[str, str]:
 def _tune_all(entries: list[ResolvedSpec], scores: Scores, folds: list[Fold], all_ids: list[str],
               storage: Any) -> list[EstimatorTuning]:
     out = []
-    for entry in entries:
+    for n, entry in enumerate(entries, 1):
         if entry.cls.partial:
             raise ValueError(f"tune: {entry.label} is a trajectory file: nothing to tune")
+        if scores.settings.progress:
+            space = tunable_space(entry, scores.settings.mag)
+            what = (f"{len(grid_settings(entry, scores.settings.mag))} settings" if scores.settings.search == "grid"
+                    else f"{scores.settings.budget} trials a study")
+            note(f"tuning {entry.label} ({n} of {len(entries)}): {', '.join(space) or 'nothing to tune'}; {what}")
         if scores.settings.search == "tpe" and tunable_space(entry, scores.settings.mag):
             if storage is None:
                 import optuna
