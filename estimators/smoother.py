@@ -515,13 +515,13 @@ class BatchSmoother(Estimator):
     def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
         """(T, 4) the start of the optimisation: the `init` estimator's output, re-levelled every
         `init_level_s` seconds (`levelled`); with impl="compiled", dead reckoning and the
-        levelling by the kernels (`_compiled_smoother.dead_reckoned`, `.levelled`)."""
+        levelling by the kernels (`_compiled_smoother_start.dead_reckoned`, `.levelled`)."""
         p = self.params
         imu_init = imu.replace(gyr_valid=problem_valid(imu, p))
         if p.impl == "numpy":
             q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
             return levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
-        from . import _compiled_smoother as kernels
+        from . import _compiled_smoother_start as kernels
 
         if p.init.strip() == "dr":
             q = kernels.dead_reckoned(imu_init, init_quat_wxyz)

@@ -1,0 +1,201 @@
+"""The terms of the smoothers' cost, one sample at a time, compiled (numba).
+
+Each kernel here is a line or two of `fusion.estimators.smoother_cost` for one sample or one step,
+as scalars: the motion, accelerometer, magnetometer and rest residuals, the robust loss, the
+calibrated step rotation, the calibration variables, the SO(3) Jacobians and the cost from its
+terms' sums. The quaternion helpers are `fusion.quaternion`'s scalar path, compiled (one
+definition for numpy, Python and the kernels).
+
+The Jacobians are those of `fusion.quaternion` (Sola et al. 2018, "A micro Lie theory for state
+estimation in robotics", arXiv:1812.01537: J_r eq. 143, J_r^-1 eq. 144, their coefficients'
+series); the robust losses are Zhang 1997's M-estimators ("Parameter estimation techniques: a
+tutorial with application to conic fitting", Image and Vision Computing 15), as
+`smoother_cost.robust_loss` says. The cost kernels (`_compiled_smoother_cost`) and the
+linearisation (`_compiled_smoother_linearize`) are built from these.
+
+numba keys a cached kernel on its own file only: `_kernel_cache.forget_stale_kernels` drops this
+module's cache when `fusion.quaternion` changes.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fusion import quaternion as quat
+
+from ._compiled import _jit
+from ._kernel_cache import forget_stale_kernels
+
+forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
+
+
+# ============================================================================ scalar helpers
+# `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels.
+qmul = _jit(quat.multiply_floats)
+qexp = _jit(quat.exp_floats)
+qlog = _jit(quat.log_floats)
+qnormalize = _jit(quat.normalize_floats)
+rotation = _jit(quat.rotation_floats)  # R(q) as 9 scalars, row by row
+
+
+@_jit
+def load_quat(q, t):
+    return (q[t, 0], q[t, 1], q[t, 2], q[t, 3])
+
+
+@_jit
+def right_jacobian_inv(x, y, z, o):
+    """J_r^-1(v) = I + [v]x / 2 + C [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian_inv`)."""
+    c = series(math.sqrt(x * x + y * y + z * z), 2, o)
+    return (1.0 + c * (-z * z - y * y), -0.5 * z + c * (x * y), 0.5 * y + c * (x * z),
+            0.5 * z + c * (x * y), 1.0 + c * (-z * z - x * x), -0.5 * x + c * (y * z),
+            -0.5 * y + c * (x * z), 0.5 * x + c * (y * z), 1.0 + c * (-y * y - x * x))
+
+
+@_jit
+def right_jacobian(x, y, z, o):
+    """J_r(v) = I - A [v]x + B [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian`)."""
+    t = math.sqrt(x * x + y * y + z * z)
+    a = series(t, 0, o)
+    b = series(t, 1, o)
+    return (1.0 + b * (-z * z - y * y), a * z + b * (x * y), -a * y + b * (x * z),
+            -a * z + b * (x * y), 1.0 + b * (-z * z - x * x), a * x + b * (y * z),
+            a * y + b * (x * z), -a * x + b * (y * z), 1.0 + b * (-y * y - x * x))
+
+
+@_jit
+def fill3(M, v):
+    """M (3, 3) = the 9 scalars v, row by row."""
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = v[3 * i + j]
+
+
+@_jit
+def series(t, kind, o):
+    """The coefficient `kind` (0: A, 1: B, 2: C of `quaternion._A/_B/_C`) at angle t: the closed
+    form above `JACOBIAN_SERIES_RAD`, the Taylor series below (`quaternion._series`)."""
+    if t > o.series_rad:
+        if kind == 0:
+            return (1.0 - math.cos(t)) / t**2
+        if kind == 1:
+            return (t - math.sin(t)) / t**3
+        return 1.0 / t**2 - (1.0 + math.cos(t)) / (2.0 * t * math.sin(t))
+    c = o.jac_a if kind == 0 else (o.jac_b if kind == 1 else o.jac_c)
+    t2 = t * t
+    return ((0.0 * t2 + c[2]) * t2 + c[1]) * t2 + c[0]
+
+
+@_jit
+def step_rotvec(p, b, k, t):
+    """phi_t = ((1 + k) g_t - b) dt_t, zero on an invalid step (`SmootherProblem.step_rotvec`)."""
+    if not p.valid[t]:
+        return (0.0, 0.0, 0.0)
+    dt = p.dt[t]
+    return (((1.0 + k[0]) * p.gyr[t, 0] - b[0]) * dt, ((1.0 + k[1]) * p.gyr[t, 1] - b[1]) * dt,
+            ((1.0 + k[2]) * p.gyr[t, 2] - b[2]) * dt)
+
+
+@_jit
+def motion_residual(qa, qb, u):
+    """2 log(q_b^-1 q_a u) (`SmootherProblem.motion_residual`)."""
+    return qlog(qmul(qmul((qb[0], -qb[1], -qb[2], -qb[3]), qa), u))
+
+
+@_jit
+def acc_term(sq, w, loss, c):
+    """(cost term, IRLS weight) of one accelerometer residual of squared norm sq
+    (`SmootherProblem.acc_terms`, `smoother_cost.robust_loss`)."""
+    if loss == 0:
+        return 0.5 * w * sq, w
+    c2 = c * c
+    s = sq / c2
+    if loss == 1:  # huber
+        root = math.sqrt(s)
+        if root <= 1.0:
+            rho, drho = s, 1.0
+        else:
+            rho, drho = 2.0 * root - 1.0, 1.0 / max(root, 1e-300)
+    elif loss == 2:  # cauchy
+        rho, drho = math.log1p(s), 1.0 / (1.0 + s)
+    else:  # geman-mcclure
+        rho, drho = s / (1.0 + s), 1.0 / (1.0 + s) ** 2
+    return 0.5 * w * c2 * rho, w * drho
+
+
+@_jit
+def mag_residual(p, t, qt):
+    """The magnetometer's heading residual at sample t, q_t = qt (`SmootherProblem.mag_residual`):
+    (r_h rad, k0, k1, k2)."""
+    d = qmul(qt, (p.mag_ref[t, 0], -p.mag_ref[t, 1], -p.mag_ref[t, 2], -p.mag_ref[t, 3]))
+    dw, dx, dy, dz = d
+    n2 = dw * dw + dz * dz
+    x = p.mag_psi[t] + 2.0 * math.atan2(dz, dw)
+    r = x - 2.0 * math.pi * math.floor((x + math.pi) / (2.0 * math.pi))
+    safe = n2 if n2 > 0.0 else 1.0
+    return r, (dw * dy + dz * dx) / safe, (dz * dy - dw * dx) / safe, 1.0
+
+
+@_jit
+def rest_residual(p, b, k, t, i):
+    """Rest residual of step t on the i-th bias variable's axis, and that axis."""
+    ax = p.theta_axis[i]
+    return (1.0 + k[ax]) * p.gyr[t, ax] - b[ax], ax
+
+
+@_jit
+def calibration(p, theta):
+    """theta -> (bias (3,), scale error (3,)) (`SmootherProblem.split_theta`)."""
+    b = np.zeros(3)
+    k = np.zeros(3)
+    for i in range(len(theta)):
+        if i < p.n_bias:
+            b[p.theta_axis[i]] = theta[i]
+        else:
+            k[p.theta_axis[i]] = theta[i]
+    return b, k
+
+
+@_jit
+def keep_step(keep, t, u, r):
+    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1)."""
+    for i in range(4):
+        keep[t, 0, i] = u[i]
+    for i in range(3):
+        keep[t, 1, i] = r[i]
+
+
+@_jit
+def kept_step(kept, t):
+    """(u_t, r_m,t) as `keep_step` stored them."""
+    return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
+
+
+@_jit
+def keep_mag(keep, t, m):
+    """Store sample t's magnetometer residual and its Jacobian's factors (`mag_residual`: r_h, k0, k1,
+    k2) and its (cost term, IRLS weight) (`acc_term`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0])."""
+    for i in range(5):
+        keep[t, 2, i] = m[i]
+    keep[t, 3, 0] = m[5]
+
+
+@_jit
+def kept_mag(kept, t):
+    """What `keep_mag` stored."""
+    return kept[t, 2, 0], kept[t, 2, 1], kept[t, 2, 2], kept[t, 2, 3], kept[t, 2, 4], kept[t, 3, 0]
+
+
+@_jit
+def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
+    """The cost from its terms' sums (`SmootherProblem.cost`): acc (with its 1/2), and the
+    weighted squared residuals of motion, velocity, zero velocity and rest, the anchor's
+    |r_0|^2; the calibration prior from theta."""
+    prior = 0.0
+    for i in range(len(theta)):
+        prior += p.w_theta[i] * theta[i] ** 2
+    total = acc + 0.5 * (motion + p.w_prior * prior_sq + prior)
+    if V:
+        total += 0.5 * (vel + vzero)
+    return total + 0.5 * rest
