@@ -121,7 +121,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_tune(args: argparse.Namespace) -> int:
     from fusion.evaluation.tune import run_tune
 
-    how = dict(jobs=args.jobs, progress=not args.no_progress)
+    how = dict(jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler)
     if args.resume:
         defaults = vars(build_parser().parse_args(["tune"]))
         given = [k for k, v in vars(args).items()
@@ -345,6 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "`compare --tuned`) to DIR, journalling every score so that --resume DIR continues a stopped run")
     p.add_argument("--overwrite", action="store_true", help="with --out: replace the run DIR holds")
     p.add_argument("--resume", metavar="DIR", default=None, help="continue the stopped tuning in DIR")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run the jobs on a running dask.distributed scheduler's workers (see docs/dask.md)")
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                    help="worker processes; 0 = all cores (default); results do not depend on it")
     p.set_defaults(func=cmd_tune)

@@ -57,7 +57,8 @@ FOLDS = ("recording", "group")
 @dataclass(frozen=True)
 class TuneSettings:
     """Everything a `fusion tune` run depends on (journalled as itself; `--resume` may change only
-    `jobs` and `progress`).
+    how it runs: `jobs`, `progress`, `scheduler`, a dask.distributed scheduler's address to run the
+    jobs on, as `fusion compare --scheduler`).
 
     estimators: spec text (`"madgwick,mahony"`, `"all"`); a parameter fixed in a spec is not tuned.
     dataset: the recordings; train, test: instead of folds over `dataset`, choose on `train` and
@@ -87,6 +88,7 @@ class TuneSettings:
     # how it runs: not journalled
     jobs: int | None = field(default=1, metadata={"how": True})
     progress: bool = field(default=False, metadata={"how": True})
+    scheduler: str | None = field(default=None, metadata={"how": True})  # a Dask scheduler's address
 
     def __post_init__(self) -> None:
         if self.metric not in KINDS:
@@ -274,7 +276,7 @@ class Scores:
 
             s = self.settings
             run(todo_entries, items, init=s.init, jobs=s.jobs, progress=s.progress, protocol=s.protocol,
-                load=self.load, done=done, on_done=record)
+                load=self.load, scheduler=s.scheduler, done=done, on_done=record)
         return {(e.label, rid): self.rows[(e.label, rid)] for e in entries for rid in ids}
 
     def score(self, row: Result) -> float:
@@ -409,9 +411,10 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
         call = header["call"]
         if call.get("kind") != "tune":
             raise ValueError(f"{out}: holds an unfinished `fusion {call.get('kind')}` run; resume it with that command")
-        how = {k: v for k, v in settings.items() if k in ("jobs", "progress")}
+        how = {k: v for k, v in settings.items() if k in ("jobs", "progress", "scheduler")}
         if set(settings) - set(how):
-            raise ValueError(f"--resume continues the run recorded in {out}: give it with --jobs or --no-progress only")
+            raise ValueError(f"--resume continues the run recorded in {out}: give it with --jobs, --scheduler or "
+                             "--no-progress only")
         config = TuneSettings.from_json(call["settings"], **how)
         command = header["command"]
     else:

@@ -215,3 +215,12 @@ def test_a_killed_worker_costs_a_retry_not_a_row(address, data, tmp_path):
     assert not Path(f"/proc/{killed}").exists() or "Z" in Path(f"/proc/{killed}/stat").read_text().rsplit(")", 1)[1][:3]
     _same(serial, on_cluster)
 
+
+
+def test_tune_on_the_cluster_equals_the_local_tuning(address, data):
+    from fusion.evaluation.tune import run_tune
+
+    local = run_tune("madgwick", "all", data_dir=str(data), jobs=1)
+    remote = run_tune("madgwick", "all", data_dir=str(data), scheduler=address)
+    assert len(local.tunings[0].chosen) == 3 and local.tunings[0].evaluated > 1
+    assert [t.to_json() for t in remote.tunings] == [t.to_json() for t in local.tunings]
