@@ -21,7 +21,8 @@ def tuned_table(doc: dict) -> str:
     scores = {t["estimator"]: {k: v for k, v in t["scores_tuned_deg"].items()} for t in tune["estimators"]}
     stats = paired_statistics(scores, metric=doc["settings"].get("metric", "total"))
     width = max(len(t["estimator"]) for t in tune["estimators"]) + 2
-    lines = [f"{'estimator':<{width}}{'default':>8}{'tuned':>8}{'95% CI (tuned)':>17}  {'W/T/L':>8}  {'Holm p':>7}  common setting"]
+    lines = [f"{'estimator':<{width}}{'default':>8}{'tuned':>8}{'95% CI (tuned)':>17}  {'W/T/L':>8}  {'Holm p':>7}  "
+             "common setting"]
     for t in tune["estimators"]:
         row = stats.row(t["estimator"]) if stats is not None else None
         ci = f"[{row.ci_low:.2f}, {row.ci_high:.2f}]" if row is not None and row.ci_low is not None else ""
@@ -36,8 +37,8 @@ def tuned_table(doc: dict) -> str:
         lines.append(no_statistics_reason(scores) or "no statistics")
     else:
         friedman = f"Friedman p = {stats.friedman_p:.2g}" if stats.friedman_p is not None else "no Friedman test"
-        lines.append(f"tuned rows over {len(stats.recordings)} recordings; W/T/L and Holm p against the best tuned row; "
-                     f"*: not significantly worse than it; {friedman}")
+        lines.append(f"tuned rows over {len(stats.recordings)} recordings; W/T/L and Holm p against the best tuned "
+                     f"row; *: not significantly worse than it; {friedman}")
     return "\n".join(lines)
 
 

@@ -151,7 +151,8 @@ def run_resume(out: PathLike, **how: Any) -> Run:
     if call.pop("kind") == "compare":
         options.pop("per_recording")
         trajectories = [tuple(pair) for pair in call.get("trajectories", [])]
-        return run_compare(call["estimators"], settings.dataset, settings.data_dir, trajectories=trajectories, **options)
+        return run_compare(call["estimators"], settings.dataset, settings.data_dir, trajectories=trajectories,
+                           **options)
     grid = [(name, values) for name, values in call["params"]]
     return run_ablate(call["estimator"], grid, call["preset"], settings.dataset, settings.data_dir, **options)
 

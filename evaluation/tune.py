@@ -28,6 +28,7 @@ journal of an `--out` folder, after a stop. Results do not depend on `jobs`.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -41,7 +42,7 @@ import numpy as np
 from fusion import datasets
 from fusion.estimators import ResolvedSpec, resolve, resolve_all
 from fusion.estimators.params import EstimatorSpec
-from fusion.estimators.search import Tunable, alias_of, default_of, search_space
+from fusion.estimators.search import Tunable, alias_of, search_space
 from fusion.selection import load_options, note, select_sources
 
 from .job import Result
@@ -104,7 +105,7 @@ class TuneSettings:
 
     def to_json(self) -> dict[str, Any]:
         """The fields that decide the results (not how the run runs)."""
-        return {f: getattr(self, f) for f in self.__dataclass_fields__ if not self.__dataclass_fields__[f].metadata.get("how")}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if not f.metadata.get("how")}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any], **how: Any) -> "TuneSettings":
@@ -150,7 +151,8 @@ class EstimatorTuning:
 
     def to_json(self) -> dict[str, Any]:
         return {"estimator": self.estimator,
-                "space": {k: {"low": t.low, "high": t.high, "log": t.log, "grid": list(t.grid)} for k, t in self.space.items()},
+                "space": {k: {"low": t.low, "high": t.high, "log": t.log, "grid": list(t.grid)}
+                          for k, t in self.space.items()},
                 "default_deg": _finite(self.default), "common_setting": self.common_setting,
                 "common_deg": _finite(self.common), "per_recording_best_deg": _finite(self.per_recording),
                 "out_of_sample_deg": _finite(self.out_of_sample), "chosen": self.chosen,
@@ -501,7 +503,8 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     per-recording best (both in sample), and the out-of-sample figure, in degrees."""
     how = (f"chosen on {config.train}, scored on {config.test}" if config.train is not None
            else f"leave one {config.by} out, {len(folds)} folds")
-    search = "the grid preset" if config.search == "grid" else f"TPE, {config.budget} trials per study, seed {config.seed}"
+    search = ("the grid preset" if config.search == "grid"
+              else f"TPE, {config.budget} trials per study, seed {config.seed}")
     width = max([len(t.estimator) for t in tunings] + [9])
     lines = [f"{config.metric} RMSE (deg), mean over the test recordings; {how}; search: {search}",
              f"{'estimator':<{width}}  {'default':>8}  {'common*':>8}  {'per-rec*':>8}  {'tuned':>8}  "
@@ -571,7 +574,7 @@ def tuned_document(entries: list[ResolvedSpec], tunings: list[EstimatorTuning], 
     """tuned.json: each estimator's best common setting, as `compare --tuned FILE` reads it."""
     return {"format": TUNED_FORMAT, "version": 1, "metric": config.metric, "dataset": config.train or config.dataset,
             "estimators": {e.label: {"spec": e.spec.name,
-                                     "overrides": [list(pair) for pair in candidate_spec(e, t.common_setting).overrides],
+                                     "overrides": [list(p) for p in candidate_spec(e, t.common_setting).overrides],
                                      "common_deg": _finite(t.common), "out_of_sample_deg": _finite(t.out_of_sample)}
                            for e, t in zip(entries, tunings)}}
 
@@ -581,7 +584,8 @@ def read_tuned(path: PathLike) -> dict[str, EstimatorSpec]:
     and the problem otherwise."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such tuned-settings file (written by `fusion tune --out DIR` as DIR/{TUNED_FILE})")
+        raise FileNotFoundError(f"{path}: no such tuned-settings file (`fusion tune --out DIR` writes "
+                                f"DIR/{TUNED_FILE})")
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         if doc.get("format") != TUNED_FORMAT:

@@ -117,7 +117,8 @@ def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp
         "data_dir", "calibration", "out", "json_path", "command"}
     assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT), "give the new field a non-default value here"
     settings = RunSettings(dataset="all", data_dir=str(data), **_NOT_DEFAULT)
-    call = runs._journal_call({"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}, settings)
+    kind = {"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}
+    call = runs._journal_call(kind, settings)
     back = RunSettings.from_json(json.loads(json.dumps(call)))
     assert all(getattr(back, name) == getattr(settings, name) for name in runs.JOURNALLED)
 
