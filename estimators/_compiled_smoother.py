@@ -13,7 +13,10 @@ numpy code is the reference; `CompiledOps` is the same interface by the numba ke
 - `_compiled_smoother_start`: dead reckoning and the re-levelling that start the solvers.
 
 The numpy code is the reference: every kernel line implements a line of `smoother_cost` (or of
-`fusion.quaternion`), and `tests/test_compiled_smoother.py` checks the kernels against it
+`fusion.quaternion`, `smoother`), each kernel carries the name of the function it mirrors and
+names it in its docstring (`Reference: fusion.estimators.smoother_cost.SmootherProblem.cost`;
+`Reference: none (...)` for the elimination's and the storage's own helpers), and
+`tests/test_compiled_smoother.py` resolves those names and checks the kernels against them
 (cost, gradient, blocks, solves) and both solvers' iterations and final costs against their
 `impl=numpy` runs on simulated and real recordings. The two paths differ only in rounding: the
 summation order of the cost and the elimination order of the solve.
@@ -32,11 +35,12 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from . import _compiled_smoother_linearize as kernel
 from ._compiled_smoother_cost import range_cost
-from ._compiled_smoother_layout import BLOCKS, ELIMINATE, GRADIENT, FROM_BLOCKS, constants, problem_arrays
-from ._compiled_smoother_linearize import back_substitute, linearize_kernel, range_carry_size
+from ._compiled_smoother_layout import BLOCKS, ELIMINATE, FROM_BLOCKS, GRADIENT, constants, problem_arrays
+from ._compiled_smoother_linearize import back_substitute, range_carry_size
 from ._compiled_smoother_ranges import linearize_ranges, run_beside
-from ._compiled_smoother_start import dead_reckoning, dot, levelled_kernel, norm_error
+from ._compiled_smoother_start import dead_reckoning, dot, levelled, norm_error
 from .smoother_cost import Linearization, SmootherProblem
 
 _loaded = False
@@ -67,7 +71,7 @@ def load() -> None:
     ops.cost(q, theta, v)
     start = np.empty((2, 4))
     dead_reckoning(problem.gyr, problem.valid, problem.dt, quat.IDENTITY, 1e-12, start)
-    levelled_kernel(imu.t, imu.acc_g, start, 1.0, 1e-12, np.empty((2, 4)))
+    levelled(imu.t, imu.acc_g, start, 1.0, 1e-12, np.empty((2, 4)))
     norm_error(start)
     five = np.zeros((2, 5))
     dot(five, five)
@@ -88,7 +92,7 @@ class CompiledOps:
     """What `gn` and `gd` do with the cost, by the kernels: the interface of
     `smoother.ReferenceOps`, whose numpy code is the reference.
 
-    The elimination's per-sample storage (M, c, N: `linearize_kernel`) is allocated once and
+    The elimination's per-sample storage (M, c, N: the kernel `linearize`) is allocated once and
     holds one system at a time: `linearize` with a `shift` eliminates the system at its point
     in the same pass (what the next `solve` needs), and `solve` eliminates again if asked for
     another shift, another set of free calibration variables or another right-hand side. The
@@ -133,7 +137,7 @@ class CompiledOps:
         if self._storage is not None and d_q.base is self._storage[1]:
             d_q = self._storage[1]  # the step `solve` returned: its (T, 5) storage, handed over whole
         # With no eliminated system waiting for its `solve`, M is free until the next elimination: the
-        # trial keeps its per-sample terms there (`cost_kernel`'s keep), for `linearize` at q_new (if accepted).
+        # trial keeps its per-sample terms there (the kernel `cost`'s keep), for `linearize` at q_new (if accepted).
         keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
         self._kept = None
         cost = range_cost(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
@@ -221,7 +225,7 @@ class CompiledOps:
 
     def _kernel(self, q, v, theta, mode, grad_q, grad_theta, shift=0.0, index=None, rhs=None, blocks=None,
                 storage=None, schur=None, kept=None, span=None, carry=None) -> float:
-        return linearize_kernel(
+        return kernel.linearize(
             self.arrays, self.consts, q, v, theta, mode, shift, _NO_INDEX if index is None else index,
             *(_NO_RHS if rhs is None else rhs), grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE),
             *(schur or _NO_SCHUR), self._kept_at(q, theta) if kept is None else kept, *(span or (0, self.T)),

@@ -1,13 +1,13 @@
 """The smoothers' cost over a range of samples, and at a trial point, compiled (numba).
 
-`cost_kernel` is `SmootherProblem.cost` (`fusion.estimators.smoother_cost`) in one pass over the
-samples t0 <= t < t1 and their steps, optionally at the point moved by a step (`moved`: the
+`cost` is `SmootherProblem.cost` (`fusion.estimators.smoother_cost`) in one pass over the
+samples t0 <= t < t1 and their steps, optionally at the point moved by a step (`retract`: the
 retraction of `smoother.retract`, the exponential map or the normalised step; Absil, Mahony &
 Sepulchre 2008, "Optimization Algorithms on Matrix Manifolds", sec. 4.1). It returns the sums of
 the cost's terms, which `cost_of_sums` weights and adds in the ranges' order; `range_cost` runs
 it over the ranges of `_compiled_smoother_ranges.cost_ranges`, the second on a thread of its own.
 A trial may keep each sample's transcendental results for the linearisation at its point
-(`keep`, read back by `_compiled_smoother_linearize.linearize_kernel`).
+(`keep`, read back by `_compiled_smoother_linearize.linearize`).
 
 numba keys a cached kernel on its own file only: `_kernel_cache.forget_stale_kernels` drops this
 module's cache when a file whose kernels it compiles changes.
@@ -21,27 +21,29 @@ from fusion import quaternion as quat
 from . import _compiled_smoother_terms as terms
 from ._compiled import _jit
 from ._compiled_smoother_ranges import cost_ranges, run_beside
-from ._compiled_smoother_terms import (acc_term, calibration, fill3, keep_mag, keep_step, load_quat, mag_residual,
-                                       motion_residual, qexp, qlog, qmul, qnormalize, rest_residual, rotation,
-                                       step_rotvec, total_cost)
+from ._compiled_smoother_terms import (exp_floats, fill3, keep_mag, keep_step, load_quat, log_floats, mag_residual,
+                                       motion_residual, multiply_floats, normalize_floats, rest_residual, robust_terms,
+                                       rotation_floats, split_theta, step_rotvec, total_cost)
 from ._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
 
 
 @_jit
-def moved(q, x, alpha, kind, t, o, q_out, write):
+def retract(q, x, alpha, kind, t, o, q_out, write):
     """q_t (kind 0), or q_t retracted by alpha x_t[:3] (kind 1: q exp([0, alpha x / 2]); kind 2:
-    normalise(q + q * [0, alpha x / 2])), then written to q_out[t] if `write`."""
+    normalise(q + q * [0, alpha x / 2]); Absil et al. 2008, sec. 4.1), then written to q_out[t] if `write`.
+
+    Reference: fusion.estimators.smoother.retract"""
     qt = load_quat(q, t)
     if kind == 0:
         return qt
     dx, dy, dz = alpha * x[t, 0], alpha * x[t, 1], alpha * x[t, 2]
     if kind == 1:
-        m = qnormalize(qmul(qt, qexp(dx, dy, dz, o.small_angle)))
+        m = normalize_floats(multiply_floats(qt, exp_floats(dx, dy, dz, o.small_angle)))
     else:
-        d = qmul(qt, (0.0, dx, dy, dz))
-        m = qnormalize((qt[0] + 0.5 * d[0], qt[1] + 0.5 * d[1], qt[2] + 0.5 * d[2], qt[3] + 0.5 * d[3]))
+        d = multiply_floats(qt, (0.0, dx, dy, dz))
+        m = normalize_floats((qt[0] + 0.5 * d[0], qt[1] + 0.5 * d[1], qt[2] + 0.5 * d[2], qt[3] + 0.5 * d[3]))
     if write:
         for i in range(4):
             q_out[t, i] = m[i]
@@ -49,21 +51,23 @@ def moved(q, x, alpha, kind, t, o, q_out, write):
 
 
 @_jit
-def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
+def cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
     """The cost's terms (`SmootherProblem.cost`) over the samples t0 <= t < t1 and their steps to
     t + 1, at q (T, 4), v (T, V) m/s, theta (P,); or, with kind 1 (geodesic) or 2 (normalise), at
     the point moved by alpha times the step x (T, B): q_out_t = retraction of q_t by alpha x_t[:3]
-    (`gd.GradientDescentSmoother.retract`, `quaternion.retract`), v_out = v + alpha x[:, 3:], both
+    (`retract`), v_out = v + alpha x[:, 3:], both
     written for t0 <= t < t1 (the step from t1 - 1 reads q_t1 moved, and leaves it to its own range).
     sums[:7] = the sums of the terms: acc (with its 1/2), motion, velocity, zero velocity, rest
     (weighted squares), magnetometer (with its 1/2), and the anchor's |r_0|^2 (0 unless t0 = 0):
     `total_cost` of them is the cost (`range_cost`). If keep (T, 5, 5) has rows, each step's
     u_t = exp(phi_t / 2) and motion residual r_m,t (`keep_step`), each sample's accelerometer cost
     term and IRLS weight (keep[t, 1, 3:5]) and magnetometer residual (`keep_mag`) are written to
-    it, for the linearisation at this point (`linearize_kernel`'s `kept`)."""
+    it, for the linearisation at this point (`linearize`'s `kept`).
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.cost"""
     T = q.shape[0]
     V = v.shape[1]
-    b, k = calibration(p, theta)
+    b, k = split_theta(p, theta)
     cost_acc = cost_motion = cost_vel = cost_vzero = cost_rest = cost_mag = 0.0  # the sums of the terms
     R = np.empty((3, 3))
     Rn = np.empty((3, 3))
@@ -71,11 +75,11 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
     qt = (0.0, 0.0, 0.0, 0.0)
     for t in range(t0, t1):
         if t == t0:
-            qt = moved(q, x, alpha, kind, t, o, q_out, True)
+            qt = retract(q, x, alpha, kind, t, o, q_out, True)
             if kind:
                 for i in range(V):
                     v_out[t, i] = v[t, i] + alpha * x[t, 3 + i]
-            fill3(R, rotation(qt))
+            fill3(R, rotation_floats(qt))
         else:
             qt = qn
             for i in range(3):
@@ -85,13 +89,13 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
         r0 = p.acc[t, 0] - R[2, 0]
         r1 = p.acc[t, 1] - R[2, 1]
         r2 = p.acc[t, 2] - R[2, 2]
-        c, w = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+        c, w = robust_terms(p.loss, p.loss_c, p.w_acc[t], r0 * r0 + r1 * r1 + r2 * r2)
         cost_acc += c
         if keep.shape[0]:
             keep[t, 1, 3], keep[t, 1, 4] = c, w
         if len(p.w_mag) and p.w_mag[t] > 0.0:
             rh, k0, k1, k2 = mag_residual(p, t, qt)
-            c, w = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+            c, w = robust_terms(p.mag_loss, p.mag_c, p.w_mag[t], rh * rh)
             cost_mag += c
             if keep.shape[0]:
                 keep_mag(keep, t, (rh, k0, k1, k2, c, w))
@@ -100,7 +104,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
         if t == T - 1:
             break
         mine = t + 1 < t1  # sample t + 1 is in this range: written here
-        qn = moved(q, x, alpha, kind, t + 1, o, q_out, mine)
+        qn = retract(q, x, alpha, kind, t + 1, o, q_out, mine)
         vn0, vn1 = 0.0, 0.0  # v_t+1 (V = 2)
         if V:
             vn0, vn1 = v[t + 1, 0], v[t + 1, 1]
@@ -108,9 +112,9 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
                 vn0, vn1 = vn0 + alpha * x[t + 1, 3], vn1 + alpha * x[t + 1, 4]
                 if mine:
                     v_out[t + 1, 0], v_out[t + 1, 1] = vn0, vn1
-        fill3(Rn, rotation(qn))
+        fill3(Rn, rotation_floats(qn))
         phi = step_rotvec(p, b, k, t)
-        u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+        u = exp_floats(phi[0], phi[1], phi[2], o.small_angle)
         r = motion_residual(qt, qn, u)
         if keep.shape[0]:
             keep_step(keep, t, u, r)
@@ -132,7 +136,7 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
             cost_rest += p.w_rest[t] * s
     prior_sq = 0.0
     if t0 == 0:
-        r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
+        r = log_floats(multiply_floats((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]),
                       (q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3]) if kind else load_quat(q, 0)))
         prior_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
     sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6] = \
@@ -141,7 +145,9 @@ def cost_kernel(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, s
 
 @_jit
 def cost_of_sums(p, theta, V, sums):
-    """The cost from `cost_kernel`'s sums of its ranges (R, 7), added in the ranges' order."""
+    """The cost from `cost`'s sums of its ranges (R, 7), added in the ranges' order.
+
+    Reference: none (the ranges' sums added, then `total_cost`)"""
     total = np.zeros(7)
     for i in range(sums.shape[0]):
         for j in range(7):
@@ -151,14 +157,14 @@ def cost_of_sums(p, theta, V, sums):
 
 
 def range_cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep) -> float:
-    """`cost_kernel` over the whole recording, in the one or two ranges of `cost_ranges` (the second
-    on a thread of its own): the cost, with q_out, v_out and keep written as `cost_kernel` says."""
+    """`cost` over the whole recording, in the one or two ranges of `cost_ranges` (the second
+    on a thread of its own): the cost, with q_out, v_out and keep written as `cost` says."""
     bounds = cost_ranges(len(q))
     sums = np.zeros((len(bounds) - 1, 7))
     args = (p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep)
-    second = run_beside(cost_kernel, *args, bounds[1], bounds[2], sums[1]) if len(bounds) == 3 else None
+    second = run_beside(cost, *args, bounds[1], bounds[2], sums[1]) if len(bounds) == 3 else None
     try:
-        cost_kernel(*args, 0, bounds[1], sums[0])
+        cost(*args, 0, bounds[1], sums[0])
     finally:  # the second range writes into the caller's arrays: never leave it running
         if second is not None:
             second()

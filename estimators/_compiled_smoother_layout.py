@@ -22,7 +22,7 @@ from fusion.types import STANDARD_GRAVITY_M_S2
 
 from .smoother_cost import LOSSES, SmootherProblem
 
-# Modes of `linearize_kernel`.
+# Modes of `linearize`.
 GRADIENT, BLOCKS, ELIMINATE, FROM_BLOCKS = 0, 1, 2, 3
 
 # The problem as the kernels read it (`problem_arrays`), and the constants of the maths.

@@ -5,7 +5,7 @@ whole recording, linearises it and solves the block-tridiagonal normal equations
 calibration border. The numpy reference (`SmootherProblem.linearize`, `solve_normal_equations`,
 `gd.Preconditioner`) does this in whole-array operations, each of which builds (T, 3, 3) or
 (T, 5, 5) temporaries, writes the matrix to LAPACK's band storage and solves it there, with
-the border as P extra right-hand sides. Here one pass over the samples (`linearize_kernel`)
+the border as P extra right-hand sides. Here one pass over the samples (`linearize`)
 computes the cost, the gradient and the Gauss-Newton blocks of each sample from a few registers'
 worth of local data and eliminates them at once, so nothing per sample is kept but what the
 back-substitution (`back_substitute`) needs.
@@ -53,9 +53,9 @@ from . import _compiled_smoother_layout as layout
 from . import _compiled_smoother_terms as terms
 from ._compiled import _jit
 from ._compiled_smoother_layout import BLOCKS, ELIMINATE, FROM_BLOCKS
-from ._compiled_smoother_terms import (acc_term, calibration, fill3, kept_mag, kept_step, load_quat, mag_residual,
-                                       motion_residual, qexp, qlog, qmul, rest_residual, right_jacobian,
-                                       right_jacobian_inv, rotation, step_rotvec, total_cost)
+from ._compiled_smoother_terms import (exp_floats, fill3, kept_mag, kept_step, load_quat, log_floats, mag_residual,
+                                       motion_residual, multiply_floats, rest_residual, right_jacobian, right_jacobian_inv,
+                                       robust_terms, rotation_floats, split_theta, step_rotvec, total_cost)
 from ._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
@@ -65,7 +65,9 @@ forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 def ldl5(S):
     """S = L diag(d) L^T for the lower triangle of the 5 x 5 S, L unit lower triangular (no
     square roots: Golub & Van Loan 2013, sec. 4.1.2): (positive definite, L below the diagonal
-    row by row (10 scalars), 1 / d (5 scalars))."""
+    row by row (10 scalars), 1 / d (5 scalars)).
+
+    Reference: none (the elimination's pivot block; the reference solves with LAPACK's banded Cholesky)"""
     d0 = S[0, 0]
     r0 = 1.0 / d0
     e10, e20, e30, e40 = S[1, 0], S[2, 0], S[3, 0], S[4, 0]  # E = L diag(d), column 0
@@ -90,7 +92,9 @@ def ldl5(S):
 
 @_jit
 def ldl_solve5(L, r, b0, b1, b2, b3, b4):
-    """S^-1 b for S = L diag(1 / r) L^T (`ldl5`), five scalars in and out."""
+    """S^-1 b for S = L diag(1 / r) L^T (`ldl5`), five scalars in and out.
+
+    Reference: none (the elimination's pivot block; the reference solves with LAPACK's banded Cholesky)"""
     l10, l20, l21, l30, l31, l32, l40, l41, l42, l43 = L
     y1 = b1 - l10 * b0
     y2 = b2 - l20 * b0 - l21 * y1
@@ -105,9 +109,9 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
 
 
 @_jit
-def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-                     grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept,
-                     t0, t1, carry):
+def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
+              grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept,
+              t0, t1, carry):
     """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
     (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
     definite (mode ELIMINATE).
@@ -122,7 +126,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
 
     kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
-    accelerometer term and magnetometer residual at this very point (q, theta), as `cost_kernel`
+    accelerometer term and magnetometer residual at this very point (q, theta), as `cost`
     computed them for a trial step here (`keep_step`, `keep_mag`): read, not computed again (the
     same numbers). It may be M itself: row t is read before M's row t is written.
 
@@ -134,13 +138,15 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     off, cross: the BLOCKS range's rows; theta_block, grad_theta: the last range's) as ELIMINATE
     would have, the same arithmetic in the same order, with H[t-1, t] in carry[:25] between ranges;
     returns 0 (nan: not positive definite). A whole pass is t0 = 0, t1 = T, carry without rows.
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.linearize
     """
     T = q.shape[0]
     V = v.shape[1]
     B = 3 + V
     P = len(theta)
     F = len(free)
-    b, k = calibration(p, theta)
+    b, k = split_theta(p, theta)
     rows = M.shape[0]
     external = rhs_q.shape[0] > 0
     ranged = carry.shape[0] > 0
@@ -186,7 +192,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
         carry_state(carry, False, Dn, gn, Cn, sums, gth, G)
         cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_prior, cost_mag = sums
     qn = load_quat(q, t0)
-    rn = rotation(qn)
+    rn = rotation_floats(qn)
     for t in range(t0, t1):
         if mode == FROM_BLOCKS:  # the blocks a BLOCKS pass over this range wrote (row t - t0)
             tr = t - t0
@@ -221,7 +227,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             if kept.shape[0]:
                 ca, wa = kept[t, 1, 3], kept[t, 1, 4]
             else:
-                ca, wa = acc_term(r0 * r0 + r1 * r1 + r2 * r2, p.w_acc[t], p.loss, p.loss_c)
+                ca, wa = robust_terms(p.loss, p.loss_c, p.w_acc[t], r0 * r0 + r1 * r1 + r2 * r2)
             cost_acc += ca
             y0, y1, y2 = wa * r0, wa * r1, wa * r2
             g[0] += h1 * y2 - h2 * y1
@@ -237,7 +243,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
                 else:
                     rh, k0, k1, k2 = mag_residual(p, t, qt)
-                    cm, wh = acc_term(rh * rh, p.w_mag[t], p.mag_loss, p.mag_c)
+                    cm, wh = robust_terms(p.mag_loss, p.mag_c, p.w_mag[t], rh * rh)
                 cost_mag += cm
                 jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
                       R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
@@ -246,7 +252,7 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     for j in range(i + 1):
                         D[i, j] += wh * jh[i] * jh[j]
             if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
-                r = qlog(qmul((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
+                r = log_floats(multiply_floats((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
                 cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
                 fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
                 for i in range(3):
@@ -261,19 +267,19 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                     D[3 + i, 3 + i] += wz
             if t < T - 1:
                 qn = load_quat(q, t + 1)
-                rn = rotation(qn)
+                rn = rotation_floats(qn)
                 fill3(Rn, rn)
                 # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
                 phi = step_rotvec(p, b, k, t)
                 if kept.shape[0]:  # computed by the trial that reached this point
                     u, r = kept_step(kept, t)
                 else:
-                    u = qexp(phi[0], phi[1], phi[2], o.small_angle)
+                    u = exp_floats(phi[0], phi[1], phi[2], o.small_angle)
                     r = motion_residual(qt, qn, u)
                 wm = p.w_motion[t]
                 cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
                 fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
-                fill3(Ru, rotation(u))
+                fill3(Ru, rotation_floats(u))
                 wr = (wm * r[0], wm * r[1], wm * r[2])
                 atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
                        A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
@@ -472,7 +478,9 @@ def linearize_kernel(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
 
 @_jit
 def carry_block(carry, at, block, store):
-    """Copy the C-contiguous array `block` to carry[at:] (store) or from there; -> the offset after it."""
+    """Copy the C-contiguous array `block` to carry[at:] (store) or from there; -> the offset after it.
+
+    Reference: none (the hand-over between ranges)"""
     flat = block.reshape(-1)
     for i in range(flat.size):
         if store:
@@ -486,7 +494,9 @@ def carry_block(carry, at, block, store):
 def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
     """A BLOCKS range's state to its carry (store) or from it, in one layout: what the last step
     adds to the next sample (Dn 5 x 5, gn 5, Cn 5 x P), the cost's seven sums, the calibration
-    gradient gth (P) and block G (P x P): `range_carry_size` numbers."""
+    gradient gth (P) and block G (P x P): `range_carry_size` numbers.
+
+    Reference: none (the hand-over between ranges)"""
     at = carry_block(carry, 0, Dn, store)
     at = carry_block(carry, at, gn, store)
     at = carry_block(carry, at, Cn, store)
@@ -496,14 +506,16 @@ def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
 
 
 def range_carry_size(P: int) -> int:
-    """The length of `linearize_kernel`'s carry (`carry_state`) with P calibration variables; at
+    """The length of `linearize`'s carry (`carry_state`) with P calibration variables; at
     least the 25 of FROM_BLOCKS's H[t-1, t]."""
     return 25 + 5 + 5 * P + 7 + P + P * P
 
 
 @_jit
 def back_substitute(M, c, N, x_theta):
-    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring), into c (T, 5)."""
+    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring), into c (T, 5).
+
+    Reference: none (the back-substitution of the elimination; the reference solves with LAPACK)"""
     T = c.shape[0]
     F = len(x_theta)
     nxt = np.zeros(5)

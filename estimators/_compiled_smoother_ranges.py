@@ -1,6 +1,6 @@
 """How the compiled smoothers split a long recording over two threads, and the threads.
 
-The cost of a trial point (`_compiled_smoother_cost.cost_kernel`, a third of an iteration) needs
+The cost of a trial point (`_compiled_smoother_cost.cost`, a third of an iteration) needs
 no recursion over the samples: on a recording of `SPLIT_MIN_SAMPLES` or more it runs as two ranges
 of samples on two threads (`range_cost`; the kernels release the GIL), each writing its own rows,
 and their sums are added in a fixed order. The split depends on the number of samples alone, so

@@ -2,8 +2,8 @@
 
 `dead_reckoning` integrates the gyro as `fusion.estimators.dr.DeadReckoning` does (a sequential
 product where the reference takes a parallel scan: the same products in another order),
-`levelled_kernel` re-levels it window by window as `smoother.levelled`; `dead_reckoned` and
-`levelled` call them on an `ImuSamples`. `norm_error` is `SolverLog`'s measure of the
+`levelled` re-levels it window by window as `smoother.levelled`; `dead_reckoned` and
+`levelled_trajectory` call them on an `ImuSamples`. `norm_error` is `SolverLog`'s measure of the
 retraction's drift off the unit sphere, `dot` the slope g.p of `ReferenceOps.slope` without a
 temporary.
 
@@ -20,7 +20,7 @@ from fusion import quaternion as quat
 
 from . import _compiled_smoother_terms as terms
 from ._compiled import _jit
-from ._compiled_smoother_terms import fill3, load_quat, qexp, qmul, qnormalize, rotation
+from ._compiled_smoother_terms import fill3, load_quat, exp_floats, multiply_floats, normalize_floats, rotation_floats
 from ._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
@@ -30,24 +30,28 @@ forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
 def dead_reckoning(gyr, valid, dt, q0, small, out):
     """out (T, 4): q_0 = q0, q_{k+1} = q_k exp([0, w_k dt_k / 2]) (0 where invalid), each row
     normalised (`dr.DeadReckoning`, whose parallel scan gives the same products in another
-    order, and `smoother.initial_trajectory`, which normalises)."""
-    q = qnormalize((q0[0], q0[1], q0[2], q0[3]))
+    order, and `smoother.initial_trajectory`, which normalises).
+
+    Reference: none (`fusion.estimators.dr.DeadReckoning`'s scan, as a sequential product)"""
+    q = normalize_floats((q0[0], q0[1], q0[2], q0[3]))
     for i in range(4):
         out[0, i] = q[i]
     for k in range(len(dt)):
         if valid[k]:
-            u = qexp(gyr[k, 0] * dt[k], gyr[k, 1] * dt[k], gyr[k, 2] * dt[k], small)
+            u = exp_floats(gyr[k, 0] * dt[k], gyr[k, 1] * dt[k], gyr[k, 2] * dt[k], small)
         else:
             u = (1.0, 0.0, 0.0, 0.0)
-        q = qnormalize(qmul(q, u))
+        q = normalize_floats(multiply_floats(q, u))
         for i in range(4):
             out[k + 1, i] = q[i]
 
 
 @_jit
-def levelled_kernel(t, acc, q, window_s, small, out):
+def levelled(t, acc, q, window_s, small, out):
     """out (T, 4): q (T, 4) turned window by window so that the mean world-frame specific force
-    of each window points up (`smoother.levelled`, line by line; the first window is q)."""
+    of each window points up (line by line; the first window is q). t (T,) s, acc (T, 3) g.
+
+    Reference: fusion.estimators.smoother.levelled"""
     T = len(t)
     n = int(math.floor((t[T - 1] - t[0]) / window_s)) + 1
     mean = np.zeros((n, 3))
@@ -59,7 +63,7 @@ def levelled_kernel(t, acc, q, window_s, small, out):
         w = 0.5 * (t[k + 1] - t[k]) if k < T - 1 else 0.0  # `sample_durations`
         if k > 0:
             w += 0.5 * (t[k] - t[k - 1])
-        fill3(R, rotation(load_quat(q, k)))
+        fill3(R, rotation_floats(load_quat(q, k)))
         j = int(math.floor((t[k] - t[0]) / window_s))
         for i in range(3):
             mean[j, i] += w * (R[i, 0] * a0 + R[i, 1] * a1 + R[i, 2] * a2)
@@ -73,19 +77,21 @@ def levelled_kernel(t, acc, q, window_s, small, out):
             c = (1.0, 0.0, 0.0, 0.0)
         else:
             f = math.atan2(sin, uz) / sin
-            c = qexp(uy * f, -ux * f, 0.0, small)
+            c = exp_floats(uy * f, -ux * f, 0.0, small)
         for i in range(4):
             corr[j, i] = c[i]
     for k in range(T):
         j = int(math.floor((t[k] - t[0]) / window_s))
-        m = load_quat(q, k) if j == 0 else qnormalize(qmul((corr[j, 0], corr[j, 1], corr[j, 2], corr[j, 3]), load_quat(q, k)))
+        m = load_quat(q, k) if j == 0 else normalize_floats(multiply_floats((corr[j, 0], corr[j, 1], corr[j, 2], corr[j, 3]), load_quat(q, k)))
         for i in range(4):
             out[k, i] = m[i]
 
 
 @_jit
 def dot(a, b):
-    """sum of a * b over (T, B) arrays, without a temporary."""
+    """sum of a * b over (T, B) arrays, without a temporary.
+
+    Reference: none (`ReferenceOps.slope`'s np.sum(grad_q * d_q))"""
     s = 0.0
     for t in range(a.shape[0]):
         for i in range(a.shape[1]):
@@ -95,7 +101,9 @@ def dot(a, b):
 
 @_jit
 def norm_error(q):
-    """max |(|q_t|) - 1| (`smoother.SolverLog`)."""
+    """max |(|q_t|) - 1| over q (T, 4) (`smoother.SolverLog`).
+
+    Reference: fusion.estimators.smoother.norm_error"""
     worst = 0.0
     for t in range(q.shape[0]):
         e = abs(math.sqrt(q[t, 0] ** 2 + q[t, 1] ** 2 + q[t, 2] ** 2 + q[t, 3] ** 2) - 1.0)
@@ -113,10 +121,10 @@ def dead_reckoned(imu, init_quat_wxyz: np.ndarray) -> np.ndarray:
     return q
 
 
-def levelled(imu, quat_wxyz: np.ndarray, window_s: float) -> np.ndarray:
-    """(T, 4) `smoother.levelled` by the kernel (`levelled_kernel`)."""
+def levelled_trajectory(imu, quat_wxyz: np.ndarray, window_s: float) -> np.ndarray:
+    """(T, 4) `smoother.levelled(imu, quat_wxyz, window_s)` by the kernel (`levelled`)."""
     out = np.empty((len(imu), 4))
-    levelled_kernel(np.ascontiguousarray(imu.t, float), np.ascontiguousarray(imu.acc_g, float),
+    levelled(np.ascontiguousarray(imu.t, float), np.ascontiguousarray(imu.acc_g, float),
                     np.ascontiguousarray(quat_wxyz, float), float(window_s), float(quat.SMALL_ANGLE), out)
     return out
 

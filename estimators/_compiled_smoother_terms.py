@@ -30,52 +30,39 @@ from ._kernel_cache import forget_stale_kernels
 forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
 
 
-# ============================================================================ scalar helpers
-# `fusion.quaternion`'s scalar path, compiled: one definition for numpy, Python and the kernels.
-qmul = _jit(quat.multiply_floats)
-qexp = _jit(quat.exp_floats)
-qlog = _jit(quat.log_floats)
-qnormalize = _jit(quat.normalize_floats)
-rotation = _jit(quat.rotation_floats)  # R(q) as 9 scalars, row by row
+# `fusion.quaternion`'s scalar path, compiled under its own names: one definition for numpy, Python
+# and the kernels.
+multiply_floats = _jit(quat.multiply_floats)
+exp_floats = _jit(quat.exp_floats)
+log_floats = _jit(quat.log_floats)
+normalize_floats = _jit(quat.normalize_floats)
+rotation_floats = _jit(quat.rotation_floats)  # R(q) as 9 scalars, row by row
 
 
 @_jit
 def load_quat(q, t):
+    """q[t] (q (T, 4)) as 4 scalars.
+
+    Reference: none (how the kernels read a row)"""
     return (q[t, 0], q[t, 1], q[t, 2], q[t, 3])
 
 
 @_jit
-def right_jacobian_inv(x, y, z, o):
-    """J_r^-1(v) = I + [v]x / 2 + C [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian_inv`)."""
-    c = series(math.sqrt(x * x + y * y + z * z), 2, o)
-    return (1.0 + c * (-z * z - y * y), -0.5 * z + c * (x * y), 0.5 * y + c * (x * z),
-            0.5 * z + c * (x * y), 1.0 + c * (-z * z - x * x), -0.5 * x + c * (y * z),
-            -0.5 * y + c * (x * z), 0.5 * x + c * (y * z), 1.0 + c * (-y * y - x * x))
-
-
-@_jit
-def right_jacobian(x, y, z, o):
-    """J_r(v) = I - A [v]x + B [v]x^2 as 9 scalars, row by row (`quaternion.right_jacobian`)."""
-    t = math.sqrt(x * x + y * y + z * z)
-    a = series(t, 0, o)
-    b = series(t, 1, o)
-    return (1.0 + b * (-z * z - y * y), a * z + b * (x * y), -a * y + b * (x * z),
-            -a * z + b * (x * y), 1.0 + b * (-z * z - x * x), a * x + b * (y * z),
-            a * y + b * (x * z), -a * x + b * (y * z), 1.0 + b * (-y * y - x * x))
-
-
-@_jit
 def fill3(M, v):
-    """M (3, 3) = the 9 scalars v, row by row."""
+    """M (3, 3) = the 9 scalars v, row by row.
+
+    Reference: none (how the kernels keep a 3 x 3 matrix)"""
     for i in range(3):
         for j in range(3):
             M[i, j] = v[3 * i + j]
 
 
 @_jit
-def series(t, kind, o):
-    """The coefficient `kind` (0: A, 1: B, 2: C of `quaternion._A/_B/_C`) at angle t: the closed
-    form above `JACOBIAN_SERIES_RAD`, the Taylor series below (`quaternion._series`)."""
+def _series_float(t, kind, o):
+    """The coefficient `kind` (0: A, 1: B, 2: C of `quaternion._A/_B/_C`; Sola et al. 2018, eqs.
+    143-146) at angle t: the closed form above `JACOBIAN_SERIES_RAD`, the Taylor series below.
+
+    Reference: fusion.quaternion._series_float"""
     if t > o.series_rad:
         if kind == 0:
             return (1.0 - math.cos(t)) / t**2
@@ -88,65 +75,34 @@ def series(t, kind, o):
 
 
 @_jit
-def step_rotvec(p, b, k, t):
-    """phi_t = ((1 + k) g_t - b) dt_t, zero on an invalid step (`SmootherProblem.step_rotvec`)."""
-    if not p.valid[t]:
-        return (0.0, 0.0, 0.0)
-    dt = p.dt[t]
-    return (((1.0 + k[0]) * p.gyr[t, 0] - b[0]) * dt, ((1.0 + k[1]) * p.gyr[t, 1] - b[1]) * dt,
-            ((1.0 + k[2]) * p.gyr[t, 2] - b[2]) * dt)
+def right_jacobian_inv(x, y, z, o):
+    """J_r^-1(v) = I + [v]x / 2 + C [v]x^2 (Sola et al. 2018, eq. 144) as 9 scalars, row by row.
+
+    Reference: fusion.quaternion.right_jacobian_inv"""
+    c = _series_float(math.sqrt(x * x + y * y + z * z), 2, o)
+    return (1.0 + c * (-z * z - y * y), -0.5 * z + c * (x * y), 0.5 * y + c * (x * z),
+            0.5 * z + c * (x * y), 1.0 + c * (-z * z - x * x), -0.5 * x + c * (y * z),
+            -0.5 * y + c * (x * z), 0.5 * x + c * (y * z), 1.0 + c * (-y * y - x * x))
 
 
 @_jit
-def motion_residual(qa, qb, u):
-    """2 log(q_b^-1 q_a u) (`SmootherProblem.motion_residual`)."""
-    return qlog(qmul(qmul((qb[0], -qb[1], -qb[2], -qb[3]), qa), u))
+def right_jacobian(x, y, z, o):
+    """J_r(v) = I - A [v]x + B [v]x^2 (Sola et al. 2018, eq. 143) as 9 scalars, row by row.
+
+    Reference: fusion.quaternion.right_jacobian"""
+    t = math.sqrt(x * x + y * y + z * z)
+    a = _series_float(t, 0, o)
+    b = _series_float(t, 1, o)
+    return (1.0 + b * (-z * z - y * y), a * z + b * (x * y), -a * y + b * (x * z),
+            -a * z + b * (x * y), 1.0 + b * (-z * z - x * x), a * x + b * (y * z),
+            a * y + b * (x * z), -a * x + b * (y * z), 1.0 + b * (-y * y - x * x))
 
 
 @_jit
-def acc_term(sq, w, loss, c):
-    """(cost term, IRLS weight) of one accelerometer residual of squared norm sq
-    (`SmootherProblem.acc_terms`, `smoother_cost.robust_loss`)."""
-    if loss == 0:
-        return 0.5 * w * sq, w
-    c2 = c * c
-    s = sq / c2
-    if loss == 1:  # huber
-        root = math.sqrt(s)
-        if root <= 1.0:
-            rho, drho = s, 1.0
-        else:
-            rho, drho = 2.0 * root - 1.0, 1.0 / max(root, 1e-300)
-    elif loss == 2:  # cauchy
-        rho, drho = math.log1p(s), 1.0 / (1.0 + s)
-    else:  # geman-mcclure
-        rho, drho = s / (1.0 + s), 1.0 / (1.0 + s) ** 2
-    return 0.5 * w * c2 * rho, w * drho
+def split_theta(p, theta):
+    """theta -> (bias (3,) rad/s, scale error (3,)).
 
-
-@_jit
-def mag_residual(p, t, qt):
-    """The magnetometer's heading residual at sample t, q_t = qt (`SmootherProblem.mag_residual`):
-    (r_h rad, k0, k1, k2)."""
-    d = qmul(qt, (p.mag_ref[t, 0], -p.mag_ref[t, 1], -p.mag_ref[t, 2], -p.mag_ref[t, 3]))
-    dw, dx, dy, dz = d
-    n2 = dw * dw + dz * dz
-    x = p.mag_psi[t] + 2.0 * math.atan2(dz, dw)
-    r = x - 2.0 * math.pi * math.floor((x + math.pi) / (2.0 * math.pi))
-    safe = n2 if n2 > 0.0 else 1.0
-    return r, (dw * dy + dz * dx) / safe, (dz * dy - dw * dx) / safe, 1.0
-
-
-@_jit
-def rest_residual(p, b, k, t, i):
-    """Rest residual of step t on the i-th bias variable's axis, and that axis."""
-    ax = p.theta_axis[i]
-    return (1.0 + k[ax]) * p.gyr[t, ax] - b[ax], ax
-
-
-@_jit
-def calibration(p, theta):
-    """theta -> (bias (3,), scale error (3,)) (`SmootherProblem.split_theta`)."""
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.split_theta"""
     b = np.zeros(3)
     k = np.zeros(3)
     for i in range(len(theta)):
@@ -158,8 +114,102 @@ def calibration(p, theta):
 
 
 @_jit
+def step_rotvec(p, b, k, t):
+    """phi_t = ((1 + k) g_t - b) dt_t, zero on an invalid step.
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.step_rotvec"""
+    if not p.valid[t]:
+        return (0.0, 0.0, 0.0)
+    dt = p.dt[t]
+    return (((1.0 + k[0]) * p.gyr[t, 0] - b[0]) * dt, ((1.0 + k[1]) * p.gyr[t, 1] - b[1]) * dt,
+            ((1.0 + k[2]) * p.gyr[t, 2] - b[2]) * dt)
+
+
+@_jit
+def motion_residual(qa, qb, u):
+    """r_m = 2 log(q_b^-1 q_a u), rad.
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.motion_residual"""
+    return log_floats(multiply_floats(multiply_floats((qb[0], -qb[1], -qb[2], -qb[3]), qa), u))
+
+
+@_jit
+def robust_loss(kind, s):
+    """(rho(s), rho'(s)) of the robust loss `kind` (its index in `smoother_cost.LOSSES`) at the
+    normalised squared residual s = |r|^2 / c^2.
+
+    Reference: fusion.estimators.smoother_cost.robust_loss"""
+    if kind == 0:  # none
+        return s, 1.0
+    if kind == 1:  # huber
+        root = math.sqrt(s)
+        if root <= 1.0:
+            return s, 1.0
+        return 2.0 * root - 1.0, 1.0 / max(root, 1e-300)
+    if kind == 2:  # cauchy
+        return math.log1p(s), 1.0 / (1.0 + s)
+    return s / (1.0 + s), 1.0 / (1.0 + s) ** 2  # geman-mcclure
+
+
+@_jit
+def robust_terms(kind, c, w, sq):
+    """(cost term 1/2 w c^2 rho(sq / c^2), IRLS weight w rho') of one residual of squared norm sq,
+    information w and loss `kind` (index in `smoother_cost.LOSSES`) of scale c: the accelerometer's
+    (`SmootherProblem.acc_terms`) and the magnetometer's (`mag_terms`) term of one sample.
+
+    Reference: fusion.estimators.smoother_cost.robust_terms"""
+    if kind == 0:
+        return 0.5 * w * sq, w
+    c2 = c * c
+    rho, drho = robust_loss(kind, sq / c2)
+    return 0.5 * w * c2 * rho, w * drho
+
+
+@_jit
+def mag_residual(p, t, qt):
+    """The magnetometer's heading residual at sample t, q_t = qt: (r_h rad, k0, k1, k2)
+    (`smoother_cost`'s module docstring).
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.mag_residual"""
+    d = multiply_floats(qt, (p.mag_ref[t, 0], -p.mag_ref[t, 1], -p.mag_ref[t, 2], -p.mag_ref[t, 3]))
+    dw, dx, dy, dz = d
+    n2 = dw * dw + dz * dz
+    x = p.mag_psi[t] + 2.0 * math.atan2(dz, dw)
+    r = x - 2.0 * math.pi * math.floor((x + math.pi) / (2.0 * math.pi))
+    safe = n2 if n2 > 0.0 else 1.0
+    return r, (dw * dy + dz * dx) / safe, (dz * dy - dw * dx) / safe, 1.0
+
+
+@_jit
+def rest_residual(p, b, k, t, i):
+    """The rest residual of step t on the i-th bias variable's axis, rad/s, and that axis.
+
+    Reference: fusion.estimators.smoother_cost.SmootherProblem.rest_residual"""
+    ax = p.theta_axis[i]
+    return (1.0 + k[ax]) * p.gyr[t, ax] - b[ax], ax
+
+
+@_jit
+def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
+    """The cost from its terms' sums: acc (with its 1/2), and the weighted squared residuals of
+    motion, velocity, zero velocity and rest, the anchor's |r_0|^2; the calibration prior from theta.
+
+    Reference: none (the last lines of `SmootherProblem.cost`, which sums whole arrays)"""
+    prior = 0.0
+    for i in range(len(theta)):
+        prior += p.w_theta[i] * theta[i] ** 2
+    total = acc + 0.5 * (motion + p.w_prior * prior_sq + prior)
+    if V:
+        total += 0.5 * (vel + vzero)
+    return total + 0.5 * rest
+
+
+# ============================================================================ what a trial keeps
+@_jit
 def keep_step(keep, t, u, r):
-    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1)."""
+    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1).
+
+    Reference: none (what a trial keeps for the linearisation at its point)"""
     for i in range(4):
         keep[t, 0, i] = u[i]
     for i in range(3):
@@ -168,14 +218,18 @@ def keep_step(keep, t, u, r):
 
 @_jit
 def kept_step(kept, t):
-    """(u_t, r_m,t) as `keep_step` stored them."""
+    """(u_t, r_m,t) as `keep_step` stored them.
+
+    Reference: none (what a trial keeps for the linearisation at its point)"""
     return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
 
 
 @_jit
 def keep_mag(keep, t, m):
     """Store sample t's magnetometer residual and its Jacobian's factors (`mag_residual`: r_h, k0, k1,
-    k2) and its (cost term, IRLS weight) (`acc_term`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0])."""
+    k2) and its (cost term, IRLS weight) (`robust_terms`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0]).
+
+    Reference: none (what a trial keeps for the linearisation at its point)"""
     for i in range(5):
         keep[t, 2, i] = m[i]
     keep[t, 3, 0] = m[5]
@@ -183,19 +237,7 @@ def keep_mag(keep, t, m):
 
 @_jit
 def kept_mag(kept, t):
-    """What `keep_mag` stored."""
+    """What `keep_mag` stored.
+
+    Reference: none (what a trial keeps for the linearisation at its point)"""
     return kept[t, 2, 0], kept[t, 2, 1], kept[t, 2, 2], kept[t, 2, 3], kept[t, 2, 4], kept[t, 3, 0]
-
-
-@_jit
-def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
-    """The cost from its terms' sums (`SmootherProblem.cost`): acc (with its 1/2), and the
-    weighted squared residuals of motion, velocity, zero velocity and rest, the anchor's
-    |r_0|^2; the calibration prior from theta."""
-    prior = 0.0
-    for i in range(len(theta)):
-        prior += p.w_theta[i] * theta[i] ** 2
-    total = acc + 0.5 * (motion + p.w_prior * prior_sq + prior)
-    if V:
-        total += 0.5 * (vel + vzero)
-    return total + 0.5 * rest

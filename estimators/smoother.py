@@ -349,12 +349,12 @@ def progress_bar(enabled: bool, total: int, desc: str):
 class SolverLog:
     """What both solvers record at the start and after every accepted step: the cost ("loss"),
     the largest deviation of a quaternion's norm from 1 ("norm_error"; the retraction keeps it
-    at rounding level) and the time since the start ("elapsed_s"). norm_error: the function
-    that measures it (the ops' `norm_error`)."""
+    at rounding level) and the time since the start ("elapsed_s"). measure: the function that
+    measures it (the ops' `norm_error`; None: `norm_error`)."""
 
-    def __init__(self, cost: float, q: np.ndarray, norm_error=None) -> None:
+    def __init__(self, cost: float, q: np.ndarray, measure=None) -> None:
         self._start = time.perf_counter()
-        self._norm_error = _norm_error if norm_error is None else norm_error
+        self._norm_error = norm_error if measure is None else measure
         self.loss, self.norm_error, self.elapsed_s = [cost], [self._norm_error(q)], [0.0]
 
     def record(self, cost: float, q: np.ndarray) -> None:
@@ -367,7 +367,8 @@ class SolverLog:
                 "norm_error": np.array(self.norm_error), "iterations": iterations, "converged": converged}
 
 
-def _norm_error(q: np.ndarray) -> float:
+def norm_error(q: np.ndarray) -> float:
+    """max |(|q_t|) - 1| over q (T, 4): how far the retraction has let the quaternions drift off the sphere."""
     return float(np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)))
 
 
@@ -403,7 +404,7 @@ class ReferenceOps:
 
     def __init__(self, problem: SmootherProblem) -> None:
         self.problem = problem
-        self.norm_error = _norm_error
+        self.norm_error = norm_error
 
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         return self.problem.cost(q, theta, v)
@@ -515,7 +516,7 @@ class BatchSmoother(Estimator):
     def start(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> np.ndarray:
         """(T, 4) the start of the optimisation: the `init` estimator's output, re-levelled every
         `init_level_s` seconds (`levelled`); with impl="compiled", dead reckoning and the
-        levelling by the kernels (`_compiled_smoother_start.dead_reckoned`, `.levelled`)."""
+        levelling by the kernels (`_compiled_smoother_start.dead_reckoned`, `.levelled_trajectory`)."""
         p = self.params
         imu_init = imu.replace(gyr_valid=problem_valid(imu, p))
         if p.impl == "numpy":
@@ -529,7 +530,7 @@ class BatchSmoother(Estimator):
                 raise ValueError(f"{self.name}: initial estimator {p.init!r} returned non-finite orientations")
         else:
             q = initial_trajectory(p.init, self.name, imu_init, init_quat_wxyz)
-        return kernels.levelled(imu, q, p.init_level_s) if p.init_level_s > 0 else q
+        return kernels.levelled_trajectory(imu, q, p.init_level_s) if p.init_level_s > 0 else q
 
     def significant_scales(self, problem: SmootherProblem, q: np.ndarray, diagnostics: dict) -> tuple[np.ndarray, dict]:
         """Keep the released scale errors only if they lower the cost significantly; otherwise

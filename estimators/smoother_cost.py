@@ -120,6 +120,17 @@ def robust_loss(kind: str, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"robust loss {kind!r}: expected one of {', '.join(LOSSES)}")
 
 
+def robust_terms(kind: str, c: float, w: np.ndarray, sq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cost terms `1/2 w c^2 rho(sq / c^2)` and IRLS weights `w rho'` (d term / d r = w rho' r) of
+    residuals of squared norms sq (T,), information w (T,) and robust loss `kind` of scale c
+    (`robust_loss`; "none": 1/2 w sq and w): the accelerometer's and the magnetometer's terms."""
+    if kind == "none":
+        return 0.5 * w * sq, w
+    c2 = c**2
+    rho, drho = robust_loss(kind, sq / c2)
+    return 0.5 * w * c2 * rho, w * drho
+
+
 def sample_durations(t: np.ndarray) -> np.ndarray:
     """(T,) the time each sample stands for, s: half of each neighbouring interval
     (the trapezoidal rule's weights), so that sum_t f_t dt_t approximates the integral of f."""
@@ -332,12 +343,7 @@ class SmootherProblem:
 
     def mag_terms(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(T,) heading cost terms `1/2 w c^2 rho(r^2 / c^2)` and (T,) IRLS weights `w rho'`."""
-        sq = r * r
-        if self.mag_loss == "none":
-            return 0.5 * self.w_mag * sq, self.w_mag
-        c2 = self.mag_c**2
-        rho, drho = robust_loss(self.mag_loss, sq / c2)
-        return 0.5 * self.w_mag * c2 * rho, self.w_mag * drho
+        return robust_terms(self.mag_loss, self.mag_c, self.w_mag, r * r)
 
     # -------------------------------------------------------------- pieces
     @property
@@ -467,12 +473,7 @@ class SmootherProblem:
     def acc_terms(self, r_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(T,) accelerometer cost terms `1/2 w_t c^2 rho(|r_t|^2 / c^2)` and (T,) IRLS weights
         `w_t rho'` (d term / d r = w_t rho' r) for residuals r_a (T, 3), g."""
-        sq = np.sum(r_a**2, axis=1)
-        if self.loss == "none":
-            return 0.5 * self.w_acc * sq, self.w_acc
-        c2 = self.loss_c**2
-        rho, drho = robust_loss(self.loss, sq / c2)
-        return 0.5 * self.w_acc * c2 * rho, self.w_acc * drho
+        return robust_terms(self.loss, self.loss_c, self.w_acc, np.sum(r_a**2, axis=1))
 
     def cost(self, q: np.ndarray, theta: np.ndarray | None = None, v: np.ndarray | None = None) -> float:
         """Total cost at q (T, 4), theta (P,), v (T, V) m/s (None: zero)."""

@@ -12,6 +12,10 @@ summation order of the cost, the elimination order of the solve).
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import inspect
+import pkgutil
+import re
 import tracemalloc
 
 import numpy as np
@@ -256,9 +260,69 @@ def test_start_kernels_equal_dead_reckoning_and_levelled():
     imu = imu.replace(acc_g=acc)
     dr = initial_trajectory("dr", "gn", imu, q0)
     np.testing.assert_allclose(start.dead_reckoned(imu, q0), dr, rtol=0, atol=1e-13)
-    out = start.levelled(imu, dr, 10.0)
+    out = start.levelled_trajectory(imu, dr, 10.0)
     np.testing.assert_allclose(out, levelled(imu, dr, 10.0), rtol=0, atol=1e-15)
     assert start.norm_error(out) == pytest.approx(np.max(np.abs(np.linalg.norm(out, axis=1) - 1.0)), abs=1e-18)
+
+
+# ----------------------------------------------------------------------------- names
+def _kernels() -> dict:
+    """Every compiled kernel of the smoothers' kernel modules (`KERNEL_MODULES`), by the name it is
+    bound to (a kernel imported into another module is the same kernel)."""
+    from numba.core.registry import CPUDispatcher
+
+    out = {}
+    for module_name in KERNEL_MODULES:
+        for name, obj in vars(importlib.import_module(f"fusion.estimators.{module_name}")).items():
+            if isinstance(obj, CPUDispatcher):
+                assert out.setdefault(name, obj) is obj, f"two kernels named {name}"
+    return out
+
+
+def test_every_kernel_carries_its_references_name():
+    """A compiled kernel carries the name of the numpy function it mirrors (STYLE 12). A kernel
+    compiled from another module's function (`fusion.quaternion`'s scalar path) is that function,
+    bound to its name; every other kernel names its reference in its docstring, `Reference:
+    <dotted path>`, which must resolve to a function or method of the numpy side with the kernel's
+    name, or says `Reference: none (<why>)` (the elimination's and the storage's own helpers)."""
+    kernels = _kernels()
+    own_modules = {f"fusion.estimators.{name}" for name in KERNEL_MODULES}
+    references = {}
+    for name, kernel in kernels.items():
+        func = kernel.py_func
+        assert func.__name__ == name, f"the kernel {func.__name__} is bound to the name {name}"
+        if func.__module__ not in own_modules:
+            references[name] = f"{func.__module__}.{func.__qualname__}"
+            continue
+        lines = [line.strip() for line in (func.__doc__ or "").splitlines() if line.strip().startswith("Reference:")]
+        assert len(lines) == 1, f"{name}: one 'Reference:' line in its docstring, found {lines}"
+        reference = lines[0].removeprefix("Reference:").strip()
+        if reference.startswith("none"):
+            assert re.fullmatch(r"none \(.+\)", reference), f"{name}: 'Reference: none (why)', not {reference!r}"
+            continue
+        assert reference.startswith(("fusion.quaternion.", "fusion.estimators.smoother_cost.",
+                                     "fusion.estimators.smoother.")), (name, reference)
+        target = pkgutil.resolve_name(reference)
+        assert callable(target) and target.__name__ == name, f"{name}: its reference {reference} is {target!r}"
+        references[name] = reference
+    # what the solvers run, each under its reference's name
+    assert references["cost"] == "fusion.estimators.smoother_cost.SmootherProblem.cost"
+    assert references["linearize"] == "fusion.estimators.smoother_cost.SmootherProblem.linearize"
+    assert references["retract"] == "fusion.estimators.smoother.retract"
+    assert references["levelled"] == "fusion.estimators.smoother.levelled"
+    assert references["robust_terms"] == "fusion.estimators.smoother_cost.robust_terms"
+
+
+def test_compiled_ops_have_the_reference_ops_interface():
+    """`CompiledOps` has every public method of `ReferenceOps`, with its parameters first."""
+    from fusion.estimators.smoother import ReferenceOps
+
+    methods = [name for name, f in vars(ReferenceOps).items() if callable(f) and not name.startswith("_")]
+    assert set(methods) == {"cost", "trial", "slope", "linearize", "solve", "theta_std"}
+    for name in methods:
+        ref = list(inspect.signature(getattr(ReferenceOps, name)).parameters)
+        got = list(inspect.signature(getattr(cs.CompiledOps, name)).parameters)
+        assert got[:len(ref)] == ref, (name, ref, got)
 
 
 # ----------------------------------------------------------------------------- whole solves
@@ -361,7 +425,7 @@ def test_memory_is_linear_with_a_small_constant(name):
 KERNEL_MODULES = ("_compiled_smoother_terms", "_compiled_smoother_cost", "_compiled_smoother_linearize",
                   "_compiled_smoother_start")
 # The kernels `load` runs from Python; the others run inside them.
-LOADED_KERNELS = ("cost_kernel", "linearize_kernel", "back_substitute", "dead_reckoning", "levelled_kernel", "norm_error", "dot")
+LOADED_KERNELS = ("cost", "linearize", "back_substitute", "dead_reckoning", "levelled", "norm_error", "dot")
 
 _CACHE_STATS = r"""
 import importlib, json
@@ -387,7 +451,7 @@ def test_a_new_process_loads_the_kernels_from_the_disk_cache():
     import sys
 
     cs.load()
-    if kernel_linearize.linearize_kernel.stats.cache_path is None:
+    if kernel_linearize.linearize.stats.cache_path is None:
         pytest.skip("no writable numba cache folder here: the kernels are compiled in every process by design")
     out = subprocess.run([sys.executable, "-c", _CACHE_STATS], capture_output=True, text=True, check=True).stdout
     stats = json.loads(out.strip().splitlines()[-1])
