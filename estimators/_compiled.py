@@ -52,13 +52,15 @@ import numpy as np
 from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2
 
-from ._attitude import (COV_FLOOR, COV_RESET_VAR, HARD_IRON_STATE, REST_WINDOW_S, SQRT_FLOOR, AccDisturbance, RestDetector,
-                        models_lag)
-from . import _attitude
+from ._accel import AccDisturbance, models_lag
+from ._linalg import COV_FLOOR, COV_RESET_VAR, SQRT_FLOOR
+from ._magnetometer import HARD_IRON_STATE
+from ._rest import REST_WINDOW_S, RestDetector
+from . import _stuck
 from ._kernel_cache import forget_stale_kernels
 from .filter_params import BiasFilterParams
 
-forget_stale_kernels(__file__, [quat.__file__, _attitude.__file__])  # the kernels compile functions of both
+forget_stale_kernels(__file__, [quat.__file__, _stuck.__file__])  # the kernels compile functions of both
 
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 _OPTIONS = dict(error_model="numpy", nogil=True)
@@ -213,7 +215,7 @@ def load() -> None:
                out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"],
                out["mag_hard_iron"], out["scale_llr"])
     gyr, valid, dt, acc = inputs_
-    stuck_intervals(gyr, dt, acc[1:], valid, _attitude.stuck_gyro_state(), *_attitude.STUCK_THRESHOLDS)
+    stuck_intervals(gyr, dt, acc[1:], valid, _stuck.stuck_gyro_state(), *_stuck.STUCK_THRESHOLDS)
     _loaded = True
 
 
@@ -229,7 +231,7 @@ _rotation = _jit(quat.rotation_floats)
 
 
 # The online stuck-gyro check of the filters (`_attitude`), compiled over a whole recording.
-_stuck_update = _jit(_attitude.stuck_gyro_update)
+_stuck_update = _jit(_stuck.stuck_gyro_update)
 
 
 @_jit

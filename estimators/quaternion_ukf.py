@@ -42,7 +42,7 @@ from filterpy.kalman import UnscentedKalmanFilter
 from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
 
-from ._attitude import inv_sym3, sqrt_psd
+from ._linalg import inv_sym3, sqrt_psd
 
 
 # --------------------------------------------------------------------------- sigma points
@@ -296,7 +296,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
 
     def update_kraft(self, z: np.ndarray, R: np.ndarray, lag: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2;
-        lag: the low-passed sample's calibration Jacobians `(H_b, H_s)` (`_attitude.LowpassLag`),
+        lag: the low-passed sample's calibration Jacobians `(H_b, H_s)` (`_accel.LowpassLag`),
         None for the raw sample."""
         Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
         if lag is not None:  # the low-pass's lag behind the frame drift of each point's calibration

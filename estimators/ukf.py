@@ -114,27 +114,14 @@ from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, multiply_floats, unit_array
 from fusion.types import ImuSamples
 
-from ._attitude import (
-    HARD_IRON_STATE,
-    AccDisturbance,
-    HardIron,
-    MagReference,
-    RestDetector,
-    ScaleTest,
-    accelerometer_update_input,
-    acc_variance_scale,
-    axes_mask,
-    bias_rest_update,
-    heading_update,
-    heading_variance,
-    magnetometer_input,
-    inv_sym3,
-    models_lag,
-    repair_covariance,
-    stuck_gyro_state,
-)
+from ._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
+from ._linalg import inv_sym3, repair_covariance
+from ._magnetometer import HARD_IRON_STATE, HardIron, MagReference, heading_update, heading_variance, magnetometer_input
+from ._rest import RestDetector, bias_rest_update
+from ._scale_test import ScaleTest
+from ._stuck import stuck_gyro_state
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
-from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from .kalman_base import KalmanFilter, axes_mask, error_state_covariances, initial_quaternion
 from .search import Tunable
 
 Sigma = Literal["kraft", "julier", "merwe"]

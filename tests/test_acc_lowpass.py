@@ -1,12 +1,12 @@
-"""The accelerometer low-passed in the gyro-only frame (`_attitude.AccDisturbance` with
-`lowpass_s`) and the choice between it and the raw sample (`_attitude.acc_measurement`)."""
+"""The accelerometer low-passed in the gyro-only frame (`_accel.AccDisturbance` with
+`lowpass_s`) and the choice between it and the raw sample (`_accel.acc_measurement`)."""
 import math
 
 import numpy as np
 import pytest
 
 from fusion import quaternion as quat
-from fusion.estimators._attitude import (
+from fusion.estimators._accel import (
     AccDisturbance,
     acc_measurement,
     lowpass_drift_density,

@@ -112,7 +112,7 @@ def _fast_turning_with_translation(seconds=120.0, rate_hz=200.0, seed=1):
                                                    ("ekf:sprt=0", 1.1e-3)])
 def test_fast_turning_with_translation_keeps_the_lowpass_and_the_scale(spec, scale_bound):
     # The raw samples carry 0.3 g of translation, so the filters take the low-passed one. Its lag
-    # behind a drifting frame is modelled (`_attitude.LowpassLag`), not added to its noise as
+    # behind a drifting frame is modelled (`_accel.LowpassLag`), not added to its noise as
     # rate^2 x scale variance, so fast turning does not push the filters back to the raw samples,
     # and the low-passed sample shows that the gyro needs no scale correction (`ekf:lpcal=true`,
     # `ukf-bias`; the default `ekf` leaves its calibration to the velocity states, which show it, and
@@ -134,7 +134,7 @@ def test_the_scale_tests_likelihood_ratio_is_the_bayes_factor_of_the_two_priors(
     # A linear Gaussian model of two scale corrections, y = A s + noise: the ratio of the data's
     # marginal likelihoods under the priors N(0, P1 I) and N(0, P0 I), computed directly, equals
     # ScaleTest's expression in the P1 posterior; its update gives the P0 posterior.
-    from fusion.estimators._attitude import ScaleTest
+    from fusion.estimators._scale_test import ScaleTest
 
     rng = np.random.default_rng(4)
     P1, P0, noise = 1e-2, 1e-4, 0.02

@@ -86,7 +86,7 @@ def online_stuck(imu: ImuSamples, rates: np.ndarray) -> np.ndarray:
     """The filters' online check over a recording, compiled: step k integrates `rates[k]` (the
     reading k + 1) with the accelerometer sample k + 1; -> (N - 1,) stuck flags."""
     from fusion.estimators import _compiled
-    from fusion.estimators._attitude import STUCK_THRESHOLDS, stuck_gyro_state
+    from fusion.estimators._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 
     return _compiled.stuck_intervals(np.ascontiguousarray(rates), np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
                                      np.ones(len(imu) - 1, bool), stuck_gyro_state(), *STUCK_THRESHOLDS)
@@ -96,10 +96,10 @@ def online_stuck(imu: ImuSamples, rates: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("seconds, value_deg_s, step", [(1.0, [3.0, -7.5, 120.0], 0.0), (3.0, [0.0, 0.0, 0.0], 0.0),
                                                         (1.5, [11.0, 9.0, 8.0], 0.97)])
 def test_the_filters_online_check_finds_a_stuck_gyro_as_it_happens(rate_hz, seconds, value_deg_s, step):
-    """The filters' causal check (`_attitude.stuck_gyro_update`, the thresholds of `FreezeDetector`)
+    """The filters' causal check (`_stuck.stuck_gyro_update`, the thresholds of `FreezeDetector`)
     marks a stuck gyro from `window_s` after it sticks to its end, and nothing else; the numpy
     step's loop and the compiled batch loop agree."""
-    from fusion.estimators._attitude import STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
+    from fusion.estimators._stuck import STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
 
     imu = moving_imu(rate_hz, step_deg_s=step)
     first, stop = int(8.0 * rate_hz), int((8.0 + seconds) * rate_hz)

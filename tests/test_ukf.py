@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fusion.estimators import ESTIMATORS, build
-from fusion.estimators._attitude import sqrt_psd
+from fusion.estimators._linalg import sqrt_psd
 from fusion.estimators.dr import DeadReckoning
 from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints, quaternion_mean
 from fusion.estimators.ukf import UKF, UKFBias, UKFBiasParams, UKFParams
