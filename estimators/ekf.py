@@ -29,16 +29,16 @@ Update (accelerometer = gravity in the body frame; Sola 2017, Sec. 6.1-6.3: corr
 injection, reset with the reset Jacobian taken as I):
     h(q) = R(q)^T e_z (g),  H = [[h]x, 0, 0]          (exp(e)^T h ~ h + h x e)
     R_k = (R + 2 tauc d_k) / dt I   adaptive: d_k the external-acceleration power of
-                  `_attitude.AccDisturbance`, measured without the filter's attitude
+                  `_accel.AccDisturbance`, measured without the filter's attitude
                   (Suh 2010, IEEE TIM 59(12), adapts R to the external acceleration)
     a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Laidig & Seel
                   2023, Sec. 3.2), rotated back into the body, with R_k = (R + S_lp + S_drift)
-                  / dt, whenever that density is the smaller (`_attitude.acc_measurement`):
+                  / dt, whenever that density is the smaller (`_accel.acc_measurement`):
                   through sustained translation, tapping and vibration. S_lp is the residual
-                  external acceleration (`_attitude.lowpass_residual_density`), S_drift the
+                  external acceleration (`_accel.lowpass_residual_density`), S_drift the
                   rate noise's drift of the frame; the lag by which the low-pass trails gravity
                   when the frame drifts with a bias or scale error is modelled, not added as
-                  noise: H = [[h]x, H_b, H_s] (`_attitude.LowpassLag`), so that the low-passed
+                  noise: H = [[h]x, H_b, H_s] (`_accel.LowpassLag`), so that the low-passed
                   sample's prediction carries the calibration's uncertainty (and, without the
                   velocity states, measures the calibration in motion; with them, see Velocity)
     S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
@@ -87,7 +87,7 @@ turns it off): a gyro read with its datasheet sensitivity may be several per cen
 course board's is 8 %), a calibrated one is not, and the 10 % prior that the first needs lets
 the second fit translation as a scale error (the limitation below). Rather than one prior for
 both, the filter decides from the data with Wald's sequential probability ratio test
-(`_attitude.ScaleTest`; Wald 1945, Ann. Math. Stat. 16(2)) between H1: s ~ N(0, Ps0 I) and H0:
+(`_scale_test.ScaleTest`; Wald 1945, Ann. Math. Stat. 16(2)) between H1: s ~ N(0, Ps0 I) and H0:
 s ~ N(0, Psc I), Psc = 1e-4 (1 %). Exchanging the prior is a pseudo-measurement `s = 0` of the
 variance r I, 1/r = 1/Psc - 1/Ps0, so the log-likelihood ratio of the data under the two priors
 is the negative log-likelihood of that pseudo-measurement's innovation, up to constants:
@@ -131,13 +131,13 @@ direction, with magnetic disturbance rejection):
         heading as the board turns: the innovation measures it),  dx = K (0 - psi)
     q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
         form, exact for the restricted gain; Sola 2017, Sec. 6.1-6.3)
-Disturbances (`_attitude.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
+Disturbances (`_magnetometer.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
 north)|) are learned from the data while the samples agree with them (a running mean, then a
 low-pass of time constant `mref`); a sample counts while |norm - ref| < mnorm ref and |dip - ref|
 < mdip, and only after that has held for `mtime` s without interruption (a magnet in the room
 moves the norm or the dip out of the gates; the filter then runs on the gyro, 6-D, whose heading
 drifts slowly). A magnet carried with the sensor adds a constant body-frame offset o (hard iron),
-fitted without the attitude (`_attitude.HardIron`): the readings of a field of constant norm lie
+fitted without the attitude (`_magnetometer.HardIron`): the readings of a field of constant norm lie
 on the sphere |m - o| = r, linear least squares in [2 o, r^2 - |o|^2] over an exponential window
 (Vasconcelos et al. 2011, IEEE TAES 47(2), the hard-iron part); while the fit is trusted (its
 samples cover the sphere, its residual is small, its offset exceeds that residual and its radius
@@ -175,7 +175,7 @@ the covariance is symmetrised (eigenvalues clipped if needed) every step.
 Two implementations (`impl` parameter). `EKF.step` below, in numpy, is the reference: the
 definition of the filter, and what `reset`/`step` (the streaming interface) always run.
 `"compiled"` (the default) makes `estimate` run the whole recording in one numba kernel,
-`_compiled.ekf_kernel`, which does the same arithmetic in explicit loops over the small
+`_compiled_ekf.estimate`, which does the same arithmetic in explicit loops over the small
 matrices and records the same diagnostics, with or without the velocity states (11 x 11
 matrices with them; `ekf:Rv=inf` leaves them out). numpy's per-call overhead dominates the
 reference step; timings of both: `python benchmarks/bench_filters.py --dataset ...` (see
@@ -222,7 +222,7 @@ class EKFParams(BiasFilterParams):
         velocity only; see "Velocity" in the module docstring). Without the velocity states it
         always does.
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled`) | numpy (`estimate` loops the numpy `step`, the reference). The same
+        `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
 
     The defaults are one set for every recording and rate. `acc_lowpass_s` (taulp) is 2 s here
@@ -418,7 +418,7 @@ class EKF(KalmanFilter):
             if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
                 self._dist.turn(d, dt_s, rate, 1.0 + self.s)
         if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
-            # 9-D: the heading-only magnetometer update, gated (`_attitude.MagReference`, `heading_update`)
+            # 9-D: the heading-only magnetometer update, gated (`_magnetometer.MagReference`, `heading_update`)
             self._scale_test.stop()  # 9-D: no scale test (module docstring)
             usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
                                                                           dt_s)
@@ -427,7 +427,7 @@ class EKF(KalmanFilter):
                 dx, P = heading_update(q, P, n, east, north, r)
                 q = self._correct(q, dx)
                 self.mag_used = True
-        # Wald's test: a scale error, or a calibrated gyro? (`_attitude.ScaleTest`)
+        # Wald's test: a scale error, or a calibrated gyro? (`_scale_test.ScaleTest`)
         dx, P = self._scale_test.step(self.s, P, gravity_in_body_floats(*q) if p.heading_free else None)
         if dx is not None:
             q = self._correct(q, dx)
@@ -486,19 +486,16 @@ class EKF(KalmanFilter):
         return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired,
                 "scale_decision": self._scale_test.decision}
 
-    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
-                    rest: np.ndarray) -> None:
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
+        from . import _compiled_ekf
+
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
-        mag_state, hard_iron = self._mag.state(), self._hard_iron.state()
-        test = self._scale_test.state()
-        self.n_skipped, self.n_cov_repaired = kernels.ekf_kernel(
-            *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad,
-            dist, rest, mag_state, hard_iron, test,
-            kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF, scale_test=self._scale_test),
-            out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["velocity_m_s"], out["acc_var_g2"],
-            out["at_rest"], out["nis"], out["bias_guarded"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"],
-            out["scale_llr"])
+        st = kernels.SensorStates(dist=dist, rest=rest, mag=self._mag.state(), hard_iron=self._hard_iron.state(),
+                                  test=self._scale_test.state())
+        o = kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF, scale_test=self._scale_test)
+        self.n_skipped, self.n_cov_repaired = _compiled_ekf.estimate(
+            kernels.inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad, st, o, out)
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
-        self._mag.set_state(mag_state)
-        self._hard_iron.set_state(hard_iron)
-        self._scale_test.set_state(test)
+        self._mag.set_state(st.mag)
+        self._hard_iron.set_state(st.hard_iron)
+        self._scale_test.set_state(st.test)

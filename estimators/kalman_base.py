@@ -1,7 +1,7 @@
 """What the Kalman filters `ekf`, `ukf` and `ukf-bias` share around their steps: the initial
 error state and its noise (`initial_quaternion`, `error_state_covariances`), and `KalmanFilter`,
 whose `estimate` runs either the base class's loop of the numpy `step` or one compiled kernel
-(`_compiled`) over the whole recording.
+(`_compiled_ekf`, `_compiled_ukf`) over the whole recording.
 
 The error state is `[e, db, ds][:n]` (n = 3, 6 or 9): the body-frame attitude error (rad), the
 gyro bias error (rad/s) and the gyro scale-factor error (dimensionless), as the module
@@ -15,6 +15,7 @@ import numpy as np
 
 from fusion.types import ImuSamples, Trajectory
 
+from ._rest import REST_STATE
 from ._stuck import STUCK_THRESHOLDS, stuck_gyro_update
 from .base import RecursiveEstimator
 
@@ -92,7 +93,7 @@ class KalmanFilter(RecursiveEstimator):
 
     def _usable(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool) -> bool:
         """Whether `step` integrates this gyro reading: `gyr_valid`, and with `stuck_gyro_check`
-        not stuck (`_attitude.stuck_gyro_update`, whose state `reset` starts afresh)."""
+        not stuck (`_stuck.stuck_gyro_update`, whose state `reset` starts afresh)."""
         if not self.params.stuck_gyro_check:
             return gyr_valid
         return gyr_valid and not stuck_gyro_update(self._stuck, gyr_rad_s, acc_g, dt_s, gyr_valid, *STUCK_THRESHOLDS)
@@ -112,10 +113,9 @@ class KalmanFilter(RecursiveEstimator):
         gyr_valid[first:first + len(stuck)] &= ~stuck
         return imu.replace(gyr_valid=gyr_valid)
 
-    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
-                    rest: np.ndarray) -> None:
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
         """Run the compiled kernel (`kernels` is the `_compiled` module) from the reset state over
-        `imu`, filling `out` (`_compiled.outputs`) and advancing the disturbance and rest
+        `imu`, filling `out` (`_compiled.Outputs`) and advancing the packed disturbance and rest
         states `dist` and `rest` in place; set the final state and the counts of `diagnostics`."""
         raise NotImplementedError
 
@@ -130,12 +130,12 @@ class KalmanFilter(RecursiveEstimator):
         imu = self._unstuck(_compiled, imu)
         out = _compiled.outputs(len(imu), len(self.current()["cov"]), init_quat_wxyz, self.current())
         dist = self._dist.state()
-        rest = self._rest.state() if self._rest is not None else np.zeros(5)
+        rest = self._rest.state() if self._rest is not None else np.zeros(REST_STATE)
         self._run_kernel(_compiled, imu, out, dist, rest)
         self._dist.set_state(dist)
         if self._rest is not None:
             self._rest.set_state(rest)
         for key, attribute in self.LAST_ROW.items():
-            setattr(self, attribute, out[key][-1].item())
-        history = {key: out[key] for key in self.current()}
-        return Trajectory(imu.t, out["quat"], diagnostics={**history, **self.diagnostics()})
+            setattr(self, attribute, getattr(out, key)[-1].item())
+        history = {key: getattr(out, key) for key in self.current()}
+        return Trajectory(imu.t, out.quat, diagnostics={**history, **self.diagnostics()})

@@ -56,7 +56,7 @@ Three implementations of the same step (`impl` parameter): `"filterpy"` calls th
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"numpy"` runs predict and update as a handful of vectorised numpy calls over all
 sigma points at once (`tests/test_ukf.py` checks the two agree to 1e-12); `"compiled"` (the
-default) makes `estimate` run the whole recording in one numba kernel, `_compiled.ukf_kernel`,
+default) makes `estimate` run the whole recording in one numba kernel, `_compiled_ukf.estimate`,
 which does the numpy step's arithmetic in explicit loops and records the same diagnostics
 (`tests/test_compiled.py` checks it against numpy to 1e-10). The numpy step stays the
 readable reference and is what `reset`/`step` (the streaming interface) run for compiled and
@@ -78,10 +78,10 @@ eigenvalue-clipped if needed) after every update; counts of these recoveries are
 trajectory diagnostics. Quaternions are renormalised every step. The accelerometer noise
 adapts to the measured external acceleration, and through sustained translation, tapping
 or vibration the update uses the accelerometer low-passed in a gyro-only frame instead of
-the raw sample, as in `ekf` (`_attitude.AccDisturbance`, `_attitude.acc_measurement`). For
+the raw sample, as in `ekf` (`_accel.AccDisturbance`, `_accel.acc_measurement`). For
 that sample `ukf-bias` adds to step 6 the lag of the low-pass behind the frame's drift under
 each sigma point's bias and scale, `Z_i += H_b (b_i - b) + H_s (s_i - s)`
-(`_attitude.LowpassLag`, the same Jacobians as `ekf`'s), so that it measures the calibration
+(`_accel.LowpassLag`, the same Jacobians as `ekf`'s), so that it measures the calibration
 in motion.
 
 Defaults. Equal variances P0 = Q = R = 1e-4 I per 100 Hz sample (`UKFParams.equal_variances()`:
@@ -116,7 +116,7 @@ from fusion.types import ImuSamples
 
 from ._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
 from ._linalg import inv_sym3, repair_covariance
-from ._magnetometer import HARD_IRON_STATE, HardIron, MagReference, heading_update, heading_variance, magnetometer_input
+from ._magnetometer import HARD_IRON_STATE, MAG_STATE, HardIron, MagReference, heading_update, heading_variance, magnetometer_input
 from ._rest import RestDetector, bias_rest_update
 from ._scale_test import ScaleTest
 from ._stuck import stuck_gyro_state
@@ -145,7 +145,7 @@ class UKFOptions(FilterParams):
         for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
+        `_compiled_ukf`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
         reference; "lean", its former name, still works with a warning) | filterpy (per-point
         hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run the numpy step
         for compiled and numpy.
@@ -357,7 +357,7 @@ class UKF(KalmanFilter):
                 self._dist.turn(dq, dt_s, rate, gain)
         if (self.with_bias and mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1])
                 and math.isfinite(mag_ut[2])):
-            # 9-D: the heading-only magnetometer update of `ekf` (`_attitude.heading_update`); H is
+            # 9-D: the heading-only magnetometer update of `ekf` (`_magnetometer.heading_update`); H is
             # linear in the error state, so it is the same Kalman update for every implementation
             x = kf.x
             q = tuple(x[:4].tolist())
@@ -371,7 +371,7 @@ class UKF(KalmanFilter):
                 kf.x = np.concatenate([qn, x[4:] + dx[3:]])
                 self.mag_used = True
         x = kf.x
-        # Wald's test on the scale (`_attitude.ScaleTest`, "Scale test" in `fusion.estimators.ekf`)
+        # Wald's test on the scale (`_scale_test.ScaleTest`, "Scale test" in `fusion.estimators.ekf`)
         dx, kf.P = self._scale_test.step(x[7:10], kf.P, quat.gravity_in_body(x[:4]) if p.heading_free else None)
         if dx is not None:
             qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
@@ -416,26 +416,24 @@ class UKF(KalmanFilter):
             **({"scale_decision": self._scale_test.decision} if self.with_bias else {}),
         }
 
-    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: dict[str, np.ndarray], dist: np.ndarray,
-                    rest: np.ndarray) -> None:
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
+        from . import _compiled_ukf
+
         p, kf = self.params, self.kf
         x, P = kf.x.copy(), kf.P.copy()
         o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                              mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter, scale_test=self._scale_test)
-        test = self._scale_test.state()
-        mag_state = self._mag.state() if self.with_bias else np.zeros(5)
-        hard_iron = self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE)
-        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.ukf_kernel(
-            *kernels.inputs(imu), *kernels.mag_inputs(imu, self.magnetometer), x, P, self._Qrate, self._Qbad, kf.Wm,
-            kf.Wc, dist, rest, mag_state, hard_iron, test, o,
-            out["quat"], out["cov"], out["gyr_bias_rad_s"], out["gyr_scale"], out["mean_iterations"],
-            out["acc_var_g2"], out["at_rest"], out["nis"], out["acc_lowpassed"], out["mag_used"], out["mag_hard_iron"],
-            out["scale_llr"])
-        kf.x, kf.P, kf.mean_iterations = x, P, int(out["mean_iterations"][-1])
-        self._scale_test.set_state(test)
+        st = kernels.SensorStates(dist=dist, rest=rest,
+                                  mag=self._mag.state() if self.with_bias else np.zeros(MAG_STATE),
+                                  hard_iron=self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE),
+                                  test=self._scale_test.state())
+        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled_ukf.estimate(
+            kernels.inputs(imu, self.magnetometer), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, st, o, out)
+        kf.x, kf.P, kf.mean_iterations = x, P, int(out.mean_iterations[-1])
+        self._scale_test.set_state(st.test)
         if self.with_bias:
-            self._mag.set_state(mag_state)
-            self._hard_iron.set_state(hard_iron)
+            self._mag.set_state(st.mag)
+            self._hard_iron.set_state(st.hard_iron)
 
 
 class UKFBias(UKF):

@@ -313,8 +313,8 @@ def test_without_a_writable_cache_folder_the_kernels_still_run():
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
     code = ("import warnings; warnings.simplefilter('always')\n"
-            "from fusion.estimators import _compiled as c\n"
-            "assert not c._cache\n"
+            "from fusion.estimators import _compiled as c, _numba\n"
+            "assert not _numba._cache\n"
             "print(c.qmul((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)))\n")
     run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
@@ -348,3 +348,88 @@ def test_compiled_equals_reference_through_an_unflagged_freeze(data_dir, spec):
     assert_same(a, b)
     off = build(spec + ("," if ":" in spec else ":") + "stuck=false").estimate(imu, q0)
     assert np.abs(off.quat_wxyz - a.quat_wxyz).max() > 0.01  # the check changed the estimate
+
+
+KERNEL_MODULES = ("_numba", "_compiled_quaternion", "_compiled_linalg", "_compiled_accel", "_compiled_rest",
+                  "_compiled_stuck", "_compiled_scale_test", "_compiled_magnetometer", "_compiled_ekf", "_compiled_ukf")
+
+
+def _resolve(dotted: str):
+    """The object a dotted name such as `fusion.estimators.ekf.EKF._correct` names (ImportError or
+    AttributeError when there is none)."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for name in parts[i:]:
+            obj = getattr(obj, name)
+        return obj
+    raise ImportError(dotted)
+
+
+def test_every_kernel_carries_the_name_of_the_numpy_reference_it_declares():
+    """A reader finds a kernel by its reference's name: every compiled function of the filters
+    declares the numpy function or method it implements (`_numba.mirrors`, `_numba.compiled`),
+    which exists and has the kernel's name, or is listed among its module's HELPERS (no reference
+    of its own); and the layout offsets the kernels read are the numpy side's."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    from fusion.estimators import _compiled, _numba  # noqa: F401  (imports every kernel module)
+
+    seen = 0
+    for name in KERNEL_MODULES:
+        module = importlib.import_module(f"fusion.estimators.{name}")
+        helpers = set(module.HELPERS)
+        own = {attr for attr, obj in vars(module).items() if isinstance(obj, CPUDispatcher)
+               and ((module.__name__, attr) in _numba.REFERENCES or obj.py_func.__module__ == module.__name__)}
+        assert helpers <= own, f"{name}.HELPERS names no kernel: {sorted(helpers - own)}"
+        for attr in sorted(own - helpers):
+            reference = _numba.REFERENCES.get((module.__name__, attr))
+            assert reference is not None, f"{name}.{attr} declares no reference and is not a helper"
+            assert reference.rsplit(".", 1)[1] == attr, f"{name}.{attr} mirrors {reference}: the names differ"
+            target = _resolve(reference)
+            assert callable(target), reference
+            seen += 1
+    assert seen >= 30
+    # both kernels and the rest detector's names as the brief's examples give them
+    assert _numba.REFERENCES[("fusion.estimators._compiled_ekf", "_correct")] == "fusion.estimators.ekf.EKF._correct"
+    assert _numba.REFERENCES[("fusion.estimators._compiled_rest", "update")] == \
+        "fusion.estimators._rest.RestDetector.update"
+
+
+def test_the_packed_states_match_their_layout():
+    """`state()` of every packed helper has the length its layout declares and puts each field at
+    its offset (the kernels read the same offsets)."""
+    from fusion.estimators import _accel, _magnetometer, _rest, _scale_test, _stuck
+
+    dist = _accel.AccDisturbance(1.0, 2.0, 3.0, lag=True)
+    dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.1, 0.2, 0.9]), 0.01, np.array([0.1, 0.2, 0.3]), np.ones(3))
+    dist.update(quat.exp_floats(0.01, 0.02, 0.03), np.array([0.1, 0.2, 0.95]), 0.01, np.array([0.1, 0.2, 0.3]),
+                np.ones(3))
+    st = dist.state()
+    assert st.shape == (_accel.DIST_STATE,)
+    assert tuple(st[_accel.DIST_MEAN:_accel.DIST_MEAN + 3]) == dist.m and st[_accel.DIST_VAR] == dist.v
+    assert tuple(st[_accel.DIST_FRAME:_accel.DIST_FRAME + 4]) == dist.qi and st[_accel.DIST_AGE] == dist.age
+    assert np.array_equal(st[_accel.DIST_BODY:_accel.DIST_BODY + 3], dist.lowpass_body)
+    assert st[_accel.DIST_DENSITY] == dist.lowpass_density
+    assert np.array_equal(st[_accel.DIST_LAG_S:_accel.DIST_STATE], dist.lag.N[1].ravel())
+    again = _accel.AccDisturbance(1.0, 2.0, 3.0, lag=True)
+    again.set_state(st)
+    assert np.array_equal(again.state(), st)
+    rest = _rest.RestDetector(0.1, 0.1, 0.5)
+    rest.update(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.01)
+    assert rest.state().shape == (_rest.REST_STATE,) and rest.state()[_rest.REST_TIME_STILL] == rest.time_still
+    mag = _magnetometer.MagReference(0.1, 0.1, 1.0, 10.0)
+    mag.update(50.0, 0.9, 0.01)
+    assert mag.state().shape == (_magnetometer.MAG_STATE,) and mag.state()[_magnetometer.MAG_DIP] == 0.9
+    assert _magnetometer.HardIron(1.0, 1.0, 0.1).state().shape == (_magnetometer.HARD_IRON_STATE,)
+    test = _scale_test.ScaleTest(1e-2, 1e-4, 0.1, np.ones(3, dtype=bool))
+    assert test.state()[_scale_test.TEST_ON] == 1.0 and test.state().shape == (_scale_test.TEST_STATE,)
+    assert _stuck.stuck_gyro_state().shape == (_stuck.STUCK_STATE,)
+

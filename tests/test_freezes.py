@@ -85,11 +85,11 @@ def test_the_detector_checks_its_settings():
 def online_stuck(imu: ImuSamples, rates: np.ndarray) -> np.ndarray:
     """The filters' online check over a recording, compiled: step k integrates `rates[k]` (the
     reading k + 1) with the accelerometer sample k + 1; -> (N - 1,) stuck flags."""
-    from fusion.estimators import _compiled
+    from fusion.estimators._compiled_stuck import stuck_intervals
     from fusion.estimators._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 
-    return _compiled.stuck_intervals(np.ascontiguousarray(rates), np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
-                                     np.ones(len(imu) - 1, bool), stuck_gyro_state(), *STUCK_THRESHOLDS)
+    return stuck_intervals(np.ascontiguousarray(rates), np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
+                           np.ones(len(imu) - 1, bool), stuck_gyro_state(), *STUCK_THRESHOLDS)
 
 
 @pytest.mark.parametrize("rate_hz", [100.0, 285.7])

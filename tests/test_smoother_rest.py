@@ -10,7 +10,7 @@ from fusion.datasets import calibrated_samples
 from fusion.sim import SimSettings, simulate
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators._compiled import rest_steps
+from fusion.estimators._compiled_rest import rest_steps
 from fusion.estimators.smoother_cost import SmootherProblem, Weights
 from fusion.evaluation.metrics import score
 
