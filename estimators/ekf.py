@@ -1,186 +1,141 @@
 """`ekf`: a multiplicative (error-state) EKF with gyro bias and scale factors in the state.
 
-Nominal state: `q = R_world_body` (wxyz), gyro bias `b` (rad/s, body), gyro scale-factor
-corrections `s` (dimensionless, per body axis) and the horizontal velocity `v` (m/s, world).
-Error state `dx = [e, db, ds, dv]` (11) with the body-frame rotation error
-`q_true = q exp(e / 2)` (the convention of `ukf`), covariance P (11x11; without the scale,
-the bias or the velocity model, the blocks that remain, in this order).
+Contract: `EKF.step` (the reference, numpy) takes one gyro interval (rate (3,) rad/s, body; dt s;
+its validity), the accelerometer sample at its end ((3,) g, body) and optionally the magnetometer
+sample ((3,) uT, body), and returns `R_world_body` (wxyz) after it; `estimate` runs the same loop
+over a recording, compiled by default (`_compiled_ekf.estimate`, the same numbers to 1e-10:
+`tests/test_compiled.py`). How well each choice below does on the recordings, with the commands
+that measure it: `docs/results.md`, "`ekf`'s choices, measured".
 
-Gyro model (bias, scale-factor error and white noise per axis, the standard gyro error model
-of Titterton & Weston, "Strapdown Inertial Navigation Technology", 2nd ed. 2004, Ch. 4;
-Farrell, "Aided Navigation", 2008): `w_true = diag(1 + s) (w_meas - b - n)`, n white with
-density Q. `s` is the *correction*: a gyro that reads 9 % high has s = 1/1.09 - 1 = -0.083.
+State. Nominal: `q = R_world_body` (wxyz), gyro bias `b` (rad/s, body), gyro scale-factor
+corrections `s` (per body axis) and the horizontal velocity `v` (m/s, world, ENU). Error state
+`dx = [e, db, ds, dv]` (11) with the body-frame rotation error `q_true = q exp(e / 2)` (the
+convention of `ukf`), covariance P (11 x 11; without the scale, the bias or the velocity model,
+the blocks that remain, in this order).
 
-Predict (gyro as control input; error-state kinematics in discrete time, Sola 2017,
-"Quaternion kinematics for the error-state Kalman filter", Secs. 5.3-5.4, with the exact
-rotation of the step instead of its first-order approximation):
+Gyro model (Titterton & Weston, "Strapdown Inertial Navigation Technology", 2nd ed. 2004, Ch. 4;
+Farrell, "Aided Navigation", 2008): `w_true = diag(1 + s) (w_meas - b - n)`, n white with density
+Q. `s` is the *correction*: a gyro that reads 9 % high has s = 1/1.09 - 1 = -0.083.
+
+Predict (gyro as control input; Sola 2017, "Quaternion kinematics for the error-state Kalman
+filter", Secs. 5.3-5.4, in discrete time, with the exact rotation of the step instead of its
+first-order approximation):
     u = w_meas - b,  theta = diag(1 + s) u dt,  q <- q exp(theta / 2)
     F = [[R(theta)^T, -J_r(theta) diag(1 + s) dt, J_r(theta) diag(u) dt],
          [0,          I,                            0                   ],
          [0,          0,                            I                   ]]
-        (J_r the SO(3) right Jacobian: a rate error dw over the step moves the end
-        attitude by J_r(theta) dw dt in the body frame)
-    P <- F P F^T + diag(Q dt, Qb dt, Qsw dt)   (noise as random impulses whose variance
-        grows with dt, Sola 2017, Sec. 5.4)
-Rest (bias rows): after `rest_time_s` still, the zero-rate pseudo-measurement
-    gyr = b + n, H = [0, I, 0] (Laidig & Seel 2023, VQF, Sec. 3.4: bias estimation at rest);
+        (J_r the SO(3) right Jacobian: a rate error dw over the step moves the end attitude by
+        J_r(theta) dw dt in the body frame)
+    P <- F P F^T + diag(Q dt, Qb dt, Qsw dt)   (random impulses whose variance grows with dt,
+        Sola 2017, Sec. 5.4)
+Rest (bias rows; `_rest`): after `rest_time_s` still, the zero-rate pseudo-measurement
+    gyr = b + n, H = [0, I, 0] (Laidig & Seel 2023, "VQF", Information Fusion 91, Sec. 3.4);
     the bias estimate is clipped to `bias_max_rad_s`, the scale to `scale_max`.
-Update (accelerometer = gravity in the body frame; Sola 2017, Sec. 6.1-6.3: correction,
-injection, reset with the reset Jacobian taken as I):
+Update (accelerometer = gravity in the body frame; Sola 2017, Secs. 6.1-6.3: correction,
+injection, reset with the reset Jacobian taken as I; `_accel`):
     h(q) = R(q)^T e_z (g),  H = [[h]x, 0, 0]          (exp(e)^T h ~ h + h x e)
     R_k = (R + 2 tauc d_k) / dt I   adaptive: d_k the external-acceleration power of
-                  `_accel.AccDisturbance`, measured without the filter's attitude
-                  (Suh 2010, IEEE TIM 59(12), adapts R to the external acceleration)
-    a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Laidig & Seel
-                  2023, Sec. 3.2), rotated back into the body, with R_k = (R + S_lp + S_drift)
-                  / dt, whenever that density is the smaller (`_accel.acc_measurement`):
-                  through sustained translation, tapping and vibration. S_lp is the residual
-                  external acceleration (`_accel.lowpass_residual_density`), S_drift the
-                  rate noise's drift of the frame; the lag by which the low-pass trails gravity
-                  when the frame drifts with a bias or scale error is modelled, not added as
-                  noise: H = [[h]x, H_b, H_s] (`_accel.LowpassLag`), so that the low-passed
-                  sample's prediction carries the calibration's uncertainty (and, without the
-                  velocity states, measures the calibration in motion; with them, see Velocity)
+                  `_accel.AccDisturbance`, measured without the filter's attitude (Suh 2010,
+                  IEEE TIM 59(12), adapts R to the external acceleration)
+    a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Sec. 3.2, eq. 7),
+                  rotated back into the body, with R_k = (R + S_lp + S_drift) / dt, whenever
+                  that density is the smaller (`_accel.acc_measurement`). S_lp is the residual
+                  external acceleration (`_accel.lowpass_residual_density`), S_drift the rate
+                  noise's drift of the frame; the lag by which the low-pass trails gravity when
+                  the frame drifts with a bias or scale error is modelled, not added as noise:
+                  H = [[h]x, H_b, H_s] (`_accel.LowpassLag`)
     S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
     heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
                   predicted vertical; the Joseph form below is exact for any gain)
+    guard: with NIS = y^T S^-1 y above the 99.9 % point of chi-square(3) (Bar-Shalom, Li &
+                  Kirubarajan 2001, Sec. 5.4), the bias and scale rows of K are zero
     q <- q exp(dx_e / 2),  b <- b + dx_b,  s <- s + dx_s
     P <- (I - K H) P (I - K H)^T + K R_k K^T             (Joseph form)
-The scale factors become observable through the accelerometer whenever the board turns
-about a body axis that is not vertical (the z scale needs the z axis tilted while turning).
+The scale factors become observable through the accelerometer whenever the board turns about a
+body axis that is not vertical (the z scale needs the z axis tilted while turning).
 
 Velocity (after the prediction, before the rest and accelerometer updates; off with
-`velocity_bound_m2_s` = inf or `use_acc` = False): a hand-held, worn or carried IMU moves
-with a bounded velocity, so the accelerometer's horizontal specific force, integrated, must
-stay bounded too. This is the smoothers' velocity model (`fusion.estimators.smoother_cost`),
-after what VQF exploits with its low-pass in an almost inertial frame (Laidig & Seel 2023,
-Sec. 3.2), as states of the filter (strapdown velocity integration, Titterton & Weston 2004,
-Ch. 3; Sola 2017, Sec. 5.3.3 for its error-state Jacobian):
+`velocity_bound_m2_s` = inf or `use_acc` = False): a hand-held, worn or carried IMU moves with a
+bounded velocity, so the horizontal specific force, integrated, must stay bounded too: the
+smoothers' velocity model (`fusion.estimators.smoother_cost`), after what VQF exploits with its
+low-pass in an almost inertial frame (Sec. 3.2), as states of the filter (strapdown velocity
+integration, Titterton & Weston 2004, Ch. 3; Sola 2017, Sec. 5.3.3 for its error-state Jacobian):
     v <- v + (R(q) a)_xy g dt,   P <- V P V^T,  V = I but dv/de = -(R(q) [a]x)_xy g dt
         (white acceleration noise of variance density Qv g^2 in Q: Qv g^2 dt on v)
     pseudo-measurement v = 0 with the variance Rv / dt (density Rv), H = [0, 0, 0, I],
         heading-free gain and Joseph form as for the accelerometer
-A tilt error e turns 1 g into the horizontal acceleration g e, which a bounded velocity
-cannot absorb for long, while a linear acceleration that averages out over seconds can: the
-velocity states follow the translation (`tests/test_ekf.py`) instead of the attitude taking it
-for gravity. Rv = 1 m^2/s, looser than the smoothers' 0.25: BROAD's fast translation trials
-move at about 1 m/s (the choice is checked by `benchmarks/cross_validate.py`; compare
-`fusion compare --estimators ekf:Rv=0.25,ekf,ekf:Rv=4,ekf:Rv=inf`).
-
-With the velocity states, the low-passed accelerometer sample corrects the attitude and the
-velocity, not the gyro bias and scale (`lowpass_calibration`, `lpcal`; their gain rows are zero,
-which the Joseph form keeps exact): the velocity integrates the same accelerometer samples that
-the low-pass averages, both measure the strapdown frame's drift, and taken as two independent
-measurements of the calibration they would count that information twice. The velocity
-pseudo-measurement, the raw samples and the rest update correct the calibration. Measured in 6-D
-before the scale test below (inclination, `fusion compare --estimators ekf:sprt=0,ekf:sprt=0,lpcal=true
---mag off`): BROAD's fourteen trials
-0.699 against 0.719 with the calibration corrected by both (ahead on 12 of them, behind on 21
-and 28), the course's nine recordings 1.555 against 1.559; the other way round, the velocity
-pseudo-measurement leaving the calibration to the low-passed sample, BROAD's mean is 1.13.
-Without the velocity states the low-passed sample is the only correction of the calibration in
-motion and keeps it (leaving it out took `ekf:Rv=inf` from 0.78 to 1.00 on BROAD). `python
-benchmarks/cross_validate.py --params lpcal` prints the choice by leave-one-recording-out.
+A tilt error e turns 1 g into the horizontal acceleration g e, which a bounded velocity cannot
+absorb for long, while a linear acceleration that averages out over seconds can: the velocity
+states follow the translation (`tests/test_ekf.py`) instead of the attitude taking it for gravity.
+With them, the low-passed sample corrects the attitude and the velocity, not the gyro bias and
+scale (`lowpass_calibration`, `lpcal`, False; their gain rows are zero, which the Joseph form keeps
+exact): the velocity integrates the same samples that the low-pass averages, and taken as two
+independent measurements of the calibration they would count that information twice. Without the
+velocity states the low-passed sample is the only correction of the calibration in motion and
+keeps it.
 
 Scale test (6-D; after the updates of each step, until it decides; `scale_test_error` (sprt) = 0
-turns it off): a gyro read with its datasheet sensitivity may be several per cent off (the
-course board's is 8 %), a calibrated one is not, and the 10 % prior that the first needs lets
-the second fit translation as a scale error (the limitation below). Rather than one prior for
-both, the filter decides from the data with Wald's sequential probability ratio test
-(`_scale_test.ScaleTest`; Wald 1945, Ann. Math. Stat. 16(2)) between H1: s ~ N(0, Ps0 I) and H0:
-s ~ N(0, Psc I), Psc = 1e-4 (1 %). Exchanging the prior is a pseudo-measurement `s = 0` of the
-variance r I, 1/r = 1/Psc - 1/Ps0, so the log-likelihood ratio of the data under the two priors
-is the negative log-likelihood of that pseudo-measurement's innovation, up to constants:
+turns it off; `_scale_test.ScaleTest`): Wald's sequential probability ratio test (Wald 1945,
+"Sequential tests of statistical hypotheses", Ann. Math. Stat. 16(2), Sec. 3) between H1:
+s ~ N(0, Ps0 I), the prior of a gyro read with its datasheet sensitivity, and H0: s ~ N(0, Psc I),
+Psc = 1e-4 (1 %), a calibrated gyro. Exchanging the prior is a pseudo-measurement `s = 0` of
+variance r I, 1/r = 1/Psc - 1/Ps0, so the log-likelihood ratio is, up to constants,
     ln L = 1/2 s^T S^-1 s + 1/2 ln det S + k/2 ln((1 - Psc/Ps0) / Ps0),  S = P_ss + r I
 (k the number of scale axes, P_ss their covariance). With alpha = beta = sprt (0.1), above
-ln((1 - alpha) / alpha) = 2.2 the test accepts the scale error and stops; below -2.2 it accepts
-the calibrated gyro and makes the pseudo-measurement update once (heading-free gain and Joseph
-form as above), after which the scale states carry the posterior the 1 % prior would have
-given. Until it decides, the filter is the one without the test (`tests/test_ekf.py` checks the
-expression against the two priors' evidence computed directly, and both decisions on simulated
-gyros). Measured in 6-D, inclination (`fusion compare --estimators ekf,ekf:sprt=0 --mag off`):
-on BROAD's fourteen trials the test accepts the calibrated gyro on eleven, after 38-89 s, and
-stays undecided on the translation trials 10, 15 and 25, where the scale estimates wander within
-their posterior sigma as before (mean 0.684 against 0.699; trial 32, a magnet attached, 0.66
-against 0.79); on the course recordings it accepts the scale error on 1, 2, 3, 6 and 7, after
-13-26 s, and stays undecided on 4, 5, 8 and 9 (mean 1.555 either way). `python
-benchmarks/cross_validate.py --params sprt,Psc` prints the choice of both values by
-leave-one-recording-out. `ukf-bias` runs the same test (BROAD 0.98 -> 0.88, the course unchanged at
-1.59). The test is for the 6-D filter: at the first magnetometer sample it ends
-undecided, and the 9-D filter keeps the 10 % prior, whose scale rows the heading update corrects.
-Run in 9-D it accepted the calibrated gyro on the same trials and moved the magnet trials both
-ways (BROAD's mean total 2.09 against 2.14: trials 28 and 32 2.36 and 1.18 against 3.23 and 3.83,
-but 34 and 36 2.36 and 3.09 against 1.13 and 1.37): with the scale's uncertainty gone from the
-heading's, the heading follows the magnetometer more slowly after the gyro-only stretches, and on
-trial 36 the hard-iron fit then no longer paid (3.09 with it, 2.44 without it, where it halves the
-error with the 10 % prior; `tests/test_mag_filters.py`).
+ln((1 - alpha) / alpha) = 2.2 the test accepts the scale error and stops; below -2.2 it accepts the
+calibrated gyro and makes the pseudo-measurement update once (heading-free gain and Joseph form as
+above). Until it decides, the filter is the one without the test (`tests/test_ekf.py` checks the
+expression against the two priors' evidence computed directly). At the first magnetometer sample
+the test ends undecided: the 9-D filter keeps the 10 % prior, whose scale rows the heading update
+corrects.
 
-Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`, uT, body frame; after the
-accelerometer update, with the sample at the step's end). The world is ENU (x east, y north,
-z up), the frame of BROAD's truth, whose heading agrees with magnetic north. The accelerometer
-owns the inclination; the magnetometer corrects the heading only (Laidig & Seel 2023, VQF,
-Information Fusion 91, Sec. 3.3: a heading correction from the magnetometer's horizontal
-direction, with magnetic disturbance rejection):
+Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`; after the accelerometer
+update, with the sample at the step's end; `_magnetometer`). The world is ENU (x east, y north,
+z up). The accelerometer owns the inclination; the magnetometer corrects the heading only (VQF,
+Sec. 3.3):
     m_w = R(q) m = (east, north, up),  psi = atan2(-east, north)      (0 at the true heading)
     v = R(q)^T e_z (the vertical in the body frame): a turn by phi about the world vertical is
         the error e = v phi and turns psi by phi, so H = [v^T, 0, 0, 0] (scalar)
     r_k = Rm / dt (1 + (w_up / mrate)^2),  w_up = (theta . v) / dt the rate about the vertical
         (a magnetometer sampled late or low-passed errs by the angle turned over its lag)
     S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows (heading
-        only) and 0 on the velocity rows; the scale rows keep theirs (a scale error turns the
-        heading as the board turns: the innovation measures it),  dx = K (0 - psi)
-    q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T (Joseph
-        form, exact for the restricted gain; Sola 2017, Sec. 6.1-6.3)
-Disturbances (`_magnetometer.MagReference`): the reference norm |m| and dip atan2(-up, |(east,
-north)|) are learned from the data while the samples agree with them (a running mean, then a
-low-pass of time constant `mref`); a sample counts while |norm - ref| < mnorm ref and |dip - ref|
-< mdip, and only after that has held for `mtime` s without interruption (a magnet in the room
-moves the norm or the dip out of the gates; the filter then runs on the gyro, 6-D, whose heading
-drifts slowly). A magnet carried with the sensor adds a constant body-frame offset o (hard iron),
-fitted without the attitude (`_magnetometer.HardIron`): the readings of a field of constant norm lie
-on the sphere |m - o| = r, linear least squares in [2 o, r^2 - |o|^2] over an exponential window
-(Vasconcelos et al. 2011, IEEE TAES 47(2), the hard-iron part); while the fit is trusted (its
-samples cover the sphere, its residual is small, its offset exceeds that residual and its radius
-is the reference norm), samples are used with o removed. `--mag off`, or a recording without a
-magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
+        only) and 0 on the velocity rows; the scale rows keep theirs,  dx = K (0 - psi)
+    q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T
+        (Joseph form, exact for the restricted gain; Sola 2017, Secs. 6.1-6.3)
+Disturbances (`_magnetometer.MagReference`, VQF Sec. 3.3): the reference norm |m| and dip
+atan2(-up, |(east, north)|) are learned while the samples agree with them; a sample counts while
+|norm - ref| < mnorm ref and |dip - ref| < mdip, and only after that has held for `mtime` s. A
+magnet carried with the sensor adds a constant body-frame offset o (hard iron), fitted without
+the attitude (`_magnetometer.HardIron`: the sphere |m - o| = r, linear least squares in
+[2 o, r^2 - |o|^2] over an exponential window; Vasconcelos et al. 2011, IEEE TAES 47(2), eqs. 4-6,
+the hard-iron part); while the fit is trusted, samples are used with o removed. `--mag off`, or a
+recording without a magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
 
-Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional
-to the angle turned. When the board only rocks (bounded angles, under 1 rad/s) while it is
-moved back and forth, the linear acceleration has power at the rocking frequencies, and the
-filter, which models it as noise that is white at the scale of `disturbance_corr_s` (or, for
-the low-passed sample, as the derivative of a bounded velocity), takes part of it for a
-scale error. With the 10 % prior (`init_scale_var`) it fits a scale error larger than the
-prior to an exactly calibrated gyro and loses inclination (`tests/test_ekf.py`, a strict
-xfail, measures both). On BROAD's slow and translation trials the estimates end several per
-cent from zero (within about one and a half posterior sigma), where a fit against the truth
-finds well under 1 % (`fusion calibrate --dataset 'broad/*'`; `docs/results.md`). The scale
-test does not remove it: while the translation is taken for a scale error, the data do not
-favour the calibrated prior, and the test stays undecided on those trials. `scale=false` or a
-narrower prior avoids it where the gyro is known to be calibrated; the smoothers keep a scale
-error only where it lowers their cost significantly, and do not show it.
+Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional to
+the angle turned. When the board only rocks (bounded angles, under 1 rad/s) while it is moved back
+and forth, the linear acceleration has power at the rocking frequencies, and the filter, which
+models it as noise that is white at the scale of `disturbance_corr_s` (or, for the low-passed
+sample, as the derivative of a bounded velocity), takes part of it for a scale error; with the
+10 % prior (`init_scale_var`) it fits a scale error to an exactly calibrated gyro and loses
+inclination (`tests/test_ekf.py`, a strict xfail). The scale test does not remove it: while the
+translation is taken for a scale error, the data do not favour the calibrated prior. `scale=false`
+or a narrower prior avoids it where the gyro is known to be calibrated.
 
-FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it.
-FilterPy's EKF sizes x and P together (dim_x), adds the correction (`x + K y`) and
-predicts with a linear `F x`; for an error-state filter with a quaternion nominal state
-every one of those lines would be overridden and only attribute names would remain, at
-FilterPy's per-call cost (column-vector bookkeeping, `deepcopy(z)`). The update uses the same
-Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
+FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it: FilterPy's
+EKF sizes x and P together, adds the correction (`x + K y`) and predicts with a linear `F x`; for
+an error-state filter with a quaternion nominal state every one of those lines would be
+overridden. The update uses the same Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
 
-Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate,
-no bias or scale coupling, attitude noise inflated by `invalid_gyr_var_rad2_s2 dt^2`),
-non-finite accelerometer samples skip the update, the optional fixed gating (`gate`,
-`gate_g`; off by default) inflates R or skips the update when `| |a| - 1 g |` is large, and
-the covariance is symmetrised (eigenvalues clipped if needed) every step.
+Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate, no bias
+or scale coupling, attitude noise inflated by `invalid_gyr_var_rad2_s2 dt^2`), non-finite
+accelerometer samples skip the update, the optional fixed gating (`gate`, `gate_g`; off by
+default) inflates R or skips the update when `| |a| - 1 g |` is large, and the covariance is
+symmetrised (eigenvalues clipped if needed) every step (`_linalg.repair_covariance`).
 
-Two implementations (`impl` parameter). `EKF.step` below, in numpy, is the reference: the
-definition of the filter, and what `reset`/`step` (the streaming interface) always run.
-`"compiled"` (the default) makes `estimate` run the whole recording in one numba kernel,
-`_compiled_ekf.estimate`, which does the same arithmetic in explicit loops over the small
-matrices and records the same diagnostics, with or without the velocity states (11 x 11
-matrices with them; `ekf:Rv=inf` leaves them out). numpy's per-call overhead dominates the
-reference step; timings of both: `python benchmarks/bench_filters.py --dataset ...` (see
-`_compiled` for why numba). `"numpy"` makes `estimate` loop `step`. `tests/test_compiled.py`
-checks that the two agree to 1e-10.
+Two implementations (`impl`): `EKF.step` below, in numpy, is the reference and what `reset`/`step`
+(the streaming interface) always run; `"compiled"` (the default) makes `estimate` run the whole
+recording in `_compiled_ekf.estimate`, whose helpers carry the names of the methods they mirror
+(`_compiled_ekf._correct`, `_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`.
 """
 from __future__ import annotations
 
