@@ -37,8 +37,9 @@ from fusion import quaternion as quat
 
 from . import _compiled_smoother_linearize as kernel
 from ._compiled_smoother_cost import range_cost
-from ._compiled_smoother_layout import BLOCKS, ELIMINATE, FROM_BLOCKS, GRADIENT, constants, problem_arrays
-from ._compiled_smoother_linearize import back_substitute, range_carry_size
+from ._compiled_smoother_layout import (B_MAX, BLOCKS, ELIMINATE, FROM_BLOCKS, GRADIENT, POINT, RETRACTIONS, carry_size,
+                                        constants, problem_arrays, range_blocks)
+from ._compiled_smoother_linearize import back_substitute
 from ._compiled_smoother_ranges import linearize_ranges, run_beside
 from ._compiled_smoother_start import dead_reckoning, dot, levelled, norm_error
 from .smoother_cost import Linearization, SmootherProblem
@@ -125,8 +126,9 @@ class CompiledOps:
     # ---------------------------------------------------------------- cost
     def cost(self, q: np.ndarray, theta: np.ndarray, v: np.ndarray) -> float:
         """The cost at (q (T, 4), theta (P,), v (T, V) m/s)."""
-        none = np.zeros((0, 5))
-        return range_cost(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, 0, none, none, _NO_STORAGE[0])
+        none = np.zeros((0, B_MAX))
+        return range_cost(self.arrays, self.consts, q, v, np.asarray(theta, float), none, 0.0, POINT, none, none,
+                          _NO_STORAGE[0])
 
     def trial(self, q, v, theta, d_q, d_theta, alpha: float, update: str = "geodesic"):
         """(q, v, theta) moved by alpha times the step (d_q (T, B), d_theta (P,)), retracted
@@ -141,7 +143,7 @@ class CompiledOps:
         keep = self._storage[0] if self._storage is not None and self._held is None else _NO_STORAGE[0]
         self._kept = None
         cost = range_cost(self.arrays, self.consts, q, v, theta_new, np.ascontiguousarray(d_q), float(alpha),
-                          1 if update == "geodesic" else 2, q_new, v_new, keep)
+                          RETRACTIONS[update], q_new, v_new, keep)
         if keep.shape[0]:
             self._kept = (weakref.ref(q_new), theta_new.copy())
         return q_new, v_new, theta_new, cost
@@ -212,7 +214,7 @@ class CompiledOps:
                 and held[2] == self._free_index(None).tobytes():
             return np.sqrt(np.diag(np.linalg.inv(self._schur[0])))
         theta = np.asarray(theta, float)
-        storage = np.empty((2, 5, 5)), np.empty((2, 5)), np.empty((2, 5, P))  # the running rows only
+        storage = np.empty((2, B_MAX, B_MAX)), np.empty((2, B_MAX)), np.empty((2, B_MAX, P))  # the running rows only
         schur = np.empty((P, P)), np.empty(P), np.empty(1)
         cost = self._kernel(q, v, theta, ELIMINATE, np.empty((0, self.B)), np.empty(P),
                             index=np.arange(P, dtype=np.int64), storage=storage, schur=schur)
@@ -241,9 +243,9 @@ class CompiledOps:
     def _eliminate(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
         F = len(index)
         if self._storage is None or self._storage[2].shape[2] != F:  # N has a column per free variable
-            M, c = (np.empty((self.T, 5, 5)), np.empty((self.T, 5))) if self._storage is None else self._storage[:2]
+            M, c = (np.empty((self.T, B_MAX, B_MAX)), np.empty((self.T, B_MAX))) if self._storage is None else self._storage[:2]
             self._storage = None  # the old N goes before the new one comes
-            self._storage = M, c, np.empty((self.T, 5, F))
+            self._storage = M, c, np.empty((self.T, B_MAX, F))
         self._schur = np.empty((F, F)), np.empty(F), np.empty(1)
         if rhs is not None:
             rhs = np.ascontiguousarray(rhs[0], float), np.ascontiguousarray(rhs[1], float)
@@ -264,7 +266,7 @@ class CompiledOps:
         bounds = linearize_ranges(self.T)
         buffers = self._range_buffers(max(b - a for a, b in zip(bounds, bounds[1:])))
         kept = self._kept_at(q, theta)  # read by the BLOCKS ranges only, before FROM_BLOCKS writes the same rows
-        theta_block, carries = np.empty((P, P)), (np.zeros(range_carry_size(P)), np.zeros(range_carry_size(P)))
+        theta_block, carries = np.empty((P, P)), (np.zeros(carry_size(P)), np.zeros(carry_size(P)))
 
         def blocks(k):  # mode BLOCKS over range k, into buffer k % 2
             return self._kernel(q, v, theta, BLOCKS, buffers[k % 2][3], grad_theta,
@@ -289,11 +291,10 @@ class CompiledOps:
         return cost
 
     def _range_buffers(self, R: int) -> tuple:
-        """Two sets of the blocks (diag, off, cross, grad) of a range of R samples, for
-        `_eliminate_in_ranges`, every entry it reads written before. Allocated for each elimination
-        and dropped after it, so that they never add to the trial's trajectories (the peak)."""
-        B, P = self.B, self.P
-        return tuple((np.empty((R, B, B)), np.empty((R, B, B)), np.empty((R, B, P)), np.empty((R, B))) for _ in range(2))
+        """Two sets of the blocks of a range of R samples (`range_blocks`), for `_eliminate_in_ranges`.
+        Allocated for each elimination and dropped after it, so that they never add to the trial's
+        trajectories (the peak)."""
+        return range_blocks(R, self.B, self.P), range_blocks(R, self.B, self.P)
 
     def _check(self, cost: float) -> None:
         if math.isnan(cost):
@@ -302,7 +303,7 @@ class CompiledOps:
 
 _NO_INDEX = np.zeros(0, np.int64)
 _NO_CARRY = np.zeros(0)
-_NO_RHS = (np.zeros((0, 5)), np.zeros(0))
+_NO_RHS = (np.zeros((0, B_MAX)), np.zeros(0))
 _NO_BLOCKS = (np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
-_NO_STORAGE = (np.zeros((0, 5, 5)), np.zeros((0, 5)), np.zeros((0, 5, 0)))
+_NO_STORAGE = (np.zeros((0, B_MAX, B_MAX)), np.zeros((0, B_MAX)), np.zeros((0, B_MAX, 0)))
 _NO_SCHUR = (np.zeros((0, 0)), np.zeros(0), np.zeros(1))

@@ -52,13 +52,17 @@ from fusion import quaternion as quat
 from . import _compiled_smoother_layout as layout
 from . import _compiled_smoother_terms as terms
 from ._compiled import _jit
-from ._compiled_smoother_layout import BLOCKS, ELIMINATE, FROM_BLOCKS
-from ._compiled_smoother_terms import (exp_floats, fill3, kept_mag, kept_step, load_quat, log_floats, mag_residual,
+from ._compiled_smoother_layout import (BLOCKS, CARRY_OFF_BLOCK, ELIMINATE, FROM_BLOCKS, N_SUMS, SUM_ACC, SUM_MAG,
+                                        SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
+from ._compiled_smoother_terms import (exp_floats, fill3, kept_acc, kept_mag, kept_step, load_quat, log_floats, mag_residual,
                                        motion_residual, multiply_floats, rest_residual, right_jacobian, right_jacobian_inv,
                                        robust_terms, rotation_floats, split_theta, step_rotvec, total_cost)
 from ._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
+
+# `_compiled_smoother_layout.carry_offsets`, compiled under its name: one definition for the kernels and Python.
+carry_offsets = _jit(layout.carry_offsets)
 
 
 @_jit
@@ -127,17 +131,18 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
 
     kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
     accelerometer term and magnetometer residual at this very point (q, theta), as `cost`
-    computed them for a trial step here (`keep_step`, `keep_mag`): read, not computed again (the
+    computed them for a trial step here (`keep_floats`, the layout's KEEP_*): read, not computed again (the
     same numbers). It may be M itself: row t is read before M's row t is written.
 
     Ranges (`CompiledOps._eliminate_in_ranges`): the samples t0 <= t < t1 only. Mode BLOCKS over a
-    range writes its blocks and gradient at rows t - t0 and, before T, returns 0 and leaves in carry
-    (`range_carry_size`) what the next range continues from (what the last step adds to its next
-    sample, the cost's sums, the calibration block and gradient); the range that ends at T returns
-    the cost, theta_block and grad_theta. Mode FROM_BLOCKS eliminates those blocks (grad_q, diag,
-    off, cross: the BLOCKS range's rows; theta_block, grad_theta: the last range's) as ELIMINATE
-    would have, the same arithmetic in the same order, with H[t-1, t] in carry[:25] between ranges;
-    returns 0 (nan: not positive definite). A whole pass is t0 = 0, t1 = T, carry without rows.
+    range writes its blocks and gradient at rows t - t0 (`_compiled_smoother_layout.range_blocks`)
+    and, before T, returns 0 and leaves in carry (`carry_state`) what the next range continues
+    from (what the last step adds to its next sample, the cost's sums, the calibration block and
+    gradient); the range that ends at T returns the cost, theta_block and grad_theta. Mode
+    FROM_BLOCKS eliminates those blocks (grad_q, diag, off, cross: the BLOCKS range's rows;
+    theta_block, grad_theta: the last range's) as ELIMINATE would have, the same arithmetic in the
+    same order, with H[t-1, t] in a carry of its own (at CARRY_OFF_BLOCK) between ranges; returns
+    0 (nan: not positive definite). A whole pass is t0 = 0, t1 = T, carry without rows.
 
     Reference: fusion.estimators.smoother_cost.SmootherProblem.linearize
     """
@@ -186,11 +191,12 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             for j in range(F):
                 schur[i, j] = 0.0
     elif mode == FROM_BLOCKS:
-        carry_block(carry, 0, Op, False)
+        carry_block(carry, CARRY_OFF_BLOCK, Op, False)
     else:  # BLOCKS, continued from the range before
-        sums = np.empty(7)
+        sums = np.empty(N_SUMS)
         carry_state(carry, False, Dn, gn, Cn, sums, gth, G)
-        cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_prior, cost_mag = sums
+        cost_acc, cost_motion, cost_vel, cost_vzero = sums[SUM_ACC], sums[SUM_MOTION], sums[SUM_VEL], sums[SUM_VZERO]
+        cost_rest, cost_prior, cost_mag = sums[SUM_REST], sums[SUM_PRIOR], sums[SUM_MAG]
     qn = load_quat(q, t0)
     rn = rotation_floats(qn)
     for t in range(t0, t1):
@@ -225,7 +231,7 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
             r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
             if kept.shape[0]:
-                ca, wa = kept[t, 1, 3], kept[t, 1, 4]
+                ca, wa = kept_acc(kept, t)
             else:
                 ca, wa = robust_terms(p.loss, p.loss_c, p.w_acc[t], r0 * r0 + r1 * r1 + r2 * r2)
             cost_acc += ca
@@ -445,8 +451,11 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                 for i in range(5):
                     for j in range(5):
                         Op[i, j] = O[i, j]
+    sums = np.empty(N_SUMS)
+    sums[SUM_ACC], sums[SUM_MOTION], sums[SUM_VEL], sums[SUM_VZERO] = cost_acc, cost_motion, cost_vel, cost_vzero
+    sums[SUM_REST], sums[SUM_PRIOR], sums[SUM_MAG] = cost_rest, cost_prior, cost_mag
     if mode == FROM_BLOCKS:
-        carry_block(carry, 0, Op, True)
+        carry_block(carry, CARRY_OFF_BLOCK, Op, True)
         if t1 < T:
             return 0.0
         for m in range(P):  # the calibration block and gradient of the BLOCKS pass, prior included
@@ -454,7 +463,6 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             for n in range(P):
                 G[m, n] = theta_block[m, n]
     elif t1 < T:  # BLOCKS: what the next range continues from
-        sums = np.array([cost_acc, cost_motion, cost_vel, cost_vzero, cost_rest, cost_prior, cost_mag])
         carry_state(carry, True, Dn, gn, Cn, sums, gth, G)
         return 0.0
     else:
@@ -473,12 +481,12 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
     if mode == FROM_BLOCKS:
         return 0.0
-    return total_cost(p, theta, V, cost_acc, cost_motion, cost_prior, cost_vel, cost_vzero, cost_rest) + cost_mag
+    return total_cost(p, theta, V, sums)
 
 
 @_jit
 def carry_block(carry, at, block, store):
-    """Copy the C-contiguous array `block` to carry[at:] (store) or from there; -> the offset after it.
+    """Copy the C-contiguous array `block` to carry[at:] (store) or from there.
 
     Reference: none (the hand-over between ranges)"""
     flat = block.reshape(-1)
@@ -487,28 +495,22 @@ def carry_block(carry, at, block, store):
             carry[at + i] = flat[i]
         else:
             flat[i] = carry[at + i]
-    return at + flat.size
 
 
 @_jit
 def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
-    """A BLOCKS range's state to its carry (store) or from it, in one layout: what the last step
-    adds to the next sample (Dn 5 x 5, gn 5, Cn 5 x P), the cost's seven sums, the calibration
-    gradient gth (P) and block G (P x P): `range_carry_size` numbers.
+    """A BLOCKS range's state to its carry (store) or from it, at `carry_offsets`: what the last
+    step adds to the next sample (Dn 5 x 5, gn 5, Cn 5 x P), the cost's sums (N_SUMS), the
+    calibration gradient gth (P) and block G (P x P).
 
     Reference: none (the hand-over between ranges)"""
-    at = carry_block(carry, 0, Dn, store)
-    at = carry_block(carry, at, gn, store)
-    at = carry_block(carry, at, Cn, store)
-    at = carry_block(carry, at, sums, store)
-    at = carry_block(carry, at, gth, store)
-    carry_block(carry, at, G, store)
-
-
-def range_carry_size(P: int) -> int:
-    """The length of `linearize`'s carry (`carry_state`) with P calibration variables; at
-    least the 25 of FROM_BLOCKS's H[t-1, t]."""
-    return 25 + 5 + 5 * P + 7 + P + P * P
+    next_diag, next_grad, next_cross, at_sums, grad_theta, theta_block, _ = carry_offsets(len(gth))
+    carry_block(carry, next_diag, Dn, store)
+    carry_block(carry, next_grad, gn, store)
+    carry_block(carry, next_cross, Cn, store)
+    carry_block(carry, at_sums, sums, store)
+    carry_block(carry, grad_theta, gth, store)
+    carry_block(carry, theta_block, G, store)
 
 
 @_jit

@@ -24,10 +24,14 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from . import _compiled_smoother_layout as layout
 from ._compiled import _jit
+from ._compiled_smoother_layout import (B_MAX, KEEP_ACC, KEEP_MAG, KEEP_MOTION, KEEP_STEP, LOSS_CAUCHY, LOSS_HUBER,
+                                        LOSS_NONE, SUM_ACC, SUM_MAG, SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
 from ._kernel_cache import forget_stale_kernels
 
-forget_stale_kernels(__file__, [quat.__file__])  # the kernels compile fusion.quaternion's scalar path
+# the kernels compile fusion.quaternion's scalar path and the layout's constants
+forget_stale_kernels(__file__, [quat.__file__, layout.__file__])
 
 
 # `fusion.quaternion`'s scalar path, compiled under its own names: one definition for numpy, Python
@@ -139,16 +143,16 @@ def robust_loss(kind, s):
     normalised squared residual s = |r|^2 / c^2.
 
     Reference: fusion.estimators.smoother_cost.robust_loss"""
-    if kind == 0:  # none
+    if kind == LOSS_NONE:
         return s, 1.0
-    if kind == 1:  # huber
+    if kind == LOSS_HUBER:
         root = math.sqrt(s)
         if root <= 1.0:
             return s, 1.0
         return 2.0 * root - 1.0, 1.0 / max(root, 1e-300)
-    if kind == 2:  # cauchy
+    if kind == LOSS_CAUCHY:
         return math.log1p(s), 1.0 / (1.0 + s)
-    return s / (1.0 + s), 1.0 / (1.0 + s) ** 2  # geman-mcclure
+    return s / (1.0 + s), 1.0 / (1.0 + s) ** 2  # LOSS_GEMAN_MCCLURE
 
 
 @_jit
@@ -158,7 +162,7 @@ def robust_terms(kind, c, w, sq):
     (`SmootherProblem.acc_terms`) and the magnetometer's (`mag_terms`) term of one sample.
 
     Reference: fusion.estimators.smoother_cost.robust_terms"""
-    if kind == 0:
+    if kind == LOSS_NONE:
         return 0.5 * w * sq, w
     c2 = c * c
     rho, drho = robust_loss(kind, sq / c2)
@@ -190,54 +194,62 @@ def rest_residual(p, b, k, t, i):
 
 
 @_jit
-def total_cost(p, theta, V, acc, motion, prior_sq, vel, vzero, rest):
-    """The cost from its terms' sums: acc (with its 1/2), and the weighted squared residuals of
-    motion, velocity, zero velocity and rest, the anchor's |r_0|^2; the calibration prior from theta.
+def total_cost(p, theta, V, sums):
+    """The cost from its terms' sums (N_SUMS,) (`_compiled_smoother_layout`'s SUM_*: the
+    accelerometer's and magnetometer's terms with their 1/2, the weighted squared residuals of
+    motion, velocity, zero velocity and rest, the anchor's |r_0|^2); the calibration prior from theta.
 
     Reference: none (the last lines of `SmootherProblem.cost`, which sums whole arrays)"""
     prior = 0.0
     for i in range(len(theta)):
         prior += p.w_theta[i] * theta[i] ** 2
-    total = acc + 0.5 * (motion + p.w_prior * prior_sq + prior)
+    total = sums[SUM_ACC] + 0.5 * (sums[SUM_MOTION] + p.w_prior * sums[SUM_PRIOR] + prior)
     if V:
-        total += 0.5 * (vel + vzero)
-    return total + 0.5 * rest
+        total += 0.5 * (sums[SUM_VEL] + sums[SUM_VZERO])
+    return total + 0.5 * sums[SUM_REST] + sums[SUM_MAG]
 
 
 # ============================================================================ what a trial keeps
 @_jit
-def keep_step(keep, t, u, r):
-    """Store step t's u_t (4) and motion residual r_m,t (3) in keep[t] (5 x 5: rows 0 and 1).
+def keep_floats(keep, t, at, values):
+    """Store the scalars `values` in keep[t] (B_MAX x B_MAX, read as one row of numbers) from number
+    `at` on (`_compiled_smoother_layout`'s KEEP_* offsets).
 
     Reference: none (what a trial keeps for the linearisation at its point)"""
-    for i in range(4):
-        keep[t, 0, i] = u[i]
-    for i in range(3):
-        keep[t, 1, i] = r[i]
+    for i in range(len(values)):
+        keep[t, (at + i) // B_MAX, (at + i) % B_MAX] = values[i]
+
+
+@_jit
+def kept_float(kept, t, at):
+    """Number `at` of kept[t], as `keep_floats` stored it.
+
+    Reference: none (what a trial keeps for the linearisation at its point)"""
+    return kept[t, at // B_MAX, at % B_MAX]
 
 
 @_jit
 def kept_step(kept, t):
-    """(u_t, r_m,t) as `keep_step` stored them.
+    """(u_t, r_m,t) as `keep_floats` stored them.
 
     Reference: none (what a trial keeps for the linearisation at its point)"""
-    return (kept[t, 0, 0], kept[t, 0, 1], kept[t, 0, 2], kept[t, 0, 3]), (kept[t, 1, 0], kept[t, 1, 1], kept[t, 1, 2])
+    return ((kept_float(kept, t, KEEP_STEP), kept_float(kept, t, KEEP_STEP + 1), kept_float(kept, t, KEEP_STEP + 2),
+             kept_float(kept, t, KEEP_STEP + 3)),
+            (kept_float(kept, t, KEEP_MOTION), kept_float(kept, t, KEEP_MOTION + 1), kept_float(kept, t, KEEP_MOTION + 2)))
 
 
 @_jit
-def keep_mag(keep, t, m):
-    """Store sample t's magnetometer residual and its Jacobian's factors (`mag_residual`: r_h, k0, k1,
-    k2) and its (cost term, IRLS weight) (`robust_terms`), 6 numbers, in keep[t] (row 2 and keep[t, 3, 0]).
+def kept_acc(kept, t):
+    """The accelerometer's (cost term, IRLS weight) as `keep_floats` stored them.
 
     Reference: none (what a trial keeps for the linearisation at its point)"""
-    for i in range(5):
-        keep[t, 2, i] = m[i]
-    keep[t, 3, 0] = m[5]
+    return kept_float(kept, t, KEEP_ACC), kept_float(kept, t, KEEP_ACC + 1)
 
 
 @_jit
 def kept_mag(kept, t):
-    """What `keep_mag` stored.
+    """The magnetometer's (r_h, k0, k1, k2, cost term, IRLS weight) as `keep_floats` stored them.
 
     Reference: none (what a trial keeps for the linearisation at its point)"""
-    return kept[t, 2, 0], kept[t, 2, 1], kept[t, 2, 2], kept[t, 2, 3], kept[t, 2, 4], kept[t, 3, 0]
+    return (kept_float(kept, t, KEEP_MAG), kept_float(kept, t, KEEP_MAG + 1), kept_float(kept, t, KEEP_MAG + 2),
+            kept_float(kept, t, KEEP_MAG + 3), kept_float(kept, t, KEEP_MAG + 4), kept_float(kept, t, KEEP_MAG + 5))

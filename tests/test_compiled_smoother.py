@@ -313,6 +313,24 @@ def test_every_kernel_carries_its_references_name():
     assert references["robust_terms"] == "fusion.estimators.smoother_cost.robust_terms"
 
 
+def test_the_packed_layouts_do_not_overlap():
+    """What a trial keeps of a sample fits in M's row without overlap (`KEEP_*`), the cost's sums
+    are numbered 0 .. N_SUMS - 1, and a carry holds its parts one after another, with room for
+    FROM_BLOCKS's block (`carry_offsets`)."""
+    keep = [(layout.KEEP_STEP, 4), (layout.KEEP_MOTION, 3), (layout.KEEP_ACC, 2), (layout.KEEP_MAG, 6)]
+    slots = [i for at, n in keep for i in range(at, at + n)]
+    assert len(set(slots)) == len(slots) and max(slots) < layout.B_MAX**2
+    sums = [layout.SUM_ACC, layout.SUM_MOTION, layout.SUM_VEL, layout.SUM_VZERO, layout.SUM_REST, layout.SUM_MAG,
+            layout.SUM_PRIOR]
+    assert sorted(sums) == list(range(layout.N_SUMS))
+    for P in (0, 1, 4):
+        offsets = layout.carry_offsets(P)
+        sizes = [b - a for a, b in zip(offsets, offsets[1:])]
+        assert offsets[0] == 0 and sizes == [layout.B_MAX**2, layout.B_MAX, layout.B_MAX * P, layout.N_SUMS, P, P * P]
+        assert layout.carry_size(P) == offsets[-1] >= layout.CARRY_OFF_BLOCK + layout.B_MAX**2
+        assert kernel_linearize.carry_offsets(P) == offsets  # the compiled definition is the same one
+
+
 def test_compiled_ops_have_the_reference_ops_interface():
     """`CompiledOps` has every public method of `ReferenceOps`, with its parameters first."""
     from fusion.estimators.smoother import ReferenceOps
