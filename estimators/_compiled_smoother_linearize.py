@@ -2,7 +2,7 @@
 
 What is compiled and why. A smoother iteration evaluates the cost of `smoother_cost` over the
 whole recording, linearises it and solves the block-tridiagonal normal equations with their
-calibration border. The numpy reference (`SmootherProblem.linearize`, `solve_normal_equations`,
+calibration border. The numpy reference (`SmootherProblem.linearize`, `smoother_solve`,
 `gd.Preconditioner`) does this in whole-array operations, each of which builds (T, 3, 3) or
 (T, 5, 5) temporaries, writes the matrix to LAPACK's band storage and solves it there, with
 the border as P extra right-hand sides. Here one pass over the samples (`linearize`)

@@ -92,7 +92,8 @@ from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_bande
 
 from .gn import released_scales
 from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, retract, solution_diagnostics
-from .smoother_cost import Linearization, SmootherProblem, banded_lower
+from .smoother_cost import Linearization, SmootherProblem
+from .smoother_solve import banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
 MAX_HALVINGS = 50  # 2^-50: no step of that length decreases the cost in double precision

@@ -37,7 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 from .smoother import BatchSmoother, SolverLog, progress_bar, solution_diagnostics
-from .smoother_cost import SmootherProblem, solve_normal_equations, theta_posterior_std  # noqa: F401 (their home until now)
+from .smoother_cost import SmootherProblem
+from .smoother_solve import solve_normal_equations, theta_posterior_std  # noqa: F401 (their home until now)
 
 
 def released_scales(posterior_std: np.ndarray, prior_std: np.ndarray, ratio: float) -> np.ndarray:

@@ -35,8 +35,8 @@ from .ekf import EKF
 from .params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, parse_specs
 from .search import Tunable
 from .smoother_mag import MagSettings, heading_correction, measurements
-from .smoother_cost import (AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations, solve_normal_equations,
-                            theta_posterior_std)
+from .smoother_cost import AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations
+from .smoother_solve import solve_normal_equations, theta_posterior_std
 from .ukf import UKF, UKFBias
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.

@@ -71,7 +71,8 @@ Perturbations are on the right, `q_t <- q_t * exp([0, delta_t / 2])` (delta_t in
 frame). The Jacobians below are exact (SO(3) left/right Jacobians of `fusion.quaternion`, Sola
 et al. 2018, "A micro Lie theory", eqs. 143-146); `tests/test_smoother.py` and
 `tests/test_smoother_robust.py` check them against finite differences. Everything is
-vectorised over samples.
+vectorised over samples. The normal equations of a `Linearization` are solved in
+`fusion.estimators.smoother_solve`.
 """
 from __future__ import annotations
 
@@ -81,7 +82,6 @@ from typing import ClassVar
 
 import numpy as np
 
-from scipy.linalg import solveh_banded
 
 from fusion import quaternion as quat
 from fusion.quaternion import right_jacobian, right_jacobian_inv, rotation_matrix
@@ -612,59 +612,3 @@ class SmootherProblem:
             cross[1:, :3] -= wm * (A @ Jth)  # J1^T Jth
             theta_block = theta_block + np.einsum("tjp,tjr->pr", wm * Jth, Jth)
         return Linearization(cost, grad, grad_theta, diag, off, cross, theta_block)
-
-
-def banded_lower(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """Block-tridiagonal symmetric matrix -> LAPACK lower band storage (2B, B T) for solveh_banded.
-
-    diag: (T, B, B) blocks H[t, t]; off: (T-1, B, B) blocks H[t, t+1] (so H[t+1, t] = off^T).
-    Entry H[r, c] (r >= c) goes to ab[r - c, c].
-    """
-    T, B = diag.shape[0], diag.shape[1]
-    ab = np.zeros((2 * B, B * T))
-    cols = B * np.arange(T)
-    for i in range(B):
-        for j in range(i + 1):
-            ab[i - j, cols + j] = diag[:, i, j]
-    cols = cols[:-1]
-    for i in range(B):
-        for j in range(B):
-            # H[B(t+1) + i, B t + j] = H[t+1, t][i, j] = off[t][j, i]
-            ab[B + i - j, cols + j] = off[:, j, i]
-    return ab
-
-
-def solve_normal_equations(lin, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Solve (H + damping diag(H)) [delta; dtheta] = -[g_q; g_theta] in O(T).
-
-    H is block-tridiagonal in the per-sample variables (B = 3 rotation + V velocity) with a
-    dense border for the P calibration variables; the border is eliminated by a Schur
-    complement. Returns ((T, B), (P,)).
-    """
-    T, B = lin.diag.shape[:2]
-    diag = lin.diag.copy()
-    idx = np.arange(B)
-    diag[:, idx, idx] *= 1.0 + damping
-    ab = banded_lower(diag, lin.off)
-    P = lin.cross.shape[2]
-    rhs = np.concatenate([-lin.grad_q.reshape(-1, 1), lin.cross.reshape(B * T, P)], axis=1)
-    sol = solveh_banded(ab, rhs, lower=True, check_finite=False)
-    x0, X1 = sol[:, 0], sol[:, 1:]
-    if P == 0:
-        return x0.reshape(T, B), np.zeros(0)
-    G = lin.theta_block.copy()
-    G[np.arange(P), np.arange(P)] *= 1.0 + damping
-    C = lin.cross.reshape(B * T, P)
-    schur = G - C.T @ X1
-    dtheta = np.linalg.solve(schur, -lin.grad_theta - C.T @ x0)
-    return (x0 - X1 @ dtheta).reshape(T, B), dtheta
-
-
-def theta_posterior_std(lin) -> np.ndarray:
-    """(P,) marginal std of the calibration variables: sqrt(diag((G - C^T A^-1 C)^-1))."""
-    P = lin.cross.shape[2]
-    if P == 0:
-        return np.zeros(0)
-    C = lin.cross.reshape(-1, P)
-    X1 = solveh_banded(banded_lower(lin.diag, lin.off), C, lower=True, check_finite=False)
-    return np.sqrt(np.diag(np.linalg.inv(lin.theta_block - C.T @ X1)))

@@ -32,7 +32,8 @@ from fusion.estimators import _compiled_smoother_ranges as ranges
 from fusion.estimators import _compiled_smoother_start as start
 from fusion.estimators.gd import RIDGE, Preconditioner
 from fusion.estimators.smoother import initial_trajectory, levelled
-from fusion.estimators.smoother_cost import SmootherProblem, Weights, solve_normal_equations, theta_posterior_std
+from fusion.estimators.smoother_cost import SmootherProblem, Weights
+from fusion.estimators.smoother_solve import solve_normal_equations, theta_posterior_std
 from fusion.types import ImuSamples
 
 COST_RTOL = 1e-9  # the target: final costs equal to the reference within 1e-9

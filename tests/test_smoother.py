@@ -8,7 +8,8 @@ from fusion.estimators import ESTIMATORS, build
 from fusion.estimators.gd import GDParams, GradientDescentSmoother
 from fusion.estimators.gn import GaussNewtonSmoother, solve_normal_equations
 from fusion.estimators.smoother import SmootherParams
-from fusion.estimators.smoother_cost import SmootherProblem, Weights, banded_lower
+from fusion.estimators.smoother_cost import SmootherProblem, Weights
+from fusion.estimators.smoother_solve import banded_lower
 from fusion.quaternion import retract
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
