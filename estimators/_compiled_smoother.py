@@ -74,9 +74,9 @@ def load() -> None:
     dead_reckoning(problem.gyr, problem.valid, problem.dt, quat.IDENTITY, 1e-12, start)
     levelled(imu.t, imu.acc_g, start, 1.0, 1e-12, np.empty((2, 4)))
     norm_error(start)
-    five = np.zeros((2, 5))
-    dot(five, five)
-    dot(five[:, :3].copy(), five[:, :3])  # the step without velocities: a view of the (T, 5) storage
+    padded = np.zeros((2, B_MAX))
+    dot(padded, padded)
+    dot(padded[:, :3].copy(), padded[:, :3])  # the step without velocities: a view of the (T, B_MAX) storage
     _loaded = True
 
 

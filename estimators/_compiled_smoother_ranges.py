@@ -1,15 +1,15 @@
 """How the compiled smoothers split a long recording over two threads, and the threads.
 
-The cost of a trial point (`_compiled_smoother_cost.cost`, a third of an iteration) needs
-no recursion over the samples: on a recording of `SPLIT_MIN_SAMPLES` or more it runs as two ranges
-of samples on two threads (`range_cost`; the kernels release the GIL), each writing its own rows,
-and their sums are added in a fixed order. The split depends on the number of samples alone, so
-every result is the same on any machine; it changes the wall time, not the CPU time. The
-linearisation's elimination is a recursion; on a long recording (`linearize_ranges`) the Jacobian
-blocks of one range of samples are computed (mode BLOCKS) while those of the range before are
-eliminated from them (mode FROM_BLOCKS): the same arithmetic in the same order as the one fused
-pass, bit for bit (`_compiled_smoother.CompiledOps._eliminate_in_ranges`). On an hour at 100 Hz
-the two take a quarter off the smoothers' wall time, for a sixth more CPU time.
+The cost of a trial point (`_compiled_smoother_cost.cost`, a third of an iteration) needs no
+recursion over the samples: on a recording of `SPLIT_MIN_SAMPLES` or more it runs as two ranges
+of samples on two threads (`_compiled_smoother_cost.range_cost`; the kernels release the GIL),
+each writing its own rows, and their sums are added in a fixed order. The split depends on the
+number of samples alone, so every result is the same on any machine; it changes the wall time,
+not the CPU time. The linearisation's elimination is a recursion; on a long recording
+(`linearize_ranges`) the Jacobian blocks of one range of samples are computed (mode BLOCKS) while
+those of the range before are eliminated from them (mode FROM_BLOCKS): the same arithmetic in
+the same order as the one fused pass, bit for bit (`_compiled_smoother.CompiledOps._eliminate_in_ranges`).
+On an hour at 100 Hz the two take a quarter off the smoothers' wall time, for a sixth more CPU time.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ SPLIT_MIN_SAMPLES = 8192
 
 
 def cost_ranges(T: int) -> tuple[int, ...]:
-    """The bounds of `range_cost`'s ranges for T samples."""
+    """The bounds of `_compiled_smoother_cost.range_cost`'s ranges for T samples."""
     return (0, T) if T < SPLIT_MIN_SAMPLES else (0, T // 2, T)
 
 

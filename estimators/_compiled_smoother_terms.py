@@ -14,7 +14,7 @@ tutorial with application to conic fitting", Image and Vision Computing 15), as
 linearisation (`_compiled_smoother_linearize`) are built from these.
 
 numba keys a cached kernel on its own file only: `_kernel_cache.forget_stale_kernels` drops this
-module's cache when `fusion.quaternion` changes.
+module's cache when `fusion.quaternion` or `_compiled_smoother_layout` changes.
 """
 from __future__ import annotations
 
