@@ -21,7 +21,7 @@ names it in its docstring (`Reference: fusion.estimators.smoother_cost.SmootherP
 `impl=numpy` runs on simulated and real recordings. The two paths differ only in rounding: the
 summation order of the cost and the elimination order of the solve.
 
-Like `_compiled`, the kernels are cached on disk next to their files (`_compiled._jit`), and the
+Like the filters', the kernels are cached on disk next to their files (`_numba._jit`), and the
 constants that decide the maths (`fusion.quaternion`'s small-angle rules, 1 g) are passed in at
 run time (`_compiled_smoother_layout.constants`).
 """

@@ -20,7 +20,6 @@ from fusion import quaternion as quat
 
 from . import _compiled_smoother_layout as layout
 from . import _compiled_smoother_terms as terms
-from ._compiled import _jit
 from ._compiled_smoother_layout import (GEODESIC, KEEP_ACC, KEEP_MAG, KEEP_MOTION, KEEP_STEP, N_SUMS, POINT, SUM_ACC,
                                         SUM_MAG, SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
 from ._compiled_smoother_ranges import cost_ranges, run_beside
@@ -28,6 +27,7 @@ from ._compiled_smoother_terms import (exp_floats, fill3, keep_floats, load_quat
                                        motion_residual, multiply_floats, normalize_floats, rest_residual, robust_terms,
                                        rotation_floats, split_theta, step_rotvec, total_cost)
 from ._kernel_cache import forget_stale_kernels
+from ._numba import _jit
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 

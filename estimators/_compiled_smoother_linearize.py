@@ -51,13 +51,13 @@ from fusion import quaternion as quat
 
 from . import _compiled_smoother_layout as layout
 from . import _compiled_smoother_terms as terms
-from ._compiled import _jit
 from ._compiled_smoother_layout import (BLOCKS, CARRY_OFF_BLOCK, ELIMINATE, FROM_BLOCKS, N_SUMS, SUM_ACC, SUM_MAG,
                                         SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
 from ._compiled_smoother_terms import (exp_floats, fill3, kept_acc, kept_mag, kept_step, load_quat, log_floats, mag_residual,
                                        motion_residual, multiply_floats, rest_residual, right_jacobian, right_jacobian_inv,
                                        robust_terms, rotation_floats, split_theta, step_rotvec, total_cost)
 from ._kernel_cache import forget_stale_kernels
+from ._numba import _jit
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 

@@ -19,9 +19,9 @@ import numpy as np
 from fusion import quaternion as quat
 
 from . import _compiled_smoother_terms as terms
-from ._compiled import _jit
 from ._compiled_smoother_terms import fill3, load_quat, exp_floats, multiply_floats, normalize_floats, rotation_floats
 from ._kernel_cache import forget_stale_kernels
+from ._numba import _jit
 
 forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
 

@@ -476,7 +476,7 @@ class BatchSmoother(Estimator):
         p = self.params if scale_axes is None else dataclasses.replace(self.params, scale_axes=scale_axes)
         rest = None
         if p.weighting == "noise" and p.bias_axes:
-            from ._compiled import rest_steps  # numba is imported on first use only
+            from ._compiled_rest import rest_steps  # numba is imported on first use only
 
             rest = rest_steps(imu, p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         return SmootherProblem.from_imu(imu, init_quat_wxyz, p.weights(), use_valid=p.use_gyr_valid, rest=rest)

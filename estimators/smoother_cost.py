@@ -37,7 +37,7 @@ two neighbours only, so the normal equations stay block-tridiagonal (5x5 blocks)
 
 At rest the true rate is zero, so the gyro reads its bias (the rest part of VQF's bias
 estimation, Laidig & Seel 2023, Sec. 3.4): on steps that a rest detector flags
-(`_compiled.rest_steps`, the one the filters use), the rate w_t itself is a residual with the
+(`_compiled_rest.rest_steps`, the one the filters use), the rate w_t itself is a residual with the
 density Rrest of the gyro noise at rest (w_r,t = dt_t / Rrest), on the axes that have a
 bias variable. It touches only the calibration variables. An axis without a bias variable
 takes the mean rest reading as a fixed bias (`from_imu`): about the vertical, nothing but the
@@ -254,7 +254,7 @@ class SmootherProblem:
     def from_imu(cls, imu: ImuSamples, init_quat_wxyz: np.ndarray, weights: Weights, use_valid: bool = True,
                  rest: np.ndarray | None = None) -> "SmootherProblem":
         """imu: calibrated samples; init_quat_wxyz: (4,) anchor of q_0; rest: (T-1,) bool, the
-        steps at rest (`_compiled.rest_steps`; None: no rest term)."""
+        steps at rest (`_compiled_rest.rest_steps`; None: no rest term)."""
         dt = imu.dt
         rate, valid = imu.interval_rates()
         if not use_valid:
