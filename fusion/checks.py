@@ -580,8 +580,14 @@ def format_check(c: RecordingCheck) -> str:
     if c.rests:
         row("rests (s)", ", ".join(f"{r.interval.start_s:.2f}-{r.interval.stop_s:.2f} |a|={r.acc_norm_g:.3f}g" for r in c.rests[:4])
             + (f" (+{len(c.rests) - 4})" if len(c.rests) > 4 else ""))
-        last = c.rests[-1]
-        # (no row for the first rest's own gyro mean: the calibration takes the bias from it, so it reads 0)
+        last, first = c.rests[-1], c.rests[0]
+        # The bias itself: the first rest's gyro level, which the calibration takes as the bias (so its calibrated
+        # mean reads 0), in counts and in deg/s at the board's nominal scale (`BoardModel.scale`).
+        if np.all(np.isfinite(first.gyro_mean_counts)):
+            bias_deg_s = np.degrees(np.asarray(first.gyro_mean_counts) * BoardModel().scale[3:])
+            row("gyro bias", "[" + ", ".join(f"{v:+.2f}" for v in bias_deg_s) + "] deg/s (["
+                + ", ".join(f"{v:.1f}" for v in first.gyro_mean_counts) + "] counts at the first rest, "
+                f"{first.interval.start_s:.1f}-{first.interval.stop_s:.1f} s; the zero-rate level the calibration removes)")
         if c.gyro_bias_drift_deg_s is not None:
             row("gyro bias drift", "[" + ", ".join(f"{v:+.2f}" for v in c.gyro_bias_drift_deg_s)
                 + f"] deg/s (last rest at {last.interval.start_s:.1f} s minus first)")

@@ -100,3 +100,21 @@ def test_inspect_and_calibrate_cli(data_dir, tmp_path, capsys):
           "--json", str(tmp_path / "b.json"), "--calibration", str(calib)])
     a, b = (json.loads((tmp_path / f).read_text())["results"][0]["rmse_deg"]["total"] for f in ("a.json", "b.json"))
     assert b < a
+
+
+def test_inspect_prints_the_gyro_bias_itself(data_dir):
+    """Beside its drift, the bias itself: the first rest's gyro level (the zero-rate level the
+    calibration removes), in counts and in deg/s at the board's nominal scale, per axis."""
+    from fusion.calibration import BoardModel
+    from fusion.checks import format_check
+
+    check = check_recording(datasets.load("ece276a/1", data_dir))
+    first = check.rests[0]
+    counts = np.asarray(first.gyro_mean_counts)
+    deg_s = np.degrees(counts * BoardModel().scale[3:])
+    text = format_check(check)
+    (line,) = [l for l in text.splitlines() if l.strip().startswith("gyro bias ") and "drift" not in l]
+    assert line.split("gyro bias", 1)[1].strip().startswith("[" + ", ".join(f"{v:+.2f}" for v in deg_s) + "] deg/s")
+    assert "[" + ", ".join(f"{v:.1f}" for v in counts) + "] counts at the first rest" in line
+    assert 300 < deg_s.min() and deg_s.max() < 420  # about 382 counts at 0.97 deg/s per count
+    assert text.index("gyro bias ") < text.index("gyro bias drift")
