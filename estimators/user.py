@@ -37,6 +37,7 @@ import importlib.metadata
 import importlib.util
 import inspect
 import sys
+import traceback
 import typing
 import warnings
 from pathlib import Path
@@ -107,9 +108,10 @@ def load_reference(name: str, file: tuple[str, bytes] | None = None) -> tuple[An
 
 
 def load_source(path: Path, source: bytes) -> Any:
-    """A user's file as a module (once per content: its name carries the sha256), with its folder
+    """A user's file as a module (once per file and content: its name carries their sha256, so that
+    the same code in two folders is two modules, each reporting its own file), with its folder
     first on `sys.path`, as `python FILE.py` would have it, so it can import files beside it."""
-    digest = hashlib.sha256(source).hexdigest()[:16]
+    digest = hashlib.sha256(str(path).encode() + b"\0" + source).hexdigest()[:16]
     module_name = f"fusion_user_{_identifier(path.stem)}_{digest}"
     if module_name in sys.modules:
         return sys.modules[module_name]
@@ -124,10 +126,58 @@ def load_source(path: Path, source: bytes) -> Any:
         exec(compile(source, str(path), "exec"), module.__dict__)
     except BaseException as exc:
         del sys.modules[module_name]
-        if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+        if isinstance(exc, KeyboardInterrupt):  # Ctrl-C while the file ran: the user stops the command
             raise
+        if isinstance(exc, SystemExit):  # a script's own `sys.exit(main())`, run on import
+            raise ValueError(f"{path}: running it called sys.exit({exc.code!r}); put the script's own code under "
+                             "`if __name__ == \"__main__\":` so that importing it only defines the estimator") from None
         raise ValueError(f"{path}: running it raised {type(exc).__name__}: {' '.join(str(exc).split())[:300]}") from None
     return module
+
+
+def failure_site(exc: BaseException, origin: Origin | None) -> tuple[str | None, str | None]:
+    """Where a user's code raised `exc`: (`"my.py:12 in estimate"`, the innermost frame of the
+    user's code, or None when none of its frames is the user's), and the traceback of the
+    user's frames only, innermost last, with the exception's own line (None without).
+
+    The user's frames: for a file, the file itself (loaded as a `fusion_user_*` module) and files
+    beside it that it imports (not installed packages, not this toolkit); for a module or an
+    entry point, the modules of its top-level package."""
+    if origin is None or origin.kind not in ("file", "module", "entry point"):
+        return None, None
+    frames = [traceback.FrameSummary(frame.f_code.co_filename, lineno, frame.f_code.co_name)
+              for frame, lineno in traceback.walk_tb(exc.__traceback__) if _users(frame, origin)]
+    if not frames:
+        return None, None
+    last = frames[-1]
+    text = ("Traceback (the estimator's own code, innermost last):\n" + "".join(traceback.format_list(frames))
+            + "".join(traceback.format_exception_only(type(exc), exc)))
+    return f"{_shown_path(last.filename)}:{last.lineno} in {last.name}", text.rstrip("\n")
+
+
+def _users(frame: Any, origin: Origin) -> bool:
+    """Whether a frame runs the user's code (`failure_site`)."""
+    module = str(frame.f_globals.get("__name__", ""))
+    if origin.kind != "file":  # a module or an entry point: its top-level package's modules
+        top = origin.where.split(":")[0].split()[0].split(".")[0]
+        return module == top or module.startswith(top + ".")
+    if module.startswith("fusion_user_"):
+        return True
+    top = module.split(".")[0]
+    if top in ("fusion", "numpy", "scipy") or top in sys.stdlib_module_names:
+        return False
+    path = Path(frame.f_code.co_filename)
+    if any(part in ("site-packages", "dist-packages") for part in path.parts):
+        return False
+    return path.parent == Path(origin.where).parent or Path(origin.where).parent in path.parents
+
+
+def _shown_path(filename: str) -> str:
+    """A path as the user typed it: relative to the working folder when inside it."""
+    try:
+        return str(Path(filename).resolve().relative_to(Path.cwd()))
+    except (ValueError, OSError):
+        return filename
 
 
 def _identifier(text: str) -> str:
@@ -193,8 +243,9 @@ class FunctionEstimator(Estimator):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         t, gyro, acc, q0 = function_inputs(imu, init_quat_wxyz)
         params = {f.name: getattr(self.params, f.name) for f in dataclasses.fields(self.params)}
+        nan_gyro = ~np.all(np.isfinite(gyro), axis=1)  # before the call: the function may modify its arrays
         out = type(self).function(t, gyro, acc, q0, **params)
-        return Trajectory(imu.t, check_output(out, len(imu), invalid_gyro=int((~imu.gyr_valid).sum())))
+        return Trajectory(imu.t, check_output(out, len(imu), nan_gyro_rows=nan_gyro))
 
 
 def function_inputs(imu: ImuSamples, init_quat_wxyz: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -253,11 +304,13 @@ def params_dataclass(fn: Callable[..., Any], leading: tuple[str, ...], name: str
     return params
 
 
-def check_output(out: Any, n: int, invalid_gyro: int = 0) -> np.ndarray:
+def check_output(out: Any, n: int, nan_gyro_rows: np.ndarray | None = None) -> np.ndarray:
     """A user's (n, 4) scalar-first quaternions as a float64 array, renormalised (with a warning)
     where a norm is further than `NORM_TOLERANCE` from 1; ValueError for anything else, saying
     what was returned and what was expected (the caller names the estimator and the recording).
-    invalid_gyro: how many gyro rows were passed as NaN (for the hint on non-finite output)."""
+    nan_gyro_rows: (n,) bool, the gyro rows passed as NaN (samples the toolkit marked invalid), or
+        None. Non-finite output whose first bad row is one of them (the NaN went into the
+        filter) gets a hint to skip them; non-finite output that starts elsewhere does not."""
     try:
         quat = np.asarray(out, dtype=float)
     except (TypeError, ValueError):
@@ -270,8 +323,11 @@ def check_output(out: Any, n: int, invalid_gyro: int = 0) -> np.ndarray:
     finite = np.all(np.isfinite(quat), axis=1)
     if not finite.all():
         first = int(np.argmin(finite))
-        hint = (f"; the gyro had {invalid_gyro} NaN rows, samples the toolkit marked invalid (a freeze): skip them "
-                "in your filter, or pass the raw samples with --dropouts off" if invalid_gyro else "")
+        nan_gyro = np.zeros(n, bool) if nan_gyro_rows is None else np.asarray(nan_gyro_rows, bool)
+        # the NaN went in there: that row's gyro, or the one before it (a filter that lags a sample)
+        fed = nan_gyro.shape == (n,) and bool(nan_gyro[max(first - 1, 0):first + 1].any())
+        hint = (f"; the gyro there is NaN, one of {int(nan_gyro.sum())} samples the toolkit marked invalid (a "
+                "freeze): skip them in your filter, or pass the raw samples with --dropouts off" if fed else "")
         raise ValueError(f"returned {int((~finite).sum())} non-finite rows (the first at row "
                          f"{first}){hint}")
     norm = np.linalg.norm(quat, axis=1)

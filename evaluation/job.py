@@ -14,6 +14,8 @@ failure into a row that says what went wrong, so the other rows are still comput
 from __future__ import annotations
 
 import contextlib
+import signal
+import threading
 import time
 import warnings
 from dataclasses import dataclass, replace
@@ -24,6 +26,7 @@ import numpy as np
 from fusion.datasets import initial_orientation
 from fusion.estimators import ResolvedSpec, resolve, user
 from fusion.estimators.params import EstimatorSpec
+from fusion.estimators.trajectory_file import TrajectoryFile
 from fusion.types import Recording, Trajectory
 
 from .align import Alignment, fit_alignment
@@ -41,6 +44,15 @@ class Result:
     error: why the job failed (its estimator raised, returned garbage, ran too long); None if it
         did not. A failed row has no scores.
     magnetometer: the estimate used a magnetometer (9-D); False for 6-D (gyro and accelerometer).
+    protocol: the scoring protocol the row was scored with ("full" or "broad"; None without
+        truth, or unknown). With "broad" a 6-D row's mean heading offset was removed before
+        scoring (`fusion.evaluation.metrics.score`), a 9-D row's was not.
+    truth: what the recording's truth is (`truth_system`: "VICON", "optical motion capture
+        (BROAD)", ...), None without truth or unknown.
+    Both are the recording's, the same for all its rows: results.json keeps them once per
+    recording (`fusion.evaluation.compare.recording_facts`), not in the rows.
+    traceback: a failed row whose user code raised: the traceback of the user's own frames
+        (`fusion.estimators.user.failure_site`); None otherwise.
     """
 
     dataset: str
@@ -57,6 +69,22 @@ class Result:
     coverage: float | None = None
     error: str | None = None
     magnetometer: bool = False
+    protocol: str | None = None
+    truth: str | None = None
+    traceback: str | None = None
+
+    @property
+    def heading_offset_removed(self) -> bool:
+        """The row's mean heading offset was removed before scoring: a 6-D estimate scored with
+        BROAD's protocol (a row whose protocol is unknown, from an older results.json: a
+        recording of the `broad` folder)."""
+        return bool(self.rmse_deg) and self.scored_protocol == "broad" and not self.magnetometer
+
+    @property
+    def scored_protocol(self) -> str:
+        """`protocol`, or when unknown the default of a recording of its folder ("broad" for the
+        `broad` folder, else "full")."""
+        return self.protocol or ("broad" if self.dataset.split("/")[0] == "broad" else "full")
 
     @property
     def us_per_sample(self) -> float:
@@ -78,7 +106,8 @@ class Result:
     def to_json(self) -> dict[str, Any]:
         """The row of `results.json` (the keys are a documented format: docs/json-format.md; `panorama`
         only with `--panorama`; `alignment` null unless the row was scored with `--align`;
-        `error` only on a failed row)."""
+        `error` only on a failed row, `traceback` only on a failed row whose user code raised;
+        `protocol` and `truth` go into the document's `recordings`, once per recording)."""
         row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
@@ -95,14 +124,18 @@ class Result:
             row["panorama"] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.panorama.items()}
         if self.error is not None:
             row["error"] = self.error
+        if self.traceback is not None:
+            row["traceback"] = self.traceback
         return row
 
     @classmethod
     def from_json(cls, r: dict[str, Any]) -> "Result":
-        """A results.json row (as `to_json` wrote it) as a `Result` without arrays."""
+        """A results.json row (as `to_json` wrote it, with its recording's `protocol` and `truth` when
+        given) as a `Result` without arrays."""
         return cls(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
                    panorama=r.get("panorama"), alignment=r.get("alignment"), scored_samples=r.get("scored_samples"),
-                   coverage=r.get("coverage"), error=r.get("error"), magnetometer=bool(r.get("magnetometer", False)))
+                   coverage=r.get("coverage"), error=r.get("error"), magnetometer=bool(r.get("magnetometer", False)),
+                   protocol=r.get("protocol"), truth=r.get("truth"), traceback=r.get("traceback"))
 
 
 def default_protocol(recording: Recording) -> str:
@@ -128,44 +161,157 @@ def aligned(recording: Recording, alignment: Alignment | None) -> Recording:
     return replace(recording, truth=alignment.apply(recording.truth))
 
 
+class EstimatorError(ValueError):
+    """An estimator's failure: one line naming the recording, the estimator, what it raised and
+    where (str), and for a user's code the traceback of its own frames (`traceback`, or None)."""
+
+    def __init__(self, message: str, traceback: str | None = None) -> None:
+        super().__init__(message)
+        self.traceback = traceback
+
+
+TRACEBACK_NOTE = "its traceback: the row's \"traceback\" in results.json (--out or --json)"
+
+
+class _Signals:
+    """While an estimator runs in the main thread: notes whether SIGINT or SIGTERM really arrived,
+    so that a KeyboardInterrupt the estimator's code raises itself is told from the user's Ctrl-C
+    (a real signal still stops the run: the previous handler is called as before). Off the main
+    thread, or where the signal is ignored or left to its default (a pool worker), nothing is
+    installed: a KeyboardInterrupt there can only be the code's own."""
+
+    def __init__(self) -> None:
+        self.arrived = False
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                previous = signal.getsignal(sig)
+                if callable(previous):
+                    self._previous[sig] = previous
+                    signal.signal(sig, self._note)
+        return self
+
+    def _note(self, signum: int, frame: Any) -> None:
+        self.arrived = True
+        self._previous[signum](signum, frame)
+
+    def __exit__(self, *exc: Any) -> bool:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        return False
+
+
+_WARMED: set[tuple] = set()  # (estimator class, parameters, sensors) already run once in this process
+WARM_UP_SAMPLES = 200
+
+
+def warm_up(entry: ResolvedSpec, recording: Recording, q0: np.ndarray) -> None:
+    """Run one of our estimators once, untimed, on the first `WARM_UP_SAMPLES` samples of the
+    recording, the first time this process meets it (per parameters and sensors): numba compiles
+    (or loads from its cache) every kernel on its first call with given argument types, and
+    the kernels the filters' constructors do not load themselves would otherwise be compiled
+    inside the timed estimate (the first row's us/sample 100 times the second's). The results
+    do not change: a fresh estimator is built for the timed run. A user's estimator is not
+    warmed up (its code may have effects of its own); nor are trajectory files."""
+    if entry.user or len(recording.imu) < 2:
+        return
+    key = (entry.cls, repr(entry.params), recording.imu.has_mag, recording.imu.gyr_timing)
+    if key in _WARMED:
+        return
+    _WARMED.add(key)
+    try:
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            entry.build().for_recording(recording.id).estimate(recording.imu.window(0, WARM_UP_SAMPLES), q0)
+    except Exception:  # a recording too short for it, say: the timed run reports what matters
+        pass
+
+
+def _build(entry: ResolvedSpec) -> Any:
+    """A fresh estimator of the spec; a trajectory file's knows its row's name (the file an --out
+    folder holds for it: `fusion.estimators.trajectory_file`)."""
+    if entry.cls is TrajectoryFile and not entry.params.name:
+        return TrajectoryFile(replace(entry.params, name=entry.label))
+    return entry.build()
+
+
+def _failure(where: str, exc: BaseException, entry: ResolvedSpec) -> EstimatorError:
+    """An exception an estimator raised, as one line: what, and where in the user's code (the
+    innermost frame of it; the traceback of its frames goes with the error)."""
+    site, trace = user.failure_site(exc, entry.origin)
+    at = f" at {site}" if site else ""
+    if isinstance(exc, SystemExit):
+        what = (f"stopped the process with SystemExit({exc.code!r}) (sys.exit){at}; an estimator returns its "
+                "orientations or raises an exception")
+    elif isinstance(exc, KeyboardInterrupt):
+        what = f"raised KeyboardInterrupt{at} (its own code, not a Ctrl-C)"
+    else:
+        what = f"raised {type(exc).__name__}: {' '.join(str(exc).split())[:300]}{at}"
+    return EstimatorError(f"{where} {what}" + (f"; {TRACEBACK_NOTE}" if trace else ""), trace)
+
+
 def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init: str | None = None,
             protocol: str | None = None, align: bool | Alignment | None = False) -> Result:
     """One job: estimate, time, score (`protocol` None: the recording's default). Raises ValueError
-    (naming the recording and the estimator) when the estimator fails.
+    (naming the recording and the estimator; an `EstimatorError` with the user's traceback when a
+    user's code raised) when the estimator fails.
 
     spec: a resolved spec (`fusion.estimators.resolve`), a spec, or its text (`"ukf:R=1e-3"`).
     align: score against the truth mapped into our frames (`fusion.evaluation.align`): True fits the
         recording's alignment here; an `Alignment` (fitted once per recording by the caller)
         is used as given. The initial orientation then comes from the aligned truth
         (`init` None or "truth"), so every estimator starts in our frames.
+
+    Whatever the estimator raises ends this job only: an exception, and also SystemExit
+    (`sys.exit` in its code) and a KeyboardInterrupt its code raises itself, become the
+    ValueError; a real Ctrl-C (SIGINT) or SIGTERM while it runs still stops the caller.
+    The time is that of `estimate` alone: our estimators are warmed up first (`warm_up`).
     """
     entry = spec if isinstance(spec, ResolvedSpec) else resolve(spec)
     alignment = align if isinstance(align, Alignment) else recording_alignment(recording) if align else None
     recording = aligned(recording, alignment)
-    estimator = entry.build().for_recording(recording.id)
     q0 = initial_orientation(recording, init)
-    start = time.perf_counter()
+    warm_up(entry, recording, q0)
     # Parameters far outside their range (`ekf:Q=1e308`, `gn:R=1e-300`) overflow inside a filter:
     # numpy's floating-point warnings are silenced here and the result judged by its finiteness,
     # and a numerical exception becomes one line naming the estimator and the recording.
     where = f"{recording.id}: estimator {entry.label!r}"
+    signals = _Signals()
     try:
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"), \
+        with signals, np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"), \
                 warnings.catch_warnings(record=True) if entry.user else contextlib.nullcontext([]) as caught:
             if entry.user:
                 warnings.simplefilter("always")
+            estimator = _build(entry).for_recording(recording.id)
+            start = time.perf_counter()
             trajectory = estimator.estimate(recording.imu, q0)
+            seconds = time.perf_counter() - start
             if entry.user and not entry.cls.partial:  # a user's estimator's output is checked (`fusion.estimators.user`)
                 trajectory = Trajectory(trajectory.t, user.check_output(trajectory.quat_wxyz, len(recording.imu)),
                                         trajectory.diagnostics)
+    except KeyboardInterrupt as exc:  # Terminated (SIGTERM) included
+        if signals.arrived:
+            raise  # the user's Ctrl-C (or a SIGTERM): the run stops
+        raise _failure(where, exc, entry) from None
+    except SystemExit as exc:
+        raise _failure(where, exc, entry) from None
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
+        if user.failure_site(exc, entry.origin)[0]:  # raised in the user's code: where
+            raise _failure(where, exc, entry) from None
         raise ValueError(f"{where} failed numerically ({type(exc).__name__}: "
                          f"{' '.join(str(exc).split())[:200]}); check its parameter values") from None
     except ValueError as exc:
         if not entry.user:
             raise
+        if user.failure_site(exc, entry.origin)[0]:  # the user's own ValueError, not our check of its output
+            raise _failure(where, exc, entry) from None
         raise ValueError(f"{where}: {' '.join(str(exc).split())[:300]}") from None
-    seconds = time.perf_counter() - start
+    except Exception as exc:
+        if not entry.user:
+            raise
+        raise _failure(where, exc, entry) from None
     for warning in caught:  # a user's estimator's warnings, named: which estimator, which recording
         if issubclass(warning.category, ResourceWarning):
             continue  # the garbage collector's, about whatever it collected then (ignored by Python's defaults too)
@@ -174,7 +320,8 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         raise ValueError(f"{where} produced non-finite orientations (diverged or overflowed; check its parameter "
                          "values)")
     protocol = protocol or default_protocol(recording)
-    nine_d = bool(entry.cls.magnetometer and recording.imu.has_mag)
+    nine_d = (bool(trajectory.diagnostics.get("magnetometer", False)) if entry.cls.partial and trajectory.diagnostics
+              else bool(entry.cls.magnetometer and recording.imu.has_mag))
     result_score = None
     if recording.truth is not None:
         try:
@@ -197,7 +344,29 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         trajectory, result_score, alignment=alignment.to_json() if alignment else None,
         scored_samples=result_score.samples if result_score else None,
         coverage=result_score.coverage if result_score else None, magnetometer=nine_d,
+        protocol=protocol if result_score else None, truth=truth_system(recording) if result_score else None,
     )
+
+
+# What a recording's truth is, by its format (`fusion.formats`), for captions and notes: "the error
+# against VICON" is wrong for BROAD, whose truth is another optical system.
+TRUTH_SYSTEMS = {"course": "VICON", "broad": "optical motion capture (BROAD)", "sim": "simulated truth"}
+GENERIC_TRUTH = "ground truth"
+
+
+def truth_system(recording: Any, kind: str | None = None) -> str:
+    """What the truth of a recording (a `Recording` or a dataset `Source`) is, for text:
+    `TRUTH_SYSTEMS` by its format (`kind`, a `Source`'s own when not given), else "ground truth".
+    A loaded `Recording` carries no format: the course board's raw counts say VICON, an id in a
+    `broad` folder BROAD, `sim` the simulation."""
+    kind = kind or getattr(recording, "kind", None)
+    if kind is None:
+        from fusion.datasets import SIM_ID
+
+        rid = str(getattr(recording, "id", ""))
+        kind = ("sim" if rid == SIM_ID else "course" if getattr(recording, "raw", None) is not None
+                else "broad" if rid.split("/")[0] == "broad" else None)
+    return TRUTH_SYSTEMS.get(kind, GENERIC_TRUTH)
 
 
 @dataclass(frozen=True)
@@ -209,6 +378,8 @@ class Job:
         `with_recording` its recording's (`series.recording_part`).
     keep: return the whole `Result` (trajectory and per-sample errors) instead of its summary.
     panorama_data_dir: when given, also stitch and score a panorama (`fusion.evaluation.panorama`).
+    truth: what the recording's truth is (`truth_system` of its `Source`), for the row; None: from
+        the loaded recording.
     """
 
     recording: int
@@ -220,6 +391,7 @@ class Job:
     with_recording: bool = False
     keep: bool = False
     panorama_data_dir: str | None = None
+    truth: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,20 +427,23 @@ def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment 
                 from .panorama import panorama_scores
 
                 result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
+            if job.truth and result.truth:
+                result = replace(result, truth=job.truth)
             part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None
             output = JobOutput(result if job.keep else result.summary(), part, recording_part)
         except ValueError as exc:  # run_one's messages name the recording and the estimator
-            output = JobOutput(failed(rec.id, entry.label, len(rec.imu), str(exc)), None, recording_part)
-        except Exception as exc:  # an estimator's own bug (a user's estimator above all): a row, not an abort
+            output = JobOutput(failed(rec.id, entry.label, len(rec.imu), str(exc), getattr(exc, "traceback", None)),
+                               None, recording_part)
+        except Exception as exc:  # an estimator's own bug outside `estimate`: a row, not an abort
             output = JobOutput(failed(rec.id, entry.label, len(rec.imu),
                                       f"{rec.id}: estimator {entry.label!r} raised {type(exc).__name__}: "
                                       f"{' '.join(str(exc).split())[:300]}"), None, recording_part)
     return replace(output, warnings=tuple(dict.fromkeys(str(w.message) for w in caught)))
 
 
-def failed(dataset: str, label: str, samples: int, message: str) -> Result:
-    """The row of a job that failed: no scores, its error."""
-    return Result(dataset, label, samples, 0.0, None, None, error=message)
+def failed(dataset: str, label: str, samples: int, message: str, traceback: str | None = None) -> Result:
+    """The row of a job that failed: no scores, its error (and the user's traceback, if any)."""
+    return Result(dataset, label, samples, 0.0, None, None, error=message, traceback=traceback)
 
 
 def warn_low_coverage(results: list[Result]) -> None:

@@ -81,6 +81,33 @@ class WorkerDied(Exception):
     """A worker process died while running a task (killed, crashed, out of memory)."""
 
 
+# Signals that mean the process crashed by itself (a fault in compiled code: an extension module,
+# ctypes, numba), as against being killed from outside.
+CRASH_SIGNALS = {"SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT"}
+
+
+def death_text(exitcode: int | None) -> str:
+    """How a worker process that died mid-task ended, in words (`WorkerDied`'s text): its exit
+    status (`os._exit`, or the interpreter stopping) or the signal that ended it, with what the
+    signal usually means."""
+    if exitcode is None:
+        return "the worker process running it died (how is unknown)"
+    if exitcode >= 0:
+        return (f"the worker process running it exited with status {exitcode} (os._exit, or the interpreter "
+                "stopped) before returning")
+    try:
+        name = signal.Signals(-exitcode).name
+    except ValueError:
+        name = f"signal {-exitcode}"
+    if name in CRASH_SIGNALS:
+        why = "a crash in compiled code it ran, e.g. a segmentation fault in an extension or ctypes call"
+    elif name == "SIGKILL":
+        why = "killed from outside: out of memory?"
+    else:
+        why = "killed from outside"
+    return f"the worker process running it was killed by signal {-exitcode} ({name}: {why})"
+
+
 def _die_with_parent(parent_pid: int) -> None:
     """Ask the kernel to SIGKILL this process when its parent dies (Linux); exit now if the
     parent is already gone."""
@@ -233,9 +260,7 @@ class WorkerPool:
 
     def _death(self, w: _Worker) -> str:
         w.process.join(timeout=1)
-        code = w.process.exitcode
-        how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
-        return f"the worker process died ({how}; out of memory?)"
+        return death_text(w.process.exitcode)
 
     def _replace(self, w: _Worker, error: BaseException) -> Outcome:
         w.kill()

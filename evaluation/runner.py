@@ -26,7 +26,10 @@ initialiser creates one per process and keeps it in `_WORKER`, the module's only
 which only worker processes set. The pool (`fusion.evaluation.pool.WorkerPool`) forks its workers
 where the platform can (they inherit the recordings and the resolved specs); its workers die
 with the parent however the parent ends, and a job past `timeout_s` is stopped and becomes a
-failed row.
+failed row. A run with a user's estimator (`runs_user_code`) runs in worker processes even with
+jobs=1: its code may end the process it runs in (`os._exit`, a segfault in a library it calls),
+which costs that job's row (`fusion.evaluation.pool.WorkerDied`), not the run; `sys.exit` and a
+KeyboardInterrupt it raises itself are rows too (`fusion.evaluation.job.run_one`).
 
 With `align`, a recording's alignment (`fusion.evaluation.align`) is fitted from the recording alone
 the first time a process needs it and kept with the loaded recording, so every job of that
@@ -56,7 +59,7 @@ from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording
 
 from .align import Alignment
-from .job import Job, JobOutput, Result, failed, recording_alignment, run_job, warn_low_coverage
+from .job import Job, JobOutput, Result, failed, recording_alignment, run_job, truth_system, warn_low_coverage
 from .pool import TaskTimeout, WorkerDied, WorkerPool, default_jobs
 
 # docs/dask.md's worker environment, as a dask configuration: dask's nanny starts each worker with
@@ -140,7 +143,8 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     specs: estimator specs, spec texts (`"ukf:R=1e-3"`; `all` expands to the registry) or resolved
         specs (`fusion.estimators.resolve_all`, which resolves the others here, once).
     items: dataset `Source`s (loaded lazily, once per process) or loaded `Recording`s.
-    jobs: worker processes; None or 0 means all cores; 1 runs in this process (unless `timeout_s`).
+    jobs: worker processes; None or 0 means all cores; 1 runs in this process, unless `timeout_s` or a
+        user's estimator (`runs_user_code`) asks for one worker process.
     protocol: scoring protocol (`fusion.evaluation.job.run_one`), None for each recording's default.
     load: how `Source`s are loaded (calibration file, dropout switch).
     panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
@@ -169,7 +173,8 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     entries = resolve_all(specs)
     items = list(items)
     done = dict(done or {})
-    tasks = {i * len(entries) + j: Job(i, j, init, protocol, align, series, j == 0, keep, panorama_data_dir)
+    truths = [truth_system(item) for item in items]
+    tasks = {i * len(entries) + j: Job(i, j, init, protocol, align, series, j == 0, keep, panorama_data_dir, truths[i])
              for i in range(len(items)) for j in range(len(entries))}
     todo = [n for n in tasks if n not in done]
     jobs = default_jobs() if not jobs else int(jobs)
@@ -196,7 +201,7 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     try:
         if scheduler:
             _run_dask([(n, tasks[n]) for n in todo], items, entries, scheduler, load, scatter, finished)
-        elif jobs == 1 and timeout_s is None:
+        elif jobs == 1 and timeout_s is None and not any(runs_user_code(e) for e in entries):
             state = WorkerState(items, entries, load)
             for n in todo:
                 finished(n, state.run(tasks[n]))
@@ -204,10 +209,14 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
             with WorkerPool(jobs, _start_worker, (WorkerState(items, entries, load),), timeout_s) as pool:
                 for k, outcome in pool.imap_unordered(_run_in_worker, [(tasks[n],) for n in todo]):
                     n = todo[k]
+                    rec, entry = items[tasks[n].recording], entries[tasks[n].estimator]
                     if isinstance(outcome.error, (TaskTimeout, WorkerDied)):
-                        rec, entry = items[tasks[n].recording], entries[tasks[n].estimator]
                         finished(n, JobOutput(failed(rec.id, entry.label, 0,
                                                      f"{rec.id}: estimator {entry.label!r}: {outcome.error}")))
+                    elif isinstance(outcome.error, (SystemExit, KeyboardInterrupt)):  # a worker ignores Ctrl-C: not
+                        # the user's; raised outside `run_one`'s guard (which makes them rows), e.g. by a user's __del__
+                        finished(n, JobOutput(failed(rec.id, entry.label, 0, f"{rec.id}: estimator {entry.label!r}: "
+                                                     f"its worker process stopped on {outcome.error!r}")))
                     else:
                         finished(n, outcome.result())  # re-raises a worker's error (a recording that
                         # cannot be loaded: one line naming its file) here
@@ -216,6 +225,14 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     out = [results[n] for n in sorted(tasks)]
     warn_low_coverage(out)
     return out
+
+
+def runs_user_code(entry: ResolvedSpec) -> bool:
+    """A user's estimator (a file, a module, an entry point; not a trajectory file, which our code
+    reads). A run with one runs its jobs in worker processes, even with jobs=1: a user's code that
+    ends its process (`os._exit`) or crashes the interpreter (a segfault in compiled code it
+    calls) then costs its row, not the run."""
+    return entry.user and getattr(entry.origin, "kind", None) != "trajectory"
 
 
 # --- Dask ---

@@ -352,3 +352,97 @@ def test_reports_and_panoramas_take_a_user_estimator(folder, monkeypatch, capsys
     assert main(["panorama", "--estimator", "./student.py:complementary", "--dataset", "sim", "--out", "p.png",
                  "--size", "240x120", "--rate", "2", "--no-progress"]) == 0
     assert capsys.readouterr().out.startswith("sim student.complementary: ") and (folder / "p.png").is_file()
+
+
+# A student's bug, in a file and in a helper beside it: the row says where.
+BUGGY = '''
+import numpy as np
+from buggy_helper import rotate_all
+
+
+def indexes(t, gyro, acc, q0):
+    out = np.tile(q0, (len(t), 1))
+    out[0] = q0[[0, 1, 2, 3]]
+    return out[:, [0, 1, 2, 4]]  # IndexError: a fifth column
+
+
+def in_helper(t, gyro, acc, q0):
+    return rotate_all(q0, len(t))
+
+
+def skips_nan_but_divides(t, gyro, acc, q0):
+    out = np.tile(q0, (len(t), 1))
+    out[len(t) - 5:] = out[len(t) - 5:] / 0.0 * 0.0  # NaN where the gyro is fine
+    return out
+
+
+def integrates_nan(t, gyro, acc, q0):
+    out = np.tile(q0, (len(t), 1))
+    angle = np.cumsum(gyro[:, 2] * np.r_[0.0, np.diff(t)])  # a NaN gyro row poisons every row after it
+    out[:, 0], out[:, 3] = np.cos(angle / 2), np.sin(angle / 2)
+    return out
+'''
+HELPER = '''
+import numpy as np
+
+
+def rotate_all(q0, n):
+    table = np.zeros((n, 4))
+    return table / table.sum(axis=1)[:, None] + q0[7]
+'''
+
+
+def test_a_users_bug_has_a_place(folder, monkeypatch):
+    """An exception in the user's code: the error names the file and line where it was raised (the
+    innermost frame of the user's own code, a helper file beside it included); the row's
+    `traceback` holds the user's frames only, innermost last, and results.json keeps it."""
+    (folder / "buggy.py").write_text(BUGGY)
+    (folder / "buggy_helper.py").write_text(HELPER)
+    monkeypatch.chdir(folder)
+    rec = recording(300)
+    rows = {r.estimator: r for r in runner.run(["./buggy.py:indexes", "./buggy.py:in_helper", "dr"], [rec])}
+    line = BUGGY.splitlines().index("    return out[:, [0, 1, 2, 4]]  # IndexError: a fifth column") + 1
+    indexes = rows["buggy.indexes"]
+    assert indexes.error.startswith("toy/1: estimator 'buggy.indexes' raised IndexError: index 4 is out of bounds")
+    assert f" at buggy.py:{line} in indexes; its traceback: the row's \"traceback\" in results.json" in indexes.error
+    trace = indexes.traceback.splitlines()
+    assert trace[0] == "Traceback (the estimator's own code, innermost last):"
+    assert trace[1] == f'  File "{folder / "buggy.py"}", line {line}, in indexes'
+    assert trace[-1].startswith("IndexError: index 4 is out of bounds")
+    assert not any("fusion" in t and "buggy" not in t for t in trace if t.startswith("  File"))  # no frame of ours
+    helper = rows["buggy.in_helper"]
+    helper_line = HELPER.splitlines().index("    return table / table.sum(axis=1)[:, None] + q0[7]") + 1
+    assert "raised IndexError: index 7 is out of bounds" in helper.error
+    assert f" at buggy_helper.py:{helper_line} in rotate_all;" in helper.error
+    files = [t for t in helper.traceback.splitlines() if t.startswith("  File")]
+    assert [f.split('"')[1] for f in files] == [str(folder / "buggy.py"), str(folder / "buggy_helper.py")]
+    assert rows["dr"].error is None and rows["dr"].traceback is None
+    assert indexes.to_json()["traceback"] == indexes.traceback and "traceback" not in rows["dr"].to_json()
+    from fusion.evaluation.job import Result
+
+    assert Result.from_json(indexes.to_json()).traceback == indexes.traceback
+
+
+def test_the_nan_hint_only_when_the_nan_came_from_the_invalid_gyro(folder, monkeypatch):
+    """"skip them in your filter, or --dropouts off" only when the output's first NaN row is where
+    the gyro was passed as NaN, not for a filter that skipped them and failed elsewhere."""
+    (folder / "buggy.py").write_text(BUGGY)
+    (folder / "buggy_helper.py").write_text(HELPER)
+    monkeypatch.chdir(folder)
+    rec = recording(300, gap=None, bad_gyro=(100, 120))
+    specs = ["./buggy.py:skips_nan_but_divides", "./buggy.py:integrates_nan"]
+    rows = {r.estimator: r for r in runner.run(specs, [rec])}
+    divides, integrates = rows["buggy.skips_nan_but_divides"].error, rows["buggy.integrates_nan"].error
+    assert "returned 5 non-finite rows (the first at row 295)" in divides and "--dropouts off" not in divides
+    assert "(the first at row 100); the gyro there is NaN, one of 20 samples the toolkit marked invalid" in integrates
+    assert integrates.endswith("skip them in your filter, or pass the raw samples with --dropouts off")
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (10, 1))
+    quat[4:] = np.nan
+    nan_gyro = np.zeros(10, bool)
+    nan_gyro[7] = True
+    with pytest.raises(ValueError) as caught:
+        user.check_output(quat, 10, nan_gyro_rows=nan_gyro)
+    assert "--dropouts" not in str(caught.value)
+    nan_gyro[4] = True
+    with pytest.raises(ValueError, match="the gyro there is NaN, one of 2 samples"):
+        user.check_output(quat, 10, nan_gyro_rows=nan_gyro)
