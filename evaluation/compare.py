@@ -73,11 +73,27 @@ def recording_alignments(results: list[Result]) -> list[dict[str, Any]]:
     return list(out.values())
 
 
+def recording_facts(results: list[Result]) -> list[dict[str, Any]]:
+    """One entry per scored recording whose rows know them, in run order: `{"dataset", "protocol",
+    "truth"}`, how its rows were scored ("full" or "broad": `Result.protocol`) and what its truth is
+    (`fusion.evaluation.job.truth_system`); null where no row knows (rows read back from an older
+    journal or results.json)."""
+    out: dict[str, dict[str, Any]] = {}
+    for r in results:
+        if not r.rmse_deg:
+            continue
+        entry = out.setdefault(r.dataset, {"dataset": r.dataset, "protocol": None, "truth": None})
+        entry["protocol"] = entry["protocol"] or r.protocol
+        entry["truth"] = entry["truth"] or r.truth
+    return [entry for entry in out.values() if entry["protocol"] or entry["truth"]]
+
+
 def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, Any]:
     """The document `--json` writes: `results`, `alignments` (one per recording, empty without
-    `--align`), `statistics` (every metric's, `fusion.evaluation.stats.run_statistics`), `settings`,
-    `versions`."""
+    `--align`), `recordings` (one per recording with truth: `recording_facts`), `statistics` (every
+    metric's, `fusion.evaluation.stats.run_statistics`), `settings`, `versions`."""
     return {"results": [r.to_json() for r in results], "alignments": recording_alignments(results),
+            "recordings": recording_facts(results),
             "statistics": run_statistics(summary_groups(results)).to_json(), "settings": settings,
             "versions": versions()}
 
@@ -138,11 +154,11 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
                 mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
                 us = np.mean([r.us_per_sample for r in mine if r.error is None] or [np.nan])
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
-                means.append([name, label, *mean, "", f"{us:.1f}", _sensors(scored or mine)])
+                means.append([name, label, *mean, "", f"{us:.1f}", sensors(scored or mine)])
                 keys.append((group, label))
     for row, r in zip(rows, results):
-        row.append(_sensors([r]))
-    if any(r.magnetometer for r in results):  # 9-D rows: a column says which rows used the magnetometer
+        row.append(sensors([r]))
+    if shows_imu(results):  # rows of both kinds can appear: a column says which rows used the magnetometer
         header.append("imu")
     else:
         rows, means = [row[:-1] for row in rows], [row[:-1] for row in means]
@@ -181,22 +197,54 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
         out += [f"failed (no result; the errors say why): {len(failed_rows)} rows"] + [line(r) for r in failed_rows]
     if any(r.low_coverage for r in results):
         out += [LOW_COVERAGE_NOTE]
-    if any(r.magnetometer for r in results):
-        out += [NINE_D_NOTE]
+    if shows_imu(results):
+        out += [IMU_NOTE, heading_offset_note(results)]
     out += notes
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
     return "\n".join(out)
 
 
-def _sensors(results: list[Result]) -> str:
+def sensors(results: list[Result]) -> str:
     """"9-D" when the rows used a magnetometer, "6-D" when none did, "mixed" otherwise."""
     used = {r.magnetometer for r in results}
     return "9-D" if used == {True} else "6-D" if used == {False} else "mixed"
 
 
-NINE_D_NOTE = ("imu 9-D: the row used the magnetometer (heading observable; BROAD's protocol scores its total error "
-               "with no heading offset removed); 6-D: gyro and accelerometer only (heading offset removed)")
+def shows_imu(results: list[Result]) -> bool:
+    """Whether a table of these rows says which are 6-D and which 9-D: where rows of both kinds can
+    appear, i.e. a row used a magnetometer or was scored with BROAD's protocol (whose recordings
+    have one, and which scores 6-D and 9-D rows differently; rows that do not say how they were
+    scored, from an older results.json, count only if one is 9-D)."""
+    return any(r.magnetometer or (r.protocol == "broad" and r.rmse_deg) for r in results)
+
+
+IMU_NOTE = "imu: 9-D = the row used the magnetometer (heading observable); 6-D = gyro and accelerometer only"
+
+
+def heading_offset_note(results: list[Result]) -> str:
+    """Which rows had a heading offset removed before they were scored, and which did not (from
+    each row's protocol and sensors: `Result.heading_offset_removed`), naming the recordings'
+    folders."""
+    def where(rows: list[Result]) -> str:
+        return ", ".join(dict.fromkeys(dataset_group(r.dataset) for r in rows))
+
+    scored = [r for r in results if r.rmse_deg]
+    removed = [r for r in scored if r.heading_offset_removed]
+    nine_d = [r for r in scored if not r.heading_offset_removed and r.magnetometer]
+    full = [r for r in scored if not r.heading_offset_removed and not r.magnetometer]
+    parts = []
+    if removed:
+        parts.append(f"removed from the 6-D rows on {where(removed)} (BROAD's protocol: the estimate turned about world "
+                     "z by its mean heading error over the movement phases before scoring)")
+    kept = []
+    if nine_d:
+        kept.append(f"the 9-D rows on {where(nine_d)} (scored with their own heading)")
+    if full:
+        kept.append(f"the rows on {where(full)} (the full protocol: every sample, as estimated)")
+    if kept:
+        parts.append("not removed from " + " nor from ".join(kept))
+    return "heading offset: " + ("; ".join(parts) if parts else "none removed")
 LOW_COVERAGE_NOTE = (f"LOW: scored on less than {MIN_COVERAGE:.0%} of the recording (the truth covers too little of it); "
                      "left out of the means")
 

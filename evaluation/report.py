@@ -4,7 +4,7 @@
     DIR/table.txt        the table the command printed
     DIR/command.txt      the exact command, and how to re-render
     DIR/series/NNN.npz   per recording, the time series the figures need (`fusion.evaluation.series`)
-    DIR/figures/*.png    per recording: Euler angles over VICON, errors, smoother cost, and per
+    DIR/figures/*.png    per recording: Euler angles over the truth, errors, smoother cost, and per
                          filter with a covariance its consistency (`plots.consistency_figure`);
                          summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter
     DIR/report.html      one page, readable offline: the summary figures embedded (base64 PNG), the
@@ -35,7 +35,9 @@ import numpy as np
 
 from . import series as series_io
 from .output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
-from .compare import LOW_COVERAGE_NOTE, Result, format_coverage, format_table, summary_groups
+from .compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, dataset_group, format_coverage, format_table,
+                      heading_offset_note, sensors, shows_imu, summary_groups)
+from .job import GENERIC_TRUTH, TRUTH_SYSTEMS
 from .metrics import KINDS
 from .stats import Comparison, RunStatistics, dropped_text, run_statistics
 
@@ -102,19 +104,22 @@ def _save(fig, path: Path) -> None:
     fig.savefig(path, dpi=fig.dpi)
 
 
-def _render_recording(series_path: str, fig_dir: str) -> tuple[list[tuple[str, str]], list[dict[str, Any]]]:
+def _render_recording(series_path: str, fig_dir: str, truths: dict[str, str] | None = None
+                      ) -> tuple[list[tuple[str, str]], list[dict[str, Any]]]:
     """Draw one recording's figures. Returns (caption, file name) pairs of its figures, and one
     entry per filter that reports a covariance for the "Filter consistency" section: dataset,
-    estimator, caption, file and the `fusion.evaluation.consistency.Summary` as a dict."""
+    estimator, caption, file and the `fusion.evaluation.consistency.Summary` as a dict.
+    truths: what each recording's truth is (`truth_names`), for the captions."""
     import dataclasses
 
     from . import consistency, plots
 
     s = series_io.load(Path(series_path))
+    truth = (truths or {}).get(s.id) or truth_name(s.id)
     stem = f"rec-{Path(series_path).stem}-{plots.slug(s.id)}"
     out = []
     for suffix, make, caption in (
-        ("euler", plots.euler_figure, "Euler angles (ZYX) over VICON"),
+        ("euler", plots.euler_figure, f"Euler angles (ZYX) over the truth ({truth})"),
         ("error", plots.error_figure, "error over time"),
         ("loss", plots.loss_figure, "smoother cost per iteration"),
     ):
@@ -134,7 +139,8 @@ def _render_recording(series_path: str, fig_dir: str) -> tuple[list[tuple[str, s
         names.add(name)
         summary = consistency.summarize(belief)
         _save(plots.consistency_figure(s, e, summary=summary), Path(fig_dir) / name)
-        caption = (f"{s.id}, {label}: attitude error against VICON about each body axis and the filter's +-3 sigma "
+        caption = (f"{s.id}, {label}: attitude error against the truth ({truth}) about each body axis and the "
+                   "filter's +-3 sigma "
                    "(deg); NIS of the accelerometer updates and its chi-square(3) 95 % band; samples without an "
                    "accelerometer update (skipped, gated or invalid), with the chi-square guard, with a rest update"
                    + ("; gyro-bias estimate (deg/s)" if belief.bias_rad_s is not None else ""))
@@ -222,7 +228,8 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     statistics = run_statistics(summary_groups(results))  # from the rows: seeded, the same as results.json's
     tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir))),
                                            (_render_statistics, (statistics.to_json(), doc, str(fig_dir)))]
-    tasks += [(_render_recording, (str(p), str(fig_dir))) for p in series_paths]
+    truths = truth_names(doc)
+    tasks += [(_render_recording, (str(p), str(fig_dir), truths)) for p in series_paths]
     outputs = _run_tasks(tasks, jobs, progress)
     summary, cd_figures, per_recording = outputs[0], outputs[1], [fig for figs, _ in outputs[2:] for fig in figs]
     beliefs = [entry for _, entries in outputs[2:] for entry in entries]
@@ -309,6 +316,17 @@ def read_results(path: Path) -> dict[str, Any]:
     if not isinstance(alignments, list) or not all(isinstance(a, dict) and isinstance(a.get("dataset"), str)
                                                    and _alignment_problem(a) is None for a in alignments):
         raise ValueError(f"{path}: 'alignments' is not what fusion writes")
+    facts = doc.get("recordings") or []
+    if not isinstance(facts, list) or not all(isinstance(f, dict) and isinstance(f.get("dataset"), str)
+                                              and f.get("protocol") in ("full", "broad", None)
+                                              and isinstance(f.get("truth"), (str, type(None))) for f in facts):
+        raise ValueError(f"{path}: 'recordings' is not what fusion writes")
+    by_dataset = {f["dataset"]: f for f in facts}
+    for row in doc["results"]:  # each row with its recording's protocol and truth (`Result.protocol`, `.truth`)
+        if row["dataset"] in by_dataset and row.get("rmse_deg"):
+            for key in ("protocol", "truth"):
+                if row.get(key) is None:
+                    row[key] = by_dataset[row["dataset"]][key]
     return doc
 
 
@@ -397,16 +415,19 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
     """(header, rows) of the per-run table and of the per-estimator means, as text cells; rows
     without ground truth come after the scored ones."""
     rows = [r for r in doc["results"] if r["rmse_deg"]] + [r for r in doc["results"] if not r["rmse_deg"]]
+    imu = shows_imu([Result.from_json(r) for r in rows])  # rows of both kinds can appear: say which is which
     header = ["dataset", "estimator", "samples", "scored samples", "coverage", *(f"{k} RMSE" for k in KINDS),
-              *(f"{k} max" for k in KINDS), "us/sample"]
+              *(f"{k} max" for k in KINDS), "us/sample", *(["imu"] if imu else [])]
     body = []
     for r in rows:
         rmse = [_fmt(r["rmse_deg"][k]) if r["rmse_deg"] else "-" for k in KINDS]
         worst = [_fmt(r["max_deg"][k]) if r["max_deg"] else "-" for k in KINDS]
         scored_samples = r.get("scored_samples")
         body.append([r["dataset"], r["estimator"], str(r["samples"]), "-" if scored_samples is None else str(scored_samples),
-                     format_coverage(Result.from_json(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}"])
-    mean_header = ["estimator", "recordings scored", *(f"mean {k} RMSE" for k in KINDS), "mean us/sample"]
+                     format_coverage(Result.from_json(r)), *rmse, *worst, f"{1e6 * r['seconds'] / max(r['samples'], 1):.1f}",
+                     *([sensors([Result.from_json(r)])] if imu else [])])
+    mean_header = ["estimator", "recordings scored", *(f"mean {k} RMSE" for k in KINDS), "mean us/sample",
+                   *(["imu"] if imu else [])]
     means = []
     for group, members in summary_groups([Result.from_json(r) for r in rows]):
         for label in dict.fromkeys(r["estimator"] for r in rows):
@@ -416,8 +437,50 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
                 continue
             values = [_fmt(float(np.mean([r.rmse_deg[k] for r in scored]))) if scored else "-" for k in KINDS]
             us = np.mean([r.us_per_sample for r in mine])
-            means.append([label, str(len(scored)) if group is None else f"{len(scored)} ({group})", *values, f"{us:.1f}"])
+            means.append([label, str(len(scored)) if group is None else f"{len(scored)} ({group})", *values, f"{us:.1f}",
+                          *([sensors(scored or mine)] if imu else [])])
     return header, body, mean_header, means
+
+
+def _imu_notes(doc: dict[str, Any]) -> list[str]:
+    """The notes under the results table that say what 6-D and 9-D mean and which rows had a
+    heading offset removed (`fusion.evaluation.compare.heading_offset_note`), where the table has
+    an imu column; [] otherwise."""
+    results = [Result.from_json(r) for r in doc["results"]]
+    return [IMU_NOTE, heading_offset_note(results)] if shows_imu(results) else []
+
+
+def truth_name(dataset: str) -> str:
+    """What a recording's truth is when its row does not say (an older results.json): by its folder,
+    VICON for the course sets, BROAD's for `broad`, else "ground truth"."""
+    group = dataset_group(dataset)
+    kind = ("course" if group in ("ece276a", "ece276a-2018", "ese650") else "broad" if group == "broad"
+            else "sim" if dataset == "sim" else None)
+    return TRUTH_SYSTEMS.get(kind, GENERIC_TRUTH)
+
+
+def truth_names(doc: dict[str, Any]) -> dict[str, str]:
+    """Recording id -> what its truth is (the rows' `truth`, else `truth_name`), for the scored recordings."""
+    out: dict[str, str] = {}
+    for r in doc["results"]:
+        if r.get("rmse_deg") and r["dataset"] not in out:
+            out[r["dataset"]] = r.get("truth") or truth_name(r["dataset"])
+    return out
+
+
+def _truth_text(doc: dict[str, Any]) -> str:
+    """"the truth (VICON)", or with recordings of several truth systems "the truth (VICON for
+    ece276a; optical motion capture (BROAD) for broad)"."""
+    per_group: dict[str, list[str]] = {}
+    for dataset, name in truth_names(doc).items():
+        per_group.setdefault(name, [])
+        if dataset_group(dataset) not in per_group[name]:
+            per_group[name].append(dataset_group(dataset))
+    if not per_group:
+        return "the truth"
+    if len(per_group) == 1:
+        return f"the truth ({next(iter(per_group))})"
+    return "the truth (" + "; ".join(f"{name} for {', '.join(groups)}" for name, groups in per_group.items()) + ")"
 
 
 def _coverage_text(doc: dict[str, Any]) -> str:
@@ -494,14 +557,14 @@ CONSISTENCY_HEADER = ["estimator", "samples with truth", "inside +-3 sigma x", "
 CONSISTENCY_TEXT = (
     "What each filter that reports an error covariance believed, against what happened (Bar-Shalom, Li & "
     "Kirubarajan 2001, Estimation with Applications to Tracking and Navigation, Sec. 5.4). Inside +-3 sigma: the "
-    "fraction of samples whose attitude error against VICON about a body axis lies within the filter's own "
+    "fraction of samples whose attitude error against the truth about a body axis lies within the filter's own "
     "3 sqrt(P_ii) (99.7 % if consistent). NEES: e^T P^-1 e over the attitude block (mean 3 if consistent). NIS: the "
     "normalised innovation squared of the accelerometer updates, chi-square with 3 degrees of freedom if consistent: "
     "95 % of the updates inside the band [0.22, 9.35] and a mean of 3 (the band of the mean assumes white "
     "innovations, which hand motion is not). A mean NIS far below 3: the filter expects larger innovations than it "
     "sees (it trusts the accelerometer less than it could); far above: smaller. Heading (about the vertical) is unobservable from an accelerometer, so its envelope grows "
-    "and being inside it says little; the error includes VICON's own error and any residual time offset between "
-    "IMU and VICON, the NIS does not.")
+    "and being inside it says little; the error includes the truth system's own error and any residual time offset "
+    "between IMU and truth, the NIS does not.")
 
 
 def _pct_cell(v: Any) -> str:
@@ -603,8 +666,10 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
              "Re-render without recomputing: `fusion report <this folder>`.", "", "## Means per estimator (RMSE, deg)", ""]
     lines += md_table(mean_header, means) + ["", "## Results per recording (RMSE and maximum, deg)", ""]
     lines += md_table(header, body) + (["", _coverage_text(doc)] if _coverage_text(doc) else [])
-    lines += ["", "Errors: total = geodesic angle between estimate and VICON; inclination = angle between the true and "
-              "estimated gravity direction; heading = twist about world z of the error. " + _alignment_text(doc), ""]
+    lines += ["", *_imu_notes(doc)] if _imu_notes(doc) else []
+    lines += ["", f"Errors: total = geodesic angle between estimate and {_truth_text(doc)}; inclination = angle between "
+              "the true and estimated gravity direction; heading = twist about world z of the error. "
+              + _alignment_text(doc), ""]
     if _alignment_rows(doc):
         lines += ["## Alignment (--align)", ""] + md_table(ALIGNMENT_HEADER, _alignment_rows(doc)) + [""]
     if _tuning_text(doc):
@@ -680,12 +745,13 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         "<p>Command (re-render this page without recomputing: <code>fusion report &lt;folder&gt;</code>):</p>",
         f"<pre>{html.escape(settings.get('command', '(unknown)'))}</pre>",
         "<h2>Means per estimator</h2><p>RMSE and maximum error in degrees. total = geodesic angle between estimate "
-        "and VICON; inclination = angle between the true and estimated gravity direction; heading = twist about "
-        f"world z of the error. {html.escape(_alignment_text(doc))}</p>",
+        f"and {html.escape(_truth_text(doc))}; inclination = angle between the true and estimated gravity direction; "
+        f"heading = twist about world z of the error. {html.escape(_alignment_text(doc))}</p>",
         _html_table(mean_header, means, "means", 1),
         "<h2>Results per recording</h2><p>Recordings without ground truth (not scored) come last.</p>",
         _html_table(header, body, "results", 2),
         *([f"<p>{html.escape(_coverage_text(doc))}</p>"] if _coverage_text(doc) else []),
+        *([f"<p>{'<br>'.join(html.escape(n) for n in _imu_notes(doc))}</p>"] if _imu_notes(doc) else []),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
         *(["<h2>Tuning: library default, best common setting, per-recording best, out of sample</h2>",
@@ -701,7 +767,7 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
             parts += [_img(fig_dir, *figure)] if figure else []
     parts += ["<h2>Summary figures</h2>", *(_img(fig_dir, c, n) for c, n in summary)]
     if per_recording:
-        parts += ["<h2>Per recording</h2><p>Grey: no VICON (gaps, outside its span); red: gyro marked invalid. The "
+        parts += ["<h2>Per recording</h2><p>Grey: no truth (tracking gaps, outside its span); red: gyro marked invalid. The "
                   "figures are the files in <code>figures/</code> beside this page.</p>",
                   *(_img(fig_dir, c, n, embed=False) for c, n in per_recording)]
     if beliefs:

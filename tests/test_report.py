@@ -472,3 +472,114 @@ def test_importing_the_plotting_modules_leaves_the_backend_alone():
             "fusion.evaluation.inspect_plots; print(matplotlib.get_backend())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "svg"
+
+
+# --- what each row is: 6-D or 9-D, its heading offset, its truth system ---
+
+MIXED_BROAD = "broad/10_undisturbed_slow_translation_A"
+
+
+@pytest.mark.slow
+def test_the_report_says_what_each_row_is(data_dir, tmp_path, capsys):
+    """A BROAD trial (dr 6-D, ekf 9-D: it has a magnetometer) and a course recording: table.txt,
+    report.md and report.html have a 6-D/9-D column; the heading-offset note names the rows it was
+    removed from (6-D on BROAD) and those it was not (9-D; the course recording's, full protocol);
+    the truth is BROAD's optical system for the trial and VICON for the course recording, in the
+    text and the figure captions."""
+    out = tmp_path / "run"
+    assert main(["compare", "--estimators", "dr,ekf", "--dataset", f"{MIXED_BROAD},ece276a/3", "--data-dir",
+                 str(data_dir), "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["recordings"] == [{"dataset": MIXED_BROAD, "protocol": "broad", "truth": "optical motion capture (BROAD)"},
+                                 {"dataset": "ece276a/3", "protocol": "full", "truth": "VICON"}]
+    assert not {"protocol", "truth"} & set(doc["results"][0])  # the recording's, once, not in every row
+    note = ("heading offset: removed from the 6-D rows on broad (BROAD's protocol: the estimate turned about world z "
+            "by its mean heading error over the movement phases before scoring); not removed from the 9-D rows on "
+            "broad (scored with their own heading) nor from the rows on ece276a (the full protocol: every sample, as "
+            "estimated)")
+    table = (out / "table.txt").read_text()
+    for text in (printed, table):
+        header = next(line for line in text.splitlines() if line.startswith("dataset"))
+        assert header.split()[-1] == "imu"
+        cells = {tuple(line.split()[:2]): line.split()[-1] for line in text.splitlines()
+                 if line.startswith((MIXED_BROAD, "ece276a/3"))}
+        assert cells == {(MIXED_BROAD, "dr"): "6-D", (MIXED_BROAD, "ekf"): "9-D", ("ece276a/3", "dr"): "6-D",
+                         ("ece276a/3", "ekf"): "6-D"}
+        assert note in text and "imu: 9-D = the row used the magnetometer" in text
+    page = (out / "report.html").read_text()
+    head, *body = _table_cells(page, "results")
+    assert head[-1] == "imu"
+    assert {(r[0], r[1]): r[-1] for r in body} == cells
+    head, *means = _table_cells(page, "means")
+    assert head[-1] == "imu" and {r[0]: r[-1] for r in means if "broad" in r[1]} == {"dr": "6-D", "ekf": "9-D"}
+    md = (out / "report.md").read_text()
+    truth = "the truth (optical motion capture (BROAD) for broad; VICON for ece276a)"
+    for doc in (md, html.unescape(page)):
+        assert note in doc and f"geodesic angle between estimate and {truth}" in doc
+        assert f"{MIXED_BROAD}: Euler angles (ZYX) over the truth (optical motion capture (BROAD))" in doc
+        assert "ece276a/3: Euler angles (ZYX) over the truth (VICON)" in doc
+        assert f"{MIXED_BROAD}, ekf: attitude error against the truth (optical motion capture (BROAD))" in doc
+        assert "VICON" not in doc.replace("over the truth (VICON)", "").replace("VICON for ece276a", "").replace(
+            "against the truth (VICON)", "")
+    assert "| imu |" in md.splitlines()[md.splitlines().index("## Results per recording (RMSE and maximum, deg)") + 2]
+
+
+def test_the_heading_offset_note_follows_each_rows_protocol():
+    """Rows scored with the full protocol keep their heading offset, 6-D or not; BROAD's protocol removes
+    a 6-D row's only; a course-only run has no imu column nor note; an older row without `protocol`
+    is judged by its folder."""
+    from fusion.evaluation.compare import Result, format_table, heading_offset_note, shows_imu
+
+    def row(dataset, label, protocol, nine_d=False):
+        return Result(dataset, label, 100, 0.1, {"total": 1.0, "inclination": 0.5, "heading": 0.8},
+                      {"total": 2.0, "inclination": 1.0, "heading": 1.5}, magnetometer=nine_d, protocol=protocol,
+                      scored_samples=100, coverage=1.0)
+
+    course = [row("ece276a/1", "ukf", "full"), row("ece276a/2", "ukf", "full")]
+    assert not shows_imu(course) and "heading offset" not in format_table(course)
+    forced = [row("ece276a/1", "ukf", "broad")]  # --protocol broad on a course recording: its offset is removed
+    assert heading_offset_note(forced).startswith("heading offset: removed from the 6-D rows on ece276a")
+    assert "not removed" not in heading_offset_note(forced)
+    full_broad = [row("broad/01_x", "ukf", "full"), row("broad/01_x", "ekf", "full", True)]  # --protocol full
+    assert heading_offset_note(full_broad) == ("heading offset: not removed from the 9-D rows on broad (scored with "
+                                               "their own heading) nor from the rows on broad (the full protocol: "
+                                               "every sample, as estimated)")
+    older = Result.from_json(row("broad/01_x", "ukf", None).to_json())  # no protocol: BROAD's folder's default
+    assert older.protocol is None and older.heading_offset_removed and not shows_imu([older])
+    assert not Result.from_json(row("ece276a/1", "ukf", None).to_json()).heading_offset_removed
+    assert shows_imu([older, row("broad/01_x", "ekf", None, True)])  # a 9-D row: the column, and the note
+    assert heading_offset_note([older]).startswith("heading offset: removed from the 6-D rows on broad")
+
+
+def test_us_per_sample_leaves_the_first_calls_compilation_out(monkeypatch):
+    """numba compiles a kernel on its first call in a process: our estimators are run once, untimed,
+    on the first 200 samples before the timed run, so the first row's time is the estimate's alone."""
+    import time
+    from dataclasses import dataclass
+
+    from fusion.estimators import ResolvedSpec
+    from fusion.estimators.base import Estimator
+    from fusion.estimators.params import EstimatorSpec
+    from fusion.types import Trajectory
+
+    @dataclass(frozen=True)
+    class NoParams:
+        pass
+
+    seen: list[int] = []
+
+    class CompilesOnFirstCall(Estimator):
+        Params = NoParams
+
+        def estimate(self, imu, init_quat_wxyz):
+            if not seen:
+                time.sleep(0.5)  # "compiling"
+            seen.append(len(imu))
+            return Trajectory(imu.t, np.tile(init_quat_wxyz, (len(imu), 1)))
+
+    entry = ResolvedSpec(EstimatorSpec("first"), CompilesOnFirstCall, NoParams(), "first")
+    rec = recording(600)
+    (row,) = runner.run([entry], [rec])
+    assert seen == [200, 600]  # the warm-up on a window, then the timed run on the whole recording
+    assert row.error is None and row.seconds < 0.25
