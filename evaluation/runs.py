@@ -343,7 +343,9 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
             keys: list[str], stage: Path, tum: bool = True) -> Iterator[Any]:
     """Each recording's series, assembled from its jobs' parts in the journal, one at a time (so
     that at most one recording's plot data is in memory); on the way (`tum`), each estimate and the
-    truth it was scored against are written as TUM files into `stage/trajectories/<recording>/`."""
+    truth it was scored against are written as TUM files into `stage/trajectories/<recording>/`,
+    to the precision the data carry, each with a header naming the estimator, the recording and
+    whether it used a magnetometer (`fusion.trajectory_files.write_tum`, compact)."""
     from fusion.trajectory_files import write_tum
 
     from . import series
@@ -355,12 +357,18 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
         parts = [first if j == 0 else journal.load_part(keys[i * per + j]) for j in shown]
         recording = {k[4:]: v for k, v in first.items() if k.startswith("rec_")}
         if tum:
-            folder = stage / "trajectories" / str(recording["id"])
+            rid = str(recording["id"])
+            folder = stage / "trajectories" / rid
             folder.mkdir(parents=True, exist_ok=True)
             if "truth_at_imu" in recording:
-                write_tum(folder / "truth.tum", recording["imu_t"], recording["truth_at_imu"])
+                truth = next((r.truth for r in results[i * per:(i + 1) * per] if r.truth), None)
+                write_tum(folder / "truth.tum", recording["imu_t"], recording["truth_at_imu"], compact=True,
+                          metadata={"estimator": "truth", "recording": rid, **({"truth": truth} if truth else {})})
             for j, part in zip(shown, parts):
-                write_tum(folder / f"{entries[j].label.replace('/', '_')}.tum", recording["imu_t"], part["quat_wxyz"])
+                row = results[i * per + j]
+                write_tum(folder / f"{entries[j].label.replace('/', '_')}.tum", recording["imu_t"], part["quat_wxyz"],
+                          compact=True, metadata={"estimator": row.estimator, "recording": rid,
+                                                  "imu": "9-D" if row.magnetometer else "6-D"})
         yield series.assemble(recording, [entries[j].label for j in shown], [bool(entries[j].cls.causal) for j in shown],
                               parts)
 
