@@ -37,6 +37,29 @@ def check_options(out: Any, rate_hz: float) -> None:
     check_rate(rate_hz, "--rate")
 
 
+def frames_origin(recording: Any, *, data_dir: Any = None, scene: Any = None, rate_hz: float = 10.0) -> str:
+    """Where a recording's panorama frames come from, in words (what `fusion panorama` prints): its
+    camera's file, or for a recording without camera frames the scene they are rendered from
+    with the ground-truth orientations (`reference_panorama`), as `camsim.scene_for` chooses it."""
+    camera = recording.camera
+    if camera is not None:
+        where = str(camera) if isinstance(camera, (str, Path)) else (getattr(camera, "source", "") or "")
+        return "the recording's camera" + (f" ({where})" if where else "")
+    if recording.truth is None:
+        return "none: the recording has neither camera frames nor ground truth to render them from"
+    if scene is not None:
+        what = f"the scene {scene}" if isinstance(scene, (str, Path)) else "the scene image given"
+    elif str(recording.id).startswith("sim"):
+        what = "the procedural scene"
+    else:
+        from fusion.datasets import data_dir_from
+
+        path = camsim.find_scene_file(data_dir) or camsim.find_scene_file(data_dir_from(None))
+        what = f"the scene {path}" if path else f"the procedural scene (no {camsim.SCENE_FILE} under the data directory)"
+    return (f"rendered at {rate_hz:g} Hz from {what} with the ground-truth orientations (the recording has no camera "
+            "frames); the panorama shows the scene, not the room the recording was made in")
+
+
 def panorama_scores(recording: Any, estimate: Trajectory, *, data_dir: Any = None, scene: Any = None,
                     model: CameraModel | None = None, grid: PanoramaGrid | None = None,
                     blend: Blend = "feather", rate_hz: float = 10.0) -> dict[str, float]:

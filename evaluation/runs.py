@@ -377,19 +377,22 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
 class PanoramaRun:
     """A finished `run_panorama`: the recording and estimator, the estimate's panorama
     (`fusion.evaluation.panorama.Panorama`), its scores (`panorama.panorama_scores`), the image
-    written, and `text`, what `fusion panorama` prints."""
+    written, where its frames come from (`panorama.frames_origin`), and `text`, what
+    `fusion panorama` prints."""
 
     recording_id: str
     estimator: str
     panorama: Any
     scores: dict[str, float]
     out: Path
+    frames: str = ""
 
     @property
     def text(self) -> str:
         s = self.scores
         lines = [f"{self.recording_id} {self.estimator}: {self.panorama.frames_used} frames "
                  f"({self.panorama.frames_skipped} skipped) -> {self.out}",
+                 *([f"frames: {self.frames}"] if self.frames else []),
                  f"PSNR {s['psnr_db']:.2f} dB, SSIM {s['ssim']:.4f} against the ground-truth panorama; "
                  f"covered {s['covered_fraction']:.3f} of the sphere"]
         if np.isfinite(s["scene_psnr_db"]):
@@ -415,7 +418,8 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     import cv2
 
     from .job import run_one
-    from .panorama import PanoramaGrid, check_options, comparison_image, estimate_panorama, reference_panorama
+    from .panorama import (PanoramaGrid, check_options, comparison_image, estimate_panorama, frames_origin,
+                           reference_panorama)
 
     check_options(out, rate_hz)  # before any work: the image format and the frame rate
     recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic, mag)
@@ -443,7 +447,8 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), image):
         raise ValueError(f"{out}: could not write the image (use a .png or .jpg name)")
-    return PanoramaRun(recording.id, entries[0].label, pano, scores, out)
+    frames = frames_origin(recording, data_dir=options["data_dir"], scene=scene, rate_hz=rate_hz)
+    return PanoramaRun(recording.id, entries[0].label, pano, scores, out, frames)
 
 
 @dataclass(frozen=True, eq=False)

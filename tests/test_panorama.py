@@ -366,3 +366,28 @@ def test_stitching_takes_arrays_and_one_module_reads_the_recordings_files():
     assert not {"load_camera", "camsim", "scene_for"} & set(vars(stitching))
     assert {"load_camera", "camsim"} <= set(vars(panorama))
     assert panorama.Stitcher is stitching.Stitcher and panorama.stitch is stitching.stitch
+
+
+def test_the_panorama_text_says_where_its_frames_come_from(tmp_path, monkeypatch):
+    """A recording without camera frames: the text says they were rendered from a scene (which one,
+    at what rate) with the ground truth; a recording with a camera: its file."""
+    from fusion.evaluation.panorama import frames_origin
+    from fusion.evaluation.runs import run_panorama
+
+    monkeypatch.delenv("FUSION_DATA", raising=False)
+    run = run_panorama("sim", "dr", tmp_path / "p.png", size="240x120", rate_hz=2.0)
+    (line,) = [l for l in run.text.splitlines() if l.startswith("frames: ")]
+    assert line == ("frames: rendered at 2 Hz from the procedural scene with the ground-truth orientations (the "
+                    "recording has no camera frames); the panorama shows the scene, not the room the recording was "
+                    "made in")
+    scene = tmp_path / "scene.png"
+    cv2.imwrite(str(scene), camsim.procedural_scene(256, 128))
+    truth = sweep(12, wobble_deg=10.0)
+    real = Recording("lab/1", imu=None, truth=truth)  # type: ignore[arg-type]
+    assert f"from the scene {scene} with the ground-truth" in frames_origin(real, scene=scene)
+    (tmp_path / "data" / "scenes").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "data" / "scenes" / "room_equirect.jpg"), camsim.procedural_scene(256, 128))
+    assert f"from the scene {tmp_path / 'data' / 'scenes' / 'room_equirect.jpg'}" in frames_origin(
+        real, data_dir=tmp_path / "data", rate_hz=5.0)
+    with_camera = Recording("ece276a/1", imu=None, truth=truth, camera=tmp_path / "cam1.p")  # type: ignore[arg-type]
+    assert frames_origin(with_camera) == f"the recording's camera ({tmp_path / 'cam1.p'})"
