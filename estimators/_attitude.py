@@ -5,8 +5,8 @@ import from those modules directly.
 `_linalg` (3x3 inverse, PSD square root, covariance repair), `_accel` (accelerometer gating, the
 disturbance model, the low-pass and its lag), `_rest` (rest detection, the bias update at rest),
 `_stuck` (the online stuck-gyro check), `_scale_test` (Wald's test on the scale factors),
-`_magnetometer` (reference field, gates, hard-iron fit, heading update), `kalman_base` (the error
-state's unestimated variance and axis masks). Their compiled mirrors are `_compiled_<concern>`.
+`_magnetometer` (reference field, gates, hard-iron fit, heading update), `_error_state` (the
+unestimated variance and axis masks). Their compiled mirrors are `_compiled_<concern>`.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from ._magnetometer import (HARD_IRON_STATE, HardIron, MagReference, field_norm_
 from ._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, REST_WINDOW_S, RestDetector, bias_rest_update
 from ._scale_test import ScaleTest
 from ._stuck import STUCK_STATE, STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
-from .kalman_base import UNESTIMATED_VAR, axes_mask
+from ._error_state import UNESTIMATED_VAR, axes_mask
 
 __all__ = ["AccDisturbance", "COV_FLOOR", "COV_RESET_VAR", "HARD_IRON_STATE", "HardIron", "LowpassLag", "MagReference",
            "REST_ACC_G", "REST_GYR_RAD_S", "REST_TIME_S", "REST_WINDOW_S", "RestDetector", "SQRT_FLOOR", "STUCK_STATE",

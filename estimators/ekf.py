@@ -150,13 +150,14 @@ from fusion.quaternion import (exp_floats, gravity_in_body_floats, multiply_floa
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
+from ._error_state import axes_mask
 from ._linalg import inv_sym3, repair_covariance
 from ._magnetometer import HardIron, MagReference, heading_update, heading_variance, magnetometer_input
 from ._rest import RestDetector, bias_rest_update
 from ._scale_test import ScaleTest
 from ._stuck import stuck_gyro_state
 from .filter_params import BiasFilterParams
-from .kalman_base import KalmanFilter, axes_mask, error_state_covariances, initial_quaternion
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
 from .search import Tunable
 
 

@@ -21,8 +21,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
+from ._error_state import axes_mask
 from ._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
-from .kalman_base import axes_mask
 from .params import FormerSpellings
 from .search import Tunable
 

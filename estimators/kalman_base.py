@@ -15,22 +15,10 @@ import numpy as np
 
 from fusion.types import ImuSamples, Trajectory
 
+from ._error_state import UNESTIMATED_VAR, axes_mask
 from ._rest import REST_STATE
 from ._stuck import STUCK_THRESHOLDS, stuck_gyro_update
 from .base import RecursiveEstimator
-
-# Variance standing for "not estimated" in a filter's state: small enough that the state stays
-# at its initial value, large enough to keep the covariance positive definite.
-UNESTIMATED_VAR = 1e-12
-
-
-def axes_mask(axes: str, name: str = "scale_axes") -> np.ndarray:
-    """(3,) bool: which body axes an axis list names ("xy", "xyz", "" for none), e.g. the gyro
-    scale factors or biases an estimator estimates. `name` is the parameter, for the error."""
-    axes = "" if axes == "none" else axes
-    if any(a not in "xyz" for a in axes) or len(set(axes)) != len(axes):
-        raise ValueError(f"{name}={axes!r}: expected distinct letters from 'xyz' (or 'none')")
-    return np.array([a in axes for a in "xyz"])
 
 
 def initial_quaternion(owner: str, init_quat_wxyz: Any) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators.kalman_base import UNESTIMATED_VAR
+from fusion.estimators._error_state import UNESTIMATED_VAR
 from fusion.estimators.kalman_base import error_state_covariances, initial_quaternion
 
 
