@@ -205,6 +205,7 @@ class _Signals:
 
 _WARMED: set[tuple] = set()  # (estimator class, parameters, sensors) already run once in this process
 WARM_UP_SAMPLES = 200
+WARMED_MODULES = ("fusion.estimators.",)  # the estimators warmed up: the toolkit's own (their modules' prefix)
 
 
 def warm_up(entry: ResolvedSpec, recording: Recording, q0: np.ndarray) -> None:
@@ -213,9 +214,10 @@ def warm_up(entry: ResolvedSpec, recording: Recording, q0: np.ndarray) -> None:
     (or loads from its cache) every kernel on its first call with given argument types, and
     the kernels the filters' constructors do not load themselves would otherwise be compiled
     inside the timed estimate (the first row's us/sample 100 times the second's). The results
-    do not change: a fresh estimator is built for the timed run. A user's estimator is not
-    warmed up (its code may have effects of its own); nor are trajectory files."""
-    if entry.user or len(recording.imu) < 2:
+    do not change: a fresh estimator is built for the timed run. Only the toolkit's own
+    estimators (`WARMED_MODULES`) are warmed up: other code (a user's, a test's) may have effects
+    of its own; nor are trajectory files."""
+    if entry.user or len(recording.imu) < 2 or not entry.cls.__module__.startswith(WARMED_MODULES):
         return
     key = (entry.cls, repr(entry.params), recording.imu.has_mag, recording.imu.gyr_timing)
     if key in _WARMED:
