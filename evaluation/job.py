@@ -245,8 +245,8 @@ def _failure(where: str, exc: BaseException, entry: ResolvedSpec) -> EstimatorEr
     site, trace = user.failure_site(exc, entry.origin)
     at = f" at {site}" if site else ""
     if isinstance(exc, SystemExit):
-        what = (f"stopped the process with SystemExit({exc.code!r}) (sys.exit){at}; an estimator returns its "
-                "orientations or raises an exception")
+        what = (f"raised SystemExit({exc.code!r}) (what sys.exit does){at}: an estimator returns its orientations "
+                "or raises an exception, it does not end the process")
     elif isinstance(exc, KeyboardInterrupt):
         what = f"raised KeyboardInterrupt{at} (its own code, not a Ctrl-C)"
     else:

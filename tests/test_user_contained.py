@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import time
+from pathlib import Path
 
 
 def exits(t, gyro, acc, q0):
@@ -64,8 +65,9 @@ LINES = {name: next(i for i, line in enumerate(STOPS.splitlines(), 1) if line.st
          for name in ("exits", "system_exit", "interrupts")}
 
 EXPECTED = {
-    "stops.exits": f"stopped the process with SystemExit(0) (sys.exit) at stops.py:{LINES['exits']} in exits",
-    "stops.system_exit": f"stopped the process with SystemExit('done') (sys.exit) at stops.py:{LINES['system_exit']}",
+    "stops.exits": f"raised SystemExit(0) (what sys.exit does) at stops.py:{LINES['exits']} in exits: an estimator "
+                   "returns its orientations or raises an exception, it does not end the process",
+    "stops.system_exit": f"raised SystemExit('done') (what sys.exit does) at stops.py:{LINES['system_exit']}",
     "stops.interrupts": f"raised KeyboardInterrupt at stops.py:{LINES['interrupts']} in interrupts (its own code, not a "
                         "Ctrl-C)",
     "stops.hard_exit": "the worker process running it exited with status 0 (os._exit",
@@ -125,7 +127,7 @@ def test_a_real_ctrl_c_in_the_estimator_still_stops(folder):
     rec = datasets.load("sim")
     with pytest.raises(ValueError, match=r"raised KeyboardInterrupt at stops.py:\d+ in interrupts"):
         run_one(rec, resolve("./stops.py:interrupts"))
-    with pytest.raises(ValueError, match=r"stopped the process with SystemExit\(0\)"):
+    with pytest.raises(ValueError, match=r"raised SystemExit\(0\) \(what sys.exit does\)"):
         run_one(rec, resolve("./stops.py:exits"))
     with pytest.raises(KeyboardInterrupt):
         run_one(rec, resolve("./stops.py:real_ctrl_c"))
