@@ -195,15 +195,24 @@ def grid_settings(entry: ResolvedSpec, mag: bool = True) -> list[dict[str, float
     """The grid preset's settings (alias -> value), the library default (`{}`) first."""
     space = tunable_space(entry, mag)
     names = [alias for alias, t in space.items() if t.grid]
-    params_cls = entry.cls.Params
-    fields = {alias_of(params_cls, f): f for f in search_space(params_cls)}
-    current = entry.params  # the defaults, with the spec's own overrides
     out: list[dict[str, float]] = [{}]
     for values in (itertools.product(*(space[a].grid for a in names)) if names else ()):
         setting = dict(zip(names, map(float, values)))
-        if any(not math.isclose(v, getattr(current, fields[a]), rel_tol=1e-12) for a, v in setting.items()):
-            out.append(setting)  # a grid point that is the default setting is the first entry already
+        if not _is_default(entry, setting):  # a grid point that is the default setting is the first entry already
+            out.append(setting)
     return out
+
+
+def _defaults(entry: ResolvedSpec) -> dict[str, float]:
+    """alias -> the value `entry` runs with (its default, or its spec's), for its tunable parameters."""
+    params_cls = entry.cls.Params
+    return {alias_of(params_cls, name): float(getattr(entry.params, name)) for name in search_space(params_cls)}
+
+
+def _is_default(entry: ResolvedSpec, setting: dict[str, float]) -> bool:
+    """Whether `setting` is what `entry` runs with anyway (then it is the default's row, `{}`)."""
+    current = _defaults(entry)
+    return all(math.isclose(v, current[a], rel_tol=1e-12) for a, v in setting.items())
 
 
 def folds_of(sources: Sequence[Any], by: str) -> list[Fold]:
@@ -317,6 +326,7 @@ def _search_tpe(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids:
     table: dict[tuple[int, str], float] = {}
 
     def scored(setting: dict[str, float], ids: Sequence[str]) -> float:
+        setting = {} if _is_default(entry, setting) else setting
         if setting not in settings:
             settings.append(setting)
         k = settings.index(setting)
@@ -334,7 +344,8 @@ def _search_tpe(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids:
     for fold in folds:
         best = _run_study(entry, f"{entry.label}/{fold.name}", fold.train, scores.settings, storage, scored)
         scored(best, fold.test)
-        chosen[fold.name] = settings.index(best)
+        chosen[fold.name] = settings.index({} if _is_default(entry, best) else best)
+    common = {} if _is_default(entry, common) else common
     return _tuning(entry, settings, table, settings.index(common), chosen, folds, all_ids, scores.settings.mag)
 
 
@@ -355,7 +366,8 @@ def _tuning(entry: ResolvedSpec, settings: list[dict[str, float]], table: dict[t
 
 def _run_study(entry: ResolvedSpec, name: str, ids: Sequence[str], settings: TuneSettings, storage: Any,
                scored: Callable[[dict[str, float], Sequence[str]], float]) -> dict[str, float]:
-    """A TPE study of `settings.budget` trials on `ids`; returns its best setting. Each trial's
+    """A TPE study of `settings.budget` trials on `ids`; returns its best setting. Its first trial
+    is the library default (where it lies in the range), as in the grid; each later trial's
     sampler is seeded with the seed and the number of trials completed before it (module
     docstring); a trial a stop left running is marked failed and proposed again."""
     import optuna
@@ -366,6 +378,9 @@ def _run_study(entry: ResolvedSpec, name: str, ids: Sequence[str], settings: Tun
     study = optuna.create_study(study_name=name, storage=storage, direction="minimize", load_if_exists=True)
     for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
         study._storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
+    default = {a: v for a, v in _defaults(entry).items() if a in space}
+    if not study.trials and all(space[a].low <= v <= space[a].high for a, v in default.items()):
+        study.enqueue_trial(default)
     while len(complete := study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))) < settings.budget:
         study.sampler = optuna.samplers.TPESampler(seed=settings.seed + len(complete))
         trial = study.ask()

@@ -165,7 +165,8 @@ def test_tpe_is_seeded_and_independent_of_jobs(data_dir, tmp_path):
     assert docs[0] == docs[1]
     (madgwick,) = docs[0]
     assert set(madgwick["chosen"]) == {"ece276a/1", "ece276a/2", "ece276a/3"}
-    assert 1 + 4 <= madgwick["settings_evaluated"] <= 1 + 4 * 4
+    # each of the 4 studies (all recordings, 3 folds) starts from the default, then 3 proposals
+    assert 1 + 3 <= madgwick["settings_evaluated"] <= 1 + 4 * 3
 
 
 def test_compare_tuned_runs_the_chosen_setting(data_dir, tmp_path, capsys):
