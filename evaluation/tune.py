@@ -527,9 +527,9 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     for t in tunings:
         lines.append(f"{t.estimator:<{width}}  {t.default:8.2f}  {t.common:8.2f}  {t.per_recording:8.2f}  "
                      f"{t.out_of_sample:8.2f}  {t.evaluated:8d}  {_setting_text(t.common_setting)}")
-    lines.append("* in sample (chosen and judged on the same recordings): the best common setting over all "
-                 "recordings, and each recording's own best (an upper bound); tuned: out of sample, each test "
-                 "recording scored with the setting chosen without it")
+    lines.append("* in sample (chosen and judged on the recordings tuned on): the best common setting over them, "
+                 "and each one's own best (an upper bound); default, tuned: over the test recordings, tuned out of "
+                 "sample (each scored with the setting chosen without it)")
     return "\n".join(lines)
 
 
