@@ -83,18 +83,24 @@ def _run_options(args: argparse.Namespace) -> dict:
             for f in fields}
 
 
-def _print_run(run) -> int:
-    """Print the table, then one line per failed job; exit status 1 if a job failed."""
+def _print_run(run, verbose: bool = False) -> int:
+    """Print the table, then one line per failed job (with `verbose`, under it the traceback of the
+    user's own code, as results.json keeps it); exit status 1 if a job failed."""
+    import textwrap
+
     print(run.table)
     if run.report is not None:
         print(f"report: {run.report}", file=sys.stderr)
     for r in run.failed:
         print(f"fusion: error: {r.error}", file=sys.stderr)
+        if verbose and r.traceback:
+            print(textwrap.indent(r.traceback.rstrip("\n"), "    "), file=sys.stderr)
     return 1 if run.failed else 0
 
 
 # what `--resume DIR` may be combined with: how the run runs, not what it computes
-_RESUME_OPTIONS = ("jobs", "no_progress", "scheduler", "scatter", "json", "resume", "func", "command", "argv")
+_RESUME_OPTIONS = ("jobs", "no_progress", "scheduler", "scatter", "json", "resume", "func", "command", "argv",
+                   "verbose")
 
 
 def _resume(args: argparse.Namespace) -> int:
@@ -106,7 +112,7 @@ def _resume(args: argparse.Namespace) -> int:
         raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs, --scheduler, "
                          f"--scatter, --json or --no-progress only (not --{given[0].replace('_', '-')})")
     return _print_run(run_resume(args.resume, jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler,
-                                 scatter=True if args.scatter else None, json_path=args.json))
+                                 scatter=True if args.scatter else None, json_path=args.json), args.verbose)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
@@ -115,7 +121,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.resume:
         return _resume(args)
     return _print_run(run_compare(args.estimators, args.dataset, trajectories=args.trajectory, tuned=args.tuned,
-                                  **_run_options(args)))
+                                  **_run_options(args)), args.verbose)
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -149,7 +155,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
     if args.resume:
         return _resume(args)
-    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset, **_run_options(args)))
+    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset, **_run_options(args)),
+                     args.verbose)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -243,9 +250,12 @@ def _add_run_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="with --out: replace the earlier run (or discard the unfinished one) that DIR holds; "
                              "without it a folder holding a run is refused (files you put there are kept either way)")
+    parser.add_argument("--verbose", action="store_true",
+                        help="under each failed row's error, the traceback of your estimator's own code (results.json "
+                             "keeps it as the row's 'traceback')")
     parser.add_argument("--no-tum", action="store_true",
                         help="with --out, do not write every estimate and its truth as TUM files under DIR/trajectories "
-                             "(a few MB per recording and estimator: a BROAD trial's file is about 6 MB)")
+                             "(a few MB per recording and estimator: a BROAD trial's file is about 3 MB)")
     parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                         help="worker processes; 0 = all cores (default); results do not depend on it")
     parser.add_argument("--resume", metavar="DIR", default=None,

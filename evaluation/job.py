@@ -170,7 +170,7 @@ class EstimatorError(ValueError):
         self.traceback = traceback
 
 
-TRACEBACK_NOTE = "its traceback: the row's \"traceback\" in results.json (--out or --json)"
+TRACEBACK_NOTE = "its traceback: --verbose, or the row's \"traceback\" in results.json (--out or --json)"
 
 
 class _Signals:

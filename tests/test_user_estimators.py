@@ -404,7 +404,8 @@ def test_a_users_bug_has_a_place(folder, monkeypatch):
     line = BUGGY.splitlines().index("    return out[:, [0, 1, 2, 4]]  # IndexError: a fifth column") + 1
     indexes = rows["buggy.indexes"]
     assert indexes.error.startswith("toy/1: estimator 'buggy.indexes' raised IndexError: index 4 is out of bounds")
-    assert f" at buggy.py:{line} in indexes; its traceback: the row's \"traceback\" in results.json" in indexes.error
+    assert f" at buggy.py:{line} in indexes; its traceback: --verbose, or the row's \"traceback\" in results.json" \
+        in indexes.error
     trace = indexes.traceback.splitlines()
     assert trace[0] == "Traceback (the estimator's own code, innermost last):"
     assert trace[1] == f'  File "{folder / "buggy.py"}", line {line}, in indexes'
@@ -446,3 +447,20 @@ def test_the_nan_hint_only_when_the_nan_came_from_the_invalid_gyro(folder, monke
     nan_gyro[4] = True
     with pytest.raises(ValueError, match="the gyro there is NaN, one of 2 samples"):
         user.check_output(quat, 10, nan_gyro_rows=nan_gyro)
+
+
+def test_verbose_prints_the_users_traceback_under_its_row(folder, monkeypatch, capsys):
+    from fusion.cli import main
+
+    (folder / "buggy.py").write_text(BUGGY)
+    (folder / "buggy_helper.py").write_text(HELPER)
+    monkeypatch.chdir(folder)
+    argv = ["compare", "--estimators", "./buggy.py:indexes,dr", "--dataset", "sim", "--no-progress", "--jobs", "1"]
+    assert main(argv) == 1
+    quiet = capsys.readouterr().err
+    assert "Traceback" not in quiet and "its traceback: --verbose" in quiet
+    assert main([*argv, "--verbose"]) == 1
+    lines = capsys.readouterr().err.splitlines()
+    at = next(i for i, text in enumerate(lines) if "raised IndexError" in text)
+    assert lines[at + 1] == "    Traceback (the estimator's own code, innermost last):"
+    assert lines[at + 2].startswith(f'      File "{folder / "buggy.py"}", line ')
