@@ -9,7 +9,7 @@ lines and bars and the report can save it. Conventions:
   jump of more than 180 deg between neighbouring samples (a wrap at +-180) breaks the line
   instead of drawing a vertical stroke across the plot.
 - Time axes are seconds since the recording's first IMU sample, shared by every panel.
-- Shaded: spans without VICON (tracking gaps, before and after its span) in grey, and spans
+- Shaded: spans without the truth (tracking gaps, before and after its span) in grey, and spans
   where `imu.gyr_valid` is False in red.
 - An estimator keeps one colour in every figure of a report (its position in the run).
 - The filter-consistency figures draw long recordings from per-bin statistics (about one bin
@@ -38,6 +38,9 @@ TRUTH_COLOR = "black"
 GAP_COLOR, GAP_ALPHA = "0.6", 0.3
 BAD_GYRO_COLOR, BAD_GYRO_ALPHA = "tab:red", 0.2
 DPI = 100
+
+
+TRUTH = "truth"  # a recording's truth system, when the caller does not name it (VICON, BROAD's ...)
 
 
 def color(index: int):
@@ -83,7 +86,7 @@ def _time_spans(t: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
 
 
 def truth_gaps(s: RecordingSeries) -> list[tuple[float, float]]:
-    """Spans (s, absolute) inside the IMU's time span with no usable VICON orientation:
+    """Spans (s, absolute) inside the IMU's time span with no usable truth orientation:
     before its first and after its last valid sample, NaN rows, and time-stamp gaps longer
     than five median steps."""
     t0, t1 = float(s.imu_t[0]), float(s.imu_t[-1])
@@ -129,10 +132,10 @@ def _shade(ax, s: RecordingSeries, t0: float) -> None:
         ax.axvspan(a - t0, b - t0, color=BAD_GYRO_COLOR, alpha=BAD_GYRO_ALPHA, lw=0, zorder=0)
 
 
-def _shade_handles(s: RecordingSeries) -> list:
+def _shade_handles(s: RecordingSeries, truth: str = TRUTH) -> list:
     handles = []
     if truth_gaps(s):
-        handles.append(Patch(color=GAP_COLOR, alpha=GAP_ALPHA + 0.2, label="no VICON"))
+        handles.append(Patch(color=GAP_COLOR, alpha=GAP_ALPHA + 0.2, label=f"no {truth}"))
     if bad_gyro_spans(s):
         handles.append(Patch(color=BAD_GYRO_COLOR, alpha=BAD_GYRO_ALPHA + 0.2, label="gyro invalid"))
     return handles
@@ -146,14 +149,15 @@ def _new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), dpi=DPI, layout="constrained")
 
 
-def euler_figure(s: RecordingSeries) -> Figure:
-    """Roll, pitch and yaw of VICON and of every estimator, on one shared time axis."""
+def euler_figure(s: RecordingSeries, truth: str = TRUTH) -> Figure:
+    """Roll, pitch and yaw of the truth (named `truth`: VICON, BROAD's optical motion capture, ...)
+    and of every estimator, on one shared time axis."""
     fig = _new_figure(11, 7.5)
     axes = fig.subplots(3, 1, sharex=True)
     t0 = float(s.imu_t[0])
     curves = []
     if s.has_truth:
-        curves.append(("VICON", s.truth_t - t0, euler_deg(s.truth_quat), None, 2.2))
+        curves.append((truth, s.truth_t - t0, euler_deg(s.truth_quat), None, 2.2))
     for e, label in enumerate(s.labels):
         curves.append((_display_label(label, s.causal[e]), s.imu_t - t0, euler_deg(s.quat[e]), e, 1.0))
     limits = {"roll": 180, "pitch": 90, "yaw": 180}
@@ -170,13 +174,13 @@ def euler_figure(s: RecordingSeries) -> Figure:
     axes[-1].set_xlabel("time since first IMU sample [s]")
     axes[-1].set_xlim(0, float(s.imu_t[-1] - t0))
     handles, labels = axes[0].get_legend_handles_labels()
-    handles += _shade_handles(s)
+    handles += _shade_handles(s, truth)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
     fig.suptitle(f"{s.id}: orientation R_world_body as Euler angles (yaw-pitch-roll, {EULER_SEQ})", fontsize=11)
     return fig
 
 
-def error_figure(s: RecordingSeries) -> Figure | None:
+def error_figure(s: RecordingSeries, truth: str = TRUTH) -> Figure | None:
     """Total, inclination and heading error of every estimator over time (None without truth)."""
     if not s.has_truth or not np.isfinite(s.err_deg).any():
         return None
@@ -195,9 +199,9 @@ def error_figure(s: RecordingSeries) -> Figure | None:
     axes[-1].set_xlabel("time since first IMU sample [s]")
     axes[-1].set_xlim(0, float(x[-1]))
     handles, labels = axes[0].get_legend_handles_labels()
-    handles += _shade_handles(s)
+    handles += _shade_handles(s, truth)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
-    fig.suptitle(f"{s.id}: error against VICON (total = geodesic angle, inclination = gravity direction, "
+    fig.suptitle(f"{s.id}: error against {truth} (total = geodesic angle, inclination = gravity direction, "
                  "heading = twist about world z)", fontsize=10)
     return fig
 
@@ -598,7 +602,8 @@ def _error_limit(err: np.ndarray, env: np.ndarray) -> float:
     return min(180.0, 1.3 * max(peak, tight, 1e-3))
 
 
-def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, summary=None) -> Figure | None:
+def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, summary=None,
+                       truth: str = TRUTH) -> Figure | None:
     """What filter `e` believed on this recording (None if it reports no covariance):
 
     (a) the attitude error against the truth about each body axis with the filter's own
@@ -649,7 +654,7 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
         xe, env = decimate_max(x, env_deg[:, i], max_bins)
         ax.fill_between(xe, -env, env, color=SIGMA_COLOR, alpha=0.18, lw=0, label="filter's ±3σ")
         if has_truth:
-            ax.plot(*decimate_minmax(x, err_deg[:, i], max_bins), color=ERR_COLOR, lw=0.7, label="error vs VICON")
+            ax.plot(*decimate_minmax(x, err_deg[:, i], max_bins), color=ERR_COLOR, lw=0.7, label=f"error vs {truth}")
         lim = _error_limit(err_deg[:, i] if has_truth else np.array([np.nan]), env_deg[:, i])
         ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"about body {name}\n[deg]")
@@ -661,12 +666,12 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
         text = (f"inside ±3σ (99.7 % if consistent): x {x_in}, y {y_in}, z {z_in} of {summary.samples_with_truth} "
                 "samples")
     else:
-        text = "no VICON: the error is unknown, the filter's envelope only"
+        text = f"no {truth}: the error is unknown, the filter's envelope only"
     if clipped:
         text += f"; envelope beyond the panel up to {', '.join(clipped)} deg"
     axes[0].set_title(text, fontsize=9, loc="left", y=1.0)
     handles, _ = axes[0].get_legend_handles_labels()
-    axes[0].legend(handles=handles + _shade_handles(s), loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
+    axes[0].legend(handles=handles + _shade_handles(s, truth), loc="upper right", fontsize=8, ncol=4, framealpha=0.9)
 
     ax = axes[3]
     lo, hi = cons.chi2_band(cons.NIS_DOF)

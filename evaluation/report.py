@@ -123,7 +123,7 @@ def _render_recording(series_path: str, fig_dir: str, truths: dict[str, str] | N
         ("error", plots.error_figure, "error over time"),
         ("loss", plots.loss_figure, "smoother cost per iteration"),
     ):
-        fig = make(s)
+        fig = make(s) if make is plots.loss_figure else make(s, truth=truth)
         if fig is None:
             continue
         name = f"{stem}-{suffix}.png"
@@ -138,7 +138,7 @@ def _render_recording(series_path: str, fig_dir: str, truths: dict[str, str] | N
             name = f"{stem}-consistency-{e}-{plots.slug(label)}.png"
         names.add(name)
         summary = consistency.summarize(belief)
-        _save(plots.consistency_figure(s, e, summary=summary), Path(fig_dir) / name)
+        _save(plots.consistency_figure(s, e, summary=summary, truth=truth), Path(fig_dir) / name)
         caption = (f"{s.id}, {label}: attitude error against the truth ({truth}) about each body axis and the "
                    "filter's +-3 sigma "
                    "(deg); NIS of the accelerometer updates and its chi-square(3) 95 % band; samples without an "

@@ -288,7 +288,7 @@ def test_consistency_figure_panels_and_numbers():
     belief, traj = run(noise_spec("ekf"), seed=4)
     s = _series(belief, traj.t, traj.quat_wxyz)
     summary = cons.summarize(belief)
-    fig = plots.consistency_figure(s, 0, max_bins=500)
+    fig = plots.consistency_figure(s, 0, max_bins=500, truth="VICON")  # the recording's truth system, by name
     assert len(fig.axes) == 6  # error x, y, z, NIS, events, bias
     title = fig.axes[0].get_title(loc="left")
     for i, ax in enumerate(fig.axes[:3]):
