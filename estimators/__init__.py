@@ -23,8 +23,9 @@ from .ekf import EKF
 from .gd import GradientDescentSmoother
 from .gn import GaussNewtonSmoother
 from .peers import (  # optional libraries, imported when built: pip install -e '.[peers]'
-    AhrsEKFPeer, BasicVQFPeer, FusionPeer, MadgwickPeer, MahonyPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
+    BasicVQFPeer, FusionPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
 )
+from .peers_ahrs import AhrsEKFPeer, MadgwickPeer, MahonyPeer
 from .params import EstimatorSpec, make_params, parse_specs
 from .ukf import UKF, UKFBias
 

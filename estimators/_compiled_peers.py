@@ -45,7 +45,7 @@ recording and on simulated recordings with invalid gyro and magnetometer samples
 One departure from the library, made in the adapter for both paths: `updateMARG` falls back to
 `updateIMU(q, gyr, acc)` on a zero magnetometer sample *without passing dt*, so that step would
 integrate over the library's default 0.01 s instead of the real interval. The adapters call
-`updateIMU(..., dt=dt)` themselves for such a sample (`peers.MadgwickPeer`), and the twins do
+`updateIMU(..., dt=dt)` themselves for such a sample (`peers_ahrs.MadgwickPeer`), and the twins do
 the same.
 
 Inputs of every kernel, prepared by `peers` exactly as its library path prepares them per
