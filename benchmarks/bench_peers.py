@@ -30,8 +30,10 @@ sys.path.insert(0, str(ROOT))
 from fusion import datasets  # noqa: E402
 from fusion.estimators import build  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_filters import time_estimate  # noqa: E402  (best of repeated runs, one warm-up first)
+
 PEERS = ("madgwick", "mahony", "ahrs-ekf")
-MIN_SECONDS = 1.0  # the fast runs are repeated until they have run this long
 
 _FIRST_CALL = r"""
 import json, time
@@ -41,20 +43,6 @@ t1 = time.perf_counter()
 _compiled_peers.load()
 print(json.dumps({"import": t1 - t0, "kernels": time.perf_counter() - t1}))
 """
-
-
-def time_estimate(spec: str, imu, q0, repeat: int) -> float:
-    """Best wall time of `estimate`, s, over at least `repeat` runs (one untimed warm-up run first;
-    the estimator is built outside the timing, as a compiled one loads its kernels then)."""
-    build(spec).estimate(imu, q0)
-    best, total, runs = float("inf"), 0.0, 0
-    while runs < repeat or (total < MIN_SECONDS and runs < 50):
-        est = build(spec)
-        start = time.perf_counter()
-        est.estimate(imu, q0)
-        elapsed = time.perf_counter() - start
-        best, total, runs = min(best, elapsed), total + elapsed, runs + 1
-    return best
 
 
 def time_once(spec: str, imu, q0) -> float:
