@@ -451,7 +451,7 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
     if not out:
         scores = Scores(sources, config)
         tunings = _tune_all(entries, scores, folds, all_ids, None)
-        return _finish(config, entries, scores, tunings, folds, command, json_path, None, None)
+        return _finish(config, entries, scores, tunings, folds, command, json_path)
     with OutputFolder(out) as folder:
         if not resume and not overwrite and folder.holds_run():
             raise ValueError(f"{folder.path}: holds an earlier run (results.json); give --overwrite to replace it, "
@@ -465,7 +465,7 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
             storage = _optuna_storage(journal.run_dir) if config.search == "tpe" else None
             scores = Scores(sources, config, journal)
             tunings = _tune_all(entries, scores, folds, all_ids, storage)
-            return _finish(config, entries, scores, tunings, folds, command, json_path, folder, journal)
+            return _finish(config, entries, scores, tunings, folds, command, json_path, (folder, journal))
         finally:
             journal.close()
 
@@ -534,8 +534,10 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
 
 
 def _finish(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores, tunings: list[EstimatorTuning],
-            folds: list[Fold], command: str, json_path: PathLike | None, folder: Any, journal: Any) -> TuneRun:
-    """The rows, table and document of a finished tuning, written where asked."""
+            folds: list[Fold], command: str, json_path: PathLike | None,
+            held: tuple[Any, Any] | None = None) -> TuneRun:
+    """The rows, table and document of a finished tuning, written where asked (held: the `--out`
+    folder and its journal, taken by `run_tune`)."""
     from .compare import results_json
     from .report import git_commit, write_run
 
@@ -554,9 +556,10 @@ def _finish(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores, t
     if json_path:
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     report = None
-    if folder is not None:
+    if held is not None:
         import shutil
 
+        folder, journal = held
         stage = folder.staging
         (stage / TUNED_FILE).write_text(json.dumps(tuned_document(entries, tunings, config), indent=2) + "\n")
         if (journal.run_dir / OPTUNA_JOURNAL).is_file():
