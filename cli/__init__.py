@@ -155,8 +155,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
     if args.resume:
         return _resume(args)
-    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset, **_run_options(args)),
-                     args.verbose)
+    return _print_run(run_ablate(args.estimator, args.param, args.preset, args.dataset, tuned=args.tuned,
+                                 **_run_options(args)), args.verbose)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -376,6 +376,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", metavar="NAME", help=f"a named ablation: {', '.join(PRESETS)}")
     p.add_argument("--per-recording", action="store_true",
                    help="with --out, also draw each recording's figures for every setting")
+    p.add_argument("--tuned", metavar="FILE", default=None,
+                   help="run the swept estimator with its tuned setting (the tuned.json of `fusion tune --out DIR`) "
+                        "for every parameter --param does not sweep")
     _add_data_args(p)
     _add_run_args(p)
     p.set_defaults(func=cmd_ablate)

@@ -101,14 +101,16 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
 
 
 def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, Sequence[str]]] = (),
-               preset: str | None = None, dataset: str = "all", data_dir: PathLike | None = None,
-               **options: Any) -> Run:
+               preset: str | None = None, dataset: str = "all", data_dir: PathLike | None = None, *,
+               tuned: PathLike | None = None, **options: Any) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
     (`fusion.evaluation.ablate`).
 
     estimator: the estimator to sweep, possibly with fixed parameters (`"ukf:Q=1e-5"`).
     params: the grid, as `"R=1e-4,1e-3"` texts or `("R", ["1e-4", "1e-3"])` pairs.
     preset: a name in `fusion.evaluation.ablate.PRESETS` (instead of estimator and params).
+    tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): the swept estimator runs
+        with its tuned setting for every parameter the grid does not sweep.
     options: as `run_compare` (`RunSettings`' fields); `per_recording`: with `out`, also draw each
         recording's figures (and, with `tum`, write its TUM files) for every setting.
     """
@@ -117,14 +119,20 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
         raise ValueError("ablate: give either --preset NAME or --estimator NAME with --param NAME=V1,V2,...")
     grid: list[tuple[str, list[str]]] = []
     if preset:
-        if params:
-            raise ValueError("ablate: --param applies to --estimator, not to --preset")
+        if params or tuned:
+            raise ValueError("ablate: --param and --tuned apply to --estimator, not to --preset")
         specs = ablate.preset_specs(preset)
         document = {"kind": "ablate", "preset": preset}
     else:
         if not params:
             raise ValueError("ablate: --estimator needs at least one --param NAME=V1,V2,...")
         grid = [ablate.parse_param(p) if isinstance(p, str) else (p[0], list(p[1])) for p in params]
+        if tuned:
+            from .tune import apply_tuned
+
+            (base,) = apply_tuned(parse_specs(estimator), tuned)
+            swept = {name for name, _ in grid}
+            estimator = EstimatorSpec(base.name, tuple(p for p in base.overrides if p[0] not in swept)).label
         specs = ablate.grid_specs(estimator, grid)
         document = {"kind": "ablate", "estimator": estimator, "params": dict(grid)}
     with _heartbeat(settings.progress):

@@ -200,3 +200,18 @@ def test_a_broken_tuned_file_is_one_line(tmp_path, capsys):
     assert main(["compare", "--estimators", "dr", "--dataset", "sim", "--no-progress", "--tuned", str(bad)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"fusion: error: {bad}: not a tuned-settings file written by `fusion tune` (TypeError)"]
+
+
+def test_ablate_tuned_fixes_what_the_grid_does_not_sweep(data_dir, tmp_path, capsys):
+    tuned = tmp_path / "tuned.json"
+    tuned.write_text(json.dumps({"format": tune.TUNED_FORMAT, "version": 1, "metric": "total", "dataset": "x",
+                                 "estimators": {"vqf-basic": {"spec": "vqf-basic", "overrides": [["tauAcc", "2"],
+                                                                                                 ["tauMag", "20"]]}}}))
+    assert main(["ablate", "--estimator", "vqf-basic", "--param", "tauMag=3,9", "--dataset", "ece276a/1",
+                 "--data-dir", str(data_dir), "--no-progress", "--jobs", "1", "--tuned", str(tuned),
+                 "--json", str(tmp_path / "a.json")]) == 0
+    labels = [r["estimator"] for r in json.loads((tmp_path / "a.json").read_text())["results"]]
+    assert labels == ["vqf-basic:tauAcc=2,tauMag=3", "vqf-basic:tauAcc=2,tauMag=9"]  # the grid's tauMag wins
+    capsys.readouterr()
+    assert main(["ablate", "--preset", "sigma", "--dataset", "sim", "--no-progress", "--tuned", str(tuned)]) == 1
+    assert "--tuned apply to --estimator" in capsys.readouterr().err
