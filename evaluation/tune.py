@@ -251,13 +251,19 @@ class Scores:
         self.load = load_options(settings.calibration, settings.dropouts, None, None, settings.mag)
         self.journal = journal
         self.rows: dict[tuple[str, str], Result] = {}
+        self._prints: dict[str, str] = {}
 
     def _key(self, label: str, rid: str, describe: dict[str, Any]) -> str:
-        from .journal import job_key
+        """A row's journal key: the recording and its files' contents (a recording changed since a
+        stop is computed again), the estimator, and how it is loaded and scored."""
+        from .journal import fingerprint, job_key
+        from .runner import source_paths
 
+        if rid not in self._prints:
+            self._prints[rid] = fingerprint(source_paths(self.sources[rid]), what=rid)
         s = self.settings
-        return job_key(dataset=rid, estimator=label, origin=describe, load=repr(self.load), init=s.init,
-                       protocol=s.protocol, metric="rows")
+        return job_key(kind="tune", dataset=rid, files=self._prints[rid], estimator=label, origin=describe,
+                       load=repr(self.load), init=s.init, protocol=s.protocol)
 
     def evaluate(self, specs: Sequence[EstimatorSpec], ids: Sequence[str]) -> dict[tuple[str, str], Result]:
         """The rows of every spec on every recording in `ids` (computing those not known yet)."""
@@ -435,6 +441,9 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
         config = TuneSettings.from_json(call["settings"], **how)
         command = header["command"]
     else:
+        for name in ("data_dir", "calibration"):  # journalled as absolute paths: --resume from anywhere
+            if settings.get(name) is not None:
+                settings[name] = str(Path(settings[name]).resolve())
         config = TuneSettings(estimators=estimators, dataset=dataset, **settings)
     command = command or f"run_tune({config.estimators!r}, {config.dataset!r})"
     entries = resolve_all(config.estimators)
