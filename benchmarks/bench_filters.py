@@ -8,7 +8,7 @@ diagnostics recording included): the compiled filters (`impl=compiled`, the defa
 numpy references (`ekf:impl=numpy`, the UKFs' `impl=numpy` and `impl=filterpy`) and VQF (the
 `vqf` package: `VQF.updateBatch` and `offlineVQF`, through this toolkit's adapters) on the
 same recording, with the ratio to VQF. Then the compile time of the two numba kernels
-(`_compiled.ekf_kernel`, `_compiled.ukf_kernel`, which serves `ukf` and `ukf-bias`; a
+(`_compiled_ekf.estimate`, `_compiled_ukf.estimate`, which serves `ukf` and `ukf-bias`; a
 compiled filter compiles or loads them when it is built, `_compiled.load`), measured in a
 fresh process with an empty cache (`NUMBA_CACHE_DIR` pointed at a new temporary folder: numba
 compiles), and again in another with that cache filled (numba loads the machine code). With
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> None:
         print("numba kernels in a fresh process (s):")
         print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
         print(f"{'import fusion.estimators._compiled':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
-        print(f"{'compile / load ekf_kernel + ukf_kernel':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
+        print(f"{'compile / load the filters kernels':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
     if args.profile:
         prof = cProfile.Profile()
         est = build(args.profile)

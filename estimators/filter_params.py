@@ -57,22 +57,22 @@ class FilterParams(FormerSpellings):
         the attitude correction has the time constant `sqrt(R / Q)`, independent of the rate.
     init_var_rad2 (P0): initial attitude variance per axis, rad^2.
     disturbance_corr_s (tauc): correlation time of the external acceleration, s (adaptive R,
-        see `_attitude.AccDisturbance`); 0 turns the adaptation off.
+        see `_accel.AccDisturbance`); 0 turns the adaptation off.
     disturbance_window_s (tauw): time constant of its running variance, s.
     acc_lowpass_s (taulp): time constant of the accelerometer low-passed in the strapdown
-        frame, s (see `_attitude.AccDisturbance`); each update uses the low-passed or the raw
+        frame, s (see `_accel.AccDisturbance`); each update uses the low-passed or the raw
         sample, whichever has the smaller noise density. 0 turns it off (raw samples only);
         it needs the disturbance model (disturbance_corr_s > 0).
     acc_lowpass_window_s (taulpw): time constant of the running variance of the low-passed
         signal, s, from which its noise density is measured.
     use_acc (acc): False turns the accelerometer update off (dead reckoning + covariance).
-    gate, gate_g: fixed accelerometer gating (see `_attitude.acc_variance_scale`), off by
+    gate, gate_g: fixed accelerometer gating (see `_accel.acc_variance_scale`), off by
         default (the adaptive R replaces it); gate_g applies only with gate=skip or inflate.
     heading_free (hf): the accelerometer correction does not turn the estimate about the
         predicted vertical (see the `ukf` and `ekf` module docstrings).
     invalid_gyr_var_rad2_s2 (Qinvalid): assumed rate variance on invalid gyro samples,
         (rad/s)^2 (4: a 2 rad/s standard deviation).
-    stuck_gyro_check (stuck): a gyro reading found stuck online (`_attitude.stuck_gyro_update`:
+    stuck_gyro_check (stuck): a gyro reading found stuck online (`_stuck.stuck_gyro_update`:
         all channels flat within their resolution while the accelerometer moves, the causal
         form of `fusion.checks.detect_freezes`) is treated as invalid, so that a freeze that
         nobody flagged (`--dropouts off`, or an IMU whose freezes the loader does not know)
@@ -171,7 +171,7 @@ class BiasFilterParams(FilterParams):
     scale_max (smax): the scale correction is clipped to this per axis.
     scale_test_error (sprt): the error probabilities (alpha = beta) of the sequential test that
         decides, in 6-D, whether the gyro has a scale error or is calibrated
-        (`_attitude.ScaleTest`; "Scale test" in `fusion.estimators.ekf`; 0: no test, the prior
+        (`_scale_test.ScaleTest`; "Scale test" in `fusion.estimators.ekf`; 0: no test, the prior
         `init_scale_var` throughout).
     calibrated_scale_var (Psc): the scale-factor variance per axis of a calibrated gyro, the
         test's H0 (1e-4: 1 %); with `init_scale_var` at or below it there is nothing to test.
@@ -189,10 +189,10 @@ class BiasFilterParams(FilterParams):
         (step variance Rm / dt); with the gyro noise Q it sets the heading correction's time
         constant, about sqrt(Rm / Q) (30 s by default). The magnetometer fields (mag_*) apply to
         recordings with a magnetometer (9-D; `ekf` and `ukf-bias`, the heading-only update of
-        `_attitude.heading_update`); `--mag off` or a recording without one runs the 6-D filter,
+        `_magnetometer.heading_update`); `--mag off` or a recording without one runs the 6-D filter,
         unchanged.
     mag_norm_gate_frac (mnorm): a magnetometer sample is in the gates while its norm is within
-        this fraction of the learned reference norm (`_attitude.MagReference`).
+        this fraction of the learned reference norm (`_magnetometer.MagReference`).
     mag_dip_gate_rad (mdip): ... and its dip within this of the learned reference dip, rad.
     mag_min_undisturbed_s (mtime): the gates must have held this long, s, before a sample
         corrects the heading.
@@ -201,7 +201,7 @@ class BiasFilterParams(FilterParams):
         w the rate about the vertical, rad/s: a magnetometer sample that lags the gyro (its own
         sampling and low-pass) errs in heading by the angle turned over the lag; inf: constant.
     mag_hard_iron (mhi): estimate a magnet carried with the sensor (a constant body-frame
-        offset) by a sphere fit (`_attitude.HardIron`); while the fit is trusted and its radius
+        offset) by a sphere fit (`_magnetometer.HardIron`); while the fit is trusted and its radius
         is the reference norm, samples are used with the offset removed. The three fields below
         apply only with it.
     mag_hard_iron_window_s (mhiw): time constant of the sphere fit's exponential window, s.

@@ -28,7 +28,8 @@ from fusion import quaternion as quat
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples, Trajectory
 
-from ._attitude import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S, axes_mask
+from ._error_state import axes_mask
+from ._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
 from .base import Estimator
 from .dr import DeadReckoning
 from .ekf import EKF
@@ -147,7 +148,7 @@ class SmootherParams(FormerSpellings):
         stretch, else over windows of mag_hard_iron_window_s (mhiw) s) and use its samples
         with the offset removed; the fit is trusted with an RMS residual below
         mag_hard_iron_residual_ut (mhires) uT and a spread of at least mag_hard_iron_coverage
-        (mhicov) of its radius (the filters' `_attitude.hard_iron_fit`).
+        (mhicov) of its radius (the filters' `_magnetometer.hard_iron_fit`).
     The magnetometer's defaults are the filters' (`BiasFilterParams`) where they mean the same.
     """
 

@@ -18,10 +18,10 @@ sample (uT, body), the field in the world is m_w,t = R(q_t) m_t; its horizontal 
     psi_t = atan2(-e_t, n_t)                                                       (1)
 
 (0 at the true attitude; turning the estimate by phi about the world vertical turns psi by phi,
-as in the filters' `_attitude.heading_update`). Its variance is that of a white heading noise of
+as in the filters' `_magnetometer.heading_update`). Its variance is that of a white heading noise of
 density Rm (rad^2 s) over the time dt_t the sample stands for, grown with the rate about the
 vertical w_up,t = (R(q_t)^T e_z) . w_t (a magnetometer lagging the gyro errs by the angle turned
-over its lag; the filters' `_attitude.heading_variance`):
+over its lag; the filters' `_magnetometer.heading_variance`):
 
     r_t = Rm / dt_t (1 + (w_up,t / mrate)^2)                                       (2)
 
@@ -37,7 +37,7 @@ looked at on both sides since the stage is offline).
 A magnet carried with the sensor (hard iron: a constant body-frame offset o) moves the samples
 out of the gates. Each disturbed stretch (out-of-gate samples, gaps shorter than the minimum
 undisturbed time merged) is fitted with a sphere, |m - o|^2 = r^2, linear in [2 o, r^2 - |o|^2]
-(the filters' `_attitude.hard_iron_fit`, after Vasconcelos et al. 2011, "Geometric approach to
+(the filters' `_magnetometer.hard_iron_fit`, after Vasconcelos et al. 2011, "Geometric approach to
 strapdown magnetometer calibration in sensor frame", IEEE TAES 47(2), eqs. 4-6 without soft
 iron), over the whole stretch and, if that is not trusted, over windows of
 `mag_hard_iron_window_s`. A fit is trusted on the filters' terms (coverage of the sphere, RMS
@@ -84,7 +84,7 @@ from fusion.checks import runs
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples
 
-from ._attitude import hard_iron_fit
+from ._magnetometer import hard_iron_fit
 from .smoother_cost import robust_loss, sample_durations
 
 # IRLS passes of the heading-error smoother (the robust weights settle in a few).
@@ -155,8 +155,8 @@ def long_runs(mask: np.ndarray, t: np.ndarray, min_s: float) -> np.ndarray:
 
 def sphere_fit(mag_ut: np.ndarray, s: MagSettings) -> tuple[float, float, float, float] | None:
     """The hard-iron sphere fit `(ox, oy, oz, r)` (uT) of the samples mag_ut (K, 3), uT, body,
-    equally weighted (the sums of the filters' `_attitude.HardIron` as plain means over the
-    samples), or None when it is not trusted (`_attitude.hard_iron_fit`)."""
+    equally weighted (the sums of the filters' `_magnetometer.HardIron` as plain means over the
+    samples), or None when it is not trusted (`_magnetometer.hard_iron_fit`)."""
     x = np.column_stack([mag_ut, np.ones(len(mag_ut))])  # [m, 1]
     y = np.sum(mag_ut**2, axis=1)  # |m|^2
     sums = np.concatenate([(x.T @ x).ravel(), x.T @ y, [y @ y, len(y)]]) / len(y)  # `HardIron`'s sums, as means

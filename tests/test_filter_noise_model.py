@@ -58,7 +58,7 @@ def test_same_sensor_at_100_and_286_hz_gives_the_same_error(spec):
 
 
 # With the disturbance model (the defaults), the running variance `d` of the accelerometer
-# (`_attitude.AccDisturbance`) includes the sensor's white noise, whose per-sample variance grows
+# (`_accel.AccDisturbance`) includes the sensor's white noise, whose per-sample variance grows
 # with the rate, and the filters read it as an external acceleration of density `2 tauc d`: the
 # median accelerometer density the filters use (`acc_var_g2 * dt`) is 5.1e-5 g^2 s at 100 Hz and
 # 8.0e-5 at 286 Hz (ekf, ukf-bias; ukf 1.5e-4 and 2.9e-4) for the same sensor. Measured over seeds

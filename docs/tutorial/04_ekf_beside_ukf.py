@@ -102,7 +102,7 @@ print("F_eb = -J_r(theta) dt, analytic vs numeric:", np.abs(-quat.right_jacobian
 # low-passed in a gyro-only frame (after VQF); that frame drifts under a gyro bias or scale error,
 # and the low-pass trails gravity by the drift of its last second or so. The filters model that
 # lag instead of calling it noise: for the low-passed sample $H = [\,[h]_\times,\ H_b,\ H_s\,]$, with
-# $H_b, H_s$ built from the frame's recent rotations (`fusion.estimators._attitude.LowpassLag`;
+# $H_b, H_s$ built from the frame's recent rotations (`fusion.estimators._accel.LowpassLag`;
 # `ukf-bias` adds the same terms to each sigma point's prediction), so the low-passed sample
 # measures the gyro's calibration while the board moves.
 #
