@@ -71,11 +71,12 @@ def time_estimate(spec: str, imu, q0, repeat: int) -> float:
     return best
 
 
-def compile_times() -> tuple[dict, dict]:
-    """(empty cache, cached): {"import": s, "kernels": s}, each from a fresh process."""
+def compile_times(first_call: str = _FIRST_CALL) -> tuple[dict, dict]:
+    """(empty cache, cached): {"import": s, "kernels": s}, each from a fresh process running
+    `first_call` (a script printing those two times as JSON on its last line)."""
     with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
-        runs = [subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, capture_output=True, text=True,
+        runs = [subprocess.run([sys.executable, "-c", first_call], env=env, capture_output=True, text=True,
                                check=True, cwd=ROOT) for _ in range(2)]
     cold, cached = (json.loads(run.stdout.strip().splitlines()[-1]) for run in runs)
     return cold, cached

@@ -16,11 +16,7 @@ compare them on a quiet machine. Without data the built-in `sim` recording is us
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,7 +27,7 @@ from fusion import datasets  # noqa: E402
 from fusion.estimators import build  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_filters import time_estimate  # noqa: E402  (best of repeated runs, one warm-up first)
+from bench_filters import compile_times, time_estimate  # noqa: E402
 
 PEERS = ("madgwick", "mahony", "ahrs-ekf")
 
@@ -51,16 +47,6 @@ def time_once(spec: str, imu, q0) -> float:
     start = time.perf_counter()
     est.estimate(imu, q0)
     return time.perf_counter() - start
-
-
-def compile_times() -> tuple[dict, dict]:
-    """(empty cache, cached): {"import": s, "kernels": s}, each from a fresh process."""
-    with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
-        runs = [subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, capture_output=True, text=True,
-                               check=True, cwd=ROOT) for _ in range(2)]
-    cold, cached = (json.loads(run.stdout.strip().splitlines()[-1]) for run in runs)
-    return cold, cached
 
 
 def load(dataset: str, data_dir: str | None):
@@ -100,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
             twin = time_estimate(peer, imu, q0, args.repeat) / n * 1e6
             print(f"{rid:38s} {label:4s} {n:8d} {peer:10s} {library:9.1f} {twin:7.2f} {library / twin:9.0f} {vqf:6.2f}")
     if not args.no_compile_times:
-        cold, cached = compile_times()
+        cold, cached = compile_times(_FIRST_CALL)
         print("numba twins in a fresh process (s):")
         print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
         print(f"{'import fusion.estimators._compiled_peers':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
