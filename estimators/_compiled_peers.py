@@ -281,6 +281,23 @@ def _write(out, row, qw, qx, qy, qz, nwu):
 
 # ================================================================= ahrs.filters.Mahony
 @_jit
+def _mahony_step(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ex, ey, ez, corrected, dt, k_p, k_i):
+    """What `Mahony.updateIMU` and `updateMARG` share once the correction omega_mes = (ex, ey, ez)
+    is known: with it (`corrected`: the accelerometer sample was not zero) the bias update b_dot =
+    -k_I omega_mes and the rate w - b + k_P omega_mes (Mahony et al. 2008, eq. 32), without it the
+    gyro rate alone; then q_dot = 1/2 q (x) [0, rate] integrated over dt and normalised (eq. 48).
+    Returns (q, b) after the step."""
+    ox, oy, oz = gx, gy, gz
+    if corrected:
+        bx, by, bz = bx + (-k_i * ex) * dt, by + (-k_i * ey) * dt, bz + (-k_i * ez) * dt  # b_dot = -k_I omega_mes
+        ox, oy, oz = ox - bx + k_p * ex, oy - by + k_p * ey, oz - bz + k_p * ez  # w - b + k_P omega_mes
+    pw, px, py, pz = _product(qw, qx, qy, qz, 0.0, ox, oy, oz)
+    w, x, y, z = qw + 0.5 * pw * dt, qx + 0.5 * px * dt, qy + 0.5 * py * dt, qz + 0.5 * pz * dt  # eq. 48: q_dot dt
+    w, x, y, z = _versor(w, x, y, z)
+    return w, x, y, z, bx, by, bz
+
+
+@_jit
 def mahony_updateIMU(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, dt, k_p, k_i):
     """`ahrs.filters.Mahony.updateIMU`: one gyro + accelerometer step of the explicit
     complementary filter with bias estimation.
@@ -298,19 +315,14 @@ def mahony_updateIMU(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, dt, k_p
     qw, qx, qy, qz = _versor(qw, qx, qy, qz)
     if _norm3(gx, gy, gz) == 0.0:
         return qw, qx, qy, qz, bx, by, bz
-    ox, oy, oz = gx, gy, gz
+    ex = ey = ez = 0.0
     a_norm = _norm3(ax, ay, az)
     if a_norm > 0.0:
         r = _to_DCM(qw, qx, qy, qz)
         vx, vy, vz = r[6], r[7], r[8]  # R^T [0, 0, 1]
         ax, ay, az = ax / a_norm, ay / a_norm, az / a_norm
         ex, ey, ez = ay * vz - az * vy, az * vx - ax * vz, ax * vy - ay * vx  # omega_mes = a x v_a
-        bx, by, bz = bx + (-k_i * ex) * dt, by + (-k_i * ey) * dt, bz + (-k_i * ez) * dt  # b_dot = -k_I omega_mes
-        ox, oy, oz = ox - bx + k_p * ex, oy - by + k_p * ey, oz - bz + k_p * ez  # w - b + k_P omega_mes
-    pw, px, py, pz = _product(qw, qx, qy, qz, 0.0, ox, oy, oz)
-    w, x, y, z = qw + 0.5 * pw * dt, qx + 0.5 * px * dt, qy + 0.5 * py * dt, qz + 0.5 * pz * dt  # eq. 48: q_dot dt
-    w, x, y, z = _versor(w, x, y, z)
-    return w, x, y, z, bx, by, bz
+    return _mahony_step(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ex, ey, ez, a_norm > 0.0, dt, k_p, k_i)
 
 
 @_jit
@@ -328,7 +340,7 @@ def mahony_updateMARG(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, mx, my
     qw, qx, qy, qz = _versor(qw, qx, qy, qz)
     if _norm3(gx, gy, gz) == 0.0:
         return qw, qx, qy, qz, bx, by, bz
-    ox, oy, oz = gx, gy, gz
+    ex = ey = ez = 0.0
     a_norm = _norm3(ax, ay, az)
     if a_norm > 0.0:
         m_norm = _norm3(mx, my, mz)
@@ -349,12 +361,7 @@ def mahony_updateMARG(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, mx, my
         ex = (ay * vz - az * vy) + (my * wz - mz * wy)  # omega_mes = a x v_a + m x v_m
         ey = (az * vx - ax * vz) + (mz * wx - mx * wz)
         ez = (ax * vy - ay * vx) + (mx * wy - my * wx)
-        bx, by, bz = bx + (-k_i * ex) * dt, by + (-k_i * ey) * dt, bz + (-k_i * ez) * dt  # b_dot = -k_I omega_mes
-        ox, oy, oz = ox - bx + k_p * ex, oy - by + k_p * ey, oz - bz + k_p * ez  # w - b + k_P omega_mes
-    pw, px, py, pz = _product(qw, qx, qy, qz, 0.0, ox, oy, oz)
-    w, x, y, z = qw + 0.5 * pw * dt, qx + 0.5 * px * dt, qy + 0.5 * py * dt, qz + 0.5 * pz * dt  # eq. 48: q_dot dt
-    w, x, y, z = _versor(w, x, y, z)
-    return w, x, y, z, bx, by, bz
+    return _mahony_step(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ex, ey, ez, a_norm > 0.0, dt, k_p, k_i)
 
 
 @_jit
