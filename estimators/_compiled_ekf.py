@@ -274,7 +274,7 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
                 if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
                     st.test[TEST_ON], st.test[TEST_LLR] = 0.0, math.nan
-                usable, east, north, hi_used = magnetometer.magnetometer_input(q, mx, my, mz, st.mag, st.hard_iron, o.mag,
+                usable, east, north, hi_used = magnetometer.magnetometer_input(q, P, mx, my, mz, st.mag, st.hard_iron, o.mag,
                                                                                h, hi_fit, hi_work)
                 if usable:
                     r_mag = magnetometer.heading_variance(q, tx, ty, tz, h, o.mag)

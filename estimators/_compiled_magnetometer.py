@@ -14,8 +14,8 @@ import math
 from typing import Any, NamedTuple
 
 from ._compiled_quaternion import gravity_floats, rotate_floats
-from ._magnetometer import (HARD_IRON_A, HARD_IRON_B, HARD_IRON_W, HARD_IRON_YY, MAG_DIP, MAG_HAS_REF, MAG_LEARNED,
-                            MAG_NORM, MAG_TIME_OK)
+from ._magnetometer import (HARD_IRON_A, HARD_IRON_B, HARD_IRON_W, HARD_IRON_YY, HEADING_GATE_CHI2, MAG_DIP,
+                            MAG_HAS_REF, MAG_LEARNED, MAG_NORM, MAG_PSI, MAG_REJECTED, MAG_TIME_OK)
 from ._numba import forget_stale, mirrors
 
 forget_stale(__file__)
@@ -32,6 +32,9 @@ class MagSettings(NamedTuple):
     min_time: float  # s in the gates before a sample is used
     ref_s: float  # the reference's time constant, s
     rate: float  # rad/s of the rate term (inf: none)
+    heading_gate: float  # the heading gate's tolerated deviation, rad (inf: no gate)
+    heading_gate_s: float  # its innovation's low-pass time constant, s
+    heading_gate_max_s: float  # its longest rejection, s
     hard_iron: bool  # the sphere fit is on
     hi_window: float  # its window, s
     hi_residual: float  # its residual bound, uT
@@ -44,6 +47,9 @@ def mag_settings(p: Any) -> MagSettings:
         noise=float(getattr(p, "mag_heading_noise_rad2_s", 0.0)), norm_gate=float(getattr(p, "mag_norm_gate_frac", 0.0)),
         dip_gate=float(getattr(p, "mag_dip_gate_rad", 0.0)), min_time=float(getattr(p, "mag_min_undisturbed_s", 0.0)),
         ref_s=float(getattr(p, "mag_ref_s", 1.0)), rate=float(getattr(p, "mag_rate_rad_s", math.inf)),
+        heading_gate=float(getattr(p, "mag_heading_gate_rad", math.inf)),
+        heading_gate_s=float(getattr(p, "mag_heading_gate_s", 1.0)),
+        heading_gate_max_s=float(getattr(p, "mag_heading_gate_max_s", math.inf)),
         hard_iron=bool(getattr(p, "mag_hard_iron", False)), hi_window=float(getattr(p, "mag_hard_iron_window_s", 1.0)),
         hi_residual=float(getattr(p, "mag_hard_iron_residual_ut", 0.0)),
         hi_coverage=float(getattr(p, "mag_hard_iron_coverage", 0.0)))
@@ -75,11 +81,32 @@ def in_gates(st, norm, dip, o):
             and abs(dip - st[MAG_DIP]) < o.dip_gate)
 
 
+@mirrors("fusion.estimators._magnetometer.MagReference.heading_gate_update")
+def heading_gate_update(st, psi, var, dt, o):
+    """`MagReference.heading_gate_update` on its packed state st (`MagReference.state`);
+    -> the sample may correct the heading."""
+    st[MAG_PSI] += min(dt / o.heading_gate_s, 1.0) * (psi - st[MAG_PSI])
+    if st[MAG_PSI] * st[MAG_PSI] < HEADING_GATE_CHI2 * (var + o.heading_gate * o.heading_gate):
+        st[MAG_REJECTED] = 0.0
+        return True
+    st[MAG_REJECTED] += dt
+    return st[MAG_REJECTED] > o.heading_gate_max_s
+
+
+@mirrors("fusion.estimators._magnetometer.heading_innovation")
+def heading_innovation(q, P, east, north):
+    """`heading_innovation`: (psi, v^T P_attitude v) with v = R(q)^T e_z."""
+    vx, vy, vz = gravity_floats(q)
+    var = (vx * (P[0, 0] * vx + P[0, 1] * vy + P[0, 2] * vz) + vy * (P[1, 0] * vx + P[1, 1] * vy + P[1, 2] * vz)
+           + vz * (P[2, 0] * vx + P[2, 1] * vy + P[2, 2] * vz))
+    return math.atan2(-east, north), var
+
+
 @mirrors("fusion.estimators._magnetometer.magnetometer_input")
-def magnetometer_input(q, mx, my, mz, mag_ref, hard_iron, o, h, hi_fit, hi_work):
-    """`magnetometer_input`: one finite sample (uT, body) through the sphere fit and the gates
-    (the packed states mag_ref of `MagReference` and hard_iron of `HardIron`, advanced in place; o:
-    `MagSettings`); -> (usable, east, north, hard iron used)."""
+def magnetometer_input(q, P, mx, my, mz, mag_ref, hard_iron, o, h, hi_fit, hi_work):
+    """`magnetometer_input`: one finite sample (uT, body) through the sphere fit, the gates and the
+    heading gate (the packed states mag_ref of `MagReference` and hard_iron of `HardIron`, advanced
+    in place; P: the error covariance; o: `MagSettings`); -> (usable, east, north, hard iron used)."""
     east, north, up = rotate_floats(q, mx, my, mz)  # `_magnetometer.field_norm_dip`
     horizontal = math.hypot(east, north)
     norm = math.sqrt(east * east + north * north + up * up)
@@ -97,6 +124,9 @@ def magnetometer_input(q, mx, my, mz, mag_ref, hard_iron, o, h, hi_fit, hi_work)
                 east, north, norm, dip = e2, n2, norm2, dip2
                 hi_used = True
     usable = update(mag_ref, norm, dip, h, o) and east * east + north * north > 0.0
+    if usable:
+        psi, var = heading_innovation(q, P, east, north)
+        usable = heading_gate_update(mag_ref, psi, var, h, o)
     return usable, east, north, hi_used
 
 

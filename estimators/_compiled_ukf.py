@@ -306,7 +306,7 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                 if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
                     st.test[TEST_ON], st.test[TEST_LLR] = 0.0, math.nan
                 q4 = (x[0], x[1], x[2], x[3])
-                usable, east, north, hi_used = magnetometer.magnetometer_input(q4, mx, my, mz, st.mag, st.hard_iron,
+                usable, east, north, hi_used = magnetometer.magnetometer_input(q4, P, mx, my, mz, st.mag, st.hard_iron,
                                                                                o.mag, h, hi_fit, hi_work)
                 if usable:
                     r_mag = magnetometer.heading_variance(q4, wx * h, wy * h, wz * h, h, o.mag)

@@ -31,7 +31,12 @@ MAG_NORM = 1  # the reference norm, uT
 MAG_DIP = 2  # the reference dip, rad
 MAG_LEARNED = 3  # time spent learning it, s
 MAG_TIME_OK = 4  # time in the gates without interruption, s
-MAG_STATE = 5
+MAG_PSI = 5  # the heading gate's low-passed innovation, rad
+MAG_REJECTED = 6  # time the heading gate has rejected without interruption, s
+MAG_STATE = 7
+# The heading gate's bound on the normalised innovation squared: the chi-square distribution's
+# 99.9 % quantile with one degree of freedom (scipy.stats.chi2.ppf(0.999, 1)).
+HEADING_GATE_CHI2 = 10.827566170662733
 # The layout of `HardIron.state()`, the sphere fit's running sums: A (4 x 4, row by row), b (4),
 # sum of y^2, sum of weights.
 HARD_IRON_A = 0
@@ -62,14 +67,40 @@ class MagReference:
     dip change as the sensor turns: its samples leave the gates and the filter runs on the gyro
     (6-D) until the field is back; a magnet fixed in the room is rejected where its field moves
     the norm or the dip out of the gates.
+
+    A field whose direction bends while its norm and dip do not (a magnet or steel in the room, off
+    the sensor's path of turns) passes both gates; the *heading gate* (`heading_gate`) catches it
+    by its innovation, the classical innovation gate of a Kalman filter (Bar-Shalom, Li &
+    Kirubarajan 2001, "Estimation with Applications to Tracking and Navigation", Sec. 5.4.2, the
+    normalised innovation squared against a chi-square bound). The heading innovation psi of each
+    sample that passed the gates is low-passed (time constant `heading_gate_s`, which averages the
+    sensor's white noise away); the sample may correct the heading while
+    `psi_lp^2 < HEADING_GATE_CHI2 (H P H^T + sigma^2)`, with H P H^T the filter's own heading
+    variance and sigma (`heading_gate_rad`) the field direction's tolerated slow deviation (the
+    heading measurement's variance Rm / dt models a white error, which a bent field is not).
+    Recovery: after `heading_gate_max_s` of rejection without interruption the field is believed
+    again (the heading, not the field, may be what is wrong: a gyro bias turns it in that time),
+    and the samples correct the heading until the innovation is back inside the bound.
+    `heading_gate_rad = inf` turns the heading gate off.
     """
 
-    __slots__ = ("norm_gate", "dip_gate", "min_time", "ref_s", "has_ref", "norm", "dip", "learn_time", "time_ok")
+    __slots__ = ("norm_gate", "dip_gate", "min_time", "ref_s", "heading_gate", "heading_gate_s", "heading_gate_max_s",
+                 "has_ref", "norm", "dip", "learn_time", "time_ok", "psi", "rejected")
 
-    def __init__(self, norm_gate_frac: float, dip_gate_rad: float, min_undisturbed_s: float, ref_s: float) -> None:
+    def __init__(self, norm_gate_frac: float, dip_gate_rad: float, min_undisturbed_s: float, ref_s: float,
+                 heading_gate_rad: float = math.inf, heading_gate_s: float = 1.0,
+                 heading_gate_max_s: float = math.inf) -> None:
         self.norm_gate, self.dip_gate, self.min_time, self.ref_s = norm_gate_frac, dip_gate_rad, min_undisturbed_s, ref_s
+        self.heading_gate, self.heading_gate_s, self.heading_gate_max_s = (heading_gate_rad, heading_gate_s,
+                                                                           heading_gate_max_s)
         self.has_ref = False
-        self.norm = self.dip = self.learn_time = self.time_ok = 0.0
+        self.norm = self.dip = self.learn_time = self.time_ok = self.psi = self.rejected = 0.0
+
+    @classmethod
+    def of(cls, p) -> "MagReference":
+        """The reference and gates of a filter's parameters (`BiasFilterParams`, the mag_* fields)."""
+        return cls(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s,
+                   p.mag_heading_gate_rad, p.mag_heading_gate_s, p.mag_heading_gate_max_s)
 
     def state(self) -> np.ndarray:
         """(MAG_STATE,) float64, laid out by the `MAG_*` offsets: the state as the compiled filters
@@ -77,12 +108,14 @@ class MagReference:
         st = np.zeros(MAG_STATE)
         st[MAG_HAS_REF], st[MAG_NORM], st[MAG_DIP] = float(self.has_ref), self.norm, self.dip
         st[MAG_LEARNED], st[MAG_TIME_OK] = self.learn_time, self.time_ok
+        st[MAG_PSI], st[MAG_REJECTED] = self.psi, self.rejected
         return st
 
     def set_state(self, state: np.ndarray) -> None:
         self.has_ref = bool(state[MAG_HAS_REF])
         self.norm, self.dip = float(state[MAG_NORM]), float(state[MAG_DIP])
         self.learn_time, self.time_ok = float(state[MAG_LEARNED]), float(state[MAG_TIME_OK])
+        self.psi, self.rejected = float(state[MAG_PSI]), float(state[MAG_REJECTED])
 
     def in_gates(self, norm_ut: float, dip_rad: float) -> bool:
         """Whether a sample's norm (uT) and dip (rad) are in the gates of the learned reference
@@ -105,6 +138,17 @@ class MagReference:
             self.time_ok = 0.0
         return self.time_ok >= self.min_time
 
+    def heading_gate_update(self, psi_rad: float, heading_var_rad2: float, dt_s: float) -> bool:
+        """Feed the heading innovation psi_rad (rad, `heading_innovation`) of a sample that passed
+        the gates, with the filter's heading variance H P H^T (rad^2), over the step dt_s (s);
+        -> the sample may correct the heading (see the class docstring)."""
+        self.psi += min(dt_s / self.heading_gate_s, 1.0) * (psi_rad - self.psi)
+        if self.psi * self.psi < HEADING_GATE_CHI2 * (heading_var_rad2 + self.heading_gate * self.heading_gate):
+            self.rejected = 0.0
+            return True
+        self.rejected += dt_s
+        return self.rejected > self.heading_gate_max_s
+
 
 def field_norm_dip(q: tuple, mag_ut: np.ndarray) -> tuple[float, float, float, float]:
     """The magnetometer sample `mag_ut` (3,) (uT, body) in the world of the estimate q (4 floats,
@@ -113,6 +157,14 @@ def field_norm_dip(q: tuple, mag_ut: np.ndarray) -> tuple[float, float, float, f
     e, n, u = quat.rotate_floats(q, (float(mag_ut[0]), float(mag_ut[1]), float(mag_ut[2])))
     horizontal = math.hypot(e, n)
     return math.sqrt(e * e + n * n + u * u), math.atan2(-u, horizontal), e, n
+
+
+def heading_innovation(q: tuple, P: np.ndarray, east_ut: float, north_ut: float) -> tuple[float, float]:
+    """`(psi, H P H^T)`: the heading innovation's negative, the angle of the horizontal field from
+    north (rad; `heading_update`), and the filter's heading variance (rad^2), for the heading gate
+    (`MagReference.heading_gate_update`)."""
+    v = quat.gravity_in_body_floats(*q)
+    return math.atan2(-east_ut, north_ut), float(v @ P[:3, :3] @ v)
 
 
 def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: float,
@@ -271,17 +323,19 @@ def hard_iron_fit(s: np.ndarray, residual_ut: float, coverage: float) -> tuple[f
     return ox, oy, oz, r
 
 
-def magnetometer_input(p, mag: MagReference, hard_iron: HardIron, q: tuple, mag_ut, dt_s: float
+def magnetometer_input(p, mag: MagReference, hard_iron: HardIron, q: tuple, P: np.ndarray, mag_ut, dt_s: float
                        ) -> tuple[bool, float, float, bool]:
     """One magnetometer sample through the gates (`ekf`, `ukf-bias`): `(usable, east, north,
     hard_iron_used)`.
 
     p: the filter's parameters (`BiasFilterParams`, the mag_* fields); mag, hard_iron: its
-    `MagReference` and `HardIron`, advanced here; q: the estimate (4 floats); mag_ut: (3,)
-    the finite sample, uT, body; dt_s: the step, s. The sample goes into the sphere fit; while
-    the fit is trusted and its radius is the reference norm, the sample without the fitted
-    offset replaces it if that is in the gates. `east, north` (uT): its horizontal field at q,
-    for `heading_update`.
+    `MagReference` and `HardIron`, advanced here; q: the estimate (4 floats); P: its error
+    covariance (the attitude block first); mag_ut: (3,) the finite sample, uT, body; dt_s: the
+    step, s. The sample goes into the sphere fit; while the fit is trusted and its radius is the
+    reference norm, the sample without the fitted offset replaces it if that is in the gates. A
+    sample that passed the norm and dip gates then meets the heading gate
+    (`MagReference.heading_gate_update`). `east, north` (uT): its horizontal field at q, for
+    `heading_update`.
     """
     norm, dip, east, north = field_norm_dip(q, mag_ut)
     hard_iron_used = False
@@ -296,6 +350,8 @@ def magnetometer_input(p, mag: MagReference, hard_iron: HardIron, q: tuple, mag_
                     norm, dip, east, north = corrected
                     hard_iron_used = True
     usable = mag.update(norm, dip, dt_s) and east * east + north * north > 0.0
+    if usable:
+        usable = mag.heading_gate_update(*heading_innovation(q, P, east, north), dt_s)
     return usable, east, north, hard_iron_used
 
 

@@ -108,7 +108,11 @@ atan2(-up, |(east, north)|) are learned while the samples agree with them; a sam
 magnet carried with the sensor adds a constant body-frame offset o (hard iron), fitted without
 the attitude (`_magnetometer.HardIron`: the sphere |m - o| = r, linear least squares in
 [2 o, r^2 - |o|^2] over an exponential window; Vasconcelos et al. 2011, IEEE TAES 47(2), eqs. 4-6,
-the hard-iron part); while the fit is trusted, samples are used with o removed. `--mag off`, or a
+the hard-iron part); while the fit is trusted, samples are used with o removed. A field bent in
+direction only passes those gates; the heading gate holds it off: the innovation psi, low-passed
+over `mhgs` s, must satisfy psi^2 < chi2_1(0.999) (H P H^T + mhg^2) (the normalised innovation
+squared against its chi-square bound; Bar-Shalom et al. 2001, Sec. 5.4.2), with a recovery rule
+after `mhgmax` s of rejection (`_magnetometer.MagReference.heading_gate_update`). `--mag off`, or a
 recording without a magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
 
 Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional to
@@ -268,7 +272,7 @@ class EKF(KalmanFilter):
         self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
                                        axes_mask(p.scale_axes))
                             if n > 6 else ScaleTest.off())
-        self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
+        self._mag = MagReference.of(p)
         self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self._F = np.eye(N)
         self._H = np.zeros((3, N))
@@ -376,7 +380,7 @@ class EKF(KalmanFilter):
         if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
             # 9-D: the heading-only magnetometer update, gated (`_magnetometer.MagReference`, `heading_update`)
             self._scale_test.stop()  # 9-D: no scale test (module docstring)
-            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, P, mag_ut,
                                                                           dt_s)
             if usable:
                 r = heading_variance(p, q, tx, ty, tz, dt_s)  # grown with the rate about the vertical

@@ -200,6 +200,14 @@ class BiasFilterParams(FilterParams):
     mag_rate_rad_s (mrate): the heading measurement's variance is Rm / dt (1 + (w / mrate)^2),
         w the rate about the vertical, rad/s: a magnetometer sample that lags the gyro (its own
         sampling and low-pass) errs in heading by the angle turned over the lag; inf: constant.
+    mag_heading_gate_rad (mhg): the heading gate (`_magnetometer.MagReference.heading_gate_update`):
+        a sample that passed the norm and dip gates corrects the heading while its low-passed
+        heading innovation psi satisfies psi^2 < 10.83 (H P H^T + mhg^2) (chi-square, one degree
+        of freedom, 99.9 %), mhg the field direction's tolerated slow deviation, rad; inf: no gate.
+    mag_heading_gate_s (mhgs): the innovation's low-pass time constant, s.
+    mag_heading_gate_max_s (mhgmax): after this long rejected without interruption, s, the field
+        is believed again until the innovation is back inside the bound (the heading, turned by a
+        gyro bias, may be what is wrong).
     mag_hard_iron (mhi): estimate a magnet carried with the sensor (a constant body-frame
         offset) by a sphere fit (`_magnetometer.HardIron`); while the fit is trusted and its radius
         is the reference norm, samples are used with the offset removed. The three fields below
@@ -239,6 +247,9 @@ class BiasFilterParams(FilterParams):
     mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
     mag_ref_s: float = field(default=20.0, metadata={"alias": "mref"})
     mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
+    mag_heading_gate_rad: float = field(default=math.radians(2.0), metadata={"alias": "mhg"})
+    mag_heading_gate_s: float = field(default=1.0, metadata={"alias": "mhgs"})
+    mag_heading_gate_max_s: float = field(default=30.0, metadata={"alias": "mhgmax"})
     mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
     mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
     mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
@@ -271,8 +282,12 @@ class BiasFilterParams(FilterParams):
             raise ValueError(f"{owner}: {exc}") from None
         if not self.mag_rate_rad_s > 0.0:
             raise ValueError(f"{owner}: mag_rate_rad_s must be > 0 (inf: no rate term), got {self.mag_rate_rad_s!r}")
+        for name in ("mag_heading_gate_rad", "mag_heading_gate_max_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0.0):
+                raise ValueError(f"{owner}: {name} must be a number > 0 (inf: none), got {value!r}")
         for name in ("mag_heading_noise_rad2_s", "mag_norm_gate_frac", "mag_dip_gate_rad", "mag_ref_s",
-                     "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
+                     "mag_heading_gate_s", "mag_hard_iron_window_s", "mag_hard_iron_residual_ut", "mag_hard_iron_coverage"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{owner}: {name} must be a finite number > 0, got {value!r}")

@@ -284,7 +284,7 @@ class UKF(KalmanFilter):
                                        axes_mask(p.scale_axes))
                             if n > 6 and self.with_bias else ScaleTest.off())
         if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
-            self._mag = MagReference(p.mag_norm_gate_frac, p.mag_dip_gate_rad, p.mag_min_undisturbed_s, p.mag_ref_s)
+            self._mag = MagReference.of(p)
             self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self.mag_used = False  # whether the last step made the magnetometer's heading update (ukf-bias)
         self.hard_iron_used = False  # ... with the sphere fit's offset removed
@@ -363,7 +363,7 @@ class UKF(KalmanFilter):
             x = kf.x
             q = tuple(x[:4].tolist())
             self._scale_test.stop()  # 9-D: no scale test (as `ekf`)
-            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, mag_ut,
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, kf.P, mag_ut,
                                                                           dt_s)
             if usable:
                 r = heading_variance(p, q, w[0] * dt_s, w[1] * dt_s, w[2] * dt_s, dt_s)

@@ -43,3 +43,16 @@ def with_magnet_passed(imu: ImuSamples, rot: Rotation, centre: int, width: int,
     k = np.arange(len(imu))
     world = np.exp(-0.5 * ((k - centre) / width) ** 2)[:, None] * np.asarray(peak_ut)
     return imu.replace(mag_ut=np.array(imu.mag_ut) + rot.inv().apply(world))
+
+
+def with_field_bent(imu: ImuSamples, rot: Rotation, degrees: float, start_s: float, stop_s: float,
+                    ramp_s: float = 5.0) -> tuple[ImuSamples, np.ndarray]:
+    """The field's direction turned about the vertical by up to `degrees` from start_s to stop_s
+    (ramps of ramp_s at each end; s from the first sample), its norm and dip unchanged: steel or a
+    magnet in the room that bends the field without changing its strength or dip; 1 uT noise.
+    Returns the samples and the bend's fraction (0-1) at each sample."""
+    t = imu.t - imu.t[0]
+    bend = np.clip((t - start_s) / ramp_s, 0.0, 1.0) - np.clip((t - stop_s) / ramp_s, 0.0, 1.0)
+    turn = Rotation.from_rotvec(np.radians(degrees) * bend[:, None] * [0.0, 0.0, 1.0])
+    mag = rot.inv().apply(turn.apply(FIELD_ENU_UT)) + np.random.default_rng(7).normal(0.0, 1.0, (len(imu), 3))
+    return imu.replace(mag_ut=mag), bend
