@@ -25,6 +25,7 @@ import numpy as np
 from scipy.special import chdtri
 
 from fusion import quaternion as quat
+from fusion.checks import dropout_mask
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples, Trajectory
 
@@ -64,6 +65,11 @@ class SmootherParams(FormerSpellings):
     init_var_rad2 (P0): variance of the anchor of the first orientation at the initial one, rad^2.
     dropout_noise_rad2_s (Qdrop): angle random walk density where `gyr_valid` is False, rad^2/s.
     use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
+    find_freezes (freezes): with use_gyr_valid, gyro freezes that nobody flagged (`--dropouts
+        off`, or an IMU whose freezes the loader does not know) are found over the whole
+        recording (`fusion.checks.detect_freezes`: all gyro channels flat while the accelerometer
+        moves) and treated as invalid, as the filters' online check (`stuck`) treats them; on
+        samples whose freezes are already flagged it finds the same ones.
     bias_axes (bias): gyro bias variables, e.g. "xy" ("" or "none": none). scale_axes (scale):
         scale errors, likewise.
     init_bias_var_rad2_s2 (Pb0), init_scale_var (Ps0): prior variance of those variables
@@ -169,6 +175,7 @@ class SmootherParams(FormerSpellings):
     init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
     dropout_noise_rad2_s: float = field(default=0.09, metadata={"alias": "Qdrop"})
     use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
+    find_freezes: bool = field(default=True, metadata={"alias": "freezes"})
     bias_axes: str = field(default="xy", metadata={"alias": "bias"})
     scale_axes: str = field(default="xy", metadata={"alias": "scale"})
     init_bias_var_rad2_s2: float = field(default=2.5e-3, metadata={"alias": "Pb0"})
@@ -486,6 +493,8 @@ class BatchSmoother(Estimator):
         p = self.params
         if len(imu) < 2:
             raise ValueError(f"{imu.source}: the smoother needs at least 2 samples, got {len(imu)}")
+        if p.use_gyr_valid and p.find_freezes:
+            imu = imu.replace(gyr_valid=dropout_mask(imu))  # freezes nobody flagged (`find_freezes`)
         problem = self.problem(imu, init_quat_wxyz)
         q, diagnostics = self.solve(problem, self.start(imu, init_quat_wxyz))
         q, diagnostics = self.significant_scales(problem, q, diagnostics)

@@ -156,7 +156,7 @@ def test_fusion_list_ekf_shows_every_parameter_and_the_former_spellings_apart(ca
     assert main(["list", "ekf"]) == 0
     out, err = capsys.readouterr()
     assert err == ""
-    assert out.splitlines()[0].startswith("ekf: 42 parameters")
+    assert out.splitlines()[0].startswith("ekf: 45 parameters")
     assert out.splitlines()[1].split()[:5] == ["alias", "field", "default", "unit", "meaning"]
     rows, former = _rows(out)
     hints = typing.get_type_hints(EKFParams)
