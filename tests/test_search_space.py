@@ -160,7 +160,7 @@ def test_fusion_list_ekf_shows_every_parameter_and_the_former_spellings_apart(ca
     assert out.splitlines()[1].split()[:5] == ["alias", "field", "default", "unit", "meaning"]
     rows, former = _rows(out)
     hints = typing.get_type_hints(EKFParams)
-    assert len(rows) == len(dataclasses.fields(EKFParams)) == 42
+    assert len(rows) == len(dataclasses.fields(EKFParams)) == 45
     for f in dataclasses.fields(EKFParams):
         alias = f.metadata.get("alias", f.name)
         cells = rows[alias].split()
