@@ -167,7 +167,7 @@ def _resolve(name: str, registry: list[Entry]) -> tuple[str, list[Item]]:
         raise ValueError(f"unknown dataset {name!r}; fusion data list shows them: {', '.join(DATASETS)}")
     chosen = items(dataset, registry)
     if pattern and pattern != "*":
-        named = [i for i in chosen if i.matches(pattern) and not i.support]
+        named = [i for i in chosen if i.matches(pattern)]
         if not named:
             raise ValueError(f"{name!r} names no file of {dataset} (fusion data list shows the datasets)")
         chosen = named + [i for i in chosen if i.support and i not in named]  # the licence and index come along
@@ -399,6 +399,9 @@ def _get(item: Item, folder: Path, state: _State, mirror: str | None, shared, lo
             return Outcome(item, "failed", path, url, f"{url}: {exc}")
         except (requests.ConnectionError, requests.Timeout) as exc:
             return Outcome(item, "offline", path, url, type(exc).__name__)
+        except requests.RequestException as exc:  # cut off mid-file: pooch removed the partial download
+            return Outcome(item, "failed", path, url, f"download from {url} broke off ({type(exc).__name__}); "
+                                                      "nothing kept: run the fetch again")
         if not downloader.ran:  # another process moved it into place meanwhile: check it as any file here
             got = git_blob_sha1(path)
             if got != entry.git_blob_sha1:
@@ -459,7 +462,7 @@ def list_datasets(to: str | os.PathLike | None = None, registry: list[Entry] | N
         chosen = items(name, registry)
         sizes = [next((e.size for e in i.entries if e.size), None) for i in chosen]
         known = [s for s in sizes if s]
-        total = sum(known) / len(known) * len(sizes) / 1e6 if known else float("nan")
+        size = f"about {sum(known) / len(known) * len(sizes) / 1e6:.0f} MB" if known else "size unknown"
         folder = root / name
         state = _State(folder) if folder.is_dir() else None
         present = verified = 0
@@ -470,7 +473,7 @@ def list_datasets(to: str | os.PathLike | None = None, registry: list[Entry] | N
                     present += 1
                     verified += bool(state and state.verified(e.local_name, path, e.git_blob_sha1))
                     break
-        lines.append(f"  {name:<8} {len(chosen)} files, about {total:.0f} MB; licence: {ds.licence}; local: {present} "
+        lines.append(f"  {name:<8} {len(chosen)} files, {size}; licence: {ds.licence}; local: {present} "
                      f"of {len(chosen)} ({verified} verified)")
         lines.append(f"  {'':<8} {ds.title}; {ds.repository} at {ds.commit[:12]}")
         lines.append(f"  {'':<8} cite: {ds.citation}")
