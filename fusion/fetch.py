@@ -443,8 +443,13 @@ def fetch(name: str, to: str | os.PathLike | None = None, mirror: str | None = N
 
         shared = tqdm(total=0, unit="B", unit_scale=True, desc=f"fetching {dataset}", file=sys.stderr, leave=False)
     try:
-        with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        pool = ThreadPoolExecutor(max_workers=max(1, jobs))
+        try:
             report.outcomes = list(pool.map(lambda i: _get(i, folder, state, mirror, shared, lock), chosen))
+        except BaseException:  # Ctrl-C: start no further download (those under way end, verified, or leave nothing)
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
     finally:
         if shared is not None:
             shared.close()
