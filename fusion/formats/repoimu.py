@@ -22,8 +22,8 @@ handled here:
   up-pointing world: score with `--align` (`fusion.evaluation` fits the constant world tilt and
   IMU-to-marker rotation from the recording's own gyro, accelerometer and truth). The fitted
   world rotation is a tilt only: the Vicon frame's heading against magnetic north stays, so a 9-D
-  row's heading error includes that constant angle (its inclination does not; `--mag off` scores
-  6-D rows with their mean heading offset as for any recording);
+  row's heading error includes that constant angle (its inclination does not; with `--mag off`
+  the 6-D rows start from the truth's heading and only drift from it);
 - the magnetometer reads about 1: the Xsens MTx sensor used reports the field in arbitrary units
   normalised to its strength where it was calibrated. The toolkit keeps magnetometers in uT, so
   such values (a median norm of 0.2-5) are multiplied by `FIELD_UT`, a typical Earth field
