@@ -235,8 +235,11 @@ class _State:
             return
         merged = {**self._read(), **self.new}
         tmp = self.path.with_name(f"{STATE}.{os.getpid()}.{threading.get_ident()}.tmp")
-        tmp.write_text(json.dumps(merged, indent=0, sort_keys=True))
-        os.replace(tmp, self.path)
+        try:
+            tmp.write_text(json.dumps(merged, indent=0, sort_keys=True))
+            os.replace(tmp, self.path)
+        except OSError:  # a folder we cannot write to: the files are verified all the same, only hashed again next time
+            tmp.unlink(missing_ok=True)
 
 
 @dataclass
