@@ -7,6 +7,7 @@ the registry `FORMATS`), possibly nested:
     <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
     <data>/mylab/walk.csv            (generic CSV, see `fusion.formats.generic_csv`)
     <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.formats.broad`)
+    <data>/repoimu/tstick/TStick_Test02_Trial1.csv     (RepoIMU, see `fusion.formats.repoimu`)
 
 Each recording gets an id: for the course files, their folder relative to the data directory
 (or, for recordings directly in it, the data directory's own name) plus their number, e.g.

@@ -128,3 +128,35 @@ def test_bad_files_one_line_naming_the_file(tmp_path, problem, writer, message):
         with pytest.raises(ValueError, match=message) as info:
             load_repoimu(path)
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+
+JUNK = st.sampled_from(["", "nan", "inf", "-1e308", "1e400", "abc", "0", "0;0", ";", "1,5", "\x00"])
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(n=st.integers(0, 40), cuts=st.lists(st.tuples(st.integers(0, 39), st.integers(0, 13), JUNK), max_size=4),
+       header=st.booleans())
+def test_mutated_files_load_or_fail_in_one_line(tmp_path, n, cuts, header):
+    """A RepoIMU file with junk in any cell, too few rows or a broken header loads or raises a
+    ValueError naming it in one line; never another exception."""
+    path = tmp_path / "mutated.csv"
+    write_repoimu(path, n=max(n, 2), gap_rows=min(n, 3), repeats=(1,))
+    lines = path.read_text().splitlines()[: n + 2]
+    for row, col, junk in cuts:
+        if 2 + row < len(lines):
+            cells = lines[2 + row].split(";")
+            cells[col % len(cells)] = junk
+            lines[2 + row] = ";".join(cells)
+    if not header:
+        lines[0] = lines[0].replace("Vicon", "Optitrack")
+    path.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            imu, truth, _ = load_repoimu(path)
+        except ValueError as exc:
+            assert str(path) in str(exc) and "\n" not in str(exc)
+            return
+    assert np.all(np.diff(imu.t) > 0) and np.all(np.isfinite(imu.gyr_rad_s))
