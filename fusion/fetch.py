@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import csv
 import fnmatch
+import functools
 import hashlib
 import json
 import os
@@ -51,8 +52,6 @@ STATE = ".fusion-fetch.json"  # per dataset folder: the files verified, by local
 MIRROR_ENV = "FUSION_MIRROR"
 TIMEOUT_S = 30.0
 SUPPORT_FILES = ("LICENSE", "README.md", "trials.json")
-_UMASK = os.umask(0o022)
-os.umask(_UMASK)  # read once, at import (os.umask can only be read by setting it)
 
 
 @dataclass(frozen=True)
@@ -362,6 +361,15 @@ class _Mismatch(ValueError):
     pass
 
 
+@functools.cache
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back: `fetch` does it once, before
+    its threads start)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _url(entry: Entry, mirror: str | None) -> str:
     return f"{mirror.rstrip('/')}/{entry.dataset}/{entry.path}" if mirror else entry.url
 
@@ -411,7 +419,7 @@ def _get(item: Item, folder: Path, state: _State, mirror: str | None, shared, lo
                 return Outcome(item, "conflict", path, url, f"appeared while fetching and is not the published file "
                                                             f"(git object id {got}); left as it is")
         else:  # pooch's temporary file is private (0600): the user's umask, as for any file they create
-            path.chmod(0o666 & ~_UMASK)
+            path.chmod(0o666 & ~_umask())
         state.add(entry.local_name, path, entry.git_blob_sha1)
         return Outcome(item, "fetched", path, url, bytes=path.stat().st_size)
     return missing
@@ -437,6 +445,7 @@ def fetch(name: str, to: str | os.PathLike | None = None, mirror: str | None = N
     for path in {(folder / e.local_name).parent for i in chosen for e in i.entries}:
         path.mkdir(parents=True, exist_ok=True)  # here, not in the threads (which would race)
     pooch.get_logger().setLevel("WARNING")
+    _umask()
     state = _State(folder)
     report = FetchReport(dataset, folder, f"{mirror.rstrip('/')}/{dataset}/" if mirror else DATASETS[dataset].repository)
     lock = threading.Lock()
