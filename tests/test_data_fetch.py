@@ -117,6 +117,9 @@ def test_fetch_verifies_and_a_second_fetch_downloads_and_hashes_nothing(mirror, 
     assert (folder / "02_fast_B.hdf5").read_bytes() == FILES["data_hdf5/02_fast_B.hdf5"]
     assert not (folder / "02_fast_B.mat").exists()  # the .hdf5 was there: the .mat is not fetched
     assert leftovers(folder) == []
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert (folder / "LICENSE").stat().st_mode & 0o777 == 0o666 & ~umask  # not pooch's private temporary mode
     assert "2 of 2 recordings and 2 of 2 other files" in report.summary()
 
     mirror.requests.clear()
