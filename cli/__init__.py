@@ -338,6 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
                "  fusion inspect --dataset ece276a/1\n"
                "  fusion list\n"
+               "  fusion data fetch broad && fusion compare --estimators ekf,vqf --dataset 'broad/*'\n"
                "`fusion COMMAND --help` for each command's options.", formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command")
 
