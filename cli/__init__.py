@@ -199,6 +199,49 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_data(args: argparse.Namespace) -> int:
+    """`fusion data list` / `fusion data fetch NAME...` (`fusion.fetch`)."""
+    from fusion import fetch
+
+    if args.data_command == "list":
+        print(fetch.list_datasets(args.to))
+        return 0
+    if args.data_command != "fetch":
+        raise ValueError("fusion data: give a command: list, or fetch NAME (fusion data --help)")
+    status = 0
+    for name in args.names:
+        report = fetch.fetch(name, to=args.to, mirror=args.mirror, jobs=args.jobs, progress=not args.no_progress)
+        print(report.summary())
+        for line in report.errors():
+            print(f"fusion: error: {line}", file=sys.stderr)
+        status = status or (0 if report.ok else 1)
+    return status
+
+
+def _add_data_command(sub) -> None:
+    p = sub.add_parser("data", help="public datasets by name: list them, fetch them (verified file by file)",
+                       epilog="examples:\n  fusion data list\n  fusion data fetch broad\n"
+                              "  fusion data fetch 'broad/03*' --to ~/data\n  fusion data fetch repoimu --mirror "
+                              "https://data.example.org/imu\n  fusion compare --estimators ekf,vqf --dataset 'broad/*'",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    data_sub = p.add_subparsers(dest="data_command")
+    for name, help_text in (("list", "each dataset's files, size, licence, citation and what is already local"),
+                            ("fetch", "download datasets (NAME, or NAME/GLOB for part of one: 'broad/03*'), check "
+                                      "every file against its published git object id")):
+        q = data_sub.add_parser(name, help=help_text)
+        q.add_argument("--to", metavar="DIR", default=None,
+                       help="the data folder (files go to DIR/<dataset>/...; default: $FUSION_DATA, else the user "
+                            "cache, where --dataset finds them without --data-dir)")
+        if name == "fetch":
+            q.add_argument("names", nargs="+", metavar="NAME", help="broad, repoimu, or NAME/GLOB")
+            q.add_argument("--mirror", metavar="URL", default=None,
+                           help="fetch from a copy serving the files at URL/<dataset>/<path> (default: "
+                                "$FUSION_MIRROR, else the pinned repository)")
+            q.add_argument("--jobs", type=int, default=4, metavar="N", help="parallel downloads (default: 4)")
+            q.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_data, data_command=None)
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from fusion.evaluation.runs import run_calibrate
 
@@ -295,6 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
                "  fusion inspect --dataset ece276a/1\n"
                "  fusion list\n"
+               "  fusion data fetch broad && fusion compare --estimators ekf,vqf --dataset 'broad/*'\n"
                "`fusion COMMAND --help` for each command's options.", formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command")
 
@@ -438,6 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimators", "--estimator", dest="estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
     _add_align_arg(p)
     p.set_defaults(func=cmd_calibrate)
+
+    _add_data_command(sub)
     return parser
 
 

@@ -7,6 +7,7 @@ the registry `FORMATS`), possibly nested:
     <data>/ese650/imu/imuRaw3.mat    <data>/ese650/vicon/viconRot3.mat
     <data>/mylab/walk.csv            (generic CSV, see `fusion.formats.generic_csv`)
     <data>/broad/01_undisturbed_slow_rotation_A.hdf5   (BROAD trial, .hdf5 or .mat, see `fusion.formats.broad`)
+    <data>/repoimu/tstick/TStick_Test02_Trial1.csv     (RepoIMU, see `fusion.formats.repoimu`)
 
 Each recording gets an id: for the course files, their folder relative to the data directory
 (or, for recordings directly in it, the data directory's own name) plus their number, e.g.
@@ -15,7 +16,10 @@ a folder, the folder's path. A `.mat` file that is not a course file (imuRawN/vi
 is taken for a BROAD trial; files inside a folder that is itself a recording belong to it. The
 built-in simulated recording is always `sim`.
 
-The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`. A course's `imu/`
+The data directory is `--data-dir`, else `$FUSION_DATA`, else `./data`. A public dataset's name
+(`broad/*`, `repoimu/pendulum/*`) that the data directory does not hold is looked up in the cache
+`fusion data fetch` fills (`fusion.fetch`); when it is not there either, the error says which fetch
+to run. A course's `imu/`
 (or `vicon/`, `cam/`) folder given as the data directory stands for its parent.
 
 The same session may be present in several formats (`ece276a/3`, `ese650/3` and the IMU-only
@@ -132,13 +136,45 @@ def select(selection: str, data_dir: str | os.PathLike | None = None, dedupe: bo
         else:
             matches = []
         if not matches:
+            matches = _fetched(token, data_dir)
+        if not matches:
             root = data_dir_from(data_dir)
             names = ", ".join(available) if len(available) <= 30 else ", ".join(list(available)[:30]) + ", ..."
-            raise ValueError(f"dataset {token!r} not found in {root} (available: {names})")
+            raise ValueError(f"dataset {token!r} not found in {root} (available: {names}){_fetch_hint(token)}")
         chosen.extend(s for s in matches if s not in chosen)
     if not chosen:
         raise ValueError(f"dataset selection {selection!r} names no recording")
     return merge_identical(chosen) if dedupe else chosen
+
+
+def _public_name(token: str) -> str | None:
+    """The public dataset (`fusion.fetch.DATASETS`) a selection token starts with, if any."""
+    from .fetch import DATASETS
+
+    name = token.split("/", 1)[0].lower()
+    return name if name in DATASETS else None
+
+
+def _fetched(token: str, data_dir: str | os.PathLike | None) -> list[Source]:
+    """The recordings `token` names in the cache `fusion data fetch` fills by default, for a
+    public dataset's name (`broad/*`) that the data directory does not hold."""
+    name = _public_name(token)
+    if name is None:
+        return []
+    from .fetch import cache_dir
+
+    cache = cache_dir()
+    if not (cache / name).is_dir() or cache.resolve() == course_root(data_dir_from(data_dir)).resolve():
+        return []
+    try:
+        return select(token, cache, dedupe=False)
+    except ValueError:
+        return []
+
+
+def _fetch_hint(token: str) -> str:
+    name = _public_name(token)
+    return f"; fetch it with: fusion data fetch {name}" if name else ""
 
 
 def fingerprint(source: Source) -> str | None:

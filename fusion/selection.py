@@ -52,6 +52,10 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
             raise ValueError(f"{root}: no recordings found ({looked_for}); use --dataset sim for the simulated one")
         note(f"no recordings found in {root.resolve()}; running on the built-in simulated recording `sim` "
              "(--data-dir or $FUSION_DATA points at recordings)")
+    aligned = [s.id for s in sources if s.kind == "repoimu"]
+    if aligned:  # its truth is the Vicon markers' orientation in the Vicon frame (fusion.formats.repoimu)
+        note(f"{aligned[0]}{f' and {len(aligned) - 1} more' if len(aligned) > 1 else ''}: RepoIMU's truth is the "
+             "markers' orientation in the Vicon frame, not the IMU's: score with --align")
     merged = datasets.describe_merged(sources)
     if merged:
         note(f"identical recordings counted once: {merged}")

@@ -15,7 +15,7 @@ Order matters only for a path a user names: the first format whose `find` takes 
 """
 from __future__ import annotations
 
-from . import asl, broad, course, generic_csv, rosbag, sim
+from . import asl, broad, course, generic_csv, repoimu, rosbag, sim
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
 FORMATS: dict[str, Format] = {
@@ -23,6 +23,7 @@ FORMATS: dict[str, Format] = {
     "asl": asl.FORMAT,  # EuRoC / TUM-VI folders (mav0/imu0/data.csv)
     "rosbag": rosbag.FORMAT,  # ROS 1 .bag, ROS 2 folders (.db3, .mcap)
     "broad": broad.FORMAT,  # BROAD trials (.hdf5, .mat)
+    "repoimu": repoimu.FORMAT,  # RepoIMU .csv (semicolons, two header rows), before the generic CSV
     "csv": generic_csv.FORMAT,  # t,gx,gy,gz,ax,ay,az[,qw,qx,qy,qz][,movement]
     "sim": sim.FORMAT,  # the built-in simulated recording
 }

@@ -1,0 +1,124 @@
+"""Reader for RepoIMU's recordings, as published (Szczesna et al., "Reference Data Set for Accuracy
+Evaluation of Orientation Estimation Algorithms for Inertial Motion Capture Systems", ICCVG 2016;
+https://github.com/agnieszkaszczesna/RepoIMU).
+
+Two kinematic sets: a T-stick (`TStick/TStick_Test02_Trial1.csv`) and a three-segment pendulum, one
+file per segment (`Pendulum/Pendulum_Test02a_Trial1_Segment_1.csv`). Each is a semicolon-separated
+text file with two header rows, the quantity and its component:
+
+    Time (s);Vicon Orientation;;;;IMU Acceleration;;;IMU Gyroscope;;;IMU Magnetometer;;;
+    ;W;X;Y;Z;X;Y;Z;X;Y;Z;X;Y;Z;
+    0.08;1;0;1.6232e-035;0;-0.071594;0.21157;9.7958;0.002314;-0.00634;0.001322;-0.33533;0.19856;-0.88708
+
+time in s, the Vicon orientation as a quaternion w, x, y, z, the accelerometer in m/s^2 and the
+gyroscope in rad/s (the units as published, read as they are), then the magnetometer. Its traps,
+handled here:
+
+- rows where the markers were not seen hold an all-zero quaternion: truth gaps (NaN rows), not a
+  rotation;
+- some rows repeat the previous row's time stamp: dropped (the first row of each stamp kept), and
+  their count said in a warning, which `fusion inspect` prints with the recording;
+- the Vicon orientation is the marker body's in the Vicon frame, neither the IMU's axes nor an
+  up-pointing world: score with `--align` (`fusion.evaluation` fits the constant world tilt and
+  IMU-to-marker rotation from the recording's own gyro, accelerometer and truth). The fitted
+  world rotation is a tilt only: the Vicon frame's heading against magnetic north stays, so a 9-D
+  row's heading error includes that constant angle (its inclination does not; with `--mag off`
+  the 6-D rows start from the truth's heading and only drift from it);
+- the magnetometer reads about 1: the Xsens MTx sensor used reports the field in arbitrary units
+  normalised to its strength where it was calibrated. The toolkit keeps magnetometers in uT, so
+  such values (a median norm of 0.2-5) are multiplied by `FIELD_UT`, a typical Earth field
+  strength in central Europe (IGRF: 49-50 uT); the estimators use the field's direction, which
+  this does not change. Values already in uT are read as they are.
+
+A recording's id is its path below the data directory without `.csv`
+(`repoimu/pendulum/Pendulum_Test02a_Trial1_Segment_1`, as `fusion data fetch repoimu` lays them out).
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..loaders import check_file, parse_rows, physical_samples, text_lines, unit_quaternions
+from ..types import Recording, Trajectory
+from .base import Format, Holds, ReadOptions, Source, recording_id
+
+HEADER_START = "time (s);vicon orientation"
+COLUMNS = 14  # t; qw qx qy qz; ax ay az; gx gy gz; mx my mz
+FIELD_UT = 50.0  # uT per normalised unit of the magnetometer (see the module docstring)
+NORMALISED_FIELD = (0.2, 5.0)  # a median magnetometer norm in this range is in normalised units
+
+
+def is_repoimu(path: str | Path) -> bool:
+    """Whether a file starts with RepoIMU's first header row."""
+    try:
+        with open(path, "rb") as f:
+            first = f.readline(4096).decode("utf-8-sig", errors="replace")
+    except OSError:
+        return False
+    return first.strip().lower().startswith(HEADER_START)
+
+
+def load_repoimu(path: str | Path) -> tuple:
+    """One RepoIMU file: `(imu, truth, repeated)`.
+
+    imu: `ImuSamples` (gyro rad/s, accelerometer in g from m/s^2, magnetometer uT, IMU frame,
+        `gyr_timing` "end"); truth: `Trajectory` of the Vicon quaternions (w, x, y, z, the marker
+        body in the Vicon frame: use `--align`), NaN rows where the file holds an all-zero
+        quaternion; repeated: the number of rows dropped for repeating a time stamp.
+    """
+    path = Path(path)
+    lines = text_lines(path)
+    if len(lines) < 3 or not lines[0].strip().lower().startswith(HEADER_START):
+        raise ValueError(f"{path}: not a RepoIMU file (its first row must start with 'Time (s);Vicon Orientation')")
+    rows = [line.strip().rstrip(";") for line in lines[2:]]  # the header rows end in ';', data rows may too
+    table = parse_rows(path, rows, delimiter=";")
+    if table.shape[1] != COLUMNS:
+        raise ValueError(f"{path}: {table.shape[1]} columns, RepoIMU files have {COLUMNS} (time; Vicon w,x,y,z; "
+                         "acceleration x,y,z; gyroscope x,y,z; magnetometer x,y,z)")
+    t = table[:, 0]
+    repeated = np.zeros(len(t), bool)
+    repeated[1:] = t[1:] == t[:-1]
+    n_repeated = int(repeated.sum())
+    if n_repeated:
+        warnings.warn(f"{path}: {n_repeated} rows repeat the previous row's time stamp; dropped (the first row of "
+                      "each stamp kept)", stacklevel=2)
+        table = table[~repeated]
+        t = table[:, 0]
+    quat = table[:, 1:5].copy()
+    quat[np.all(quat == 0.0, axis=1)] = np.nan  # markers not seen: a gap, not a rotation
+    mag = table[:, 11:14]
+    with np.errstate(invalid="ignore"):
+        norm = np.nanmedian(np.linalg.norm(mag, axis=1))
+    if NORMALISED_FIELD[0] <= norm <= NORMALISED_FIELD[1]:
+        mag = mag * FIELD_UT
+    names = ("gyroscope x", "gyroscope y", "gyroscope z", "acceleration x", "acceleration y", "acceleration z")
+    imu, quat = physical_samples(path, t, table[:, 8:11], table[:, 5:8], names, "end", quat, mag_ut=mag,
+                                 mag_name="magnetometer columns")
+    quat = unit_quaternions(path, quat, "Vicon orientation rows (w, x, y, z)", 1e-2)
+    if quat is None:
+        raise ValueError(f"{path}: the Vicon orientation holds no quaternion (every row is zero: markers never seen)")
+    return imu, Trajectory(imu.t, quat), n_repeated
+
+
+class RepoImuFormat(Format):
+    kind = "repoimu"
+    describe = "RepoIMU .csv (Time (s);Vicon Orientation;...: semicolon-separated, two header rows)"
+
+    def find(self, root: Path | None, paths: Sequence[Path]) -> Iterator[Source]:
+        for path in paths:
+            if path.suffix.lower() == ".csv" and path.is_file() and is_repoimu(path):
+                yield Source(recording_id(root, path), self.kind, path)
+
+    def read(self, source: Source, options: ReadOptions) -> Recording:
+        imu, truth, _ = load_repoimu(source.imu)
+        return Recording(source.id, imu, truth)
+
+    def holds(self, source: Source) -> Holds:
+        check_file(source.imu)
+        return Holds(truth=True, movement=False, magnetometer=True, gyr_timing="end", raw_counts=False)
+
+
+FORMAT = RepoImuFormat()

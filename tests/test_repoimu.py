@@ -1,0 +1,162 @@
+"""The RepoIMU reader (`fusion.formats.repoimu`) on files written as the dataset publishes them,
+with each of its traps: two header rows, semicolons, all-zero truth quaternions where the markers
+were not seen, repeated time stamps, a magnetometer in normalised units, and a truth in frames
+that only `--align` finds.
+
+The files are synthetic (an analytic motion, exact gyro, accelerometer and magnetometer), so
+what the reader must return is known exactly.
+"""
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusion import datasets
+from fusion.cli import main
+from fusion.formats import FORMATS
+from fusion.formats.repoimu import FIELD_UT, load_repoimu
+
+RATE_HZ = 100.0
+G = 9.80665
+M_WORLD = np.array([0.0, 0.35, -0.94])  # normalised field: north and down, norm 1.003
+A = Rotation.from_rotvec([np.radians(20.0), 0.0, 0.0])  # the Vicon world tilted against ours
+B = Rotation.from_rotvec(np.radians(30.0) * np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5]))
+GAP_ROWS = 40  # markers not seen at the start
+REPEATS = (300, 301, 900)  # rows written twice, with the same stamp
+
+
+def motion(n: int):
+    """Stamps, true orientations R_world_imu, and the exact gyro (rad/s, over (t[k-1], t[k]]),
+    accelerometer (m/s^2) and normalised magnetometer of a smooth hand-held motion."""
+    t = np.round(0.08 + np.arange(n) / RATE_HZ, 2)  # as the files print them
+    s = t - t[0]
+    angles = np.column_stack([0.6 * np.sin(0.9 * s), 0.5 * np.sin(0.7 * s + 1.0), 1.2 * np.sin(0.4 * s)])
+    rot = Rotation.from_euler("ZYX", angles[:, ::-1])
+    gyr = np.zeros((n, 3))
+    gyr[1:] = (rot[:-1].inv() * rot[1:]).as_rotvec() * RATE_HZ
+    gyr[0] = gyr[1]
+    acc = rot.inv().apply([0.0, 0.0, G])
+    mag = rot.inv().apply(M_WORLD)
+    return t, rot, gyr, acc, mag
+
+
+def write_repoimu(path, n=2000, gap_rows=GAP_ROWS, repeats=REPEATS, columns=14):
+    """A RepoIMU file: header rows as published (ending in ';'), truth `A^-1 R B^-1` (the marker
+    body in the Vicon frame), zero quaternions for the first `gap_rows`, rows `repeats` twice."""
+    t, rot, gyr, acc, mag = motion(n)
+    quat = (A.inv() * rot * B.inv()).as_quat(scalar_first=True)
+    quat[:gap_rows] = 0.0
+    table = np.column_stack([t, quat, acc, gyr, mag])[:, :columns]
+    lines = ["Time (s);Vicon Orientation;;;;IMU Acceleration;;;IMU Gyroscope;;;IMU Magnetometer;;;",
+             ";W;X;Y;Z;X;Y;Z;X;Y;Z;X;Y;Z;"]
+    for k, row in enumerate(table):
+        text = ";".join(f"{v:.12g}" for v in row)
+        lines.append(text)
+        if k in repeats:
+            lines.append(text)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\r\n".join(lines) + "\r\n")
+    return t, rot, gyr, acc, mag
+
+
+@pytest.fixture
+def data_dir(tmp_path):
+    root = tmp_path / "data"
+    write_repoimu(root / "repoimu" / "pendulum" / "Pendulum_Test02a_Trial1_Segment_1.csv")
+    write_repoimu(root / "repoimu" / "tstick" / "TStick_Test02_Trial1.csv", n=600, gap_rows=0, repeats=())
+    return root
+
+
+def test_units_truth_gaps_and_repeated_stamps(data_dir):
+    path = data_dir / "repoimu" / "pendulum" / "Pendulum_Test02a_Trial1_Segment_1.csv"
+    t, rot, gyr, acc, mag = motion(2000)
+    with pytest.warns(UserWarning, match=r"3 rows repeat the previous row's time stamp"):
+        imu, truth, repeated = load_repoimu(path)
+    assert repeated == len(REPEATS)
+    np.testing.assert_array_equal(imu.t, t)  # the repeats dropped, every stamp once
+    np.testing.assert_allclose(imu.gyr_rad_s, gyr, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(imu.acc_g, acc / G, rtol=1e-8, atol=1e-9)  # m/s^2 as published, in g inside
+    np.testing.assert_allclose(imu.mag_ut, mag * FIELD_UT, rtol=1e-8, atol=1e-7)
+    gaps = ~np.isfinite(truth.quat_wxyz).all(axis=1)
+    assert gaps.sum() == GAP_ROWS and gaps[:GAP_ROWS].all()  # zero quaternions: gaps, not rotations
+    expected = A.inv() * rot[GAP_ROWS:] * B.inv()
+    angle = (expected.inv() * Rotation.from_quat(truth.quat_wxyz[GAP_ROWS:], scalar_first=True)).magnitude()
+    assert angle.max() < 1e-7
+
+
+def test_found_by_its_header_not_as_a_generic_csv(data_dir):
+    found = datasets.discover(data_dir)
+    ids = {"repoimu/pendulum/Pendulum_Test02a_Trial1_Segment_1", "repoimu/tstick/TStick_Test02_Trial1"}
+    assert ids <= set(found) and {found[i].kind for i in ids} == {"repoimu"}
+    chosen = datasets.select("repoimu/pendulum/*", data_dir)
+    assert [s.id for s in chosen] == ["repoimu/pendulum/Pendulum_Test02a_Trial1_Segment_1"]
+    assert FORMATS["repoimu"].holds(chosen[0]).magnetometer is True
+
+
+def test_inspect_counts_the_repeated_stamps_and_the_truth_gap(data_dir, capsys):
+    code = main(["inspect", "--dataset", "repoimu/pendulum/*", "--data-dir", str(data_dir), "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    assert "3 rows repeat the previous row's time stamp; dropped" in err
+    assert f"truth gaps (s)         {GAP_ROWS} NaN rows" in out
+    assert "--align" in err  # the note: this truth is in other frames
+
+
+def test_align_finds_the_truth_frame(data_dir):
+    """Integrating the exact gyro from the aligned truth reproduces it; unaligned, the 20-deg
+    world tilt and the 30-deg marker rotation show as errors."""
+    from fusion.evaluation.compare import compare
+
+    (source,) = datasets.select("repoimu/tstick/TStick_Test02_Trial1", data_dir)
+    rec = datasets.LoadOptions().load(source)
+    (plain,) = compare(["dr"], [rec])
+    (fitted,) = compare(["dr"], [rec], align=True)
+    assert fitted.rmse_deg["inclination"] < 0.05 and fitted.rmse_deg["total"] < 0.05
+    assert plain.rmse_deg["inclination"] > 10.0
+
+
+@pytest.mark.parametrize("problem, writer, message", [
+    ("columns", dict(columns=11), "11 columns, RepoIMU files have 14"),
+    ("no truth", dict(gap_rows=600, repeats=()), "holds no quaternion"),
+])
+def test_bad_files_one_line_naming_the_file(tmp_path, problem, writer, message):
+    path = tmp_path / "repoimu" / "bad.csv"
+    write_repoimu(path, n=600, **writer)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ValueError, match=message) as info:
+            load_repoimu(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+
+JUNK = st.sampled_from(["", "nan", "inf", "-1e308", "1e400", "abc", "0", "0;0", ";", "1,5", "\x00"])
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(n=st.integers(0, 40), cuts=st.lists(st.tuples(st.integers(0, 39), st.integers(0, 13), JUNK), max_size=4),
+       header=st.booleans())
+def test_mutated_files_load_or_fail_in_one_line(tmp_path, n, cuts, header):
+    """A RepoIMU file with junk in any cell, too few rows or a broken header loads or raises a
+    ValueError naming it in one line; never another exception."""
+    path = tmp_path / "mutated.csv"
+    write_repoimu(path, n=max(n, 2), gap_rows=min(n, 3), repeats=(1,))
+    lines = path.read_text().splitlines()[: n + 2]
+    for row, col, junk in cuts:
+        if 2 + row < len(lines):
+            cells = lines[2 + row].split(";")
+            cells[col % len(cells)] = junk
+            lines[2 + row] = ";".join(cells)
+    if not header:
+        lines[0] = lines[0].replace("Vicon", "Optitrack")
+    path.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            imu, truth, _ = load_repoimu(path)
+        except ValueError as exc:
+            assert str(path) in str(exc) and "\n" not in str(exc)
+            return
+    assert np.all(np.diff(imu.t) > 0) and np.all(np.isfinite(imu.gyr_rad_s))
