@@ -31,6 +31,7 @@ from fusion.types import Recording, Trajectory
 
 from .align import Alignment, fit_alignment
 from .metrics import MIN_COVERAGE, Score, score
+from .settings import RunSettings
 
 
 @dataclass(frozen=True, eq=False)
@@ -376,23 +377,22 @@ class Job:
     """One recording x one estimator of a run, and what to return.
 
     recording, estimator: indices into the run's recordings and resolved specs.
+    settings: the run's `fusion.evaluation.settings.RunSettings`; a job reads what decides its row
+        (init, protocol, align; panorama: also stitch and score a panorama
+        (`fusion.evaluation.panorama`) with the scenes under data_dir, which the runner resolves).
     series: also return the job's plot data (`fusion.evaluation.series.job_part`), and with
         `with_recording` its recording's (`series.recording_part`).
     keep: return the whole `Result` (trajectory and per-sample errors) instead of its summary.
-    panorama_data_dir: when given, also stitch and score a panorama (`fusion.evaluation.panorama`).
     truth: what the recording's truth is (`truth_system` of its `Source`), for the row; None: from
         the loaded recording.
     """
 
     recording: int
     estimator: int
-    init: str | None = None
-    protocol: str | None = None
-    align: bool = False
+    settings: RunSettings = RunSettings()
     series: bool = False
     with_recording: bool = False
     keep: bool = False
-    panorama_data_dir: str | None = None
     truth: str | None = None
 
 
@@ -424,11 +424,12 @@ def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment 
         shown = aligned(rec, alignment)
         recording_part = series.recording_part(shown, truth_at_imu) if job.series and job.with_recording else None
         try:
-            result = run_one(rec, entry, job.init, job.protocol, alignment)
-            if job.panorama_data_dir is not None:
+            s = job.settings
+            result = run_one(rec, entry, s.init, s.protocol, alignment)
+            if s.panorama:
                 from .panorama import panorama_scores
 
-                result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
+                result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=s.data_dir))
             if job.truth and result.truth:
                 result = replace(result, truth=job.truth)
             part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None

@@ -102,6 +102,13 @@ class RunSettings:
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in doc.items() if k in known}, **how)
 
+    def load_options(self) -> datasets.LoadOptions:
+        """How this run loads its recordings (`fusion.selection.load_options`: the calibration file,
+        the dropout and magnetometer switches, a ROS bag's topics)."""
+        from fusion.selection import load_options
+
+        return load_options(self.calibration, self.dropouts, self.imu_topic, self.truth_topic, self.mag)
+
     def resolved_data_dir(self) -> Path:
         """The data folder this run reads (`fusion.datasets.data_dir_from`)."""
         return datasets.data_dir_from(self.data_dir)
