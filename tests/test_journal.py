@@ -134,6 +134,31 @@ def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp
     assert (resumed.jobs, resumed.resume, resumed.out, resumed.command) == (2, True, str(out), "fusion ablate ...")
 
 
+def test_every_setting_comes_back_on_resume_or_is_how_it_runs(toy, data, tmp_path, monkeypatch):
+    """Every field of `RunSettings`, not only the journalled ones: the paths are recorded beside the
+    call (data_dir, calibration: resolved), the command too, the folder is the one resumed, and the
+    `how` part and json_path are what `--resume` is given (a new field must be put in one of these)."""
+    from fusion.evaluation.settings import HOW, RunSettings
+
+    calibration = str(tmp_path / "calib.json")
+    settings = RunSettings(dataset="all", data_dir=str(data), calibration=calibration, **_NOT_DEFAULT)
+    call = runs._journal_call({"kind": "compare", "estimators": "toy", "trajectories": []}, settings)
+    out = tmp_path / "run"
+    Journal.start(out, {"call": call, "data_dir": str(data), "calibration": calibration, "command": "fusion compare x",
+                        "jobs_total": 3}).close()
+    how = {"jobs": 3, "progress": True, "scheduler": "tcp://10.0.0.5:8786", "scatter": True, "overwrite": True}
+    assert set(how) == set(RunSettings.part(HOW)) - {"resume"}, "give the new `how` field a value here"
+    seen = []
+    monkeypatch.setattr(runs, "_execute", lambda entries, kind, document, s: seen.append(s))
+    runs.run_resume(out, json_path=str(tmp_path / "r.json"), **how)
+    (resumed,) = seen
+    expected = {**{name: getattr(settings, name) for name in runs.JOURNALLED}, "data_dir": str(data),
+                "calibration": calibration, "command": "fusion compare x", "out": str(out),
+                "json_path": str(tmp_path / "r.json"), "per_recording": True, "resume": True, **how}
+    assert set(expected) == set(RunSettings.__dataclass_fields__)
+    assert {name: getattr(resumed, name) for name in expected} == expected
+
+
 def test_an_older_journal_without_the_newer_settings_resumes_with_their_defaults(toy, data, tmp_path, monkeypatch):
     from fusion.evaluation.settings import RunSettings
 
