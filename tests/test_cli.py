@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fusion.cli import main
+from settings_fixtures import not_default
 
 KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "scored_samples", "coverage", "alignment",
         "magnetometer"}
@@ -227,20 +228,6 @@ def test_primary_chooses_the_metric_of_the_interval_column_and_is_recorded(data_
         main([*argv, "--primary", "yaw"])
 
 
-def _not_default(f, option) -> tuple[list[str], object]:
-    """A command line giving `option` a value other than its field's default, and the field's value then."""
-    if option.kind == "switch":
-        return [option.flag], True
-    if option.kind == "negated":
-        return [option.flag], False
-    if option.kind == "on_off":
-        return [option.flag, "off" if f.default else "on"], not f.default
-    if option.kind == "choices":
-        choice = next(c for c in option.choices if c != f.default)
-        return [option.flag, choice], choice
-    text = {None: "x/y", "int": "3", "count": "3", "float": "2.5", "seconds": "2.5"}[option.type]
-    return [option.flag, text], {None: text, "int": 3, "count": 3, "float": 2.5, "seconds": 2.5}[option.type]
-
 
 @pytest.mark.parametrize("command", ["compare", "ablate"])
 def test_every_run_setting_has_an_option_that_reaches_it(command):
@@ -261,7 +248,7 @@ def test_every_run_setting_has_an_option_that_reaches_it(command):
     argv, expected = [command], {}
     for f, option in offered:
         if f.name != "resume":  # `--resume DIR` continues a run instead (test_the_options_of_a_resumed_run)
-            words, expected[f.name] = _not_default(f, option)
+            words, expected[f.name] = not_default(f, option)
             argv += words
     args = cli.build_parser().parse_args(argv)
     args.argv = argv

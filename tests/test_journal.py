@@ -9,6 +9,7 @@ import pytest
 from fusion.evaluation import journal, runs
 from fusion.evaluation.journal import Journal
 from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
+from settings_fixtures import not_default_values
 
 
 @pytest.fixture
@@ -102,10 +103,9 @@ def test_resume_with_another_call_is_refused(toy, data, tmp_path, monkeypatch):
     assert len(journal.read(out / journal.RUN_DIR / journal.JOURNAL)[1]) == 2  # untouched
 
 
-# A value for every RunSettings field other than its default (the `how` part is not journalled).
-_NOT_DEFAULT = {"init": "accel", "protocol": "full", "align": True, "dropouts": False, "mag": False,
-                "imu_topic": "/imu", "truth_topic": "/pose", "panorama": True, "timeout_s": 600.0,
-                "tum": False, "per_recording": True, "primary": "inclination"}
+# A value other than its default for every journalled RunSettings field but the selection (the `how`
+# part is not journalled), from its command-line option (`settings_fixtures`).
+_NOT_DEFAULT = not_default_values(name for name in runs.JOURNALLED if name != "dataset")
 
 
 def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp_path, monkeypatch):
@@ -115,7 +115,8 @@ def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp
 
     assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) | set(RunSettings.part(WRITTEN))) - {
         "data_dir", "calibration", "out", "json_path", "command"}
-    assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT), "give the new field a non-default value here"
+    assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT)
+    assert all(value != getattr(RunSettings(), name) for name, value in _NOT_DEFAULT.items())
     settings = RunSettings(dataset="all", data_dir=str(data), **_NOT_DEFAULT)
     kind = {"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}
     call = runs._journal_call(kind, settings)
