@@ -122,6 +122,11 @@ class RunSettings:
     timeout_s: float | None = _part(COMPUTED, None, Option(
         "--timeout", "stop a job (one recording x one estimator) that runs longer than S seconds; its row says so, "
         "the other rows are computed, and the command exits with status 1", type="seconds", metavar="S"))
+    repeat: int = _part(COMPUTED, 1, Option(
+        "--repeat", "time each estimate as the least of N runs, each from a fresh estimator (the table's us/sample, "
+        "results.json's seconds): the least is what the estimator costs, the others add what else the machine was "
+        "doing (Python's timeit documentation, Timer.repeat); the orientations are the last run's, a deterministic "
+        "estimator's the same as one run's (default: 1)", type="int", metavar="N"))
     out: str | None = _part(WRITTEN, None, Option(
         "--out", "write results.json, table, figures, report.html and report.md to DIR (re-render later with "
         "`fusion report DIR`)", metavar="DIR"))
@@ -159,6 +164,8 @@ class RunSettings:
     def __post_init__(self) -> None:
         if self.primary not in KINDS:
             raise ValueError(f"--primary must be one of {', '.join(KINDS)}, got {self.primary!r}")
+        if not (isinstance(self.repeat, int) and self.repeat >= 1):
+            raise ValueError(f"--repeat must be a whole number of at least 1, got {self.repeat!r}")
         for name in ("data_dir", "calibration", "out", "json_path"):  # paths are kept as text (journalled)
             value = getattr(self, name)
             if isinstance(value, os.PathLike):
