@@ -20,6 +20,7 @@ import signal
 import sys
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 from fusion.selection import note
 
@@ -29,7 +30,7 @@ from fusion.selection import note
 _DATA_FIELDS = ("dataset", "data_dir", "init", "progress", "dropouts", "mag", "imu_topic", "truth_topic", "calibration")
 
 
-def _settings_options(names=None, command: str | None = None) -> list:
+def _settings_options(names: Sequence[str] | None = None, command: str | None = None) -> list:
     """(field, `Option`) of each `RunSettings` field in `names` (in that order), or of each that
     `command` offers (in field order)."""
     import dataclasses
@@ -41,7 +42,8 @@ def _settings_options(names=None, command: str | None = None) -> list:
     return [(fields[name], fields[name].metadata["cli"]) for name in chosen]
 
 
-def _add_settings_args(parser: argparse.ArgumentParser, names=None, command: str | None = None) -> None:
+def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | None = None,
+                       command: str | None = None) -> None:
     """One option per `RunSettings` field (`_settings_options`), as its metadata (`Option`) says."""
     from fusion.evaluation.settings import AS_FIELD
 
@@ -58,8 +60,13 @@ def _add_settings_args(parser: argparse.ArgumentParser, names=None, command: str
 def _setting(args: argparse.Namespace, f, option) -> object:
     """A field's value from its parsed option (`Option.kind`)."""
     value = getattr(args, option.dest)
-    return {"switch": lambda: True if value else f.default, "negated": lambda: not value,
-            "on_off": lambda: value == "on"}.get(option.kind, lambda: value)()
+    if option.kind == "switch":
+        return True if value else f.default
+    if option.kind == "negated":
+        return not value
+    if option.kind == "on_off":
+        return value == "on"
+    return value  # "value", "choices": as parsed
 
 
 def _add_data_args(parser: argparse.ArgumentParser) -> None:

@@ -28,6 +28,7 @@ from .metrics import KINDS, PROTOCOLS
 COMPUTED, WRITTEN, HOW = "computed", "written", "how"
 API_ONLY = "api-only"  # a field with no option of its own on the command line (see `Option`)
 AS_FIELD = "as the field"  # `Option.default`: the option's default is the field's
+OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off")
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,8 @@ class Option:
         `on_off`: `--flag on|off`, the field's default shown as its default.
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
-    commands: the commands that offer it.
+    commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
+        to calibration, on every command that reads recordings).
     """
 
     flag: str
@@ -56,6 +58,10 @@ class Option:
     metavar: str | None = None
     default: Any = AS_FIELD
     commands: tuple[str, ...] = ("compare", "ablate")
+
+    def __post_init__(self) -> None:
+        if self.kind not in OPTION_KINDS:
+            raise ValueError(f"{self.flag}: kind must be one of {', '.join(OPTION_KINDS)}, got {self.kind!r}")
 
     @property
     def dest(self) -> str:
@@ -74,7 +80,7 @@ class RunSettings:
 
     Computed: the selection (dataset, data_dir; None: $FUSION_DATA, else ./data), how recordings
     are loaded (calibration, dropouts, mag, imu_topic, truth_topic) and scored (init, protocol,
-    align, panorama), timeout_s. Written: out, json_path, tum, per_recording (always on for
+    align, panorama), timeout_s, repeat. Written: out, json_path, tum, per_recording (always on for
     `run_compare`), primary, command. How: jobs (None or 0: all cores), progress, scheduler,
     scatter (a Dask cluster: `fusion.evaluation.runner.run`), overwrite, resume.
     One field has no option (`API_ONLY`): `command`, the command line recorded in the results

@@ -250,9 +250,9 @@ class Scores:
         self.sources = {s.id: s for s in sources}
         self.settings = settings
         # the runner's settings: how recordings are loaded and scored, and how the jobs run
-        self.run_settings = RunSettings(init=settings.init, protocol=settings.protocol, calibration=settings.calibration,
-                                        dropouts=settings.dropouts, mag=settings.mag, jobs=settings.jobs,
-                                        progress=settings.progress, scheduler=settings.scheduler)
+        self.run_settings = RunSettings(init=settings.init, protocol=settings.protocol,
+                                        calibration=settings.calibration, dropouts=settings.dropouts, mag=settings.mag,
+                                        jobs=settings.jobs, progress=settings.progress, scheduler=settings.scheduler)
         self.load = self.run_settings.load_options()
         self.journal = journal
         self.rows: dict[tuple[str, str], Result] = {}

@@ -243,8 +243,8 @@ def test_every_run_setting_has_an_option_that_reaches_it(command):
     assert [f.name for f in fields if f.metadata.get("cli") == API_ONLY] == ["command"]
     assert all(isinstance(f.metadata.get("cli"), Option) for f in fields if f.name != "command")
     offered = [(f, o) for f in fields if isinstance(o := f.metadata["cli"], Option) and command in o.commands]
-    assert {f.name for f, _ in offered} == {f.name for f in fields} - {"command", "per_recording" if command == "compare"
-                                                                       else "panorama"}
+    only_the_other = {"compare": "per_recording", "ablate": "panorama"}[command]
+    assert {f.name for f, _ in offered} == {f.name for f in fields} - {"command", only_the_other}
     argv, expected = [command], {}
     for f, option in offered:
         if f.name != "resume":  # `--resume DIR` continues a run instead (test_the_options_of_a_resumed_run)
