@@ -76,9 +76,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         folder with one file per recording).
     tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): each estimator it holds runs
         with its tuned setting (`fusion.evaluation.tune.apply_tuned`).
-    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (init, protocol,
-        align, dropouts, calibration, mag, panorama, timeout_s, imu_topic, truth_topic; out,
-        json_path, tum, command; jobs, progress, scheduler, scatter, overwrite, resume). With `out`
+    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (its docstring
+        lists them, each one's option help says what it does: `fusion compare --help`). With `out`
         the report folder is locked before any computation and written through a staging folder
         (`fusion.evaluation.output.OutputFolder`), each job journalled as it ends; a folder that
         holds another run is refused unless `overwrite`; `resume` continues the unfinished run
