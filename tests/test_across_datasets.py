@@ -1,14 +1,20 @@
 """Several datasets in one run: each dataset's means apart and the "all datasets" line together
 (`fusion.evaluation.compare.across_datasets`), in the printed table, results.json, the report and
-an ablation's sweep; the stratified interval of a mean of means (`stats.mean_of_means_interval`)."""
+an ablation's sweep; the stratified interval of a mean of means (`stats.mean_of_means_interval`);
+`fusion tune` choosing on one dataset and scoring on another, aligned where its truth is in
+other frames, its test scores per dataset."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.stats
+from scipy.spatial.transform import Rotation
 
+from fusion import datasets
+from fusion.cli import main
 from fusion.evaluation import ablate
 from fusion.evaluation.compare import ACROSS, across_datasets, format_table, results_json
 from fusion.evaluation.job import Result
@@ -161,3 +167,98 @@ def test_sweep_gives_each_dataset_its_best_and_the_common_settings_score():
     assert "x           2      1.00    2.00  a" in text and "y           2      3.00    3.00  b" in text
     one = ablate.sweep_summary([_row(d, lab, e) for (d, lab), e in errors.items() if d.startswith("x/")])
     assert "datasets" not in one
+
+
+# --- tune: chosen on one dataset, scored on another ---
+
+A_TRUTH = Rotation.from_rotvec([np.radians(20.0), 0.0, 0.0])  # the second dataset's truth world, tilted
+B_TRUTH = Rotation.from_rotvec(np.radians(30.0) * np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5]))
+ONE_PARAMETER = "ekf:R=3e-5,tauc=0.1"  # Q alone tuned: the default and two grid values
+
+
+def _write_window(folder: Path, name: str, start_s: float, seconds: float, other_frames: bool) -> None:
+    """A window of the simulated recording as a CSV recording (t, gyro rad/s, acc m/s^2, truth
+    w x y z); with `other_frames` its truth in a tilted world and a rotated body frame, A^-1 R B^-1."""
+    rec = datasets.load("sim")
+    imu = rec.imu
+    start, stop = np.searchsorted(imu.t, imu.t[0] + start_s + np.array([0.0, seconds]))
+    window = imu.window(int(start), int(stop))
+    truth, _ = rec.truth.interpolate(window.t)
+    if other_frames:
+        truth = A_TRUTH.inv() * truth * B_TRUTH.inv()
+    table = np.column_stack([window.t, window.gyr_rad_s, window.acc_g * 9.80665, truth.as_quat(scalar_first=True)])
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = ["t,gx,gy,gz,ax,ay,az,qw,qx,qy,qz"] + [",".join(f"{v:.12g}" for v in row) for row in table]
+    (folder / name).write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def two_datasets(tmp_path_factory) -> Path:
+    """Two 15-s recordings in `labA/` (truth in our frames) and two in `labB/` (truth in other frames)."""
+    root = tmp_path_factory.mktemp("two")
+    for k in range(2):
+        _write_window(root / "labA", f"rec{k + 1}.csv", 5.0 + 15.0 * k, 15.0, other_frames=False)
+        _write_window(root / "labB", f"rec{k + 3}.csv", 35.0 + 15.0 * k, 15.0, other_frames=True)
+    return root
+
+
+def _tune(root: Path, tmp_path: Path, capsys, *extra: str) -> tuple[dict, str]:
+    out = tmp_path / f"tune{len(list(tmp_path.iterdir()))}.json"
+    capsys.readouterr()
+    code = main(["tune", "--estimators", ONE_PARAMETER, "--data-dir", str(root), "--jobs", "1", "--no-progress",
+                 "--json", str(out), *extra])
+    text = capsys.readouterr()
+    assert code == 0, text.err
+    return json.loads(out.read_text()), text.out
+
+
+def test_tune_on_one_dataset_scored_on_another_and_aligned(two_datasets, tmp_path, capsys):
+    plain, _ = _tune(two_datasets, tmp_path, capsys, "--train", "labA/*", "--test", "labB/*")
+    doc, printed = _tune(two_datasets, tmp_path, capsys, "--train", "labA/*", "--test", "labB/*", "--align")
+    (t_plain,), (t,) = plain["tune"]["estimators"], doc["tune"]["estimators"]
+    assert plain["tune"]["folds"] == doc["tune"]["folds"] == [
+        {"name": "train", "train": ["labA/rec1", "labA/rec2"], "test": ["labB/rec3", "labB/rec4"]}]
+    # labB's truth is 20 deg tilted and 30 deg turned: unaligned every setting scores far off, aligned close
+    assert t_plain["out_of_sample_deg"] > 15.0 and t["out_of_sample_deg"] < 6.0
+    assert doc["settings"]["align"] is True and plain["settings"]["align"] is False
+    assert "--align" in printed.splitlines()[0]
+    aligned_rows = [r for r in doc["results"] if r["dataset"].startswith("labB/")]
+    assert len(aligned_rows) == 4 and all(r["alignment"] for r in aligned_rows)
+    assert all(r["alignment"] is None for r in plain["results"])
+    # the fitted body rotation is the one the truth was turned by (B = R_truthbody_imubody, 30 deg), to
+    # within what the simulated gyro's scale errors (+9, +4, -4 %) move Wahba's solution on 15 s
+    body = Rotation.from_rotvec(aligned_rows[0]["alignment"]["body_deg"], degrees=True)
+    assert np.degrees((body * B_TRUTH.inv()).magnitude()) < 2.5
+    # the test scores per dataset: one, labB, equal to the out-of-sample figure
+    assert t["test_datasets"] == [{"dataset": "labB", "recordings": 2, "default_deg": pytest.approx(t["default_deg"]),
+                                   "tuned_deg": pytest.approx(t["out_of_sample_deg"])}]
+    assert "per dataset" not in printed  # one test dataset: the table's line is its figure
+
+
+def test_tune_by_dataset_reports_each_test_dataset(two_datasets, tmp_path, capsys):
+    doc, printed = _tune(two_datasets, tmp_path, capsys, "--dataset", "labA/*,labB/*", "--by", "group", "--align")
+    (t,) = doc["tune"]["estimators"]
+    assert [f["name"] for f in doc["tune"]["folds"]] == ["labA", "labB"]
+    per = {d["dataset"]: d for d in t["test_datasets"]}
+    for folder in ("labA", "labB"):
+        ids = [rid for rid in t["scores_tuned_deg"] if rid.startswith(folder + "/")]
+        assert per[folder]["recordings"] == 2
+        assert per[folder]["tuned_deg"] == pytest.approx(np.mean([t["scores_tuned_deg"][r] for r in ids]))
+        assert per[folder]["default_deg"] == pytest.approx(np.mean([t["scores_default_deg"][r] for r in ids]))
+    lines = printed.splitlines()
+    head = lines.index("per dataset of the test recordings (mean over its recordings):")
+    for line, folder in zip(lines[head + 2:head + 4], ("labA", "labB")):
+        cells = line.split()
+        assert cells[1:3] == [folder, "2"]
+        assert float(cells[3]) == pytest.approx(per[folder]["default_deg"], abs=0.006)
+        assert float(cells[4]) == pytest.approx(per[folder]["tuned_deg"], abs=0.006)
+    # results.json: the default and tuned rows' means per dataset and together (the compare summary)
+    together = {e["estimator"]: e for e in doc["datasets"]["all"]}
+    assert together[f"{ONE_PARAMETER} tuned"]["rmse_deg"]["total"] == pytest.approx(
+        (per["labA"]["tuned_deg"] + per["labB"]["tuned_deg"]) / 2)
+
+
+def test_overlapping_train_and_test_are_said_to_be_in_sample(two_datasets, tmp_path, capsys):
+    _, printed = _tune(two_datasets, tmp_path, capsys, "--train", "labA/*", "--test", "labA/rec1,labB/*", "--align")
+    assert "note: 1 test recording was also tuned on (labA/rec1): its tuned scores are in sample" in printed
+    assert "per dataset of the test recordings" in printed
