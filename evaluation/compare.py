@@ -191,9 +191,9 @@ def across_rows(results: list[Result], primary: str) -> tuple[list[list[str]], l
     `format_table`'s mean rows (name, estimator, total, inclination, heading, "", us/sample, imu);
     their keys, their cells of the `primary` interval column, and the notes. Nothing with one
     folder."""
-    summary = across_datasets(results, [primary])
-    if not summary["all"]:
+    if len({dataset_group(r.dataset) for r in results if r.rmse_deg}) < 2:
         return [], [], {}, []
+    summary = across_datasets(results, [primary])
     rows, keys, cells = [], [], {}
     n = len(summary["datasets"])
     for entry in summary["all"]:
