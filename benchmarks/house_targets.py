@@ -4,9 +4,11 @@ entry points, and the length of every module in `estimators/`.
     python benchmarks/house_targets.py [--max-params 8] [--max-lines 700]
 
 Prints every function of `evaluation/` that takes more than `--max-params` parameters (`self` and
-`cls` not counted; the command entry points `run_*` and the `fusion.evaluation.runner.run` and
-`tune.run_tune` keyword APIs listed apart, as they are what users call) and every module of
-`estimators/` over `--max-lines` lines, then one line of counts.
+`cls` not counted; `*args` and `**kwargs` count one each) and every module of `estimators/` over
+`--max-lines` lines, then one line of counts. The command entry points (`ENTRY_POINTS`: `runs.py`'s
+`run_*` and `tune.run_tune`, the keyword APIs the commands call) are listed apart; everything below
+them counts, `fusion.evaluation.runner.run` included (it takes the run's settings as one
+`RunSettings`, or their fields as keywords).
 """
 from __future__ import annotations
 

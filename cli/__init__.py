@@ -20,67 +20,77 @@ import signal
 import sys
 import warnings
 from pathlib import Path
+from typing import Sequence
 
-from fusion import datasets
 from fusion.selection import note
 
 
+# The loading options of every command that reads recordings, in this order in `--help`
+# (`fusion.evaluation.settings.RunSettings`' fields: their options are described there).
+_DATA_FIELDS = ("dataset", "data_dir", "init", "progress", "dropouts", "mag", "imu_topic", "truth_topic", "calibration")
+
+
+def _settings_options(names: Sequence[str] | None = None, command: str | None = None) -> list:
+    """(field, `Option`) of each `RunSettings` field in `names` (in that order), or of each that
+    `command` offers (in field order)."""
+    import dataclasses
+
+    from fusion.evaluation.settings import Option, RunSettings
+
+    fields = {f.name: f for f in dataclasses.fields(RunSettings) if isinstance(f.metadata["cli"], Option)}
+    chosen = names if names is not None else [n for n, f in fields.items() if command in f.metadata["cli"].commands]
+    return [(fields[name], fields[name].metadata["cli"]) for name in chosen]
+
+
+def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | None = None,
+                       command: str | None = None) -> None:
+    """One option per `RunSettings` field (`_settings_options`), as its metadata (`Option`) says."""
+    from fusion.evaluation.settings import AS_FIELD
+
+    for f, option in _settings_options(names, command):
+        default = f.default if option.default == AS_FIELD else option.default
+        kind = {"switch": dict(action="store_true"), "negated": dict(action="store_true"),
+                "on_off": dict(choices=("on", "off"), default="on" if default else "off"),
+                "choices": dict(choices=option.choices, default=default),
+                "value": dict(type=_TYPES[option.type] if option.type else None, default=default)}[option.kind]
+        parser.add_argument(option.flag, help=option.help, **kind,
+                            **({"metavar": option.metavar} if option.metavar else {}))
+
+
+def _setting(args: argparse.Namespace, f, option) -> object:
+    """A field's value from its parsed option (`Option.kind`)."""
+    value = getattr(args, option.dest)
+    if option.kind == "switch":
+        return True if value else f.default
+    if option.kind == "negated":
+        return not value
+    if option.kind == "on_off":
+        return value == "on"
+    return value  # "value", "choices": as parsed
+
+
 def _add_data_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--dataset", default="all",
-                        help="'all', comma-separated ids (ece276a/3), folder names (ece276a), bare numbers (3, when "
-                             "unambiguous), globs ('ece276a/*') or file paths; 'sim' is the built-in simulated "
-                             "recording; identical recordings in several formats are counted once (default: all)")
-    parser.add_argument("--data-dir", default=None,
-                        help="folder with recordings (default: $FUSION_DATA, else ./data)")
-    parser.add_argument("--init", choices=datasets.INIT_MODES, default=None,
-                        help="initial orientation: truth (default with ground truth; with --align the aligned truth), "
-                             "accel (default without), identity")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--dropouts", choices=("on", "off"), default="on" if datasets.DROPOUTS_DEFAULT else "off",
-                        help="mark detected gyro freezes and ADC-saturated samples invalid so that no estimator "
-                             "integrates them (default: on; off for ablations)")
-    parser.add_argument("--mag", choices=("on", "off"), default="on",
-                        help="use the magnetometer where a recording has one (9-D estimation: heading is observable; "
-                             "BROAD's protocol then scores the total error without removing a heading offset); off: "
-                             "6-D, gyro and accelerometer only (default: on)")
-    parser.add_argument("--imu-topic", metavar="TOPIC", default=None,
-                        help="ROS bags: the sensor_msgs/Imu topic to read (default: the bag's one Imu topic)")
-    parser.add_argument("--truth-topic", metavar="TOPIC", default=None,
-                        help="ROS bags: the PoseStamped, TransformStamped or Odometry topic holding the truth "
-                             "(default: the bag's one topic of those types, if any)")
-    parser.add_argument("--calibration", metavar="FILE", default=None,
-                        help="apply a calibration file written by 'fusion calibrate' (gyro scale factors, "
-                             "and per-recording clock offsets if it holds them)")
+    _add_settings_args(parser, _DATA_FIELDS)
 
 
 def _data(args: argparse.Namespace) -> dict:
-    """The options every command shares, as the library's keyword arguments."""
-    return dict(data_dir=args.data_dir, calibration=args.calibration, dropouts=args.dropouts == "on",
-                progress=not args.no_progress, imu_topic=args.imu_topic, truth_topic=args.truth_topic,
-                mag=args.mag == "on")
+    """The options every command shares, as the library's keyword arguments (the selection and
+    `--init` apart)."""
+    return {f.name: _setting(args, f, option) for f, option in _settings_options(_DATA_FIELDS)
+            if f.name not in ("dataset", "init")}
 
 
 def _command(args: argparse.Namespace) -> str:
     return shlex.join(["fusion", *args.argv])
 
 
-# `RunSettings` fields whose option is spelt or typed otherwise on the command line
-_OPTION_VALUES = {
-    "dropouts": lambda a: a.dropouts == "on", "mag": lambda a: a.mag == "on", "progress": lambda a: not a.no_progress,
-    "tum": lambda a: not a.no_tum, "scatter": lambda a: True if a.scatter else None, "json_path": lambda a: a.json,
-    "timeout_s": lambda a: a.timeout, "command": _command,
-}
-
-
 def _run_options(args: argparse.Namespace) -> dict:
     """The options of `compare` and `ablate`: every field of `fusion.evaluation.settings.RunSettings`
-    but the selection (given by position) and `resume` (`_resume`), from the argument of the same
-    name (`_OPTION_VALUES` for the others); a field the command has no option for keeps its default."""
-    from fusion.evaluation.settings import RunSettings
-
-    fields = [f for f in RunSettings.__dataclass_fields__.values() if f.name not in ("dataset", "resume")]
-    return {f.name: _OPTION_VALUES[f.name](args) if f.name in _OPTION_VALUES else getattr(args, f.name, f.default)
-            for f in fields}
+    the command offers an option for, but the selection (given by position) and `resume`
+    (`_resume`), and the command line itself (`command`); a field the command has no option for
+    keeps its default."""
+    return {**{f.name: _setting(args, f, option) for f, option in _settings_options(command=args.command)
+               if f.name not in ("dataset", "resume")}, "command": _command(args)}
 
 
 def _print_run(run, verbose: bool = False) -> int:
@@ -111,8 +121,11 @@ def _resume(args: argparse.Namespace) -> int:
     if given:
         raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs, --scheduler, "
                          f"--scatter, --json or --no-progress only (not --{given[0].replace('_', '-')})")
-    return _print_run(run_resume(args.resume, jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler,
-                                 scatter=True if args.scatter else None, json_path=args.json), args.verbose)
+    from fusion.evaluation.settings import HOW, RunSettings
+
+    options = _run_options(args)
+    how = {name: options[name] for name in (*RunSettings.part(HOW), "json_path") if name not in ("resume", "overwrite")}
+    return _print_run(run_resume(args.resume, **how), args.verbose)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
@@ -281,50 +294,16 @@ def _seconds(text: str) -> float:
     return value
 
 
-def _add_run_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--protocol", choices=("full", "broad"), default=None,
-                        help="scoring: full (every sample with truth) or broad (movement phases only, mean heading "
-                             "offset removed); default: broad for recordings with a movement mask (BROAD trials), else full")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON (format: docs/json-format.md)")
-    parser.add_argument("--primary", choices=("total", "inclination", "heading"), default="total",
-                        help="the metric whose 95 %% interval and significance mark the table shows (default: total; "
-                             "inclination for 6-D comparisons)")
-    parser.add_argument("--out", metavar="DIR", help="write results.json, table, figures, report.html and "
-                        "report.md to DIR (re-render later with `fusion report DIR`)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="with --out: replace the earlier run (or discard the unfinished one) that DIR holds; "
-                             "without it a folder holding a run is refused (files you put there are kept either way)")
+_TYPES = {"int": int, "float": float, "count": _jobs, "seconds": _seconds}  # converters `Option.type` names
+
+
+def _add_run_args(parser: argparse.ArgumentParser, command: str) -> None:
+    """The options of `command` (compare, ablate) besides the loading ones: the other `RunSettings`
+    fields it offers, and --verbose."""
+    _add_settings_args(parser, [f.name for f, _ in _settings_options(command=command) if f.name not in _DATA_FIELDS])
     parser.add_argument("--verbose", action="store_true",
                         help="under each failed row's error, the traceback of your estimator's own code (results.json "
                              "keeps it as the row's 'traceback')")
-    parser.add_argument("--no-tum", action="store_true",
-                        help="with --out, do not write every estimate and its truth as TUM files under DIR/trajectories "
-                             "(a few MB per recording and estimator: a BROAD trial's file is about 3 MB)")
-    parser.add_argument("--jobs", type=_jobs, default=0, metavar="N",
-                        help="worker processes; 0 = all cores (default); results do not depend on it")
-    parser.add_argument("--resume", metavar="DIR", default=None,
-                        help="continue the unfinished run in the --out folder DIR (stopped by Ctrl-C, SIGTERM, a kill "
-                             "or a crash): its jobs already done are read back from DIR/.fusion-run/journal.jsonl, "
-                             "the others computed; the run's other options come from the journal")
-    parser.add_argument("--timeout", type=_seconds, default=None, metavar="S",
-                        help="stop a job (one recording x one estimator) that runs longer than S seconds; its row "
-                             "says so, the other rows are computed, and the command exits with status 1")
-    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                        help="run the jobs on a running dask.distributed scheduler's workers instead of local "
-                             "processes, e.g. tcp://10.0.0.5:8786 (see docs/dask.md)")
-    parser.add_argument("--scatter", action="store_true",
-                        help="with --scheduler: load the recordings here and send them to the workers (no shared "
-                             "file system needed); default: workers read the files themselves when every worker "
-                             "sees them at the same path, else scatter")
-    _add_align_arg(parser)
-
-
-def _add_align_arg(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--align", action="store_true",
-                        help="for ground truth given in other frames: fit a constant world tilt and a constant "
-                             "body rotation once per recording from its gyro, accelerometer and truth (never from "
-                             "an estimate), print them, and score every estimator against the same aligned truth; "
-                             "--init truth then starts from the aligned truth (see README)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -355,14 +334,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "FILE.py:NAME or package.module:NAME, e.g. 'dr,ukf:R=1e-3,./my_ukf.py:MyUKF:R=0.5' "
                         "(default: all)")
     _add_data_args(p)
-    _add_run_args(p)
+    _add_run_args(p, "compare")
     p.add_argument("--trajectory", action="append", default=[], type=_trajectory, metavar="NAME=PATH",
                    help="a trajectory another program wrote, in the table as the row NAME: a TUM (.tum, .txt: "
                         "t tx ty tz qx qy qz qw) or CSV (t,qw,qx,qy,qz) file with one recording selected, or a folder "
                         "with one file per recording named by its id (FOLDER/ece276a/3.tum); repeatable")
-    p.add_argument("--panorama", action="store_true",
-                   help="also stitch a panorama per estimate (camera frames, or frames rendered from a scene with the "
-                        "ground truth) and score it against the ground truth's panorama (PSNR, SSIM)")
     p.add_argument("--tuned", metavar="FILE", default=None,
                    help="run each estimator the file holds with its tuned setting (the tuned.json of "
                         "`fusion tune --out DIR`); parameters given in a spec win")
@@ -404,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the jobs on a running dask.distributed scheduler's workers (see docs/dask.md)")
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                    help="worker processes; 0 = all cores (default); results do not depend on it")
-    _add_align_arg(p)
+    _add_settings_args(p, ("align",))
     p.set_defaults(func=cmd_tune)
 
     p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",
@@ -420,13 +396,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="NAME=V1,V2",
                    help="a parameter and its values; repeat for a grid, e.g. --param R=1e-4,1e-3 --param sigma=kraft,julier")
     p.add_argument("--preset", metavar="NAME", help=f"a named ablation: {', '.join(PRESETS)}")
-    p.add_argument("--per-recording", action="store_true",
-                   help="with --out, also draw each recording's figures for every setting")
     p.add_argument("--tuned", metavar="FILE", default=None,
                    help="run the swept estimator with its tuned setting (the tuned.json of `fusion tune --out DIR`) "
                         "for every parameter --param does not sweep")
     _add_data_args(p)
-    _add_run_args(p)
+    _add_run_args(p, "ablate")
     p.set_defaults(func=cmd_ablate)
 
     p = sub.add_parser("list", help="the estimators a spec can name: ours and those installed packages register; "
@@ -482,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--leave-one-out", action="store_true",
                    help="score each recording with the scales fitted on the others, and print the fitted scales per fold")
     p.add_argument("--estimators", "--estimator", dest="estimators", default="dr", help="estimators scored by --leave-one-out (default: dr)")
-    _add_align_arg(p)
+    _add_settings_args(p, ("align",))
     p.set_defaults(func=cmd_calibrate)
 
     _add_data_command(sub)

@@ -48,7 +48,8 @@ def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Rec
         fitted once per recording from its IMU and truth (`fusion.evaluation.align`), the same for
         every estimator; each result's `alignment` holds them.
     """
-    return run(specs, list(recordings), init, jobs=jobs, progress=progress, protocol=protocol, align=align, keep=True)
+    return run(specs, list(recordings), init=init, jobs=jobs, progress=progress, protocol=protocol, align=align,
+               keep=True)
 
 
 def versions() -> dict[str, str]:

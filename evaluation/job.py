@@ -31,6 +31,7 @@ from fusion.types import Recording, Trajectory
 
 from .align import Alignment, fit_alignment
 from .metrics import MIN_COVERAGE, Score, score
+from .settings import RunSettings
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,7 +256,7 @@ def _failure(where: str, exc: BaseException, entry: ResolvedSpec) -> EstimatorEr
 
 
 def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init: str | None = None,
-            protocol: str | None = None, align: bool | Alignment | None = False) -> Result:
+            protocol: str | None = None, align: bool | Alignment | None = False, repeat: int = 1) -> Result:
     """One job: estimate, time, score (`protocol` None: the recording's default). Raises ValueError
     (naming the recording and the estimator; an `EstimatorError` with the user's traceback when a
     user's code raised) when the estimator fails.
@@ -269,8 +270,13 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     Whatever the estimator raises ends this job only: an exception, and also SystemExit
     (`sys.exit` in its code) and a KeyboardInterrupt its code raises itself, become the
     ValueError; a real Ctrl-C (SIGINT) or SIGTERM while it runs still stops the caller.
-    The time is that of `estimate` alone: our estimators are warmed up first (`warm_up`).
+    The time is that of `estimate` alone: our estimators are warmed up first (`warm_up`). With
+    `repeat`, the estimate is run that many times, each from a fresh estimator, and the time is the
+    least of theirs (Python's timeit documentation, `Timer.repeat`: the others add what else the
+    machine was doing); the trajectory is the last run's.
     """
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
     entry = spec if isinstance(spec, ResolvedSpec) else resolve(spec)
     alignment = align if isinstance(align, Alignment) else recording_alignment(recording) if align else None
     recording = aligned(recording, alignment)
@@ -286,10 +292,12 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
                 warnings.catch_warnings(record=True) if entry.user else contextlib.nullcontext([]) as caught:
             if entry.user:
                 warnings.simplefilter("always")
-            estimator = _build(entry).for_recording(recording.id)
-            start = time.perf_counter()
-            trajectory = estimator.estimate(recording.imu, q0)
-            seconds = time.perf_counter() - start
+            seconds = float("inf")
+            for _ in range(repeat):
+                estimator = _build(entry).for_recording(recording.id)
+                start = time.perf_counter()
+                trajectory = estimator.estimate(recording.imu, q0)
+                seconds = min(seconds, time.perf_counter() - start)
             if entry.user and not entry.cls.partial:  # a user's estimator's output is checked (`fusion.estimators.user`)
                 trajectory = Trajectory(trajectory.t, user.check_output(trajectory.quat_wxyz, len(recording.imu)),
                                         trajectory.diagnostics)
@@ -376,23 +384,22 @@ class Job:
     """One recording x one estimator of a run, and what to return.
 
     recording, estimator: indices into the run's recordings and resolved specs.
+    settings: the run's `fusion.evaluation.settings.RunSettings`; a job reads what decides its row
+        (init, protocol, align, repeat; panorama: also stitch and score a panorama
+        (`fusion.evaluation.panorama`) with the scenes under data_dir, which the runner resolves).
     series: also return the job's plot data (`fusion.evaluation.series.job_part`), and with
         `with_recording` its recording's (`series.recording_part`).
     keep: return the whole `Result` (trajectory and per-sample errors) instead of its summary.
-    panorama_data_dir: when given, also stitch and score a panorama (`fusion.evaluation.panorama`).
     truth: what the recording's truth is (`truth_system` of its `Source`), for the row; None: from
         the loaded recording.
     """
 
     recording: int
     estimator: int
-    init: str | None = None
-    protocol: str | None = None
-    align: bool = False
+    settings: RunSettings = RunSettings()
     series: bool = False
     with_recording: bool = False
     keep: bool = False
-    panorama_data_dir: str | None = None
     truth: str | None = None
 
 
@@ -424,11 +431,12 @@ def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment 
         shown = aligned(rec, alignment)
         recording_part = series.recording_part(shown, truth_at_imu) if job.series and job.with_recording else None
         try:
-            result = run_one(rec, entry, job.init, job.protocol, alignment)
-            if job.panorama_data_dir is not None:
+            s = job.settings
+            result = run_one(rec, entry, s.init, s.protocol, alignment, s.repeat)
+            if s.panorama:
                 from .panorama import panorama_scores
 
-                result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=job.panorama_data_dir))
+                result = replace(result, panorama=panorama_scores(shown, result.trajectory, data_dir=s.data_dir))
             if job.truth and result.truth:
                 result = replace(result, truth=job.truth)
             part = series.job_part(result.trajectory, result.score, truth_at_imu) if job.series else None

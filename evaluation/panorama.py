@@ -77,20 +77,21 @@ def panorama_scores(recording: Any, estimate: Trajectory, *, data_dir: Any = Non
     return scores
 
 
-def estimate_panorama(recording: Any, estimate: Trajectory, *, data_dir: Any = None, scene: Any = None,
-                      model: CameraModel | None = None, grid: PanoramaGrid | None = None, blend: Blend = "feather",
-                      rate_hz: float = 10.0, progress: bool = False) -> tuple[Panorama, dict[str, float]]:
+def estimate_panorama(recording: Any, estimate: Trajectory, *, progress: bool = False,
+                      **options: Any) -> tuple[Panorama, dict[str, float]]:
     """The panorama stitched with `estimate`, and its scores (see `panorama_scores`).
 
+    options: how the frames are found and stitched, `reference_panorama`'s keywords (data_dir, scene,
+        model, grid, blend, rate_hz); the estimate is stitched as its reference is.
     Raises ValueError if the recording has neither a camera nor ground truth to render from.
     """
-    ref = reference_panorama(recording, data_dir=data_dir, scene=scene, model=model, grid=grid, blend=blend,
-                             rate_hz=rate_hz, progress=progress)
+    ref = reference_panorama(recording, progress=progress, **options)
     if ref.camera is None:
         raise ValueError(f"{recording.id}: no camera recording and no ground truth to render frames from")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # frames outside the estimate's span: counted below
-        est = stitch(ref.camera, estimate, model=model, grid=ref.grid, blend=blend, progress=progress, desc="estimate")
+        est = stitch(ref.camera, estimate, model=ref.model, grid=ref.grid, blend=ref.blend, progress=progress,
+                     desc="estimate")
     nan = float("nan")
     out: dict[str, float] = {"frames_used": est.frames_used, "frames_skipped": est.frames_skipped}
     out.update(score_panorama(est, ref.truth) if ref.truth is not None
@@ -111,6 +112,8 @@ class Reference:
     truth: Panorama | None
     scene: np.ndarray | None  # the scene resampled to the panorama grid, or None
     grid: PanoramaGrid
+    model: CameraModel | None = None  # the camera model and blending the truth's panorama was stitched with
+    blend: Blend = "feather"
 
 
 _REFERENCES: dict[tuple, tuple[Any, Any, Reference]] = {}  # key -> (recording, scene, reference): kept alive so ids stay unique
@@ -140,6 +143,6 @@ def reference_panorama(recording: Any, *, data_dir: Any = None, scene: Any = Non
             warnings.simplefilter("ignore")
             ref_pano = stitch(camera, truth, model=model, grid=grid, blend=blend, progress=progress, desc="ground truth")
     scene_grid = camsim.resample_scene(scene_image, grid) if scene_image is not None else None
-    ref = Reference(camera, ref_pano, scene_grid, grid)
+    ref = Reference(camera, ref_pano, scene_grid, grid, model, blend)
     _REFERENCES[key] = (recording, scene, ref)
     return ref

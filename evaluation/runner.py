@@ -5,6 +5,9 @@ a dask.distributed cluster. The one job runner of `fusion compare` and `fusion a
     from fusion.evaluation.runner import run
     results = run(["dr", "ukf:R=1e-3"], datasets.select("sim"), jobs=2)
 
+(the keywords are `fusion.evaluation.settings.RunSettings`' fields; a caller holding a run's
+settings passes them whole: `run(specs, sources, settings)`).
+
 A job (`fusion.evaluation.job.Job`) is one (recording, estimator) pair: build, estimate, time,
 score (`fusion.evaluation.job.run_job`). It carries indices only: into the run's recordings
 (dataset `Source`s, loaded the first time a process needs them and kept, or loaded `Recording`s)
@@ -61,6 +64,7 @@ from fusion.types import Recording
 from .align import Alignment
 from .job import Job, JobOutput, Result, failed, recording_alignment, run_job, truth_system, warn_low_coverage
 from .pool import TaskTimeout, WorkerDied, WorkerPool, default_jobs
+from .settings import RunSettings
 
 # docs/dask.md's worker environment, as a dask configuration: dask's nanny starts each worker with
 # MALLOC_TRIM_THRESHOLD_=65536 (freed memory handed back at once, so the smoothers' large arrays are
@@ -115,8 +119,9 @@ class WorkerState:
         return compute
 
     def run(self, job: Job) -> JobOutput:
+        align = job.settings.align
         return run_job(job, self.recording(job.recording), self.entries[job.estimator],
-                       self.alignment(job.recording) if job.align else None, self.truth_at_imu(job.recording, job.align))
+                       self.alignment(job.recording) if align else None, self.truth_at_imu(job.recording, align))
 
 
 _WORKER: WorkerState | None = None  # in a pool worker: its state, set once by `_start_worker`
@@ -132,40 +137,45 @@ def _run_in_worker(job: Job) -> JobOutput:
 
 
 def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequence[Source | Recording],
-        init: str | None = None, jobs: int | None = 1, progress: bool = False, protocol: str | None = None,
-        load: LoadOptions = LoadOptions(), panorama_data_dir: str | None = None, align: bool = False,
-        scheduler: str | None = None, scatter: bool | None = None, *, keep: bool = False, series: bool = False,
-        timeout_s: float | None = None, done: Mapping[int, Result] | None = None,
-        on_done: Callable[[int, JobOutput], None] | None = None) -> list[Result]:
+        settings: RunSettings | None = None, *, keep: bool = False, series: bool = False,
+        done: Mapping[int, Result] | None = None, on_done: Callable[[int, JobOutput], None] | None = None,
+        **options: Any) -> list[Result]:
     """Every estimator on every recording; results in recording-major order (job n is recording
     n // len(specs) with spec n % len(specs)).
 
     specs: estimator specs, spec texts (`"ukf:R=1e-3"`; `all` expands to the registry) or resolved
         specs (`fusion.estimators.resolve_all`, which resolves the others here, once).
     items: dataset `Source`s (loaded lazily, once per process) or loaded `Recording`s.
-    jobs: worker processes; None or 0 means all cores; 1 runs in this process, unless `timeout_s` or a
-        user's estimator (`runs_user_code`) asks for one worker process.
-    protocol: scoring protocol (`fusion.evaluation.job.run_one`), None for each recording's default.
-    load: how `Source`s are loaded (calibration file, dropout switch).
-    panorama_data_dir: when given, also stitch and score a panorama per job (scenes are looked
-        up there; see `fusion.evaluation.panorama.panorama_scores`).
-    align: score against the truth mapped into our frames by constant rotations fitted once
-        per recording (module docstring, `fusion.evaluation.align`), the same for every spec.
-    scheduler: the address of a running dask.distributed scheduler (`tcp://10.0.0.5:8786`): the
+    settings: the run's `fusion.evaluation.settings.RunSettings`; `options`, its fields as keywords
+        (`run(specs, items, jobs=2, align=True)`), replace the given settings' own (or the
+        defaults'). Of them the runner reads:
+        init, protocol, align (`fusion.evaluation.job.run_one`; with `align` a recording's alignment
+        is fitted once per process, module docstring); panorama: also stitch and score a panorama
+        per job, its scenes looked up under data_dir (`fusion.evaluation.panorama.panorama_scores`);
+        calibration, dropouts, mag, imu_topic, truth_topic: how `Source`s are loaded
+        (`RunSettings.load_options`);
+        jobs: worker processes; None or 0 means all cores; 1 runs in this process, unless `timeout_s`
+        or a user's estimator (`runs_user_code`) asks for one worker process;
+        timeout_s: stop a job that runs longer (its row then says so);
+        scheduler: the address of a running dask.distributed scheduler (`tcp://10.0.0.5:8786`): the
         jobs run on its workers instead (`jobs` is then not used; see "Dask" in the module
-        docstring); None runs locally.
-    scatter: with `scheduler`, how workers get the recordings: False ships `Source`s (each
+        docstring); None runs locally;
+        scatter: with `scheduler`, how workers get the recordings: False ships `Source`s (each
         worker needs the files at the same path), True loads them here and sends the loaded
-        recordings, None (default) ships `Source`s if every worker sees every file, else scatters.
+        recordings, None (default) ships `Source`s if every worker sees every file, else scatters;
+        progress: a progress bar on stderr. The selection (dataset) and what is written (out,
+        json_path, ...) are the caller's.
     keep: return whole results (trajectories, per-sample errors) instead of rows.
     series: each job also sends its plot data, handed to `on_done` (the first estimator's job of a
         recording also its recording's: `JobOutput.recording_part`).
-    timeout_s: stop a job that runs longer (its row then says so); runs the jobs in worker
-        processes even with jobs=1.
     done: rows already known (a resumed run), by job number: not computed again.
     on_done: called here, in this process, with (job number, `JobOutput`) as each job ends (a
         failed job included: its row has an `error`).
     """
+    if settings is not None and not isinstance(settings, RunSettings):
+        raise TypeError(f"run: settings must be a RunSettings (or give its fields as keywords), got {settings!r}")
+    s = RunSettings(**options) if settings is None else replace(settings, **options)
+    scheduler, scatter, timeout_s = s.scheduler, s.scatter, s.timeout_s
     if scatter and not scheduler:
         raise ValueError("--scatter applies to runs on a Dask cluster (--scheduler ADDRESS)")
     if timeout_s is not None and not timeout_s > 0:
@@ -174,14 +184,17 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     items = list(items)
     done = dict(done or {})
     truths = [truth_system(item) for item in items]
-    tasks = {i * len(entries) + j: Job(i, j, init, protocol, align, series, j == 0, keep, panorama_data_dir, truths[i])
+    if s.panorama:  # the scenes' folder as this process sees it (a worker's $FUSION_DATA is not ours)
+        s = replace(s, data_dir=str(s.resolved_data_dir()))
+    load = s.load_options()
+    tasks = {i * len(entries) + j: Job(i, j, s, series, j == 0, keep, truths[i])
              for i in range(len(items)) for j in range(len(entries))}
     todo = [n for n in tasks if n not in done]
-    jobs = default_jobs() if not jobs else int(jobs)
+    jobs = default_jobs() if not s.jobs else int(s.jobs)
     if jobs < 1:
         raise ValueError(f"--jobs must be at least 1, got {jobs}")
     jobs = min(jobs, len(todo)) or 1
-    bar = _progress(len(tasks), progress)
+    bar = _progress(len(tasks), s.progress)
     bar.update(len(tasks) - len(todo))
     results: dict[int, Result] = dict(done)
 
@@ -286,7 +299,7 @@ def _run_dask(tasks: list[tuple[int, Job]], items: list, entries: list[ResolvedS
         needed = {job.recording for _, job in tasks}
         shared = _recordings_on(client, items, load, scatter, needed)
         alignments = {i: client.submit(recording_alignment, shared[i], pure=False, retries=RETRIES)
-                      for i in sorted({job.recording for _, job in tasks if job.align})}
+                      for i in sorted({job.recording for _, job in tasks if job.settings.align})}
         # each spec as a task of its own (not scattered): a worker that dies with its result costs a
         # recomputation, where scattered data would be lost with the last worker that held it
         specs = {j: client.submit(_given, entries[j], pure=False, retries=RETRIES)

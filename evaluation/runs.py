@@ -30,7 +30,7 @@ from fusion import datasets
 from fusion.checks import RecordingCheck
 from fusion.estimators import ResolvedSpec, resolve_all, resolve_trajectory
 from fusion.estimators.params import EstimatorSpec, parse_specs
-from fusion.selection import calibration_settings, load_options, load_selected, note, select_sources
+from fusion.selection import calibration_settings, load_selected, note, select_sources
 
 from . import ablate
 from .compare import format_table, results_json, versions
@@ -76,9 +76,8 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
         folder with one file per recording).
     tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): each estimator it holds runs
         with its tuned setting (`fusion.evaluation.tune.apply_tuned`).
-    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (init, protocol,
-        align, dropouts, calibration, mag, panorama, timeout_s, imu_topic, truth_topic; out,
-        json_path, tum, command; jobs, progress, scheduler, scatter, overwrite, resume). With `out`
+    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (its docstring
+        lists them, each one's option help says what it does: `fusion compare --help`). With `out`
         the report folder is locked before any computation and written through a staging folder
         (`fusion.evaluation.output.OutputFolder`), each job journalled as it ends; a folder that
         holds another run is refused unless `overwrite`; `resume` continues the unfinished run
@@ -191,12 +190,9 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
                          f"trajectory, and --dataset {s.dataset!r} selects {len(sources)}; select one, or give a "
                          "folder with one file per recording")
     root = s.resolved_data_dir()
-    load = load_options(s.calibration, s.dropouts, s.imu_topic, s.truth_topic, s.mag)
-    options = dict(init=s.init, protocol=s.protocol, jobs=s.jobs, progress=s.progress, load=load, align=s.align,
-                   panorama_data_dir=str(root) if s.panorama else None, scheduler=s.scheduler, scatter=s.scatter,
-                   timeout_s=s.timeout_s)
+    load = s.load_options()  # a bad calibration file fails here, before the output folder is touched
     if not s.out:
-        results = run(entries, sources, **options)
+        results = run(entries, sources, s)
         return _finish(None, None, entries, sources, results, document, s)
     with OutputFolder(s.out) as folder:
         if not s.resume and not s.overwrite and folder.holds_run():
@@ -220,7 +216,7 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
                 part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
                 journal.record(keys[n], output.result.to_json(), output.result.error, part or None)
 
-            results = run(entries, sources, **options, series=s.per_recording, done=done, on_done=record)
+            results = run(entries, sources, s, series=s.per_recording, done=done, on_done=record)
             return _finish(folder, journal, entries, sources, results, document, s, keys)
         finally:
             journal.close()

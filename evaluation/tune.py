@@ -43,10 +43,11 @@ from fusion import datasets
 from fusion.estimators import ResolvedSpec, resolve, resolve_all
 from fusion.estimators.params import EstimatorSpec
 from fusion.estimators.search import Tunable, alias_of, search_space
-from fusion.selection import load_options, note, select_sources
+from fusion.selection import note, select_sources
 
 from .job import Result
 from .metrics import KINDS
+from .settings import RunSettings
 
 PathLike = str | os.PathLike
 
@@ -266,7 +267,12 @@ class Scores:
     def __init__(self, sources: Sequence[Any], settings: TuneSettings, journal: Any = None) -> None:
         self.sources = {s.id: s for s in sources}
         self.settings = settings
-        self.load = load_options(settings.calibration, settings.dropouts, None, None, settings.mag)
+        # the runner's settings: how recordings are loaded and scored, and how the jobs run
+        self.run_settings = RunSettings(init=settings.init, protocol=settings.protocol,
+                                        calibration=settings.calibration, dropouts=settings.dropouts, mag=settings.mag,
+                                        align=settings.align, jobs=settings.jobs, progress=settings.progress,
+                                        scheduler=settings.scheduler)
+        self.load = self.run_settings.load_options()
         self.journal = journal
         self.rows: dict[tuple[str, str], Result] = {}
         self._prints: dict[str, str] = {}
@@ -310,9 +316,7 @@ class Scores:
                     self.journal.record(self._key(e.label, rid, e.describe()), output.result.to_json(),
                                         output.result.error, None)
 
-            s = self.settings
-            run(todo_entries, items, init=s.init, jobs=s.jobs, progress=s.progress, protocol=s.protocol,
-                load=self.load, align=s.align, scheduler=s.scheduler, done=done, on_done=record)
+            run(todo_entries, items, self.run_settings, done=done, on_done=record)
         return {(e.label, rid): self.rows[(e.label, rid)] for e in entries for rid in ids}
 
     def score(self, row: Result) -> float:

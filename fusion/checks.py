@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from . import quaternion as quat
 from .calibration import BoardModel, Calibration, RestCriteria, stationary_mask
@@ -229,6 +228,17 @@ def _window(t: np.ndarray, seconds: float) -> int:
     return max(2, int(round(seconds / np.median(np.diff(t))))) if len(t) > 1 else 1
 
 
+def _window_p2p(x: np.ndarray, w: int) -> np.ndarray:
+    """(N - w + 1, C) the peak-to-peak of each column of (N, C) x over the windows x[i:i + w]: a
+    running maximum and minimum (`scipy.ndimage`, O(N) whatever w), the window's centre at
+    i + w // 2."""
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+    x = np.asarray(x, dtype=float)
+    valid = slice(w // 2, w // 2 + len(x) - w + 1)
+    return maximum_filter1d(x, w, axis=0)[valid] - minimum_filter1d(x, w, axis=0)[valid]
+
+
 def _windows_to_samples(flag: np.ndarray, n: int, w: int) -> np.ndarray:
     """(N - w + 1,) window flags -> (N,) samples covered by at least one flagged window."""
     cover = np.zeros(n + 1, int)
@@ -263,15 +273,13 @@ def detect_freezes(imu: ImuSamples, detector: FreezeDetector = FreezeDetector(),
         return []
     if not np.any(np.median(np.abs(np.diff(gyr, 2, axis=0)), axis=0) > 0):
         return []  # exact rates (a simulation): no noise to judge a freeze against
-    gyr_view = sliding_window_view(gyr, w, axis=0)  # (N - w + 1, 3, w)
-    gyr_p2p = gyr_view.max(axis=-1) - gyr_view.min(axis=-1)
+    gyr_p2p = _window_p2p(gyr, w)
     steps = detector.gyro_p2p_steps * resolution(gyr) * (1 + 1e-9)
     noise = np.array([np.percentile(p[p > s], detector.noise_percentile) if np.any(p > s) else 0.0
                       for p, s in zip(gyr_p2p.T, steps)])  # the noise floor of the windows that are not stuck
     tolerance = np.maximum(steps, detector.noise_ratio * noise)
     gyro_flat = np.all(gyr_p2p <= tolerance, axis=1)
-    acc_view = sliding_window_view(np.asarray(imu.acc_g), w, axis=0)
-    acc_p2p_g = (acc_view.max(axis=-1) - acc_view.min(axis=-1)).max(axis=1)
+    acc_p2p_g = _window_p2p(np.asarray(imu.acc_g), w).max(axis=1)
     moving = acc_p2p_g > detector.acc_p2p_g
     flat_samples = _windows_to_samples(gyro_flat, n, w)
     moving_flat = _windows_to_samples(gyro_flat & moving, n, w)

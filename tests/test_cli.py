@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fusion.cli import main
+from settings_fixtures import not_default
 
 KEYS = {"dataset", "estimator", "samples", "seconds", "rmse_deg", "max_deg", "scored_samples", "coverage", "alignment",
         "magnetometer"}
@@ -230,3 +231,47 @@ def test_primary_chooses_the_metric_of_the_interval_column_and_is_recorded(data_
     assert (out / "table.txt").read_text().strip() == table.strip()
     with pytest.raises(SystemExit):  # argparse refuses it, with its usage line
         main([*argv, "--primary", "yaw"])
+
+
+
+@pytest.mark.parametrize("command", ["compare", "ablate"])
+def test_every_run_setting_has_an_option_that_reaches_it(command):
+    """Every field of `RunSettings` has a command-line option (or says it has none: `API_ONLY`), and
+    each option the command offers, given a value other than the default, arrives in the settings
+    the command builds (a field added with an `Option` is covered here by construction)."""
+    import dataclasses
+
+    from fusion import cli
+    from fusion.evaluation.settings import API_ONLY, Option, RunSettings
+
+    fields = dataclasses.fields(RunSettings)
+    assert [f.name for f in fields if f.metadata.get("cli") == API_ONLY] == ["command"]
+    assert all(isinstance(f.metadata.get("cli"), Option) for f in fields if f.name != "command")
+    offered = [(f, o) for f in fields if isinstance(o := f.metadata["cli"], Option) and command in o.commands]
+    only_the_other = {"compare": "per_recording", "ablate": "panorama"}[command]
+    assert {f.name for f, _ in offered} == {f.name for f in fields} - {"command", only_the_other}
+    argv, expected = [command], {}
+    for f, option in offered:
+        if f.name != "resume":  # `--resume DIR` continues a run instead (test_the_options_of_a_resumed_run)
+            words, expected[f.name] = not_default(f, option)
+            argv += words
+    args = cli.build_parser().parse_args(argv)
+    args.argv = argv
+    settings = RunSettings(dataset=args.dataset, **cli._run_options(args))
+    assert {name: getattr(settings, name) for name in expected} == expected
+    assert all(value != getattr(RunSettings(), name) for name, value in expected.items() if name != "progress")
+    assert settings.command == "fusion " + " ".join(argv)
+
+
+def test_the_options_of_a_resumed_run_are_how_it_runs(tmp_path, monkeypatch, capsys):
+    from fusion.evaluation import runs
+
+    seen = []
+    monkeypatch.setattr(runs, "run_resume", lambda out, **how: seen.append((out, how)) or runs.Run([], "table"))
+    code, out, err = run(capsys, "compare", "--resume", str(tmp_path), "--jobs", "2", "--no-progress", "--scheduler",
+                         "tcp://10.0.0.5:8786", "--scatter", "--json", "r.json")
+    assert code == 0, err
+    assert seen == [(str(tmp_path), {"jobs": 2, "progress": False, "scheduler": "tcp://10.0.0.5:8786", "scatter": True,
+                                     "json_path": "r.json"})]
+    code, _, err = run(capsys, "ablate", "--resume", str(tmp_path), "--init", "accel")
+    assert code == 1 and "not --init" in err and len(seen) == 1

@@ -9,6 +9,7 @@ import pytest
 from fusion.evaluation import journal, runs
 from fusion.evaluation.journal import Journal
 from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
+from settings_fixtures import not_default_values
 
 
 @pytest.fixture
@@ -102,10 +103,9 @@ def test_resume_with_another_call_is_refused(toy, data, tmp_path, monkeypatch):
     assert len(journal.read(out / journal.RUN_DIR / journal.JOURNAL)[1]) == 2  # untouched
 
 
-# A value for every RunSettings field other than its default (the `how` part is not journalled).
-_NOT_DEFAULT = {"init": "accel", "protocol": "full", "align": True, "dropouts": False, "mag": False,
-                "imu_topic": "/imu", "truth_topic": "/pose", "panorama": True, "timeout_s": 600.0,
-                "tum": False, "per_recording": True, "primary": "inclination"}
+# A value other than its default for every journalled RunSettings field but the selection (the `how`
+# part is not journalled), from its command-line option (`settings_fixtures`).
+_NOT_DEFAULT = not_default_values(name for name in runs.JOURNALLED if name != "dataset")
 
 
 def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp_path, monkeypatch):
@@ -115,7 +115,8 @@ def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp
 
     assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) | set(RunSettings.part(WRITTEN))) - {
         "data_dir", "calibration", "out", "json_path", "command"}
-    assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT), "give the new field a non-default value here"
+    assert set(runs.JOURNALLED) - {"dataset"} == set(_NOT_DEFAULT)
+    assert all(value != getattr(RunSettings(), name) for name, value in _NOT_DEFAULT.items())
     settings = RunSettings(dataset="all", data_dir=str(data), **_NOT_DEFAULT)
     kind = {"kind": "ablate", "estimator": "toy", "params": [["g", ["1"]]], "preset": None}
     call = runs._journal_call(kind, settings)
@@ -132,6 +133,31 @@ def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp
     (resumed,) = seen
     assert all(getattr(resumed, name) == getattr(settings, name) for name in runs.JOURNALLED)
     assert (resumed.jobs, resumed.resume, resumed.out, resumed.command) == (2, True, str(out), "fusion ablate ...")
+
+
+def test_every_setting_comes_back_on_resume_or_is_how_it_runs(toy, data, tmp_path, monkeypatch):
+    """Every field of `RunSettings`, not only the journalled ones: the paths are recorded beside the
+    call (data_dir, calibration: resolved), the command too, the folder is the one resumed, and the
+    `how` part and json_path are what `--resume` is given (a new field must be put in one of these)."""
+    from fusion.evaluation.settings import HOW, RunSettings
+
+    calibration = str(tmp_path / "calib.json")
+    settings = RunSettings(dataset="all", data_dir=str(data), calibration=calibration, **_NOT_DEFAULT)
+    call = runs._journal_call({"kind": "compare", "estimators": "toy", "trajectories": []}, settings)
+    out = tmp_path / "run"
+    Journal.start(out, {"call": call, "data_dir": str(data), "calibration": calibration, "command": "fusion compare x",
+                        "jobs_total": 3}).close()
+    how = {"jobs": 3, "progress": True, "scheduler": "tcp://10.0.0.5:8786", "scatter": True, "overwrite": True}
+    assert set(how) == set(RunSettings.part(HOW)) - {"resume"}, "give the new `how` field a value here"
+    seen = []
+    monkeypatch.setattr(runs, "_execute", lambda entries, kind, document, s: seen.append(s))
+    runs.run_resume(out, json_path=str(tmp_path / "r.json"), **how)
+    (resumed,) = seen
+    expected = {**{name: getattr(settings, name) for name in runs.JOURNALLED}, "data_dir": str(data),
+                "calibration": calibration, "command": "fusion compare x", "out": str(out),
+                "json_path": str(tmp_path / "r.json"), "per_recording": True, "resume": True, **how}
+    assert set(expected) == set(RunSettings.__dataclass_fields__)
+    assert {name: getattr(resumed, name) for name in expected} == expected
 
 
 def test_an_older_journal_without_the_newer_settings_resumes_with_their_defaults(toy, data, tmp_path, monkeypatch):

@@ -586,3 +586,45 @@ def test_us_per_sample_leaves_the_first_calls_compilation_out(monkeypatch):
     (row,) = runner.run([entry], [rec])
     assert seen == [200, 600]  # the warm-up on a window, then the timed run on the whole recording
     assert row.error is None and row.seconds < 0.25
+
+
+def test_repeat_times_each_estimate_as_the_least_of_its_runs(tmp_path, capsys):
+    """`--repeat N`: the estimate runs N times, each from a fresh estimator, and the row's time is the
+    least of theirs (here the first run is slowed down, as a busy machine would); the orientations
+    are those of one run."""
+    import time
+    from dataclasses import dataclass
+
+    from fusion.estimators import ResolvedSpec
+    from fusion.estimators.base import Estimator
+    from fusion.estimators.params import EstimatorSpec
+    from fusion.types import Trajectory
+
+    @dataclass(frozen=True)
+    class NoParams:
+        pass
+
+    built: list = []  # each run's estimator (kept, so that each has an id of its own)
+
+    class SlowFirstRun(Estimator):
+        Params = NoParams
+
+        def estimate(self, imu, init_quat_wxyz):
+            built.append(self)
+            if len(built) == 1:
+                time.sleep(0.4)
+            return Trajectory(imu.t, np.tile(init_quat_wxyz, (len(imu), 1)))
+
+    entry = ResolvedSpec(EstimatorSpec("slow"), SlowFirstRun, NoParams(), "slow")
+    rec = recording(600)
+    (once,) = runner.run([entry], [rec], keep=True)
+    assert once.seconds >= 0.4 and len(built) == 1
+    built.clear()
+    (thrice,) = runner.run([entry], [rec], keep=True, repeat=3)
+    assert len({id(e) for e in built}) == 3  # three runs, three estimators
+    assert thrice.seconds < 0.2
+    np.testing.assert_array_equal(thrice.trajectory.quat_wxyz, once.trajectory.quat_wxyz)
+    assert thrice.rmse_deg == once.rmse_deg
+    code = main(["compare", "--estimators", "dr", "--dataset", "sim", "--repeat", "0", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.strip() == "fusion: error: --repeat must be a whole number of at least 1, got 0"
