@@ -155,7 +155,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         run = run_tune(args.estimators, args.dataset, train=args.train, test=args.test, by=args.by,
                        metric=args.metric, search=args.search, budget=args.budget, seed=args.seed,
                        data_dir=args.data_dir, calibration=args.calibration, init=args.init, protocol=args.protocol,
-                       dropouts=args.dropouts == "on", mag=args.mag == "on", out=args.out, json_path=args.json,
+                       dropouts=args.dropouts == "on", mag=args.mag == "on", align=args.align, out=args.out,
+                       json_path=args.json,
                        overwrite=args.overwrite, command=_command(args), **how)
     print(run.table)
     if run.report is not None:
@@ -379,6 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run the jobs on a running dask.distributed scheduler's workers (see docs/dask.md)")
     p.add_argument("--jobs", type=_jobs, default=0, metavar="N",
                    help="worker processes; 0 = all cores (default); results do not depend on it")
+    _add_settings_args(p, ("align",))
     p.set_defaults(func=cmd_tune)
 
     p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",

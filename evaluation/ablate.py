@@ -118,7 +118,9 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
     `fusion.formats.broad.trial_groups`); with it, "groups" lists each group's best common
     setting over its recordings (BROAD's TAGP per group: {"group", "recordings",
     "best_estimator", "mean_rmse_deg"}, in the order the groups first appear) and
-    "trial_groups" keeps the mapping, so that a re-render computes the same.
+    "trial_groups" keeps the mapping, so that a re-render computes the same. With recordings of two
+    dataset folders or more, "datasets" gives each its own best common setting, its mean, and the
+    mean there of the best common setting over all (`_per_dataset`).
     """
     labels = list(dict.fromkeys(r["estimator"] for r in rows))
     err: dict[tuple[str, str], float] = {}
@@ -152,6 +154,31 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
             out["groups"].append({"group": g, "recordings": len(ds), "best_estimator": top,
                                   "mean_rmse_deg": group_means[top]})
         out["trial_groups"] = {d: list(groups[d]) for d in datasets if d in groups}
+    folders = _per_dataset(err, labels, datasets, best)
+    if folders:
+        out["datasets"] = folders
+    return out
+
+
+def _per_dataset(err: dict[tuple[str, str], float], labels: list[str], datasets: list[str],
+                 best: str) -> list[dict[str, Any]]:
+    """With recordings of two dataset folders or more (`fusion.evaluation.compare.dataset_group`):
+    per folder, in run order, its own best common setting and mean, and the mean there of the best
+    common setting over all recordings ("common_rmse_deg"): does a setting chosen on all the data
+    hold on each dataset. [] with one folder."""
+    from .compare import dataset_group
+
+    members: dict[str, list[str]] = {}
+    for d in datasets:
+        members.setdefault(dataset_group(d), []).append(d)
+    if len(members) < 2:
+        return []
+    out = []
+    for folder, ds in members.items():
+        means = {lab: math.fsum(err[(d, lab)] for d in ds) / len(ds) for lab in labels}
+        top = min(labels, key=lambda lab: means[lab])
+        out.append({"dataset": folder, "recordings": len(ds), "best_estimator": top, "mean_rmse_deg": means[top],
+                    "common_rmse_deg": means[best]})
     return out
 
 
@@ -178,4 +205,11 @@ def format_sweep(summary: dict[str, Any]) -> str:
         lines += ["", head, "-" * len(head)]
         lines += [f"{g['group']:<{width}}  {g['recordings']:6d}  {g['mean_rmse_deg']:6.2f}  {g['best_estimator']}"
                   for g in summary["groups"]]
+    if summary.get("datasets"):
+        width = max(len("dataset"), *(len(g["dataset"]) for g in summary["datasets"]))
+        head = (f"{'dataset':<{width}}  {'recs':>4}  {'own best':>8}  {'common':>6}  best common setting of the dataset "
+                "(common: the best common setting over all recordings, on this dataset)")
+        lines += ["", head, "-" * len(head)]
+        lines += [f"{g['dataset']:<{width}}  {g['recordings']:4d}  {g['mean_rmse_deg']:8.2f}  {g['common_rmse_deg']:6.2f}"
+                  f"  {g['best_estimator']}" for g in summary["datasets"]]
     return "\n".join(lines)

@@ -92,10 +92,12 @@ def recording_facts(results: list[Result]) -> list[dict[str, Any]]:
 def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, Any]:
     """The document `--json` writes: `results`, `alignments` (one per recording, empty without
     `--align`), `recordings` (one per recording with truth: `recording_facts`), `statistics` (every
-    metric's, `fusion.evaluation.stats.run_statistics`), `settings`, `versions`."""
+    metric's, `fusion.evaluation.stats.run_statistics`), `datasets` (each dataset's means apart and
+    together: `across_datasets`), `settings`, `versions`."""
     return {"results": [r.to_json() for r in results], "alignments": recording_alignments(results),
             "recordings": recording_facts(results),
-            "statistics": run_statistics(summary_groups(results)).to_json(), "settings": settings,
+            "statistics": run_statistics(summary_groups(results)).to_json(),
+            "datasets": across_datasets(results), "settings": settings,
             "versions": versions()}
 
 
@@ -123,6 +125,94 @@ def summary_groups(results: list[Result]) -> list[tuple[str | None, list[Result]
     return [(g, [r for r in results if dataset_group(r.dataset) == g]) for g in groups]
 
 
+ACROSS = "all datasets"  # the key of the "all datasets" rows among the table's (group, estimator) keys
+
+
+def across_datasets(results: list[Result], intervals: Iterable[str] = KINDS) -> dict[str, Any]:
+    """Each dataset apart and together: results.json's `datasets` (docs/json-format.md).
+
+    `per_dataset`: per folder (`dataset_group`, in run order) and estimator, the recordings scored
+    (as in the means: a row below `MIN_COVERAGE` or failed is left out), the mean RMSE of each
+    metric and its 95 % BCa interval (`fusion.evaluation.stats.mean_of_means_interval` with one
+    sample: over this estimator's own recordings) and the sensors ("6-D", "9-D", "mixed").
+    `all` (with two folders or more, else empty): per estimator the mean of its per-dataset means,
+    each dataset counted once whatever its number of recordings, and its interval by the
+    stratified bootstrap (recordings resampled within each dataset); the mean is null unless the
+    estimator was scored on every dataset. An interval needs `MIN_RECORDINGS` scored recordings in
+    every dataset it covers (null otherwise), and is computed for the metrics in `intervals` only.
+    Datasets scored by different protocols (`recording_facts`) are averaged as their means stand.
+    """
+    from .stats import MIN_RECORDINGS, mean_of_means_interval
+
+    intervals = [k for k in intervals]
+    folders = list(dict.fromkeys(dataset_group(r.dataset) for r in results if r.rmse_deg))
+    labels = list(dict.fromkeys(r.estimator for r in results))
+
+    def interval(samples: list[list[float]]) -> list[float | None] | None:
+        if not samples or any(len(s) < MIN_RECORDINGS for s in samples):
+            return None
+        low, high = mean_of_means_interval(samples)
+        return None if low is None or high is None else [low, high]
+
+    per_dataset, scored_in = [], {}
+    for folder in folders:
+        for label in labels:
+            mine = [r for r in results if r.estimator == label and dataset_group(r.dataset) == folder]
+            scored = [r for r in mine if r.in_means]
+            if not mine:
+                continue
+            scored_in[(folder, label)] = scored
+            per_dataset.append({
+                "dataset": folder, "estimator": label, "recordings": len(scored),
+                "rmse_deg": {k: float(np.mean([r.rmse_deg[k] for r in scored])) for k in KINDS} if scored else None,
+                "ci95_deg": {k: interval([[r.rmse_deg[k] for r in scored]]) if scored else None for k in intervals},
+                "imu": sensors(scored or mine)})
+    across = []
+    if len(folders) >= 2:
+        for label in labels:
+            parts = [scored_in[(f, label)] for f in folders if scored_in.get((f, label))]
+            complete = len(parts) == len(folders)
+            across.append({
+                "estimator": label, "datasets": len(parts), "recordings": sum(map(len, parts)),
+                "rmse_deg": {k: float(np.mean([np.mean([r.rmse_deg[k] for r in p]) for p in parts])) for k in KINDS}
+                if complete else None,
+                "ci95_deg": {k: interval([[r.rmse_deg[k] for r in p] for p in parts]) if complete else None
+                             for k in intervals},
+                "imu": sensors([r for p in parts for r in p] or [r for r in results if r.estimator == label])})
+    return {"datasets": folders, "per_dataset": per_dataset, "all": across}
+
+
+ACROSS_NOTE = ("all datasets: each row the mean of the estimator's per-dataset means (each dataset counts once, whatever "
+               "its number of recordings; '-' for an estimator not scored on every dataset)")
+
+
+def across_rows(results: list[Result], primary: str) -> tuple[list[list[str]], list[tuple[str, str]],
+                                                              dict[tuple[str, str], str], list[str]]:
+    """The table's "all datasets" rows (`across_datasets`), one per estimator, laid out as
+    `format_table`'s mean rows (name, estimator, total, inclination, heading, "", us/sample, imu);
+    their keys, their cells of the `primary` interval column, and the notes. Nothing with one
+    folder."""
+    if len({dataset_group(r.dataset) for r in results if r.rmse_deg}) < 2:
+        return [], [], {}, []
+    summary = across_datasets(results, [primary])
+    rows, keys, cells = [], [], {}
+    n = len(summary["datasets"])
+    for entry in summary["all"]:
+        label = entry["estimator"]
+        values = [f"{entry['rmse_deg'][k]:.2f}" for k in KINDS] if entry["rmse_deg"] else ["-"] * 3
+        us = np.mean([r.us_per_sample for r in results if r.estimator == label and r.error is None] or [np.nan])
+        rows.append([f"mean {ACROSS} ({n})", label, *values, "", f"{us:.1f}", entry["imu"]])
+        keys.append((ACROSS, label))
+        ci = entry["ci95_deg"][primary]
+        if ci is not None:
+            cells[(ACROSS, label)] = f"[{ci[0]:.2f}, {ci[1]:.2f}]  "
+    note = ACROSS_NOTE
+    if cells:
+        note += (f"; its {primary} 95% CI: BCa bootstrap resampling the recordings within each dataset (needs 5 "
+                 "scored recordings in each)")
+    return rows, keys, cells, [note]
+
+
 def format_table(results: list[Result], align: bool | None = None, primary: str = "total") -> str:
     """A readable table: first a mean row per estimator over the recordings that have ground
     truth (per folder when they come from several, see `summary_groups`), then one row per recording x estimator (RMSE in degrees), recordings without ground
@@ -145,6 +235,7 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
         rows.append([r.dataset, r.estimator, *rmse, format_coverage(r), "-" if r.error else f"{r.us_per_sample:.1f}"])
     labels = list(dict.fromkeys(r.estimator for r in results))
     means, keys = [], []  # keys: (group, estimator) of each mean row
+    across_cells, across_notes = {}, []
     if len({r.dataset for r in results}) >= 2:
         for group, members in summary_groups(results):
             for label in labels:
@@ -157,6 +248,8 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
                 means.append([name, label, *mean, "", f"{us:.1f}", sensors(scored or mine)])
                 keys.append((group, label))
+        more, more_keys, across_cells, across_notes = across_rows(results, primary)  # each dataset apart, then together
+        means, keys = means + more, keys + more_keys
     for row, r in zip(rows, results):
         row.append(sensors([r]))
     if shows_imu(results):  # rows of both kinds can appear: a column says which rows used the magnetometer
@@ -171,6 +264,7 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
         means = [row + ["", ""] for row in means]
     interval, cells, notes = table_column(run_statistics(summary_groups(results), [primary]), primary) if means else (
         "", {}, [])
+    cells, notes = {**cells, **across_cells}, notes + across_notes
     if cells:  # the interval column after heading, filled on the mean rows
         header.insert(5, interval)
         rows = [row[:5] + [""] + row[5:] for row in rows]

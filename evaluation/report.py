@@ -35,8 +35,8 @@ import numpy as np
 
 from . import series as series_io
 from .output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
-from .compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, dataset_group, format_coverage, format_table,
-                      heading_offset_note, sensors, shows_imu, summary_groups)
+from .compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, across_datasets, dataset_group, format_coverage,
+                      format_table, heading_offset_note, sensors, shows_imu, summary_groups)
 from .job import GENERIC_TRUTH, TRUTH_SYSTEMS
 from .metrics import KINDS
 from .stats import Comparison, RunStatistics, dropped_text, run_statistics
@@ -439,7 +439,22 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
             us = np.mean([r.us_per_sample for r in mine])
             means.append([label, str(len(scored)) if group is None else f"{len(scored)} ({group})", *values, f"{us:.1f}",
                           *([sensors(scored or mine)] if imu else [])])
+    means += _across_means(rows, imu)
     return header, body, mean_header, means
+
+
+def _across_means(rows: list[dict[str, Any]], imu: bool) -> list[list[str]]:
+    """The means table's "all datasets" rows (`fusion.evaluation.compare.across_datasets`: each
+    estimator's mean of its per-dataset means), laid out as `_tables`' mean rows; none with one folder."""
+    results = [Result.from_json(r) for r in rows]
+    summary = across_datasets(results, ())
+    out = []
+    for entry in summary["all"]:
+        values = [_fmt(entry["rmse_deg"][k]) if entry["rmse_deg"] else "-" for k in KINDS]
+        us = np.mean([r.us_per_sample for r in results if r.estimator == entry["estimator"]])
+        out.append([entry["estimator"], f"{entry['recordings']} (all {len(summary['datasets'])} datasets, each once)",
+                    *values, f"{us:.1f}", *([entry["imu"]] if imu else [])])
+    return out
 
 
 def _imu_notes(doc: dict[str, Any]) -> list[str]:

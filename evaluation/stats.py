@@ -349,6 +349,37 @@ def _bootstrap_mean_interval(x: np.ndarray, confidence_level: float, n_resamples
     return low, high
 
 
+def mean_of_means_interval(samples: Sequence[Sequence[float]], *, confidence_level: float = CONFIDENCE_LEVEL,
+                           n_resamples: int = N_RESAMPLES, seed: int = SEED) -> tuple[float | None, float | None]:
+    """The BCa interval of the mean of several samples' means (each sample, e.g. one dataset's
+    recordings, counts once whatever its size), by the stratified bootstrap: every resample draws
+    each sample's values from that sample alone, with replacement (Davison & Hinkley 1997,
+    Bootstrap Methods and their Application, sec. 3.2; `scipy.stats.bootstrap` with several samples,
+    unpaired), seeded as `paired_statistics`. With one sample it is that sample's interval of the
+    mean, the interval `paired_statistics` gives a row alone. Values all equal: [mean, mean].
+
+    samples: one sequence of finite scores per stratum, each of two values or more.
+    """
+    from scipy import stats
+
+    arrays = [np.asarray(s, dtype=float) for s in samples]
+    if not arrays or any(a.ndim != 1 or len(a) < 2 or not np.isfinite(a).all() for a in arrays):
+        raise ValueError("mean_of_means_interval: every sample needs two finite values or more")
+    if all(np.ptp(a) == 0 for a in arrays):
+        value = float(np.mean([a[0] for a in arrays]))
+        return value, value
+
+    def statistic(*xs: np.ndarray, axis: int = -1) -> np.ndarray:
+        return np.mean([np.mean(x, axis=axis) for x in xs], axis=0)
+
+    with warnings.catch_warnings():  # a degenerate resample distribution: SciPy warns, the bounds are NaN
+        warnings.simplefilter("ignore")
+        ci = stats.bootstrap(tuple(arrays), statistic, vectorized=True, paired=False, n_resamples=n_resamples,
+                             confidence_level=confidence_level, method=CI_METHOD,
+                             rng=np.random.default_rng(seed)).confidence_interval
+    return _num(float(ci.low)), _num(float(ci.high))
+
+
 def _average_ranks(x: np.ndarray) -> np.ndarray:
     """(k,) average rank of each row over the recordings (Demsar 2006, sec. 3.2.2: R_j); 1 is the
     lowest score, tied scores share their mean rank."""

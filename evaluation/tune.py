@@ -68,8 +68,10 @@ class TuneSettings:
     metric: the RMSE minimised and reported (`total`, `inclination`, `heading`).
     by: the folds over `dataset`: leave one `recording` out, or one `group` out.
     search: `grid` (the grid preset) or `tpe` (Optuna, `budget` trials per study, `seed`).
-    Loading and scoring (`data_dir`, `calibration`, `init`, `protocol`, `dropouts`, `mag`) as
-    `fusion compare`.
+    Loading and scoring (`data_dir`, `calibration`, `init`, `protocol`, `dropouts`, `mag`, `align`)
+    as `fusion compare`: with `align`, every candidate is scored against the truth mapped into our
+    frames by the rotations fitted once per recording (`fusion.evaluation.align`), for a dataset
+    whose truth is given in other frames.
     """
 
     estimators: str = "all"
@@ -87,6 +89,7 @@ class TuneSettings:
     protocol: str | None = None
     dropouts: bool = datasets.DROPOUTS_DEFAULT
     mag: bool = True
+    align: bool = False
     # how it runs: not journalled
     jobs: int | None = field(default=1, metadata={"how": True})
     progress: bool = field(default=False, metadata={"how": True})
@@ -159,7 +162,22 @@ class EstimatorTuning:
                 "out_of_sample_deg": _finite(self.out_of_sample), "chosen": self.chosen,
                 "scores_default_deg": {k: _finite(v) for k, v in self.scores_default.items()},
                 "scores_tuned_deg": {k: _finite(v) for k, v in self.scores_tuned.items()},
-                "settings_evaluated": self.evaluated}
+                "test_datasets": scores_per_dataset(self), "settings_evaluated": self.evaluated}
+
+
+def scores_per_dataset(tuning: EstimatorTuning) -> list[dict[str, Any]]:
+    """The out-of-sample scores per dataset of the test recordings (their folder,
+    `fusion.evaluation.compare.dataset_group`, in test order): `{"dataset", "recordings",
+    "default_deg", "tuned_deg"}`, each the mean over that dataset's test recordings (null when a
+    row there failed)."""
+    from .compare import dataset_group
+
+    folders: dict[str, list[str]] = {}
+    for rid in tuning.scores_tuned:
+        folders.setdefault(dataset_group(rid), []).append(rid)
+    return [{"dataset": folder, "recordings": len(ids),
+             "default_deg": _finite(_mean([tuning.scores_default[rid] for rid in ids])),
+             "tuned_deg": _finite(_mean([tuning.scores_tuned[rid] for rid in ids]))} for folder, ids in folders.items()]
 
 
 def _finite(x: float) -> float | None:
@@ -252,7 +270,8 @@ class Scores:
         # the runner's settings: how recordings are loaded and scored, and how the jobs run
         self.run_settings = RunSettings(init=settings.init, protocol=settings.protocol,
                                         calibration=settings.calibration, dropouts=settings.dropouts, mag=settings.mag,
-                                        jobs=settings.jobs, progress=settings.progress, scheduler=settings.scheduler)
+                                        align=settings.align, jobs=settings.jobs, progress=settings.progress,
+                                        scheduler=settings.scheduler)
         self.load = self.run_settings.load_options()
         self.journal = journal
         self.rows: dict[tuple[str, str], Result] = {}
@@ -267,8 +286,9 @@ class Scores:
         if rid not in self._prints:
             self._prints[rid] = fingerprint(source_paths(self.sources[rid]), what=rid)
         s = self.settings
+        aligned = {"align": True} if s.align else {}  # (keys of unaligned rows as before: older journals resume)
         return job_key(kind="tune", dataset=rid, files=self._prints[rid], estimator=label, origin=describe,
-                       load=repr(self.load), init=s.init, protocol=s.protocol)
+                       load=repr(self.load), init=s.init, protocol=s.protocol, **aligned)
 
     def evaluate(self, specs: Sequence[EstimatorSpec], ids: Sequence[str]) -> dict[tuple[str, str], Result]:
         """The rows of every spec on every recording in `ids` (computing those not known yet)."""
@@ -533,7 +553,9 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     search = ("the grid preset" if config.search == "grid"
               else f"TPE, {config.budget} trials per study, seed {config.seed}")
     width = max([len(t.estimator) for t in tunings] + [9])
-    lines = [f"{config.metric} RMSE (deg), mean over the test recordings; {how}; search: {search}",
+    aligned = ("; against the truth aligned per recording (--align: constant world and body rotations fitted from "
+               "the gyro, accelerometer and truth)" if config.align else "")
+    lines = [f"{config.metric} RMSE (deg), mean over the test recordings; {how}; search: {search}{aligned}",
              f"{'estimator':<{width}}  {'default':>8}  {'common*':>8}  {'per-rec*':>8}  {'tuned':>8}  "
              f"{'settings':>8}  common setting"]
     for t in tunings:
@@ -542,7 +564,32 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     lines.append("* in sample (chosen and judged on the recordings tuned on): the best common setting over them, "
                  "and each one's own best (an upper bound); default, tuned: over the test recordings, tuned out of "
                  "sample (each scored with the setting chosen without it)")
-    return "\n".join(lines)
+    return "\n".join(lines + _per_dataset_lines(tunings, folds, width))
+
+
+def _per_dataset_lines(tunings: Sequence[EstimatorTuning], folds: Sequence[Fold], width: int) -> list[str]:
+    """Under `format_tuning`'s table: the default and tuned scores per dataset of the test
+    recordings (`scores_per_dataset`) when they come from two or more; and a note when test recordings
+    were also tuned on (`--train` and `--test` overlapping: their "tuned" is in sample)."""
+    out = []
+    parts = {t.estimator: scores_per_dataset(t) for t in tunings}
+    if any(len(p) >= 2 for p in parts.values()):
+        name = max([len(d["dataset"]) for p in parts.values() for d in p] + [7])
+        out += ["", "per dataset of the test recordings (mean over its recordings):",
+                f"{'estimator':<{width}}  {'dataset':<{name}}  {'recs':>4}  {'default':>8}  {'tuned':>8}"]
+        for label, p in parts.items():
+            out += [f"{label:<{width}}  {d['dataset']:<{name}}  {d['recordings']:4d}  {_cell(d['default_deg'])}  "
+                    f"{_cell(d['tuned_deg'])}" for d in p]
+    overlap = sorted({rid for f in folds for rid in set(f.train) & set(f.test)})
+    if overlap:
+        out.append(f"note: {len(overlap)} test recording{'s were' if len(overlap) > 1 else ' was'} also tuned on "
+                   f"({', '.join(overlap[:3])}{', ...' if len(overlap) > 3 else ''}): "
+                   f"{'their' if len(overlap) > 1 else 'its'} tuned scores are in sample")
+    return out
+
+
+def _cell(value: float | None) -> str:
+    return f"{value:8.2f}" if value is not None else f"{'failed':>8}"
 
 
 def _finish(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores, tunings: list[EstimatorTuning],

@@ -118,9 +118,14 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     assert notes == ["fusion: note: identical recordings counted once: "
                      "ece276a/N = ece276a-2018/N, ese650/N for N = 1-9"]
     lines = out.splitlines()
-    # one mean per folder (different sensors and protocols are never averaged together)
-    assert [line.split()[:4] for line in lines if line.startswith("mean ")] == [
-        ["mean", "broad", "(14)", "dr"], ["mean", "ece276a", "(9)", "dr"]]
+    # one mean per folder (recordings of different sensors and protocols are never pooled), then the
+    # mean of the folders' means, each folder counted once
+    means = [line.split() for line in lines if line.startswith("mean ")]
+    assert [m[:4] for m in means] == [["mean", "broad", "(14)", "dr"], ["mean", "ece276a", "(9)", "dr"],
+                                      ["mean", "all", "datasets", "(2)"]]
+    assert float(means[2][5]) == pytest.approx((float(means[0][4]) + float(means[1][4])) / 2, abs=0.011)
+    (together,) = doc["datasets"]["all"]
+    assert together["datasets"] == 2 and together["recordings"] == 23
     first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean "))
     first_row = next(i for i, line in enumerate(lines) if line.startswith(("broad/", "ece276a/")))
     assert first_mean < first_row  # the summary comes first

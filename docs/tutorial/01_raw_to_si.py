@@ -27,6 +27,47 @@
 # `[w, x, y, z]` and describe `R_world_body` (body vectors into the world frame, world z up);
 # arrays are batch-first, `(N, 3)`; SI units inside (the accelerometer in g); degrees only in
 # plots and tables.
+#
+# ## 1.0 Starting from a fetched trial
+#
+# Public orientation benchmarks can be fetched by name. In a terminal:
+#
+#     fusion data list                                 # the datasets: size, licence, citation, what is local
+#     fusion data fetch 'broad/01*'                    # one BROAD trial (about 4 MB) into the user cache
+#     fusion data fetch 'broad/01*' --to /tmp/fusion-data   # or into a folder of your choice
+#
+# or from Python, `fusion.fetch.fetch("broad/01*", to="/tmp/fusion-data")`. Every file is pinned to
+# one commit of the repository that publishes it and checked against its git object id before it is
+# kept, so everyone who fetches it scores the same bytes. A fetched trial then has a name that every
+# command and the API take, without a data folder: `fusion compare --dataset 'broad/01*'`, or
+# `datasets.select("broad/01*")` below (with `--to DIR`, add `--data-dir DIR`, or set
+# `FUSION_DATA=DIR`). BROAD (Laidig et al. 2021, "BROAD - A Benchmark for Robust Inertial Orientation
+# Estimation", Data 6(7):72) is a different IMU from the course board, with optical motion capture as
+# its truth.
+#
+# The cell below finds the trial by name where `fusion compare` would: in `$FUSION_DATA` (the shared
+# data folder holds it), else in the cache `fusion data fetch` fills. Set `FETCH = True` to download
+# it first; the notebook never downloads unasked.
+
+# %%
+import numpy as np
+
+from tutorial_data import fetched_trial
+
+FETCH = False  # True: fetch 'broad/01*' into the user cache first (network, about 4 MB)
+trial = fetched_trial("broad/01*", fetch_now=FETCH)  # datasets.select("broad/01*"), then datasets.load_source
+steps = np.diff(trial.imu.t)
+print(f"{1 / np.median(steps):.2f} Hz, {trial.imu.t[-1] - trial.imu.t[0]:.0f} s; "
+      f"magnetometer: {'yes' if trial.imu.mag_ut is not None else 'no'}; "
+      f"truth: {'yes' if trial.truth is not None else 'no'}; raw counts: {'none' if trial.raw is None else 'yes'}")
+print("gyro rad/s, first sample:", np.round(trial.imu.gyr_rad_s[0], 4),
+      "; |acc| g, median:", round(float(np.median(np.linalg.norm(trial.imu.acc_g, axis=1))), 3))
+
+# %% [markdown]
+# BROAD publishes its trials in SI units (rad/s, m/s^2, uT; the loader gives the accelerometer in
+# g), so the trial has no raw counts (`raw` is None): it is ready for any estimator, e.g.
+# `fusion compare --estimators ekf,vqf --dataset 'broad/01*'`. The course board's files hold ADC
+# counts instead; turning them into the same units is what the rest of this chapter is about.
 
 # %%
 # %matplotlib inline

@@ -55,6 +55,36 @@ def load_recording(preferred: str = "ece276a/1") -> Recording:
     return recording
 
 
+def fetched_trial(name: str = "broad/01*", fetch_now: bool = False) -> Recording:
+    """A public dataset's recording found by name, as `fusion compare --dataset NAME` finds it: in
+    the data directory (`$FUSION_DATA`: the shared folder holds fourteen BROAD trials), else in the
+    folder `fusion data fetch` fills (the user cache, `fusion.fetch.cache_dir()`).
+
+    fetch_now: download it into the cache first (`fusion.fetch.fetch`: network, verified); the
+        notebook never downloads unasked. Not found and not fetched: with `$FUSION_DATA` set, an
+        error (as `load_recording`); else `sim`, said out loud, with the command that fetches it.
+    Prints one line naming what was loaded and from where.
+    """
+    if fetch_now:
+        from fusion.fetch import fetch
+
+        report = fetch(name)
+        print(report.summary())
+        if not report.ok:
+            raise RuntimeError(f"fetching {name!r} failed: {report.errors()}")
+    try:
+        (source,) = datasets.select(name)[:1]
+    except ValueError as exc:
+        if os.environ.get("FUSION_DATA"):
+            raise FileNotFoundError(f"FUSION_DATA={os.environ['FUSION_DATA']} is set, but {exc}") from None
+        print(f"NOTE: no recording {name!r} fetched yet (run `fusion data fetch '{name}'`, or set FETCH = True): "
+              f"this section runs on '{SIM}', the built-in simulated recording.")
+        return datasets.load(SIM)
+    recording = datasets.load_source(source)
+    print(f"{recording.id}: {len(recording.imu)} IMU samples from {source.imu}")
+    return recording
+
+
 def course_recordings(limit: int | None = None) -> list[str]:
     """Ids of the course recordings with ground truth (`ece276a/1`, ...), or `["sim"]` without data.
 
