@@ -61,6 +61,9 @@ TRUTH_COLOR = (200, 200, 200)
 SLOT_M = 1.2  # the bodies stand this far apart along the world x axis
 BOX_HALF_M = (0.45, 0.3, 0.06)  # a board, longest along the optical axis (body x)
 AXIS_COLORS = ((230, 60, 60), (60, 200, 60), (70, 110, 240))
+# a filter's flags (`consistency.Belief`: updated, rest, guarded) and their colours (a flag's, not its filter's)
+FLAGS = ("accel_update", "rest", "guarded")
+FLAG_COLORS = ((70, 110, 240), (60, 170, 60), (240, 150, 30))
 
 
 class RerunMissing(ImportError):
@@ -188,7 +191,7 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
     for name, spans in events.items():
         entity = f"events/{event_entity(name)}"
         static(entity, rr.SeriesLines(names=[name], interpolation_mode="StepAfter"))
-        t, v = _steps(spans)
+        t, v = event_steps(spans, float(x[-1]))
         send(entity, t, rr.Scalars.columns(scalars=v))
         starts += [(a, f"{name}: {a:.2f}-{b:.2f} s") for a, b in spans]
     if starts:
@@ -205,9 +208,9 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
             good = np.isfinite(values)
             if good.any():
                 send(f"{base}/{key}", x[good], rr.Scalars.columns(scalars=np.asarray(values, float)[good]))
-        for key, flag in (("accel_update", belief.updated), ("rest", belief.rest), ("guarded", belief.guarded)):
+        for key, rgb, flag in zip(FLAGS, FLAG_COLORS, (belief.updated, belief.rest, belief.guarded)):
             if flag is not None:
-                static(f"{base}/{key}", rr.SeriesLines(names=[f"{s.labels[e]} {key}"], colors=[colors[e]],
+                static(f"{base}/{key}", rr.SeriesLines(names=[f"{s.labels[e]} {key}"], colors=[rgb],
                                                        interpolation_mode="StepAfter"))
                 t, v = flag_steps(x, flag)
                 send(f"{base}/{key}", t, rr.Scalars.columns(scalars=v))
@@ -219,7 +222,7 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
                             columns=rr.Scalars.columns(scalars=np.asarray(loss, float)))
 
     camera = _log_camera(rr, stream, f"{root}/world/truth/body/camera", recording, t0, data_dir, camera_hz)
-    return _tab(rrb, root, s.id, names, bool(events), bool(s.beliefs), camera)
+    return _tab(rrb, root, s.id, [names[e] for e in sorted(s.beliefs)], bool(events), camera)
 
 
 def recording_events(recording: Any, s: Any) -> dict[str, list[tuple[float, float]]]:
@@ -252,18 +255,22 @@ def event_entity(name: str) -> str:
     return name.replace(" ", "_").replace("-", "_")
 
 
-def _steps(spans: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """A 0/1 step series from spans: 0 at time 0, 1 at each start, 0 at each stop."""
+def event_steps(spans: list[tuple[float, float]], end: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 0/1 step series from spans (s): 0 at time 0, 1 at each start, 0 at each stop, and its last
+    value again at `end` (the recording's last sample), so that the line spans the recording."""
     t = [0.0] + [v for a, b in spans for v in (a, max(b, a))]
     v = [0.0] + [1.0, 0.0] * len(spans)
     order = np.argsort(np.asarray(t), kind="stable")
-    return np.asarray(t)[order], np.asarray(v)[order]
+    t, v = np.asarray(t)[order], np.asarray(v)[order]
+    return (np.append(t, end), np.append(v, v[-1])) if end > t[-1] else (t, v)
 
 
 def flag_steps(x: np.ndarray, flag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A per-sample flag as a step series: its value at the first sample and wherever it changes."""
+    """A per-sample flag as a step series: its value at the first sample, wherever it changes and
+    at the last sample (so that the line spans the recording)."""
     f = np.asarray(flag, bool)
     keep = np.concatenate([[True], f[1:] != f[:-1]]) if len(f) else np.zeros(0, bool)
+    keep[-1:] = True
     return np.asarray(x, float)[keep], f[keep].astype(float)
 
 
@@ -323,18 +330,24 @@ def _log_camera(rr: Any, stream: Any, entity: str, recording: Any, t0: float, da
     return True
 
 
-def _tab(rrb: Any, root: str, name: str, estimators: list[str], events: bool, beliefs: bool, camera: bool) -> Any:
-    """One recording's layout: the bodies (and camera) on the left, the series on the right."""
+def _tab(rrb: Any, root: str, name: str, filters: list[str], events: bool, camera: bool) -> Any:
+    """One recording's layout: the bodies (and camera) on the left; on the right the errors, the
+    events, and in tabs the filters' flags and beliefs and the sensors."""
     left = [rrb.Spatial3DView(origin=f"{root}/world", name="orientations")]
     if camera:
         left.append(rrb.Spatial2DView(origin=f"{root}/world/truth/body/camera", name="camera (truth)"))
     right = [rrb.TimeSeriesView(origin=f"{root}/error/{kind}", name=f"{kind} error [deg]") for kind in KINDS]
     if events:
-        right.append(rrb.TimeSeriesView(origin=f"{root}/events", name="events"))
-    if beliefs:
-        right.append(rrb.TimeSeriesView(origin=f"{root}/beliefs", name="beliefs"))
-    right.append(rrb.Tabs(*[rrb.TimeSeriesView(origin=f"{root}/imu/{what}", name=what)
-                            for what in ("gyro_deg_s", "acc_g", "mag_ut")]))
+        right.append(rrb.TimeSeriesView(origin=f"{root}/events", name="events", contents=["+ $origin/**",
+                                                                                         "- $origin/log"]))
+    tabs = []
+    for title, keys in (("filter flags", FLAGS), ("sqrt(P_ii) [deg]", ("sigma_deg",)), ("NIS", ("nis",)),
+                        ("NEES", ("nees",)), ("gyro bias [deg/s]", ("gyro_bias_deg_s",))):
+        if filters:
+            tabs.append(rrb.TimeSeriesView(origin=f"{root}/beliefs", name=title,
+                                           contents=[f"+ $origin/{f}/{k}" for f in filters for k in keys]))
+    tabs += [rrb.TimeSeriesView(origin=f"{root}/imu/{what}", name=what) for what in ("gyro_deg_s", "acc_g", "mag_ut")]
+    right.append(rrb.Tabs(*tabs))
     if events:
         right.append(rrb.TextLogView(origin=f"{root}/events/log", name="event log"))
     return rrb.Horizontal(rrb.Vertical(*left, row_shares=[3, 2] if camera else None), rrb.Vertical(*right),

@@ -115,8 +115,9 @@ def test_every_entity_holds_its_samples_and_the_truth_to_1e_6(written, data, kin
         assert scalars(rrd[f"{root}/cost/toysmooth"]) == pytest.approx(100.0 * 0.5 ** np.arange(12), rel=1e-12)
         # the truth's gap (samples 200-229 NaN) is an event: 1 from its start to its end, 0 elsewhere
         gap = rrd[f"{root}/events/no_truth"]
-        np.testing.assert_allclose(seconds(gap), [0.0, rec.truth.t[200] - t0, rec.truth.t[229] - t0], atol=1e-9)
-        assert scalars(gap).tolist() == [0.0, 1.0, 0.0]
+        np.testing.assert_allclose(seconds(gap), [0.0, rec.truth.t[200] - t0, rec.truth.t[229] - t0,
+                                                  rec.imu.t[-1] - t0], atol=1e-9)
+        assert scalars(gap).tolist() == [0.0, 1.0, 0.0, 0.0]
         assert any("no truth" in text[0] for text in rrd[f"{root}/events/log"]["TextLog:text"])
         # camera frames rendered with the truth every 0.5 s over its span, none inside its gap
         grid = rec.truth.t[0] - t0 + 0.5 * np.arange(10)
@@ -135,13 +136,17 @@ def test_with_and_without_an_output_folder_the_files_agree(written):
 
 
 def test_flags_switches_are_steps():
-    from fusion.evaluation.rerun_log import flag_steps
+    from fusion.evaluation.rerun_log import event_steps, flag_steps
 
     x = np.arange(8) * 0.1
     t, v = flag_steps(x, np.array([0, 0, 1, 1, 1, 0, 1, 1], bool))
-    assert t.tolist() == pytest.approx([0.0, 0.2, 0.5, 0.6]) and v.tolist() == [0.0, 1.0, 0.0, 1.0]
+    assert t.tolist() == pytest.approx([0.0, 0.2, 0.5, 0.6, 0.7]) and v.tolist() == [0.0, 1.0, 0.0, 1.0, 1.0]
     t, v = flag_steps(x, np.ones(8, bool))
-    assert t.tolist() == [0.0] and v.tolist() == [1.0]
+    assert t.tolist() == pytest.approx([0.0, 0.7]) and v.tolist() == [1.0, 1.0]
+    t, v = flag_steps(x, np.array([0, 0, 0, 0, 0, 0, 0, 1], bool))  # switched on at the last sample
+    assert t.tolist() == pytest.approx([0.0, 0.7]) and v.tolist() == [0.0, 1.0]
+    t, v = event_steps([(0.0, 0.3), (0.5, 0.7)], end=0.7)  # on from the start; off at the end
+    assert t.tolist() == pytest.approx([0.0, 0.0, 0.3, 0.5, 0.7]) and v.tolist() == [0.0, 1.0, 0.0, 1.0, 0.0]
 
 
 def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(tmp_path):
@@ -157,8 +162,8 @@ def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(tmp_path
     rrd = read_back(path)
     t = rec.imu.t - rec.imu.t[0]
     event = rrd["/toy/1/events/gyro_invalid"]
-    np.testing.assert_allclose(seconds(event), [0.0, t[100], t[140]], atol=1e-9)
-    assert scalars(event).tolist() == [0.0, 1.0, 0.0]
+    np.testing.assert_allclose(seconds(event), [0.0, t[100], t[140], t[-1]], atol=1e-9)
+    assert scalars(event).tolist() == [0.0, 1.0, 0.0, 0.0]
     np.testing.assert_allclose(quats(rrd["/toy/1/world/dr/body"]), results[0].trajectory.quat_wxyz, atol=1e-6)
     assert "/toy/1/world/truth/body/camera" not in rrd  # camera_hz=0: no frames
 
