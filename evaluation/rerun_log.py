@@ -190,7 +190,7 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
     starts = []
     for name, spans in events.items():
         entity = f"events/{event_entity(name)}"
-        static(entity, rr.SeriesLines(names=[name], interpolation_mode="StepAfter"))
+        static(entity, rr.SeriesLines(names=[name], interpolation_mode="StepAfter", aggregation_policy="Off"))
         t, v = event_steps(spans, float(x[-1]))
         send(entity, t, rr.Scalars.columns(scalars=v))
         starts += [(a, f"{name}: {a:.2f}-{b:.2f} s") for a, b in spans]
@@ -211,7 +211,7 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
         for key, rgb, flag in zip(FLAGS, FLAG_COLORS, (belief.updated, belief.rest, belief.guarded)):
             if flag is not None:
                 static(f"{base}/{key}", rr.SeriesLines(names=[f"{s.labels[e]} {key}"], colors=[rgb],
-                                                       interpolation_mode="StepAfter"))
+                                                       interpolation_mode="StepAfter", aggregation_policy="Off"))
                 t, v = flag_steps(x, flag)
                 send(f"{base}/{key}", t, rr.Scalars.columns(scalars=v))
         if belief.bias_rad_s is not None:

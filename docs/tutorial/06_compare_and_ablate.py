@@ -274,6 +274,15 @@ else:
 # tracking gaps; on BROAD its movement phases and magnetic disturbances) with a log line as each
 # starts; what each filter believed (its $\sqrt{P_{ii}}$, NIS and NEES, and its rest-update, bias-guard
 # and accelerometer-update flags as steps); the calibrated gyro, accelerometer and magnetometer.
+# The file of the command above, opened in Rerun's web viewer (`rerun run.rrd --web-viewer`; the
+# screenshot is stored beside this notebook, it is not made when the notebook runs):
+
+# %%
+from IPython.display import Image
+
+Image(filename="images/rerun_ece276a_1.jpg", width=960)
+
+# %% [markdown]
 # Below, the same run from Python, and the file read back with Rerun's own reader.
 
 # %%
