@@ -144,7 +144,8 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
     root = "/" + "/".join(rr.escape_entity_path_part(p) for p in s.id.split("/"))
     t0 = float(s.imu_t[0])
     x = np.asarray(s.imu_t, float) - t0
-    names = [rr.escape_entity_path_part(label) for label in s.labels]
+    # entity names of the estimators (a trajectory file named "truth" must not replace the truth's)
+    names = [rr.escape_entity_path_part(label if label != "truth" else "truth (estimate)") for label in s.labels]
     colors = [_rgb(color(e)) for e in range(len(s.labels))]
 
     def send(entity: str, t: np.ndarray, columns: Any) -> None:
@@ -160,7 +161,8 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
     bodies += [(names[e], s.labels[e], colors[e], x, np.asarray(s.quat[e], float)) for e in range(len(names))]
     for k, (name, label, rgb, t, quat_wxyz) in enumerate(bodies):
         static(f"world/{name}", rr.Transform3D(translation=[k * SLOT_M, 0.0, 0.0]))
-        static(f"world/{name}/body", rr.Boxes3D(half_sizes=[BOX_HALF_M], colors=[rgb], labels=[label], show_labels=True),
+        static(f"world/{name}/body",
+               rr.Boxes3D(half_sizes=[BOX_HALF_M], colors=[rgb], labels=[label], show_labels=True),
                rr.Arrows3D(vectors=np.eye(3) * 0.7, colors=AXIS_COLORS))
         good = np.all(np.isfinite(quat_wxyz), axis=1)
         if good.any():
@@ -218,7 +220,8 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
             _series_style(rr, static, f"{base}/gyro_bias_deg_s", "xyz", AXIS_COLORS)
             send(f"{base}/gyro_bias_deg_s", x, rr.Scalars.columns(scalars=np.degrees(belief.bias_rad_s)))
     for e, loss in sorted(s.losses.items()):
-        stream.send_columns(f"{root}/cost/{names[e]}", indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(loss)))],
+        stream.send_columns(f"{root}/cost/{names[e]}",
+                            indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(loss)))],
                             columns=rr.Scalars.columns(scalars=np.asarray(loss, float)))
 
     camera = _log_camera(rr, stream, f"{root}/world/truth/body/camera", recording, t0, data_dir, camera_hz)

@@ -149,15 +149,15 @@ def test_flags_switches_are_steps():
     assert t.tolist() == pytest.approx([0.0, 0.0, 0.3, 0.5, 0.7]) and v.tolist() == [0.0, 1.0, 0.0, 1.0, 0.0]
 
 
-def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(tmp_path):
+def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(toy, tmp_path):
     """`write_results` from `compare`'s whole results; the samples marked invalid for the
-    estimators are the event `gyro_invalid`."""
-    require_module("rerun")
+    estimators are the event `gyro_invalid`; a label with parameters is one entity (escaped)."""
+    rr = require_module("rerun")
     from fusion.evaluation.compare import compare
     from fusion.evaluation.rerun_log import write_results
 
     rec = recording(N, bad_gyro=(100, 140), rid="toy/1")
-    results = compare("dr", [rec])
+    results = compare("dr,toy:g=1.05", [rec])
     path = write_results(tmp_path / "api.rrd", [rec], results, camera_hz=0)
     rrd = read_back(path)
     t = rec.imu.t - rec.imu.t[0]
@@ -165,6 +165,9 @@ def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(tmp_path
     np.testing.assert_allclose(seconds(event), [0.0, t[100], t[140], t[-1]], atol=1e-9)
     assert scalars(event).tolist() == [0.0, 1.0, 0.0, 0.0]
     np.testing.assert_allclose(quats(rrd["/toy/1/world/dr/body"]), results[0].trajectory.quat_wxyz, atol=1e-6)
+    toy_entity = f"/toy/1/world/{rr.escape_entity_path_part('toy:g=1.05')}/body"
+    np.testing.assert_allclose(quats(rrd[toy_entity]), results[1].trajectory.quat_wxyz, atol=1e-6)
+    assert rrd[f"/toy/1/world/{rr.escape_entity_path_part('toy:g=1.05')}/body"]["Boxes3D:labels"] == [["toy:g=1.05"]]
     assert "/toy/1/world/truth/body/camera" not in rrd  # camera_hz=0: no frames
 
 
