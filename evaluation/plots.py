@@ -765,7 +765,8 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     """The total error of every estimator against time, with the recording's events shaded
     (`recording_events`: no truth in grey, gyro invalid in red) and each filter's flag switches
     marked (`flag_switches`): over the whole recording, then zoomed to `window_s` either side of
-    its `max_windows` longest events. None without truth, or with neither events nor flags."""
+    its `max_windows` longest events (events closer than two windows share one). None without
+    truth, or with neither events nor flags."""
     if not s.has_truth or not np.isfinite(s.err_deg).any():
         return None
     events = recording_events(s)
@@ -773,7 +774,14 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     flagged = [e for e, marks in switches.items() if marks]
     if not events and not flagged:
         return None
-    windows = sorted(sorted(events, key=lambda ev: ev[0] - ev[1])[:max_windows])
+    near: list[tuple[float, float, str]] = []  # events whose zoomed windows would overlap share one
+    for a, b, kind in events:
+        if near and a - window_s <= near[-1][1] + window_s:
+            kinds = list(dict.fromkeys(near[-1][2].split(" + ") + [kind]))
+            near[-1] = (near[-1][0], max(near[-1][1], b), " + ".join(kinds))
+        else:
+            near.append((a, b, kind))
+    windows = sorted(sorted(near, key=lambda ev: ev[0] - ev[1])[:max_windows])
     t0 = float(s.imu_t[0])
     x = s.imu_t - t0
     ncols = max(len(windows), 1)

@@ -108,12 +108,17 @@ def test_event_figure_zooms_on_the_events_and_marks_the_flags(toy):
     order; the full panel draws every estimator; the filter's flags are marked where they switch on."""
     s = _series(specs=["dr", "ekf"], n=900, gap=(200, 230), bad_gyro=(400, 450))
     assert [kind for _, _, kind in plots.recording_events(s)] == ["no truth", "gyro invalid"]
-    fig = plots.event_error_figure(s, window_s=1.0)
-    titles = [ax.get_title(loc="left") for ax in fig.axes]
-    zoomed = [t for t in titles if t.startswith(("no truth", "gyro invalid"))]
     t0 = s.imu_t[0]
-    assert zoomed == [f"no truth: {s.truth_t[199] - t0:.2f}-{s.truth_t[230] - t0:.2f} s",
-                      f"gyro invalid: {s.imu_t[399] - t0:.2f}-{s.imu_t[450] - t0:.2f} s"]
+
+    def zoomed(fig):
+        return [t for t in (ax.get_title(loc="left") for ax in fig.axes) if t.startswith(("no truth", "gyro invalid"))]
+
+    # 1.7 s apart: with 0.5 s either side, two windows; with 1 s, one for both
+    assert zoomed(plots.event_error_figure(s, window_s=0.5)) == [
+        f"no truth: {s.truth_t[199] - t0:.2f}-{s.truth_t[230] - t0:.2f} s",
+        f"gyro invalid: {s.imu_t[399] - t0:.2f}-{s.imu_t[450] - t0:.2f} s"]
+    fig = plots.event_error_figure(s, window_s=1.0)
+    assert zoomed(fig) == [f"no truth + gyro invalid: {s.truth_t[199] - t0:.2f}-{s.imu_t[450] - t0:.2f} s"]
     whole = fig.axes[0]
     assert [line.get_label() for line in whole.get_lines()][:2] == ["dr", "ekf"]
     # a filter's flags are marked where they switch on (on from the first sample: marked there)
