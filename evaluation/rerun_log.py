@@ -1,4 +1,4 @@
-"""A compare run as a Rerun recording (`.rrd`): the estimators' orientations side by side in 3-D,
+"""A compare (or ablate) run as a Rerun recording (`.rrd`): the estimators' orientations side by side in 3-D,
 on one timeline with the truth, the sensors, the errors, the recording's events and what each
 filter believed.
 
@@ -21,8 +21,8 @@ since its first IMU sample:
     world/truth/body              Transform3D (quaternion per truth sample; tracking gaps left out),
                                   a box and body axes (x red, y green, z blue), light grey
     world/truth/body/camera       the camera frames (its own, or frames rendered from a scene with the
-                                  truth, as `fusion panorama` does), JPEG at `camera_hz`, optical axis
-                                  body x; a pinhole
+                                  truth, as `fusion panorama` does), JPEG, 160 px wide, at `camera_hz`;
+                                  a pinhole looking along body x
     world/<estimator>/body        Transform3D per IMU sample, the box in the estimator's colour (its
                                   colour in the report's figures); each estimator stands beside the truth
     imu/gyro_deg_s, imu/acc_g, imu/mag_ut     the calibrated samples, x y z (mag: valid samples only)
