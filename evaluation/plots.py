@@ -23,6 +23,7 @@ import re
 import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from scipy.spatial.transform import Rotation
 
@@ -728,4 +729,116 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
     label = _display_label(s.labels[e], s.causal[e])
     fig.suptitle(f"{s.id}, {label}: attitude error against the filter's ±3σ, NIS, events"
                  + (", gyro bias" if has_bias else ""), fontsize=10, y=1 - 0.15 / height, va="top")
+    return fig
+
+
+# --- the error around a recording's events ---
+
+# a filter's flags (`fusion.evaluation.consistency.Belief`), marked where they switch on
+FLAG_MARKS = {"rest": ("v", "rest update on"), "guarded": ("x", "bias guard on"),
+              "skipped": ("|", "accelerometer update skipped")}
+
+
+def recording_events(s: RecordingSeries) -> list[tuple[float, float, str]]:
+    """The events inside the recording the series knows (s, absolute): spans where the gyro was
+    marked invalid (`gyr_valid`: detected freezes, saturation) and gaps in the truth, leaving out
+    the spans before its first and after its last sample; sorted by start."""
+    t0, t1 = float(s.imu_t[0]), float(s.imu_t[-1])
+    inside = [(a, b, "no truth") for a, b in truth_gaps(s) if a > t0 and b < t1] if s.has_truth else []
+    return sorted(inside + [(a, b, "gyro invalid") for a, b in bad_gyro_spans(s)])
+
+
+def flag_switches(s: RecordingSeries, e: int) -> dict[str, np.ndarray]:
+    """Times (s, absolute) where filter `e`'s flags switched on, by flag (`FLAG_MARKS`): its rest
+    update, its bias guard and a skipped accelerometer update; {} without beliefs. A flag already
+    on at the first sample counts as switched on there."""
+    belief = s.beliefs.get(e)
+    if belief is None:
+        return {}
+    flags = {"rest": belief.rest, "guarded": belief.guarded, "skipped": belief.skipped}
+    return {key: np.asarray(s.imu_t, float)[[a for a, _ in runs(mask)]]
+            for key, mask in flags.items() if mask is not None and np.any(mask)}
+
+
+def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float = 3.0,
+                       max_windows: int = 3) -> Figure | None:
+    """The total error of every estimator against time, with the recording's events shaded
+    (`recording_events`: no truth in grey, gyro invalid in red) and each filter's flag switches
+    marked (`flag_switches`): over the whole recording, then zoomed to `window_s` either side of
+    its `max_windows` longest events (events closer than two windows share one). None without
+    truth, or with neither events nor flags."""
+    if not s.has_truth or not np.isfinite(s.err_deg).any():
+        return None
+    events = recording_events(s)
+    switches = {e: flag_switches(s, e) for e in range(len(s.labels))}
+    flagged = [e for e, marks in switches.items() if marks]
+    if not events and not flagged:
+        return None
+    near: list[tuple[float, float, str]] = []  # events whose zoomed windows would overlap share one
+    for a, b, kind in events:
+        if near and a - window_s <= near[-1][1] + window_s:
+            kinds = list(dict.fromkeys(near[-1][2].split(" + ") + [kind]))
+            near[-1] = (near[-1][0], max(near[-1][1], b), " + ".join(kinds))
+        else:
+            near.append((a, b, kind))
+    windows = sorted(sorted(near, key=lambda ev: ev[0] - ev[1])[:max_windows])
+    t0 = float(s.imu_t[0])
+    x = s.imu_t - t0
+    ncols = max(len(windows), 1)
+    layout = [["all"] * ncols] + ([["flags"] * ncols] if flagged else []) + ([[f"w{i}" for i in range(ncols)]]
+                                                                              if windows else [])
+    heights = [3.0] + ([0.5 + 0.35 * len(flagged)] if flagged else []) + ([2.6] if windows else [])
+    fig = _new_figure(11, 1.2 + sum(heights))
+    axes = fig.subplot_mosaic(layout, height_ratios=heights)
+
+    def draw_errors(ax, lo: float, hi: float, decimate: bool) -> None:
+        _shade(ax, s, t0)
+        top = 0.0
+        for e, label in enumerate(s.labels):
+            err = s.err_deg[e, 0]
+            inside = (x >= lo) & (x <= hi)
+            xs, ys = decimate_minmax(x[inside], err[inside]) if decimate else (x[inside], err[inside])
+            ax.plot(xs, ys, color=color(e), ls=linestyle(e), lw=1.0, label=_display_label(label, s.causal[e]))
+            if np.isfinite(err[inside]).any():
+                top = max(top, float(np.nanmax(err[inside])))
+        for r, e in enumerate(flagged):  # flag switches as ticks along the bottom, one row per filter
+            for key, times in switches[e].items():
+                shown = times[(times - t0 >= lo) & (times - t0 <= hi)] - t0
+                ax.plot(shown, np.full(len(shown), 0.04 + 0.07 * r), FLAG_MARKS[key][0], color=color(e), ms=5,
+                        transform=ax.get_xaxis_transform(), clip_on=True)
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(0, 1.1 * top if top > 0 else 1.0)
+        ax.grid(alpha=0.3)
+
+    span = float(x[-1])
+    draw_errors(axes["all"], 0.0, span, decimate=True)
+    axes["all"].set_ylabel("total error [deg]")
+    axes["all"].set_xlabel("time since first IMU sample [s]")
+    for a, b, _ in windows:
+        axes["all"].axvspan(a - t0 - window_s, b - t0 + window_s, fill=False, ec="0.3", lw=0.8, ls="--", zorder=3)
+    if flagged:
+        ax = axes["flags"]
+        for r, e in enumerate(flagged):
+            for key, times in switches[e].items():
+                ax.plot(times - t0, np.full(len(times), r), FLAG_MARKS[key][0], color=color(e), ms=6)
+        ax.set_yticks(range(len(flagged)), [_display_label(s.labels[e], s.causal[e]) for e in flagged], fontsize=8)
+        ax.set_ylim(-0.6, len(flagged) - 0.4)
+        ax.set_xlim(0, span)
+        ax.set_title("where each filter's flags switched on", fontsize=9, loc="left")
+        ax.grid(alpha=0.3, axis="x")
+    for i, (a, b, kind) in enumerate(windows):
+        ax = axes[f"w{i}"]
+        draw_errors(ax, max(a - t0 - window_s, 0.0), min(b - t0 + window_s, span), decimate=False)
+        ax.set_title(f"{kind}: {a - t0:.2f}-{b - t0:.2f} s", fontsize=9, loc="left")
+        ax.set_xlabel("time [s]")
+        if i == 0:
+            ax.set_ylabel("total error [deg]")
+    handles, _ = axes["all"].get_legend_handles_labels()
+    handles += _shade_handles(s, truth)
+    used = sorted({key for e in flagged for key in switches[e]}, key=list(FLAG_MARKS).index)
+    handles += [Line2D([], [], ls="none", marker=FLAG_MARKS[k][0], color="0.2", label=FLAG_MARKS[k][1])
+                for k in used]
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 5), fontsize=9)
+    fig.suptitle(f"{s.id}: total error against {truth} around the events"
+                 + (f" (dashed: the {len(windows)} longest, zoomed below)" if windows else ""), fontsize=10)
     return fig

@@ -191,9 +191,15 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
                          "folder with one file per recording")
     root = s.resolved_data_dir()
     load = s.load_options()  # a bad calibration file fails here, before the output folder is touched
+    if s.rerun:  # before any work: the package is installed, the file name is a .rrd in a folder
+        from .rerun_log import check_path, require
+
+        require()
+        check_path(s.rerun)
     if not s.out:
-        results = run(entries, sources, s)
-        return _finish(None, None, entries, sources, results, document, s)
+        parts = _Parts() if s.rerun else None  # the estimates for the .rrd, kept in memory
+        results = run(entries, sources, s, series=parts is not None, on_done=parts.record if parts else None)
+        return _finish(None, parts, entries, sources, results, document, s, range(len(results)))
     with OutputFolder(s.out) as folder:
         if not s.resume and not s.overwrite and folder.holds_run():
             raise ValueError(f"{folder.path}: holds an earlier run (results.json); give --overwrite to replace it, "
@@ -212,11 +218,9 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
                 note(f"resuming {folder.path}: {len(done)} of {len(keys)} jobs done, {len(keys) - len(done)} to run")
 
             def record(n: int, output: JobOutput) -> None:
-                part = dict(output.part or {})
-                part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
-                journal.record(keys[n], output.result.to_json(), output.result.error, part or None)
+                journal.record(keys[n], output.result.to_json(), output.result.error, _series_part(output))
 
-            results = run(entries, sources, s, series=s.per_recording, done=done, on_done=record)
+            results = run(entries, sources, s, series=s.per_recording or bool(s.rerun), done=done, on_done=record)
             return _finish(folder, journal, entries, sources, results, document, s, keys)
         finally:
             journal.close()
@@ -294,6 +298,8 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
              if document.get("kind") == "ablate" else None)
     if sweep:
         table += "\n\n" + ablate.format_sweep(sweep)
+    if s.rerun:
+        _write_rerun(journal, entries, sources, results, list(keys), s)
     if not (s.json_path or folder):
         return Run(results, table)
     root = s.resolved_data_dir()
@@ -320,6 +326,40 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         report = write_run(folder, doc, series, journal, jobs=s.jobs, progress=s.progress)
         journal.remove()
     return Run(results, table, doc, report)
+
+
+def _series_part(output: JobOutput) -> dict[str, np.ndarray] | None:
+    """What a job adds to its recording's series (`fusion.evaluation.series.job_part`), with its
+    recording's arrays under `rec_` names when it brings them; None without plot data."""
+    part = dict(output.part or {})
+    part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
+    return part or None
+
+
+class _Parts:
+    """The series parts of a run without an output folder, in memory by job number (what a journal
+    keeps on disk): for `--rerun` alone."""
+
+    def __init__(self) -> None:
+        self._parts: dict[int, dict[str, np.ndarray]] = {}
+
+    def record(self, n: int, output: JobOutput) -> None:
+        self._parts[n] = _series_part(output) or {}
+
+    def load_part(self, n: int) -> dict[str, np.ndarray]:
+        return self._parts[n]
+
+
+def _write_rerun(parts: Any, entries: list[ResolvedSpec], sources: list, results: list[Result], keys: list,
+                 s: RunSettings) -> None:
+    """The Rerun recording of a run (`s.rerun`, `fusion.evaluation.rerun_log`): each recording loaded
+    again (its sensors, events and camera) beside its series from the jobs' parts."""
+    from .rerun_log import write
+
+    load = s.load_options()
+    recordings = (load.load(source) for source in sources)
+    write(s.rerun, zip(recordings, _series(parts, entries, len(sources), results, keys, Path(), tum=False)),
+          data_dir=s.resolved_data_dir())
 
 
 def _trial_groups(sources: list) -> dict[str, list[str]]:

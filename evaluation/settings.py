@@ -81,7 +81,7 @@ class RunSettings:
     Computed: the selection (dataset, data_dir; None: $FUSION_DATA, else ./data), how recordings
     are loaded (calibration, dropouts, mag, imu_topic, truth_topic) and scored (init, protocol,
     align, panorama), timeout_s, repeat. Written: out, json_path, tum, per_recording (always on for
-    `run_compare`), primary, command. How: jobs (None or 0: all cores), progress, scheduler,
+    `run_compare`), primary, command, rerun (a `.rrd` file). How: jobs (None or 0: all cores), progress, scheduler,
     scatter (a Dask cluster: `fusion.evaluation.runner.run`), overwrite, resume.
     One field has no option (`API_ONLY`): `command`, the command line recorded in the results
     document, which the command line sets to itself.
@@ -148,6 +148,10 @@ class RunSettings:
         "--primary", "the metric whose 95 %% interval and significance mark the table shows (default: total; "
         "inclination for 6-D comparisons)", kind="choices", choices=KINDS))
     command: str | None = _part(WRITTEN, None, API_ONLY)  # the command line is the command line itself
+    rerun: str | None = _part(WRITTEN, None, Option(
+        "--rerun", "also write a Rerun recording (fusion.evaluation.rerun_log): the truth and every estimate as 3-D "
+        "bodies on one timeline, the camera frames, sensors, errors, events and the filters' beliefs; open it with "
+        "`rerun FILE.rrd` (needs pip install 'fusion[viz]')", metavar="FILE.rrd"))
     jobs: int | None = _part(HOW, 1, Option(
         "--jobs", "worker processes; 0 = all cores (default); results do not depend on it", type="count",
         metavar="N", default=0))
@@ -172,7 +176,7 @@ class RunSettings:
             raise ValueError(f"--primary must be one of {', '.join(KINDS)}, got {self.primary!r}")
         if not (isinstance(self.repeat, int) and self.repeat >= 1):
             raise ValueError(f"--repeat must be a whole number of at least 1, got {self.repeat!r}")
-        for name in ("data_dir", "calibration", "out", "json_path"):  # paths are kept as text (journalled)
+        for name in ("data_dir", "calibration", "out", "json_path", "rerun"):  # paths are kept as text (journalled)
             value = getattr(self, name)
             if isinstance(value, os.PathLike):
                 object.__setattr__(self, name, os.fspath(value))

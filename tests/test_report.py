@@ -3,6 +3,7 @@ equal serial ones, the output folder re-renders without recomputing, and report.
 shows every image and the numbers of results.json in a real browser."""
 from __future__ import annotations
 
+import dataclasses
 import html
 import json
 import os
@@ -102,6 +103,42 @@ def test_error_and_loss_figures(toy):
     assert plots.loss_figure(_series(specs=["dr"])) is None
 
 
+def test_event_figure_zooms_on_the_events_and_marks_the_flags(toy):
+    """The truth gap (rows 200-229) and the invalid gyro (400-449) each get a zoomed panel, in time
+    order; the full panel draws every estimator; the filter's flags are marked where they switch on."""
+    s = _series(specs=["dr", "ekf"], n=900, gap=(200, 230), bad_gyro=(400, 450))
+    assert [kind for _, _, kind in plots.recording_events(s)] == ["no truth", "gyro invalid"]
+    t0 = s.imu_t[0]
+
+    def zoomed(fig):
+        return [t for t in (ax.get_title(loc="left") for ax in fig.axes) if t.startswith(("no truth", "gyro invalid"))]
+
+    # 1.7 s apart: with 0.5 s either side, two windows; with 1 s, one for both
+    assert zoomed(plots.event_error_figure(s, window_s=0.5)) == [
+        f"no truth: {s.truth_t[199] - t0:.2f}-{s.truth_t[230] - t0:.2f} s",
+        f"gyro invalid: {s.imu_t[399] - t0:.2f}-{s.imu_t[450] - t0:.2f} s"]
+    fig = plots.event_error_figure(s, window_s=1.0)
+    assert zoomed(fig) == [f"no truth + gyro invalid: {s.truth_t[199] - t0:.2f}-{s.imu_t[450] - t0:.2f} s"]
+    whole = fig.axes[0]
+    assert [line.get_label() for line in whole.get_lines()][:2] == ["dr", "ekf"]
+    # a filter's flags are marked where they switch on (on from the first sample: marked there)
+    rest, guarded = np.zeros(900, bool), np.zeros(900, bool)
+    rest[:50] = rest[600:650] = True
+    guarded[700:710] = True
+    s = dataclasses.replace(s, beliefs={1: dataclasses.replace(s.beliefs[1], rest=rest, guarded=guarded)})
+    switches = plots.flag_switches(s, 1)
+    assert switches["rest"].tolist() == s.imu_t[[0, 600]].tolist()
+    assert switches["guarded"].tolist() == [s.imu_t[700]]
+    assert plots.flag_switches(s, 0) == {}  # dead reckoning has no beliefs
+    fig = plots.event_error_figure(s, window_s=1.0)
+    (flags,) = [ax for ax in fig.axes if ax.get_title(loc="left").startswith("where each filter")]
+    marks = {line.get_marker(): np.asarray(line.get_xdata(), float).tolist() for line in flags.get_lines()}
+    assert marks["v"] == pytest.approx((s.imu_t[[0, 600]] - t0).tolist())
+    assert marks["x"] == pytest.approx([s.imu_t[700] - t0])
+    # without events and flags there is nothing to show
+    assert plots.event_error_figure(_series(specs=["dr"], gap=None)) is None
+
+
 def test_summary_figures_count_cells_and_points():
     rows = [{"dataset": d, "estimator": e, "samples": 100, "seconds": 1e-3 * (i + 1),
              "rmse_deg": None if d == "c" else {k: 1.0 + i + j for k in ("total", "inclination", "heading")},
@@ -128,7 +165,7 @@ def test_compare_out_writes_everything_and_figures_are_not_blank(run_dir):
     assert doc["settings"]["command"].startswith("fusion compare --estimators dr,toy:g=1.05,toysmooth")
     figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert figures == sorted(["summary-rmse.png", "summary-speed.png"] + [
-        f"rec-00{n}-lab_rec{n + 1}-{kind}.png" for n in range(2) for kind in ("euler", "error", "loss")])
+        f"rec-00{n}-lab_rec{n + 1}-{kind}.png" for n in range(2) for kind in ("euler", "error", "events", "loss")])
     for name in figures:
         spread, colours = _png_stats(out / "figures" / name)
         assert spread > 0.05 and colours > 20, name
@@ -154,7 +191,8 @@ def test_report_rerenders_from_the_folder_alone(run_dir, tmp_path, monkeypatch):
     assert (out / "report.md").read_text() == (run_dir / "report.md").read_text()
     assert (out / "table.txt").read_text() == (run_dir / "table.txt").read_text()
     assert len((out / "report.html").read_text()) == pytest.approx(len((run_dir / "report.html").read_text()), rel=0.02)
-    assert len(list((out / "figures").glob("*.png"))) == 8
+    names = sorted(p.name for p in (out / "figures").glob("*.png"))
+    assert names == sorted(p.name for p in (run_dir / "figures").glob("*.png")) and len(names) == 10
 
 
 def test_report_on_a_folder_without_results_is_one_line(tmp_path, capsys):

@@ -255,12 +255,73 @@ else:
 # data would have claimed for free. Whether the remaining differences are real is what the diagram
 # says: with nine recordings only large differences in rank are significant.
 #
+# ## 6.5 Watching them: the run in 3-D, on one timeline with its events
+#
+# A table says how far each estimator is off; to see *when* and *why*, line the orientations up
+# with the recording's events. [Rerun](https://rerun.io) (the `rerun-sdk` package, the `viz`
+# extra) is a time-synchronised viewer of poses, images and scalar series; `--rerun FILE.rrd`
+# writes the run as one of its recordings, which its viewer opens:
+#
+#     pip install -e '.[viz]'
+#     fusion compare --estimators ekf,gn,vqf --dataset ece276a/1 --rerun run.rrd
+#     rerun run.rrd                  # the native viewer; `rerun run.rrd --web-viewer` in a browser
+#
+# Each recording gets a tab: the truth (light grey) and each estimator (in its colour in the report's
+# figures) as a board with its body axes (x red, y green, z blue), side by side, turning together as
+# you scrub the timeline; the camera's frames (here rendered from a 360-degree photograph with the
+# truth, as in notebook 7) on the truth's board; the total, inclination and heading error of each
+# estimator; the recording's events as steps (rest, the gyro freeze, the samples marked invalid,
+# tracking gaps; on BROAD its movement phases and magnetic disturbances) with a log line as each
+# starts; what each filter believed (its $\sqrt{P_{ii}}$, NIS and NEES, and its rest-update, bias-guard
+# and accelerometer-update flags as steps); the calibrated gyro, accelerometer and magnetometer.
+# The file of the command above, opened in Rerun's web viewer (`rerun run.rrd --web-viewer`; the
+# screenshot is stored beside this notebook, it is not made when the notebook runs):
+
+# %%
+from IPython.display import Image
+
+Image(filename="images/rerun_ece276a_1.jpg", width=960)
+
+# %% [markdown]
+# Below, the same run from Python, and the file read back with Rerun's own reader.
+
+# %%
+import tempfile
+from collections import Counter
+from pathlib import Path
+
+from rerun.chunk import RrdReader
+
+path = Path(tempfile.mkdtemp()) / "run.rrd"
+run_compare("ekf,gn,vqf", rec.id, rerun=path, jobs=JOBS)
+samples = Counter()
+for chunk in RrdReader(path).stream():
+    if not chunk.is_static:
+        samples[chunk.entity_path] += chunk.num_rows
+print(f"{path.name}: {path.stat().st_size / 1e6:.1f} MB, {len(samples)} entities")
+for entity, count in sorted(samples.items()):
+    print(f"{count:7d}  {entity}")
+
+# %% [markdown]
+# The bodies hold one orientation per IMU sample (the truth one per VICON sample, its gaps left
+# out); the errors one value per scored sample; events and flags one value per switch. Scrub to the
+# gyro freeze of `ece276a/1` (8.6-9.8 s, the `gyro_freeze` step under `events`): the gyro reads its
+# zero-rate level while the board turns, so every estimator's board lags the truth's and the total
+# errors jump to 3-5 deg inside it. What each carries out of it is heading: about 1.1-1.4 deg
+# averaged over the next two seconds, from 0.2-0.4 deg before, for the filters and the smoother
+# alike (no IMU-only estimator can observe the rotation about the vertical that the gyro missed),
+# and it stays for the rest of the recording. The report of `fusion compare --out DIR` shows the same moments as a figure per recording: the
+# total error around its events, the longest zoomed, with each filter's flag switches marked.
+
+# %% [markdown]
 # ## Summary
 #
 # * `run_compare` / `fusion compare` runs any set of estimators on any recordings, scored the same
 #   way; `--out DIR` writes the same results as `results.json`, figures and an HTML report.
 # * On the course recordings: smoother > filters with scale-factor states > plain filters and
 #   peers for inclination; heading is limited by the gyro (freezes, scale errors) for everyone.
+# * `--rerun FILE.rrd` (the `viz` extra) writes the run for Rerun's viewer: every estimator beside
+#   the truth in 3-D, on one timeline with the errors, the recording's events and the filters' flags.
 # * `run_ablate` / `fusion ablate` sweeps parameters. For Kraft's plain UKF the balance of $R$ and
 #   $Q$ (a time constant) is what to tune; the sigma-point scheme hardly matters.
 #
