@@ -3,7 +3,10 @@
 Each of `madgwick`, `mahony` and `ahrs-ekf` runs twice on the same samples, with `impl=compiled`
 (the numba twin, the default) and `impl=library` (the library's update per sample, the
 reference): the quaternions must agree to 1e-9 (largest difference of a component, q and -q the
-same), and so must the diagnostics (Mahony's bias estimate, the EKF's covariance).
+same), and so must the diagnostics (Mahony's bias estimate, the EKF's covariance). The twins round
+as one OpenBLAS build does; on a recording where another build's last-bit differences grow beyond
+1e-9, the bound is ten times the library's own rounding sensitivity there (how far its output moves
+when its accelerometer input moves by one unit in the last place).
 
 On every recording under `$FUSION_DATA` (the course sets and BROAD's trials as found there: 6-D,
 and 9-D where the recording has a magnetometer), a window of `WINDOW` samples: the library takes
@@ -34,6 +37,7 @@ from optional_helpers import build_estimator
 
 PEERS = ("madgwick", "mahony", "ahrs-ekf")
 TOL = 1e-9
+ROUNDING_FACTOR = 10.0  # a few last-place differences per step, against the one of `rounding_sensitivity`
 WINDOW = 1500  # samples per recording compared against the library (see the module docstring)
 OTHER_PARAMS = {"madgwick": "beta=0.12", "mahony": "kp=0.74,ki=0.0012",
                 "ahrs-ekf": "var_gyr=0.001,var_acc=0.01,var_mag=0.1,P0=0.01"}
@@ -43,6 +47,18 @@ def largest_difference(a: np.ndarray, b: np.ndarray) -> float:
     """max |a - b| over the components of (N, 4) quaternions, each row of b signed as a's."""
     sign = np.where(np.sum(a * b, axis=1) < 0.0, -1.0, 1.0)
     return float(np.max(np.abs(a - sign[:, None] * b)))
+
+
+def rounding_sensitivity(peer: str, imu: ImuSamples, seed: np.ndarray) -> dict[str, float]:
+    """How far the library's own quaternions and diagnostics move when every accelerometer value
+    moves by one unit in the last place: the scale of a rounding difference on these samples."""
+    lib = build_estimator(f"{peer}:impl=library").estimate(imu, seed)
+    nudged = build_estimator(f"{peer}:impl=library").estimate(
+        imu.replace(acc_g=np.nextafter(np.asarray(imu.acc_g), np.inf)), seed)
+    out = {"quat": largest_difference(lib.quat_wxyz, nudged.quat_wxyz)}
+    for key in lib.diagnostics:
+        out[key] = float(np.max(np.abs(np.asarray(lib.diagnostics[key]) - np.asarray(nudged.diagnostics[key]))))
+    return out
 
 
 def twin_and_library(peer: str, params: str, imu: ImuSamples, seed: np.ndarray) -> dict[str, float]:
@@ -94,7 +110,21 @@ def test_twin_equals_the_library_on_every_shared_recording(peer, shared_recordin
                 worst[f"{rid} {label} {name}"] = value
     assert any(key.endswith("9-D quat") for key in worst), "no recording with a magnetometer was compared"
     over = {key: value for key, value in worst.items() if not value <= TOL}
-    assert not over, f"{peer}: twin and library differ by more than {TOL}: {over}"
+    # Where they differ by more than TOL, the bound is the library's own rounding: how far its output
+    # moves when its accelerometer input moves by one unit in the last place (`rounding_sensitivity`).
+    # The twins round as one OpenBLAS build does (`fusion.estimators._compiled_peers`); another build
+    # rounds a norm or a product differently in the last bit, and Madgwick's normalised gradient, near
+    # zero where the estimate agrees with the accelerometer, turns that bit into up to 1e-8 (measured on
+    # ece276a/9 with numpy 2.4's OpenBLAS 0.3.31: twin 8.7e-9, the library against itself 3.5e-8).
+    inputs = {f"{rid} {label}": (samples, seed) for rid, imu, seed in shared_recordings
+              for label, samples in (("6-D", imu.replace(mag_ut=None)), ("9-D", imu))}
+    beyond = {}
+    for key, value in over.items():
+        run = key.rsplit(" ", 1)[0]
+        bound = ROUNDING_FACTOR * rounding_sensitivity(peer, *inputs[run])[key.rsplit(" ", 1)[1]]
+        if not value <= max(TOL, bound):
+            beyond[key] = (value, bound)
+    assert not beyond, f"{peer}: twin and library differ by more than {TOL} and their rounding allows: {beyond}"
 
 
 def simulated(rate_hz: float = 100.0) -> tuple[ImuSamples, np.ndarray]:
