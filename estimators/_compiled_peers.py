@@ -33,9 +33,11 @@ multiply-adds (`_norm3`, `_norm4`); `J.T @ f`, `R @ m` and `R.T @ v` are `dgemv`
 fused multiply-adds come in a fixed order for each shape (`_gemv3`, `_gemv6` and Mahony's
 products). These orders are OpenBLAS's (the BLAS of numpy's wheels, its x86-64 kernels for
 processors with FMA), read off by comparing bit for bit; with them the twins equal the library
-bit for bit on the shared recordings. With another BLAS or processor the library's own last
-bits change, and the twins then agree with it to rounding only (which, at rest, Madgwick's
-chaos can grow). The EKF contracts differences instead of growing them; its matrix products
+bit for bit on the shared recordings, for the OpenBLAS build they were read from. With another BLAS,
+build or processor the library's own last bits change, and the twins then agree with it to
+rounding only (which, at rest, Madgwick's chaos can grow: with numpy 2.4's OpenBLAS 0.3.31, 8.7e-9
+on a course recording, where the library itself moves 3.5e-8 when its accelerometer input moves by
+one unit in the last place). The EKF contracts differences instead of growing them; its matrix products
 are written as the library associates them (`(F P) F^T`, `(P H^T) S^-1`), with plain sums, and
 its 3x3 or 6x6 inverse is an LU factorisation with partial pivoting solved against the
 identity, as numpy's `inv` (LAPACK `gesv`) does: it agrees to 4e-13 on the shared recordings.
