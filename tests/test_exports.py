@@ -175,6 +175,37 @@ def test_float16_plot_arrays_and_exact_times(tmp_path):
     assert back.labels == ["a", "b"] and back.causal == [True, False]
 
 
+def test_flags_and_events_are_kept_compactly_and_older_files_read_without_them(tmp_path):
+    """Per-sample flags are stored as packed bits (N/8 bytes each) and read back exactly; the
+    recording's events as spans; a file written before either was kept reads with none."""
+    n = 1001
+    t = 1.3e9 + 0.01 * np.arange(n)
+    quat = np.tile(np.array([1, 0, 0, 0], np.float32), (2, n, 1))
+    err = np.zeros((2, 3, n), np.float32)
+    rng = np.random.default_rng(2)
+    rest = rng.random(n) < 0.3
+    flags = {0: {"rest_detected": rest, "mag_disturbance_detected": ~rest}, 1: {"accelerometer_ignored": rest[::-1].copy()}}
+    events = {"rest": [(0.0, 2.5), (8.0, 10.0)], "gyro freeze": [(4.0, 5.5)]}
+    s = series.RecordingSeries("x/1", t, np.ones(n, bool), t, quat[0], ["vqf", "fusion-ahrs"], [True, True], quat, err,
+                               flags=flags, events=events)
+    path = tmp_path / "s.npz"
+    series.save(path, s)
+    back = series.load(path)
+    assert back.events == events
+    assert set(back.flags) == {0, 1} and set(back.flags[0]) == {"rest_detected", "mag_disturbance_detected"}
+    for e, mine in flags.items():
+        for name, flag in mine.items():
+            assert back.flags[e][name].dtype == bool
+            np.testing.assert_array_equal(back.flags[e][name], flag)
+    with np.load(path) as z:
+        assert z["flag_0_rest_detected"].shape == ((n + 7) // 8,)
+        arrays = {k: z[k] for k in z.files if not k.startswith(("flag_", "event_"))}
+    np.savez(tmp_path / "older.npz", **arrays)  # as written before flags and events were kept
+    older = series.load(tmp_path / "older.npz")
+    assert older.flags == {} and older.events is None
+    np.testing.assert_array_equal(older.imu_t, t)
+
+
 def _save_plain(path: Path, s: series.RecordingSeries) -> None:
     """A series file as the version before the encoding wrote it: plain arrays, np.savez."""
     arrays = dict(id=np.array(s.id), imu_t=s.imu_t, gyr_valid=s.gyr_valid, truth_t=s.truth_t, truth_quat=s.truth_quat,
