@@ -876,7 +876,9 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     handles, _ = axes["all"].get_legend_handles_labels()
     handles += _shade_handles(s, truth) + _event_handles(s)
     handles += [Line2D([], [], ls="none", marker=marker, color="0.2", label=label) for marker, label in marks.values()]
-    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), fontsize=9)
+    longest = max(len(h.get_label()) for h in handles)  # columns that fit the figure's width (11 in at 9 pt)
+    fig.legend(handles=handles, loc="outside lower center", ncol=max(1, min(len(handles), 4, 110 // (longest + 8))),
+               fontsize=9)
     fig.suptitle(f"{s.id}: total error against {truth} around the events"
                  + (f" (dashed: the {len(windows)} longest, zoomed below)" if windows else ""), fontsize=10)
     return fig
