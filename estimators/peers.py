@@ -450,8 +450,9 @@ class FusionPeer(RecursiveEstimator):
         self._fusion = _require("imufusion", "imufusion", "fusion-ahrs")
 
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        """`step` over the recording (6-D, NWU; 9-D: `Ahrs.update`, the magnetometer in uT, normalised
-        inside, ENU), with Fusion's flags and states after each update as per-sample flags
+        """The library's update at every step, as `step` makes it (6-D, NWU; 9-D: `Ahrs.update`, the
+        magnetometer in uT, normalised inside, ENU), with the inputs converted once for the whole
+        recording, and Fusion's flags and states after each update as per-sample flags
         (`FUSION_FLAGS`; row 0, the seed: False)."""
         mag = imu.has_mag
         self.reset_for(imu, init_quat_wxyz, convention="ENU" if mag else "NWU")

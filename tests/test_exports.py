@@ -206,6 +206,30 @@ def test_flags_and_events_are_kept_compactly_and_older_files_read_without_them(t
     np.testing.assert_array_equal(older.imu_t, t)
 
 
+def test_flags_of_an_estimate_its_bool_diagnostics_and_the_scale_tests_decision():
+    """`flags_of`: every (N,) bool diagnostic that is on at least once, but those a filter's belief
+    holds (rest, guard); the scale test's decision on from the sample where its frozen ln L begins."""
+    from fusion.types import Trajectory
+
+    n = 50
+    t = np.arange(n) * 0.01
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    used = np.zeros(n, bool)
+    used[10:20] = True
+    llr = np.r_[np.linspace(0.0, 2.0, 30), np.full(n - 30, 2.5)]  # decided at sample 30: frozen from then on
+    d = {"mag_used": used, "mag_hard_iron": np.zeros(n, bool), "at_rest": used, "bias_guarded": used,
+         "nis": np.ones(n), "scale_llr": llr, "scale_decision": 1, "scale_released": np.ones(3, bool)}
+    flags = series.flags_of(Trajectory(t, quat, diagnostics=d))
+    assert sorted(flags) == ["at_rest", "bias_guarded", "mag_used", "scale_error_accepted"]  # no covariance here
+    np.testing.assert_array_equal(flags["scale_error_accepted"], np.arange(n) >= 30)
+    np.testing.assert_array_equal(flags["mag_used"], used)
+    with_cov = {**d, "cov": np.tile(np.eye(3), (n, 1, 1)), "scale_decision": -1}
+    flags = series.flags_of(Trajectory(t, quat, diagnostics=with_cov))
+    assert sorted(flags) == ["gyro_calibrated_accepted", "mag_used"]  # rest and guard: in its Belief
+    undecided = series.flags_of(Trajectory(t, quat, diagnostics={**d, "scale_decision": 0}))
+    assert "scale_error_accepted" not in undecided
+
+
 def _save_plain(path: Path, s: series.RecordingSeries) -> None:
     """A series file as the version before the encoding wrote it: plain arrays, np.savez."""
     arrays = dict(id=np.array(s.id), imu_t=s.imu_t, gyr_valid=s.gyr_valid, truth_t=s.truth_t, truth_quat=s.truth_quat,
