@@ -34,7 +34,9 @@ since its first IMU sample:
     events/log                    one line per event as it starts
     beliefs/<estimator>/...       filters with a covariance (`fusion.evaluation.consistency.Belief`):
                                   sigma_deg (x y z, sqrt(P_ii)), nis, nees, accel_update / rest /
-                                  guarded (1 while on, steps), gyro_bias_deg_s
+                                  guarded (1 while on, steps), gyro_bias_deg_s, scale_llr (ln L of the
+                                  sequential test on the gyro's scale factors, frozen once it crossed
+                                  +-ln((1 - e) / e), e = `scale_test_error`)
     beliefs/<estimator>/flags/<flag>   any estimator's per-sample flags (`fusion.evaluation.series.flags_of`),
                                   1 while on (steps): our filters' mag_used, acc_lowpassed and the
                                   scale test's decision; VQF's rest_detected and
@@ -222,6 +224,11 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
         if belief.bias_rad_s is not None:
             _series_style(rr, static, f"{base}/gyro_bias_deg_s", "xyz", AXIS_COLORS)
             send(f"{base}/gyro_bias_deg_s", x, rr.Scalars.columns(scalars=np.degrees(belief.bias_rad_s)))
+        llr = belief.scale_llr
+        if llr is not None and np.isfinite(llr).any():
+            good = np.isfinite(llr)
+            _series_style(rr, static, f"{base}/scale_llr", [f"{s.labels[e]} ln L"], [colors[e]])
+            send(f"{base}/scale_llr", x[good], rr.Scalars.columns(scalars=np.asarray(llr, float)[good]))
     for e, flags in sorted(s.flags.items()):
         for key, flag in flags.items():
             entity = f"beliefs/{names[e]}/flags/{rr.escape_entity_path_part(key)}"
@@ -346,7 +353,8 @@ def _tab(rrb: Any, root: str, name: str, filters: list[str], events: bool, camer
                                        contents=[f"+ $origin/{f}/{k}" for f in filters for k in FLAGS]
                                        + [f"+ $origin/{f}/flags/**" for f in flagged]))
     for title, keys in (("sqrt(P_ii) [deg]", ("sigma_deg",)), ("NIS", ("nis",)),
-                        ("NEES", ("nees",)), ("gyro bias [deg/s]", ("gyro_bias_deg_s",))):
+                        ("NEES", ("nees",)), ("gyro bias [deg/s]", ("gyro_bias_deg_s",)),
+                        ("scale test ln L", ("scale_llr",))):
         if filters:
             tabs.append(rrb.TimeSeriesView(origin=f"{root}/beliefs", name=title,
                                            contents=[f"+ $origin/{f}/{k}" for f in filters for k in keys]))

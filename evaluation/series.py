@@ -21,8 +21,8 @@ that `fusion report DIR` can draw the figures again without running any estimato
                             (`fusion.evaluation.consistency.Belief`): `_err` (N, 3) attitude
                             error against the truth, rad, body frame (NaN without truth);
                             `_sigma` (N, 3) sqrt(P_ii), rad; `_nees`, `_nis` (N,); `_updated`
-                            (N,) bool; where recorded `_rest`, `_guarded` (N,) bool and `_bias`
-                            (N, 3) rad/s
+                            (N,) bool; where recorded `_rest`, `_guarded` (N,) bool, `_bias`
+                            (N, 3) rad/s and `_scale_llr` (N,), the scale test's ln L
     flag_<e>_<name>        a per-sample flag of estimator e (`flags_of`: its (N,) bool
                             diagnostics, e.g. `mag_used`, VQF's `rest_detected`, Fusion's
                             `accelerometer_ignored`), where it is on at least once: np.packbits
@@ -39,7 +39,7 @@ differ in their low bits only, which deflate packs tightly; `np.cumsum` along th
 a view give the values back exactly):
 
     imu_t, truth_t                float64 (int64 deltas along axis 0): exact
-    belief_<e>_err, _sigma, _nees, _nis, _bias
+    belief_<e>_err, _sigma, _nees, _nis, _bias, _scale_llr
                                   float32 (int32 deltas along axis 0): exact, as before
     truth_quat (axis 0), quat (axis 1), err_deg (axis 2)
                                   float16 (int16 deltas): what the figures need (3 significant
@@ -239,7 +239,8 @@ def _events(names: np.ndarray | None, spans: np.ndarray | None) -> dict[str, lis
 
 _BELIEF_ARRAYS = (("err", "err_rad", np.float32), ("sigma", "sigma_rad", np.float32), ("nees", "nees", np.float32),
                   ("nis", "nis", np.float32), ("updated", "updated", bool), ("rest", "rest", bool),
-                  ("guarded", "guarded", bool), ("bias", "bias_rad_s", np.float32))
+                  ("guarded", "guarded", bool), ("bias", "bias_rad_s", np.float32),
+                  ("scale_llr", "scale_llr", np.float32))
 
 
 def save(path: Path, s: RecordingSeries) -> None:

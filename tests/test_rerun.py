@@ -227,6 +227,11 @@ def test_every_flag_is_written_and_reads_back_sample_for_sample(sim_run, tmp_pat
             np.testing.assert_array_equal(per_sample, flag)
             written.add((r.estimator, name))
     assert {("vqf", "rest_detected"), ("ekf", "acc_lowpassed")} <= written
+    # the ekf's scale test: its ln L at every sample where it runs (float32 in the series)
+    llr = np.asarray(results[0].trajectory.diagnostics["scale_llr"], float)
+    entity = rrd["/sim/events/beliefs/ekf/scale_llr"]
+    assert np.isfinite(llr).sum() == len(entity["time"]) > 0.9 * len(rec.imu)
+    np.testing.assert_allclose(scalars(entity), llr[np.isfinite(llr)], rtol=1e-6, atol=1e-7)
     # the recording's events, kept in the series, are the file's
     rest = rrd["/sim/events/events/rest"]
     (first, last) = series.events_of(rec)["rest"]
