@@ -64,6 +64,14 @@ The `ahrs` filters run, by default, as compiled twins (`_compiled_peers`, `impl=
 same arithmetic as the library's per-sample Python, a few hundred times faster; `impl=library`
 calls the library, the reference the twins are tested against (`tests/test_compiled_peers.py`).
 
+Flags: where a library reports per-sample states, the trajectory's diagnostics carry them as
+(N,) bool arrays (row 0, the seed, False), which the report and `--rerun` show against the error:
+VQF's rest and magnetic-disturbance detection (`VQF_FLAGS`: the `restDetected` and
+`magDistDetected` outputs of its batch functions; BasicVQF has neither) and Fusion's rejections
+and recoveries (`FUSION_FLAGS`: `Ahrs.get_flags()` and `Ahrs.get_internal_states()` after each
+update). Reading them costs nothing measurable (VQF returns them anyway; Fusion's are two calls
+per sample).
+
 Invalid gyro samples (`imu.gyr_valid` False) are handled as well as each library allows:
 zero rate for VQF, offlineVQF, the EKF and Fusion (propagation without the rate, the
 accelerometer still corrects; the EKF still adds its usual, not an inflated, process
@@ -266,6 +274,21 @@ class BasicVQFParams:
         return {"tauAcc": self.tau_acc_s, "tauMag": self.tau_mag_s}
 
 
+# VQF's per-sample states (the `restDetected` and `magDistDetected` outputs of `updateBatch` and
+# `offlineVQF`) under our diagnostics' names: per-sample flags, (N,) bool (`Trajectory`).
+VQF_FLAGS = {"restDetected": "rest_detected", "magDistDetected": "mag_disturbance_detected"}
+
+
+def _vqf_flags(result: dict[str, np.ndarray], first: int = 0) -> dict[str, np.ndarray]:
+    """VQF's flags from a batch result (`VQF_FLAGS`), as (first + K,) bool arrays: False for the
+    `first` rows the library did not produce (the seed)."""
+    out = {}
+    for key, name in VQF_FLAGS.items():
+        if key in result:
+            out[name] = np.concatenate([np.zeros(first, dtype=bool), np.asarray(result[key], dtype=bool)])
+    return out
+
+
 class _SeededVQF(Estimator):
     """`VQF`/`BasicVQF`, 6-D, seeded with the initial orientation through the filter state.
 
@@ -296,16 +319,17 @@ class _SeededVQF(Estimator):
         acc = _acc_m_s2(imu.acc_g)
         filt = getattr(self._vqf, self._class_name)(ts, **self.params.library_kwargs())
         if imu.has_mag:  # 9-D: started as published (identity), see the class docstring
-            quat9d = filt.updateBatch(gyr, np.ascontiguousarray(acc), _mag_or_zero(imu))["quat9D"]
-            return Trajectory(imu.t, quat9d)
+            result = filt.updateBatch(gyr, np.ascontiguousarray(acc), _mag_or_zero(imu))
+            return Trajectory(imu.t, result["quat9D"], diagnostics=_vqf_flags(result))
         state = filt.state
         state["gyrQuat"] = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
         state["accQuat"] = np.array([1.0, 0.0, 0.0, 0.0])
         filt.state = state
         out = np.empty((len(imu), 4))
         out[0] = state["gyrQuat"]
-        out[1:] = filt.updateBatch(gyr[1:], np.ascontiguousarray(acc[1:]))["quat6D"]
-        return Trajectory(imu.t, out)
+        result = filt.updateBatch(gyr[1:], np.ascontiguousarray(acc[1:]))
+        out[1:] = result["quat6D"]
+        return Trajectory(imu.t, out, diagnostics=_vqf_flags(result, first=1))
 
 
 class VQFPeer(_SeededVQF):
@@ -347,9 +371,9 @@ class OfflineVQFPeer(Estimator):
         acc = _acc_m_s2(imu.acc_g)
         if imu.has_mag:  # 9-D: the magnetometer sets the heading
             result = self._vqf.offlineVQF(gyr, acc, _mag_or_zero(imu), ts, self.params.library_kwargs())
-            return Trajectory(imu.t, result["quat9D"])
+            return Trajectory(imu.t, result["quat9D"], diagnostics=_vqf_flags(result))
         result = self._vqf.offlineVQF(gyr, acc, None, ts, self.params.library_kwargs())
-        return Trajectory(imu.t, align_heading(result["quat6D"], init_quat_wxyz))
+        return Trajectory(imu.t, align_heading(result["quat6D"], init_quat_wxyz), diagnostics=_vqf_flags(result))
 
 
 # --------------------------------------------------------------------------------------
@@ -395,6 +419,20 @@ class FusionParams:
                       magnetic_rejection_deg=self.magnetic_rejection_deg, rejection_timeout=self.rejection_timeout)
 
 
+# Fusion's flags (`Ahrs.get_flags()`) and the flags among its internal states
+# (`Ahrs.get_internal_states()`) after each update, under our diagnostics' names: per-sample flags,
+# (N,) bool (`Trajectory`). Library name -> (our name, 9-D only). x-io's README, "AHRS flags" and
+# "AHRS internal states": the accelerometer (magnetometer) is ignored while its error exceeds the
+# rejection threshold; a recovery runs when it has been ignored for the trigger period (the
+# `rejection_timeout`) and the sensor is then trusted again; an over-range recovery follows a gyro
+# sample beyond `gyroscope_range`; start-up is the 3 s gain ramp (off unless `startup=true`).
+FUSION_FLAGS = {"accelerometer_ignored": ("accelerometer_ignored", False),
+                "acceleration_recovery": ("acceleration_recovery", False),
+                "overrange_recovery": ("overrange_recovery", False), "startup": ("startup", False),
+                "magnetometer_ignored": ("magnetometer_ignored", True),
+                "magnetic_recovery": ("magnetic_recovery", True)}
+
+
 class FusionPeer(RecursiveEstimator):
     """x-io Fusion's AHRS (`imufusion.Ahrs.update_no_magnetometer`, 6-D, NWU; `update`, 9-D, ENU).
 
@@ -412,20 +450,36 @@ class FusionPeer(RecursiveEstimator):
         self._fusion = _require("imufusion", "imufusion", "fusion-ahrs")
 
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
-        if not imu.has_mag:
-            return super().estimate(imu, init_quat_wxyz)
-        self.reset_for(imu, init_quat_wxyz, convention="ENU")
-        fusion = self._ahrs
-
-        def update(q, rate, acc, mag, dt):  # `Ahrs.update`, the magnetometer in uT (normalised inside); ENU
-            fusion.set_sample_period(dt)
-            if mag is None:
-                fusion.update_no_magnetometer(np.degrees(rate), acc / STANDARD_GRAVITY_M_S2)
+        """The library's update at every step, as `step` makes it (6-D, NWU; 9-D: `Ahrs.update`, the
+        magnetometer in uT, normalised inside, ENU), with the inputs converted once for the whole
+        recording, and Fusion's flags and states after each update as per-sample flags
+        (`FUSION_FLAGS`; row 0, the seed: False)."""
+        mag = imu.has_mag
+        self.reset_for(imu, init_quat_wxyz, convention="ENU" if mag else "NWU")
+        ahrs = self._ahrs
+        n = len(imu)
+        (rates, valid), dt = imu.interval_rates(), imu.dt
+        rate_deg_s = np.degrees(np.where(valid[:, None], rates, 0.0))  # Fusion wants deg/s; invalid: zero rate
+        acc_g = _acc_m_s2(imu.acc_g) / STANDARD_GRAVITY_M_S2
+        mag_ut, mag_ok = (imu.mag_ut, imu.mag_valid) if mag else (None, np.zeros(n, dtype=bool))
+        out = np.empty((n, 4))
+        out[0] = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz) if mag else init_quat_wxyz
+        names = [name for name, magnetic in FUSION_FLAGS.values() if mag or not magnetic]
+        rows = []
+        for k in range(n - 1):
+            ahrs.set_sample_period(dt[k])
+            if mag_ok[k + 1]:
+                ahrs.update(rate_deg_s[k], acc_g[k + 1], mag_ut[k + 1])
             else:
-                fusion.update(np.degrees(rate), acc / STANDARD_GRAVITY_M_S2, mag)
-            return fusion.get_quaternion()
-
-        return _marg_loop(imu, init_quat_wxyz, update, nwu=False, invalid_rate=np.zeros(3))
+                ahrs.update_no_magnetometer(rate_deg_s[k], acc_g[k + 1])
+            out[k + 1] = ahrs.get_quaternion()
+            f, st = ahrs.get_flags(), ahrs.get_internal_states()
+            rows.append((st.accelerometer_ignored, f.acceleration_recovery, f.overrange_recovery, f.startup)
+                        + ((st.magnetometer_ignored, f.magnetic_recovery) if mag else ()))
+        flags = np.zeros((n, len(names)), dtype=bool)
+        if rows:
+            flags[1:] = rows
+        return Trajectory(imu.t, out, diagnostics={name: flags[:, j].copy() for j, name in enumerate(names)})
 
     def reset_for(self, imu: ImuSamples, init_quat_wxyz: np.ndarray, convention: str = "NWU") -> None:
         rate_hz = float((len(imu) - 1) / (imu.t[-1] - imu.t[0])) if len(imu) > 1 else None

@@ -130,6 +130,9 @@ class Belief:
     rest: (N,) bool, a zero-rate (rest) bias update was made; None if the filter has none.
     guarded: (N,) bool, the chi-square guard held the bias and scale; None if it has none.
     bias_rad_s: (N, 3) gyro-bias estimate, rad/s, body frame; None if not estimated.
+    scale_llr: (N,) ln L of the filter's sequential test on the gyro's scale factors (Wald 1945;
+        `fusion.estimators.ekf`, "Scale test"), frozen once it decided, NaN where it does not run;
+        None if the filter has no such test.
     """
 
     err_rad: np.ndarray
@@ -140,6 +143,7 @@ class Belief:
     rest: np.ndarray | None = None
     guarded: np.ndarray | None = None
     bias_rad_s: np.ndarray | None = None
+    scale_llr: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.nis)
@@ -176,7 +180,7 @@ def from_trajectory(trajectory: Trajectory, truth_quat_wxyz: np.ndarray | None) 
     truth_quat_wxyz: (N, 4) the truth at the trajectory's time stamps (`truth_on`), NaN rows where
         it has none; None for a recording without truth (the errors are then all NaN).
     Diagnostics read: `cov` (attitude rows 0-2), `nis`, `acc_var_g2` (NaN: no update), `at_rest`,
-    `bias_guarded`, `gyr_bias_rad_s`; the last three are None in the `Belief` when not recorded.
+    `bias_guarded`, `gyr_bias_rad_s`, `scale_llr`; the last four are None in the `Belief` when not recorded.
     """
     if not has_covariance(trajectory):
         return None
@@ -204,7 +208,8 @@ def from_trajectory(trajectory: Trajectory, truth_quat_wxyz: np.ndarray | None) 
     updated = np.isfinite(nis) if acc_var is None else np.isfinite(acc_var)
     updated[0] = False  # row 0 is the state after the reset: no update was due
     return Belief(err, sigma, nees(err, cov_att), nis, updated, per_sample("at_rest", bool),
-                  per_sample("bias_guarded", bool), per_sample("gyr_bias_rad_s", float, (3,)))
+                  per_sample("bias_guarded", bool), per_sample("gyr_bias_rad_s", float, (3,)),
+                  per_sample("scale_llr", float))
 
 
 @dataclass(frozen=True)

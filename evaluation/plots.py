@@ -734,38 +734,76 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
 
 # --- the error around a recording's events ---
 
-# a filter's flags (`fusion.evaluation.consistency.Belief`), marked where they switch on
+# a filter's flags (`fusion.evaluation.consistency.Belief`), marked where they switch on; any other
+# per-sample flag of an estimator (`RecordingSeries.flags`) gets one of OTHER_FLAG_MARKERS, in order
 FLAG_MARKS = {"rest": ("v", "rest update on"), "guarded": ("x", "bias guard on"),
               "skipped": ("|", "accelerometer update skipped")}
+OTHER_FLAG_MARKERS = ("^", "s", "D", "o", "P", "*", "<", ">", "d", "h")
+# the recording's events (`RecordingSeries.events`) other than those the series shows itself (no
+# truth, gyro invalid: `_shade`): colour and alpha of their shading
+EVENT_STYLES = {"rest": ("tab:green", 0.15), "gyro freeze": ("tab:purple", 0.25),
+                "gyro beyond range": ("tab:orange", 0.25), "time-stamp gap": ("tab:brown", 0.25),
+                "magnetic disturbance": ("tab:cyan", 0.2), "movement": ("tab:blue", 0.06)}
+# states rather than incidents: shaded, never zoomed on
+NOT_ZOOMED = ("rest", "movement")
 
 
 def recording_events(s: RecordingSeries) -> list[tuple[float, float, str]]:
     """The events inside the recording the series knows (s, absolute): spans where the gyro was
     marked invalid (`gyr_valid`: detected freezes, saturation) and gaps in the truth, leaving out
-    the spans before its first and after its last sample; sorted by start."""
+    the spans before its first and after its last sample; and, where the series kept them
+    (`RecordingSeries.events`), the recording's rests, gyro freezes, samples beyond the gyro's
+    range, time-stamp gaps, magnetic disturbances and movement phases; sorted by start."""
     t0, t1 = float(s.imu_t[0]), float(s.imu_t[-1])
     inside = [(a, b, "no truth") for a, b in truth_gaps(s) if a > t0 and b < t1] if s.has_truth else []
-    return sorted(inside + [(a, b, "gyro invalid") for a, b in bad_gyro_spans(s)])
+    kept = [(t0 + a, t0 + b, name) for name, spans in (s.events or {}).items() if name in EVENT_STYLES
+            for a, b in spans]
+    return sorted(inside + [(a, b, "gyro invalid") for a, b in bad_gyro_spans(s)] + kept)
 
 
 def flag_switches(s: RecordingSeries, e: int) -> dict[str, np.ndarray]:
-    """Times (s, absolute) where filter `e`'s flags switched on, by flag (`FLAG_MARKS`): its rest
-    update, its bias guard and a skipped accelerometer update; {} without beliefs. A flag already
+    """Times (s, absolute) where estimator `e`'s flags switched on, by flag: its belief's rest
+    update, bias guard and skipped accelerometer updates (`FLAG_MARKS`), and its other per-sample
+    flags (`RecordingSeries.flags`: VQF's rest and magnetic-disturbance detection, Fusion's
+    rejections, our filters' magnetometer use and scale test, ...); {} without any. A flag already
     on at the first sample counts as switched on there."""
     belief = s.beliefs.get(e)
-    if belief is None:
-        return {}
-    flags = {"rest": belief.rest, "guarded": belief.guarded, "skipped": belief.skipped}
+    flags = {"rest": belief.rest, "guarded": belief.guarded, "skipped": belief.skipped} if belief is not None else {}
+    flags.update(s.flags.get(e, {}))
     return {key: np.asarray(s.imu_t, float)[[a for a, _ in runs(mask)]]
             for key, mask in flags.items() if mask is not None and np.any(mask)}
+
+
+def _flag_marks(keys) -> dict[str, tuple[str, str]]:
+    """(marker, legend label) of each flag name: `FLAG_MARKS`, then `OTHER_FLAG_MARKERS` in order."""
+    others = sorted(k for k in set(keys) if k not in FLAG_MARKS)
+    marks = {k: FLAG_MARKS[k] for k in FLAG_MARKS if k in keys}
+    marks.update({k: (OTHER_FLAG_MARKERS[i % len(OTHER_FLAG_MARKERS)], k.replace("_", " ") + " on")
+                  for i, k in enumerate(others)})
+    return marks
+
+
+def _shade_events(ax, s: RecordingSeries, t0: float) -> None:
+    """Shade the recording's kept events (`EVENT_STYLES`) besides what `_shade` shows."""
+    for name, spans in (s.events or {}).items():
+        if name in EVENT_STYLES:
+            rgb, alpha = EVENT_STYLES[name]
+            for a, b in spans:
+                ax.axvspan(a, max(b, a + 1e-3), color=rgb, alpha=alpha, lw=0, zorder=0)
+
+
+def _event_handles(s: RecordingSeries) -> list:
+    return [Patch(color=EVENT_STYLES[name][0], alpha=EVENT_STYLES[name][1] + 0.2, label=name)
+            for name in EVENT_STYLES if (s.events or {}).get(name)]
 
 
 def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float = 3.0,
                        max_windows: int = 3) -> Figure | None:
     """The total error of every estimator against time, with the recording's events shaded
-    (`recording_events`: no truth in grey, gyro invalid in red) and each filter's flag switches
-    marked (`flag_switches`): over the whole recording, then zoomed to `window_s` either side of
-    its `max_windows` longest events (events closer than two windows share one). None without
+    (`recording_events`: no truth in grey, gyro invalid in red, the others in `EVENT_STYLES`'
+    colours) and each estimator's flag switches marked (`flag_switches`): over the whole recording,
+    then zoomed to `window_s` either side of its `max_windows` longest events (rests and movement
+    phases are shaded, not zoomed on; events closer than two windows share one). None without
     truth, or with neither events nor flags."""
     if not s.has_truth or not np.isfinite(s.err_deg).any():
         return None
@@ -774,8 +812,9 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     flagged = [e for e, marks in switches.items() if marks]
     if not events and not flagged:
         return None
+    marks = _flag_marks({key for e in flagged for key in switches[e]})
     near: list[tuple[float, float, str]] = []  # events whose zoomed windows would overlap share one
-    for a, b, kind in events:
+    for a, b, kind in (ev for ev in events if ev[2] not in NOT_ZOOMED):
         if near and a - window_s <= near[-1][1] + window_s:
             kinds = list(dict.fromkeys(near[-1][2].split(" + ") + [kind]))
             near[-1] = (near[-1][0], max(near[-1][1], b), " + ".join(kinds))
@@ -793,6 +832,7 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
 
     def draw_errors(ax, lo: float, hi: float, decimate: bool) -> None:
         _shade(ax, s, t0)
+        _shade_events(ax, s, t0)
         top = 0.0
         for e, label in enumerate(s.labels):
             err = s.err_deg[e, 0]
@@ -804,7 +844,7 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
         for r, e in enumerate(flagged):  # flag switches as ticks along the bottom, one row per filter
             for key, times in switches[e].items():
                 shown = times[(times - t0 >= lo) & (times - t0 <= hi)] - t0
-                ax.plot(shown, np.full(len(shown), 0.04 + 0.07 * r), FLAG_MARKS[key][0], color=color(e), ms=5,
+                ax.plot(shown, np.full(len(shown), 0.04 + 0.07 * r), marks[key][0], color=color(e), ms=5,
                         transform=ax.get_xaxis_transform(), clip_on=True)
         ax.set_xlim(lo, hi)
         ax.set_ylim(0, 1.1 * top if top > 0 else 1.0)
@@ -820,7 +860,7 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
         ax = axes["flags"]
         for r, e in enumerate(flagged):
             for key, times in switches[e].items():
-                ax.plot(times - t0, np.full(len(times), r), FLAG_MARKS[key][0], color=color(e), ms=6)
+                ax.plot(times - t0, np.full(len(times), r), marks[key][0], color=color(e), ms=6)
         ax.set_yticks(range(len(flagged)), [_display_label(s.labels[e], s.causal[e]) for e in flagged], fontsize=8)
         ax.set_ylim(-0.6, len(flagged) - 0.4)
         ax.set_xlim(0, span)
@@ -834,11 +874,11 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
         if i == 0:
             ax.set_ylabel("total error [deg]")
     handles, _ = axes["all"].get_legend_handles_labels()
-    handles += _shade_handles(s, truth)
-    used = sorted({key for e in flagged for key in switches[e]}, key=list(FLAG_MARKS).index)
-    handles += [Line2D([], [], ls="none", marker=FLAG_MARKS[k][0], color="0.2", label=FLAG_MARKS[k][1])
-                for k in used]
-    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 5), fontsize=9)
+    handles += _shade_handles(s, truth) + _event_handles(s)
+    handles += [Line2D([], [], ls="none", marker=marker, color="0.2", label=label) for marker, label in marks.values()]
+    longest = max(len(h.get_label()) for h in handles)  # columns that fit the figure's width (11 in at 9 pt)
+    fig.legend(handles=handles, loc="outside lower center", ncol=max(1, min(len(handles), 4, 110 // (longest + 8))),
+               fontsize=9)
     fig.suptitle(f"{s.id}: total error against {truth} around the events"
                  + (f" (dashed: the {len(windows)} longest, zoomed below)" if windows else ""), fontsize=10)
     return fig

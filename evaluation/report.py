@@ -121,8 +121,9 @@ def _render_recording(series_path: str, fig_dir: str, truths: dict[str, str] | N
     for suffix, make, caption in (
         ("euler", plots.euler_figure, f"Euler angles (ZYX) over the truth ({truth})"),
         ("error", plots.error_figure, "error over time"),
-        ("events", plots.event_error_figure, "total error against time around the events (no truth, gyro invalid: "
-                                             "shaded; the longest zoomed) and where each filter's flags switched on"),
+        ("events", plots.event_error_figure, "total error against time around the events (no truth, gyro invalid, "
+                                             "rests, freezes, magnetic disturbances, movement phases: shaded; the "
+                                             "longest zoomed) and where each estimator's flags switched on"),
         ("loss", plots.loss_figure, "smoother cost per iteration"),
     ):
         fig = make(s) if make is plots.loss_figure else make(s, truth=truth)

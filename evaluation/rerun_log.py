@@ -34,7 +34,14 @@ since its first IMU sample:
     events/log                    one line per event as it starts
     beliefs/<estimator>/...       filters with a covariance (`fusion.evaluation.consistency.Belief`):
                                   sigma_deg (x y z, sqrt(P_ii)), nis, nees, accel_update / rest /
-                                  guarded (1 while on, steps), gyro_bias_deg_s
+                                  guarded (1 while on, steps), gyro_bias_deg_s, scale_llr (ln L of the
+                                  sequential test on the gyro's scale factors, frozen once it crossed
+                                  +-ln((1 - e) / e), e = `scale_test_error`)
+    beliefs/<estimator>/flags/<flag>   any estimator's per-sample flags (`fusion.evaluation.series.flags_of`),
+                                  1 while on (steps): our filters' mag_used, acc_lowpassed and the
+                                  scale test's decision; VQF's rest_detected and
+                                  mag_disturbance_detected; Fusion's accelerometer_ignored,
+                                  magnetometer_ignored and recoveries
     cost/<estimator>              a smoother's cost per iteration, on the timeline `iteration`
 
 Quaternions: ours are scalar-first `[w, x, y, z]`; Rerun's are `[x, y, z, w]` (reordered here).
@@ -47,8 +54,6 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
-
-from fusion.checks import check_recording, runs
 
 from .metrics import KINDS
 
@@ -219,38 +224,35 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
         if belief.bias_rad_s is not None:
             _series_style(rr, static, f"{base}/gyro_bias_deg_s", "xyz", AXIS_COLORS)
             send(f"{base}/gyro_bias_deg_s", x, rr.Scalars.columns(scalars=np.degrees(belief.bias_rad_s)))
+        llr = belief.scale_llr
+        if llr is not None and np.isfinite(llr).any():
+            good = np.isfinite(llr)
+            _series_style(rr, static, f"{base}/scale_llr", [f"{s.labels[e]} ln L"], [colors[e]])
+            send(f"{base}/scale_llr", x[good], rr.Scalars.columns(scalars=np.asarray(llr, float)[good]))
+    for e, flags in sorted(s.flags.items()):
+        for key, flag in flags.items():
+            entity = f"beliefs/{names[e]}/flags/{rr.escape_entity_path_part(key)}"
+            static(entity, rr.SeriesLines(names=[f"{s.labels[e]} {key}"], colors=[colors[e]],
+                                          interpolation_mode="StepAfter", aggregation_policy="Off"))
+            t, v = flag_steps(x, flag)
+            send(entity, t, rr.Scalars.columns(scalars=v))
     for e, loss in sorted(s.losses.items()):
         stream.send_columns(f"{root}/cost/{names[e]}",
                             indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(loss)))],
                             columns=rr.Scalars.columns(scalars=np.asarray(loss, float)))
 
     camera = _log_camera(rr, stream, f"{root}/world/truth/body/camera", recording, t0, data_dir, camera_hz)
-    return _tab(rrb, root, s.id, [names[e] for e in sorted(s.beliefs)], bool(events), camera)
+    return _tab(rrb, root, s.id, [names[e] for e in sorted(s.beliefs)], bool(events), camera,
+                [names[e] for e in sorted(s.flags)])
 
 
 def recording_events(recording: Any, s: Any) -> dict[str, list[tuple[float, float]]]:
     """The recording's events as (start, stop) spans, s since its first IMU sample, by name (only
-    those that occur): `fusion.checks.check_recording`'s rests, gyro freezes, samples beyond the
-    gyro's range, time-stamp gaps, truth gaps and magnetic disturbances; the samples the estimators
-    were told the gyro is invalid (`gyr_valid`); BROAD's movement phases (`Recording.movement`)."""
-    check = check_recording(recording)
-    t = np.asarray(s.imu_t, float) - float(s.imu_t[0])
+    those that occur; `fusion.evaluation.series.events_of`): those the series kept, else found again
+    in the recording."""
+    from .series import events_of
 
-    def spans(intervals) -> list[tuple[float, float]]:
-        return [(float(iv.start_s), float(iv.stop_s)) for iv in intervals]
-
-    def mask_spans(mask: np.ndarray) -> list[tuple[float, float]]:
-        return [(float(t[a]), float(t[min(b, len(t) - 1)])) for a, b in runs(mask)]
-
-    out = {"rest": spans(r.interval for r in check.rests),
-           "gyro freeze": spans(f.interval for f in check.freezes),
-           "gyro invalid": mask_spans(~np.asarray(s.gyr_valid, bool)),
-           "gyro beyond range": spans(check.range.beyond_nominal) if check.range is not None else [],
-           "time-stamp gap": spans(check.timing.gaps),
-           "no truth": spans(check.vicon.gaps) if check.vicon is not None else [],
-           "magnetic disturbance": spans(check.magnetometer.disturbed) if check.magnetometer is not None else [],
-           "movement": mask_spans(recording.movement) if recording.movement is not None else []}
-    return {name: v for name, v in out.items() if v}
+    return s.events if s.events is not None else events_of(recording)
 
 
 def event_entity(name: str) -> str:
@@ -333,9 +335,11 @@ def _log_camera(rr: Any, stream: Any, entity: str, recording: Any, t0: float, da
     return True
 
 
-def _tab(rrb: Any, root: str, name: str, filters: list[str], events: bool, camera: bool) -> Any:
+def _tab(rrb: Any, root: str, name: str, filters: list[str], events: bool, camera: bool,
+         flagged: Sequence[str] = ()) -> Any:
     """One recording's layout: the bodies (and camera) on the left; on the right the errors, the
-    events, and in tabs the filters' flags and beliefs and the sensors."""
+    events, and in tabs the filters' flags (those with beliefs: `filters`; any estimator's per-sample
+    flags: `flagged`) and beliefs and the sensors."""
     left = [rrb.Spatial3DView(origin=f"{root}/world", name="orientations")]
     if camera:
         left.append(rrb.Spatial2DView(origin=f"{root}/world/truth/body/camera", name="camera (truth)"))
@@ -344,8 +348,13 @@ def _tab(rrb: Any, root: str, name: str, filters: list[str], events: bool, camer
         right.append(rrb.TimeSeriesView(origin=f"{root}/events", name="events", contents=["+ $origin/**",
                                                                                          "- $origin/log"]))
     tabs = []
-    for title, keys in (("filter flags", FLAGS), ("sqrt(P_ii) [deg]", ("sigma_deg",)), ("NIS", ("nis",)),
-                        ("NEES", ("nees",)), ("gyro bias [deg/s]", ("gyro_bias_deg_s",))):
+    if filters or flagged:
+        tabs.append(rrb.TimeSeriesView(origin=f"{root}/beliefs", name="filter flags",
+                                       contents=[f"+ $origin/{f}/{k}" for f in filters for k in FLAGS]
+                                       + [f"+ $origin/{f}/flags/**" for f in flagged]))
+    for title, keys in (("sqrt(P_ii) [deg]", ("sigma_deg",)), ("NIS", ("nis",)),
+                        ("NEES", ("nees",)), ("gyro bias [deg/s]", ("gyro_bias_deg_s",)),
+                        ("scale test ln L", ("scale_llr",))):
         if filters:
             tabs.append(rrb.TimeSeriesView(origin=f"{root}/beliefs", name=title,
                                            contents=[f"+ $origin/{f}/{k}" for f in filters for k in keys]))

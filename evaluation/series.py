@@ -21,8 +21,16 @@ that `fusion report DIR` can draw the figures again without running any estimato
                             (`fusion.evaluation.consistency.Belief`): `_err` (N, 3) attitude
                             error against the truth, rad, body frame (NaN without truth);
                             `_sigma` (N, 3) sqrt(P_ii), rad; `_nees`, `_nis` (N,); `_updated`
-                            (N,) bool; where recorded `_rest`, `_guarded` (N,) bool and `_bias`
-                            (N, 3) rad/s
+                            (N,) bool; where recorded `_rest`, `_guarded` (N,) bool, `_bias`
+                            (N, 3) rad/s and `_scale_llr` (N,), the scale test's ln L
+    flag_<e>_<name>        a per-sample flag of estimator e (`flags_of`: its (N,) bool
+                            diagnostics, e.g. `mag_used`, VQF's `rest_detected`, Fusion's
+                            `accelerometer_ignored`), where it is on at least once: np.packbits
+                            of the (N,) bool array (N/8 bytes)
+    event_names   (M,)     str, the recording's events (`events_of`: rest, gyro freeze, gyro
+                            invalid, no truth, magnetic disturbance, movement, ...), one per span
+    event_spans_s (M, 2)   float64 s after the first IMU sample, each event's start and stop
+                            (both absent in a file written before events were kept)
 
 The file is a compressed npz (`np.savez_compressed`) under the names above. A file written
 with `encoding` = "bit-deltas" (this version) stores each float array as the differences, along
@@ -31,7 +39,7 @@ differ in their low bits only, which deflate packs tightly; `np.cumsum` along th
 a view give the values back exactly):
 
     imu_t, truth_t                float64 (int64 deltas along axis 0): exact
-    belief_<e>_err, _sigma, _nees, _nis, _bias
+    belief_<e>_err, _sigma, _nees, _nis, _bias, _scale_llr
                                   float32 (int32 deltas along axis 0): exact, as before
     truth_quat (axis 0), quat (axis 1), err_deg (axis 2)
                                   float16 (int16 deltas): what the figures need (3 significant
@@ -47,6 +55,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from fusion.checks import check_recording, runs
 
 from . import consistency
 from .metrics import KINDS
@@ -67,6 +77,8 @@ class RecordingSeries:
     err_deg: np.ndarray
     losses: dict[int, np.ndarray] = field(default_factory=dict)
     beliefs: dict[int, consistency.Belief] = field(default_factory=dict)
+    flags: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # estimator -> name -> (N,) bool
+    events: dict[str, list[tuple[float, float]]] | None = None  # name -> spans, s after imu_t[0]; None: not kept
 
     @property
     def has_truth(self) -> bool:
@@ -85,13 +97,70 @@ def recording_part(rec, truth_at_imu=None) -> dict[str, np.ndarray]:
                 truth_quat=np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)))
     if truth_at_imu is not None:
         part["truth_at_imu"] = np.asarray(truth_at_imu(), dtype=float)
+    events = [(name, span) for name, spans in events_of(rec).items() for span in spans]
+    part["event_names"] = np.array([name for name, _ in events], dtype=str)
+    part["event_spans_s"] = np.array([span for _, span in events], dtype=float).reshape(-1, 2)
     return part
+
+
+def events_of(rec) -> dict[str, list[tuple[float, float]]]:
+    """The recording's events as (start, stop) spans, s since its first IMU sample, by name (only
+    those that occur): `fusion.checks.check_recording`'s rests, gyro freezes, samples beyond the
+    gyro's range, time-stamp gaps, truth gaps and magnetic disturbances; the samples the estimators
+    were told the gyro is invalid (`gyr_valid`); BROAD's movement phases (`Recording.movement`)."""
+    check = check_recording(rec)
+    t = np.asarray(rec.imu.t, float) - float(rec.imu.t[0])
+
+    def spans(intervals) -> list[tuple[float, float]]:
+        return [(float(iv.start_s), float(iv.stop_s)) for iv in intervals]
+
+    def mask_spans(mask: np.ndarray) -> list[tuple[float, float]]:
+        return [(float(t[a]), float(t[min(b, len(t) - 1)])) for a, b in runs(mask)]
+
+    out = {"rest": spans(r.interval for r in check.rests),
+           "gyro freeze": spans(f.interval for f in check.freezes),
+           "gyro invalid": mask_spans(~np.asarray(rec.imu.gyr_valid, bool)),
+           "gyro beyond range": spans(check.range.beyond_nominal) if check.range is not None else [],
+           "time-stamp gap": spans(check.timing.gaps),
+           "no truth": spans(check.vicon.gaps) if check.vicon is not None else [],
+           "magnetic disturbance": spans(check.magnetometer.disturbed) if check.magnetometer is not None else [],
+           "movement": mask_spans(rec.movement) if rec.movement is not None else []}
+    return {name: v for name, v in out.items() if v}
+
+
+# diagnostics a `consistency.Belief` already holds (its `rest` and `guarded`): not repeated as flags
+_IN_BELIEF = ("at_rest", "bias_guarded")
+
+
+def flags_of(trajectory) -> dict[str, np.ndarray]:
+    """The per-sample flags of an estimate that are on at least once, by name, (N,) bool: every
+    (N,) bool array among its diagnostics (`fusion.types.Trajectory`) but those its `Belief` holds
+    (a filter with a covariance: `at_rest`, `bias_guarded`), and the outcome of a filter's scale
+    test (`fusion.estimators.ekf`, "Scale test"): `scale_error_accepted` or `gyro_calibrated_accepted`,
+    on from the sample where Wald's test decided (its `scale_llr`, frozen from then on, and
+    `scale_decision`, 1 or -1)."""
+    d = trajectory.diagnostics or {}
+    n = len(trajectory)
+    skip = _IN_BELIEF if consistency.has_covariance(trajectory) else ()
+    out = {}
+    for key, value in d.items():
+        if key not in skip and isinstance(value, np.ndarray) and value.dtype == bool and value.shape == (n,) \
+                and value.any():
+            out[key] = value.copy()
+    llr, decision = d.get("scale_llr"), d.get("scale_decision")
+    if decision in (1, -1) and llr is not None and np.shape(llr) == (n,) and n:
+        llr = np.asarray(llr, float)
+        changed = np.flatnonzero(llr[1:] != llr[:-1])  # frozen once decided: the last change is the decision
+        on = np.zeros(n, bool)
+        on[changed[-1] + 1 if len(changed) else 0:] = True
+        out["scale_error_accepted" if decision == 1 else "gyro_calibrated_accepted"] = on
+    return out
 
 
 def job_part(trajectory, job_score, truth_at_imu) -> dict[str, np.ndarray]:
     """What one estimate adds to its recording's series: `quat` (N, 4) float32, `err_deg` (3, N)
     float32, `loss` where the estimator reports one, `belief_*` (without the estimator's index)
-    where it reports a covariance; and `quat_wxyz` (N, 4) float64, the estimate itself (exported as
+    where it reports a covariance, `flag_<name>` (N,) bool for each of its flags (`flags_of`); and `quat_wxyz` (N, 4) float64, the estimate itself (exported as
     a TUM file, not kept in the series).
 
     job_score: its `fusion.evaluation.metrics.Score` (None without truth); truth_at_imu: a callable
@@ -114,6 +183,7 @@ def job_part(trajectory, job_score, truth_at_imu) -> dict[str, np.ndarray]:
             value = getattr(belief, attr)
             if value is not None:
                 part[f"belief_{key}"] = np.asarray(value, dtype=dtype)
+    part.update({f"flag_{name}": flag for name, flag in flags_of(trajectory).items()})
     return part
 
 
@@ -140,21 +210,37 @@ def assemble(recording: dict[str, np.ndarray], labels: list[str], causal: list[b
     err = np.empty((len(parts), len(KINDS), n), np.float32)
     losses: dict[int, np.ndarray] = {}
     beliefs: dict[int, consistency.Belief] = {}
+    flags: dict[int, dict[str, np.ndarray]] = {}
     for e, part in enumerate(parts):
         quat[e], err[e] = part["quat"], part["err_deg"]
         if "loss" in part:
             losses[e] = part["loss"]
+        mine = {k[5:]: np.asarray(v, bool) for k, v in part.items() if k.startswith("flag_")}
+        if mine:
+            flags[e] = mine
         if "belief_err" in part:
             beliefs[e] = consistency.Belief(**{attr: (part[f"belief_{key}"].astype(float if dtype is np.float32 else bool)
                                                       if f"belief_{key}" in part else None)
                                                for key, attr, dtype in _BELIEF_ARRAYS})
     return RecordingSeries(str(recording["id"]), recording["imu_t"], recording["gyr_valid"], recording["truth_t"],
-                           recording["truth_quat"], list(labels), list(causal), quat, err, losses, beliefs)
+                           recording["truth_quat"], list(labels), list(causal), quat, err, losses, beliefs, flags,
+                           _events(recording.get("event_names"), recording.get("event_spans_s")))
+
+
+def _events(names: np.ndarray | None, spans: np.ndarray | None) -> dict[str, list[tuple[float, float]]] | None:
+    """The events' dict from their `event_names` and `event_spans_s` arrays (None: not kept)."""
+    if names is None or spans is None:
+        return None
+    out: dict[str, list[tuple[float, float]]] = {}
+    for name, (a, b) in zip(names, np.asarray(spans, float).reshape(-1, 2)):
+        out.setdefault(str(name), []).append((float(a), float(b)))
+    return out
 
 
 _BELIEF_ARRAYS = (("err", "err_rad", np.float32), ("sigma", "sigma_rad", np.float32), ("nees", "nees", np.float32),
                   ("nis", "nis", np.float32), ("updated", "updated", bool), ("rest", "rest", bool),
-                  ("guarded", "guarded", bool), ("bias", "bias_rad_s", np.float32))
+                  ("guarded", "guarded", bool), ("bias", "bias_rad_s", np.float32),
+                  ("scale_llr", "scale_llr", np.float32))
 
 
 def save(path: Path, s: RecordingSeries) -> None:
@@ -172,6 +258,12 @@ def save(path: Path, s: RecordingSeries) -> None:
             if value is not None:
                 arrays[f"belief_{e}_{key}"] = (_bit_deltas(value, np.float32, 0) if dtype is np.float32
                                                else np.asarray(value, dtype=dtype))
+    for e, flags in s.flags.items():
+        arrays.update({f"flag_{e}_{name}": np.packbits(np.asarray(flag, bool)) for name, flag in flags.items()})
+    if s.events is not None:
+        events = [(name, span) for name, spans in s.events.items() for span in spans]
+        arrays["event_names"] = np.array([name for name, _ in events], dtype=str)
+        arrays["event_spans_s"] = np.array([span for _, span in events], dtype=float).reshape(-1, 2)
     np.savez_compressed(path, **arrays)
 
 
@@ -197,8 +289,16 @@ def load(path: Path) -> RecordingSeries:
                               else z[f"belief_{e}_{key}"].astype(bool))
                              if f"belief_{e}_{key}" in z.files else None) for key, attr, dtype in _BELIEF_ARRAYS}
             beliefs[e] = consistency.Belief(**fields)
+        n = len(z["gyr_valid"])
+        flags: dict[int, dict[str, np.ndarray]] = {}
+        for k in z.files:
+            if k.startswith("flag_"):
+                _, e, name = k.split("_", 2)
+                flags.setdefault(int(e), {})[name] = np.unpackbits(z[k], count=n).astype(bool)
+        events = _events(z["event_names"], z["event_spans_s"]) if "event_names" in z.files else None
         return RecordingSeries(str(z["id"]), get("imu_t"), z["gyr_valid"], get("truth_t"), get("truth_quat"),
-                               labels, [bool(x) for x in z["causal"]], get("quat"), get("err_deg"), losses, beliefs)
+                               labels, [bool(x) for x in z["causal"]], get("quat"), get("err_deg"), losses, beliefs,
+                               flags, events)
 
 
 # --- the encoding (module docstring) ---

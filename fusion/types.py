@@ -178,6 +178,8 @@ class Trajectory:
     quat_wxyz: (N, 4) unit quaternions `R_world_body`. Rows may be NaN where the source has
         no orientation (VICON tracking gaps); `valid` tells which rows are usable.
     diagnostics: estimator-specific extras for reports, e.g. `{"loss": (K,) cost per iteration}`.
+        An (N,) bool array is a per-sample flag (a filter's state switching on and off, e.g.
+        `mag_used`, VQF's `rest_detected`): reports and `--rerun` show every one against the error.
     """
 
     t: np.ndarray

@@ -105,3 +105,17 @@ def toy():
     with pytest.MonkeyPatch.context() as mp:
         register(mp)
         yield
+
+
+def sim_with_events(rid: str = "sim/events", duration_s: float = 20.0, freeze_s: tuple[float, float] = (10.0, 11.5),
+                    seed: int = 5) -> Recording:
+    """A short simulated recording (`fusion.sim`, 100 Hz, raw counts and exact truth) with the
+    events `fusion.checks.check_recording` finds: rests at the start and the end (3 s each) and a
+    gyro freeze over `freeze_s` (s after the first sample)."""
+    from fusion import datasets
+    from fusion.calibration import calibrate
+    from fusion.sim import SimSettings, simulate
+
+    raw, truth = simulate(SimSettings(duration_s=duration_s, freezes_s=(freeze_s,), seed=seed))
+    calib = calibrate(raw)
+    return Recording(rid, datasets.calibrated_samples(raw, calib, True), truth, raw, calib)

@@ -175,6 +175,61 @@ def test_float16_plot_arrays_and_exact_times(tmp_path):
     assert back.labels == ["a", "b"] and back.causal == [True, False]
 
 
+def test_flags_and_events_are_kept_compactly_and_older_files_read_without_them(tmp_path):
+    """Per-sample flags are stored as packed bits (N/8 bytes each) and read back exactly; the
+    recording's events as spans; a file written before either was kept reads with none."""
+    n = 1001
+    t = 1.3e9 + 0.01 * np.arange(n)
+    quat = np.tile(np.array([1, 0, 0, 0], np.float32), (2, n, 1))
+    err = np.zeros((2, 3, n), np.float32)
+    rng = np.random.default_rng(2)
+    rest = rng.random(n) < 0.3
+    flags = {0: {"rest_detected": rest, "mag_disturbance_detected": ~rest}, 1: {"accelerometer_ignored": rest[::-1].copy()}}
+    events = {"rest": [(0.0, 2.5), (8.0, 10.0)], "gyro freeze": [(4.0, 5.5)]}
+    s = series.RecordingSeries("x/1", t, np.ones(n, bool), t, quat[0], ["vqf", "fusion-ahrs"], [True, True], quat, err,
+                               flags=flags, events=events)
+    path = tmp_path / "s.npz"
+    series.save(path, s)
+    back = series.load(path)
+    assert back.events == events
+    assert set(back.flags) == {0, 1} and set(back.flags[0]) == {"rest_detected", "mag_disturbance_detected"}
+    for e, mine in flags.items():
+        for name, flag in mine.items():
+            assert back.flags[e][name].dtype == bool
+            np.testing.assert_array_equal(back.flags[e][name], flag)
+    with np.load(path) as z:
+        assert z["flag_0_rest_detected"].shape == ((n + 7) // 8,)
+        arrays = {k: z[k] for k in z.files if not k.startswith(("flag_", "event_"))}
+    np.savez(tmp_path / "older.npz", **arrays)  # as written before flags and events were kept
+    older = series.load(tmp_path / "older.npz")
+    assert older.flags == {} and older.events is None
+    np.testing.assert_array_equal(older.imu_t, t)
+
+
+def test_flags_of_an_estimate_its_bool_diagnostics_and_the_scale_tests_decision():
+    """`flags_of`: every (N,) bool diagnostic that is on at least once, but those a filter's belief
+    holds (rest, guard); the scale test's decision on from the sample where its frozen ln L begins."""
+    from fusion.types import Trajectory
+
+    n = 50
+    t = np.arange(n) * 0.01
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    used = np.zeros(n, bool)
+    used[10:20] = True
+    llr = np.r_[np.linspace(0.0, 2.0, 30), np.full(n - 30, 2.5)]  # decided at sample 30: frozen from then on
+    d = {"mag_used": used, "mag_hard_iron": np.zeros(n, bool), "at_rest": used, "bias_guarded": used,
+         "nis": np.ones(n), "scale_llr": llr, "scale_decision": 1, "scale_released": np.ones(3, bool)}
+    flags = series.flags_of(Trajectory(t, quat, diagnostics=d))
+    assert sorted(flags) == ["at_rest", "bias_guarded", "mag_used", "scale_error_accepted"]  # no covariance here
+    np.testing.assert_array_equal(flags["scale_error_accepted"], np.arange(n) >= 30)
+    np.testing.assert_array_equal(flags["mag_used"], used)
+    with_cov = {**d, "cov": np.tile(np.eye(3), (n, 1, 1)), "scale_decision": -1}
+    flags = series.flags_of(Trajectory(t, quat, diagnostics=with_cov))
+    assert sorted(flags) == ["gyro_calibrated_accepted", "mag_used"]  # rest and guard: in its Belief
+    undecided = series.flags_of(Trajectory(t, quat, diagnostics={**d, "scale_decision": 0}))
+    assert "scale_error_accepted" not in undecided
+
+
 def _save_plain(path: Path, s: series.RecordingSeries) -> None:
     """A series file as the version before the encoding wrote it: plain arrays, np.savez."""
     arrays = dict(id=np.array(s.id), imu_t=s.imu_t, gyr_valid=s.gyr_valid, truth_t=s.truth_t, truth_quat=s.truth_quat,

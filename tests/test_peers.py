@@ -398,3 +398,72 @@ def test_the_new_parameters_reach_the_libraries():
         assert np.max(np.abs(a - b)) > 1e-3, f"{changed} changes nothing"
     assert build("vqf:tauMag=9,magDistRejectionEnabled=true").params == build("vqf").params
     assert build("fusion-ahrs:magnetic_rejection=0").params == build("fusion-ahrs").params
+
+
+def test_vqf_flags_are_the_librarys_rest_and_disturbance_detection():
+    """VQF's per-sample flags (`VQF_FLAGS`) are its batch outputs, bit for bit in 9-D (started as
+    the library starts); in 6-D (seeded) rest is detected in the final rest and never while turning."""
+    need("vqf")
+    import vqf
+
+    from fusion.estimators.peers import _acc_m_s2, _mag_or_zero, _rate_for_constant_ts
+
+    imu, truth = simulate([(3.0, [0, 0, 0]), (5.0, D([30, -10, 40])), (6.0, [0, 0, 0])], euler("xz", [5, 20]))
+    noise = np.random.default_rng(3).normal(0.0, 2e-4, imu.gyr_rad_s.shape)
+    imu = with_field(imu.replace(gyr_rad_s=imu.gyr_rad_s + noise), truth)
+    est = build("vqf").estimate(imu, truth.quat_wxyz[0])
+    gyr, ts = _rate_for_constant_ts(imu)
+    lib = vqf.VQF(ts).updateBatch(gyr, np.ascontiguousarray(_acc_m_s2(imu.acc_g)), _mag_or_zero(imu))
+    for ours, theirs in (("rest_detected", "restDetected"), ("mag_disturbance_detected", "magDistDetected")):
+        assert est.diagnostics[ours].dtype == bool and est.diagnostics[ours].shape == (len(imu),)
+        np.testing.assert_array_equal(est.diagnostics[ours], lib[theirs])
+    six = build("vqf").estimate(imu.replace(mag_ut=None), truth.quat_wxyz[0]).diagnostics
+    assert "mag_disturbance_detected" not in six
+    rest, t = six["rest_detected"], imu.t - imu.t[0]
+    assert not rest[0] and rest[t > 12.0].all() and not rest[(t > 3.5) & (t < 8.0)].any()
+
+
+@pytest.mark.parametrize("nine_d", [False, True], ids=["6-D", "9-D"])
+def test_fusion_flags_are_the_librarys_after_each_update(nine_d):
+    """Fusion's flags (`FUSION_FLAGS`) are the library's after each update: the batch loop gives
+    the same estimate and flags as the library stepped by hand; a linear acceleration beyond the
+    rejection threshold is ignored while it lasts (and not before)."""
+    need("fusion-ahrs")
+    from fusion.estimators.peers import FUSION_FLAGS, _acc_m_s2
+    from fusion.types import STANDARD_GRAVITY_M_S2
+
+    imu, truth = simulate([(2.0, [0, 0, 0]), (4.0, D([20, 0, 10])), (2.0, [0, 0, 0])], euler("x", [5]))
+    acc = imu.acc_g.copy()
+    acc[300:340] += [0.6, 0.0, 0.0]  # a push of 0.6 g: the accelerometer points 30 deg off
+    imu = imu.replace(acc_g=acc)
+    if nine_d:
+        imu = with_field(imu, truth)
+    spec = "fusion-ahrs:acceleration_rejection=10,magnetic_rejection=10,rejection_timeout=500"
+    est = build(spec).estimate(imu, truth.quat_wxyz[0])
+    names = [name for name, magnetic in FUSION_FLAGS.values() if nine_d or not magnetic]
+    assert sorted(k for k, v in est.diagnostics.items() if v.dtype == bool) == sorted(names)
+    # the library stepped by hand (the adapter's settings, the same inputs)
+    ref = build(spec)
+    ref.reset_for(imu, truth.quat_wxyz[0], convention="ENU" if nine_d else "NWU")
+    ahrs = ref._ahrs
+    (rates, valid), dt = imu.interval_rates(), imu.dt
+    quats, rows = [], []
+    for k in range(len(imu) - 1):
+        ahrs.set_sample_period(dt[k])
+        a = _acc_m_s2(imu.acc_g[k + 1]) / STANDARD_GRAVITY_M_S2
+        if nine_d:
+            ahrs.update(np.degrees(rates[k]), a, imu.mag_ut[k + 1])
+        else:
+            ahrs.update_no_magnetometer(np.degrees(rates[k]), a)
+        quats.append(ahrs.get_quaternion())
+        f, st = ahrs.get_flags(), ahrs.get_internal_states()
+        everything = {**{k2: getattr(f, k2) for k2 in dir(f) if not k2.startswith("_")},
+                      **{k2: getattr(st, k2) for k2 in dir(st) if not k2.startswith("_")}}
+        rows.append([everything[lib] for lib, (name, magnetic) in FUSION_FLAGS.items() if nine_d or not magnetic])
+    np.testing.assert_array_equal(est.quat_wxyz[1:], quats)
+    for j, name in enumerate(names):
+        flag = est.diagnostics[name]
+        assert not flag[0]
+        np.testing.assert_array_equal(flag[1:], [row[j] for row in rows], err_msg=name)
+    ignored = est.diagnostics["accelerometer_ignored"]
+    assert ignored[301:340].all() and not ignored[:300].any()

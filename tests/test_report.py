@@ -19,7 +19,8 @@ import pytest
 from fusion.evaluation import plots, pool, runner, series
 from fusion.cli import main
 
-from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
+from optional_helpers import require_module
+from report_fixtures import recording, sim_with_events, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
 
 SPECS = ["dr", "toy:g=1.05", "toysmooth"]
 
@@ -137,6 +138,51 @@ def test_event_figure_zooms_on_the_events_and_marks_the_flags(toy):
     assert marks["x"] == pytest.approx([s.imu_t[700] - t0])
     # without events and flags there is nothing to show
     assert plots.event_error_figure(_series(specs=["dr"], gap=None)) is None
+
+
+def test_event_figure_shades_the_recordings_events_and_marks_every_estimators_flags():
+    """On a simulated recording with rests at both ends and a gyro freeze (`sim_with_events`): the
+    series keeps the events the checks find, the figure shades each span in its colour on the whole
+    panel (two rests, one freeze), zooms on the freeze (incidents, not rests) and marks VQF's rest
+    detection where it switched on."""
+    require_module("vqf")
+    from matplotlib.colors import to_rgba
+
+    from fusion.evaluation.compare import compare
+
+    rec = sim_with_events()
+    s = series.from_results(rec, compare("ekf,vqf", [rec]))
+    assert sorted(s.events) == ["gyro freeze", "gyro invalid", "rest"]
+    assert len(s.events["rest"]) == 2 and len(s.events["gyro freeze"]) == 1
+    (a, b), = s.events["gyro freeze"]
+    assert a == pytest.approx(10.0, abs=0.1) and b == pytest.approx(11.5, abs=0.1)
+    fig = plots.event_error_figure(s, window_s=1.0)
+    whole = fig.axes[0]
+
+    def spans(ax, name):
+        rgb, alpha = plots.EVENT_STYLES[name]
+        return sorted((p.get_x(), p.get_x() + p.get_width()) for p in ax.patches
+                      if np.allclose(p.get_facecolor(), to_rgba(rgb, alpha)))
+
+    assert spans(whole, "rest") == pytest.approx(s.events["rest"])
+    assert spans(whole, "gyro freeze") == pytest.approx(s.events["gyro freeze"])
+    assert spans(whole, "movement") == []
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    zoomed = [t for t in titles if t.startswith(("gyro", "rest"))]
+    assert len(zoomed) == 1 and zoomed[0].startswith("gyro invalid + gyro freeze")
+    (zoom,) = [ax for ax in fig.axes if ax.get_title(loc="left") == zoomed[0]]
+    assert spans(zoom, "gyro freeze") == pytest.approx(s.events["gyro freeze"])
+    # VQF's rest detection (a peer's flag) marked where it switched on, in its own row
+    rest = s.flags[1]["rest_detected"]
+    on = s.imu_t[np.flatnonzero(rest & ~np.r_[False, rest[:-1]])] - s.imu_t[0]
+    assert len(on) >= 1
+    (flags,) = [ax for ax in fig.axes if ax.get_title(loc="left").startswith("where each filter")]
+    marker = plots._flag_marks({k for e in s.flags for k in s.flags[e]})["rest_detected"][0]
+    vqf_row = [line for line in flags.get_lines() if line.get_marker() == marker
+               and np.all(np.asarray(line.get_ydata()) == [t.get_text() for t in flags.get_yticklabels()].index("vqf"))]
+    assert len(vqf_row) == 1 and np.asarray(vqf_row[0].get_xdata(), float).tolist() == pytest.approx(on.tolist())
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert {"rest", "gyro freeze", "rest detected on"} <= set(legend)
 
 
 def test_summary_figures_count_cells_and_points():

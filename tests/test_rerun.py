@@ -1,7 +1,7 @@
 """`fusion compare --rerun FILE.rrd` (`fusion.evaluation.rerun_log`): the file is read back with
 Rerun's own reader (`rerun.chunk.RrdReader`) and holds every entity with the samples it should,
 the truth's quaternions (reordered to Rerun's x y z w) to 1e-6, the estimates on the IMU's stamps,
-the events and the filters' flags as steps; without the `viz` extra, `--rerun` says what to install."""
+the events and every estimator's flags as steps (read back per sample: the estimator's own); without the `viz` extra, `--rerun` says what to install."""
 from __future__ import annotations
 
 import importlib.util
@@ -14,7 +14,7 @@ from fusion import datasets
 from fusion.cli import main
 from fusion.evaluation import runs
 from optional_helpers import require_module
-from report_fixtures import recording, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
+from report_fixtures import recording, sim_with_events, toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
 
 N = 300  # samples of each toy recording (3 s at 100 Hz); truth gap over samples 200-230
 
@@ -192,3 +192,49 @@ def test_a_bad_file_name_is_one_line_before_any_work(toy, data, tmp_path, monkey
                  "--rerun", str(tmp_path / name)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1 and problem in err[0] and not ran
+
+
+@pytest.fixture(scope="module")
+def sim_run():
+    """ekf and VQF on a short simulated recording with rests and a gyro freeze (`sim_with_events`)."""
+    require_module("vqf")
+    from fusion.evaluation.compare import compare
+
+    rec = sim_with_events()
+    return rec, compare("ekf,vqf", [rec])
+
+
+def test_every_flag_is_written_and_reads_back_sample_for_sample(sim_run, tmp_path):
+    """Each estimator's per-sample flags (`series.flags_of`: VQF's rest detection, the ekf's use of
+    the low-passed accelerometer) are steps under beliefs/<estimator>/flags/<name>: one row at the
+    first sample, one per switch and one at the last; the step value at every IMU stamp is the flag."""
+    require_module("rerun")
+    from fusion.evaluation import series
+    from fusion.evaluation.rerun_log import write_results
+
+    rec, results = sim_run
+    rrd = read_back(write_results(tmp_path / "flags.rrd", [rec], results, camera_hz=0))
+    x = rec.imu.t - rec.imu.t[0]
+    written = set()
+    for r in results:
+        for name, flag in series.flags_of(r.trajectory).items():
+            entity = rrd[f"/sim/events/beliefs/{r.estimator}/flags/{name}"]
+            t, v = seconds(entity), scalars(entity)
+            switches = np.flatnonzero(flag[1:] != flag[:-1]) + 1
+            assert len(t) == len(switches) + 2 - (switches[-1] == len(flag) - 1 if len(switches) else 0)
+            per_sample = v[np.searchsorted(t, x + 1e-7, side="right") - 1].astype(bool)  # +1e-7 s: ns rounding
+            assert len(per_sample) == len(rec.imu) == len(flag)
+            np.testing.assert_array_equal(per_sample, flag)
+            written.add((r.estimator, name))
+    assert {("vqf", "rest_detected"), ("ekf", "acc_lowpassed")} <= written
+    # the ekf's scale test: its ln L at every sample where it runs (float32 in the series)
+    llr = np.asarray(results[0].trajectory.diagnostics["scale_llr"], float)
+    entity = rrd["/sim/events/beliefs/ekf/scale_llr"]
+    assert np.isfinite(llr).sum() == len(entity["time"]) > 0.9 * len(rec.imu)
+    np.testing.assert_allclose(scalars(entity), llr[np.isfinite(llr)], rtol=1e-6, atol=1e-7)
+    # the recording's events, kept in the series, are the file's
+    rest = rrd["/sim/events/events/rest"]
+    (first, last) = series.events_of(rec)["rest"]
+    np.testing.assert_allclose(seconds(rest), [0.0, 0.0, first[1], last[0], last[1]], atol=1e-6)
+    assert scalars(rest).tolist() == [0.0, 1.0, 0.0, 1.0, 0.0]
+    assert len(rrd["/sim/events/events/gyro_freeze"]["time"]) == 4

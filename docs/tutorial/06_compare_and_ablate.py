@@ -273,7 +273,10 @@ else:
 # estimator; the recording's events as steps (rest, the gyro freeze, the samples marked invalid,
 # tracking gaps; on BROAD its movement phases and magnetic disturbances) with a log line as each
 # starts; what each filter believed (its $\sqrt{P_{ii}}$, NIS and NEES, and its rest-update, bias-guard
-# and accelerometer-update flags as steps); the calibrated gyro, accelerometer and magnetometer.
+# and accelerometer-update flags as steps); every estimator's own flags as steps under
+# `beliefs/<estimator>/flags/` (ours: the magnetometer's use, the low-passed accelerometer, the
+# scale test's decision; VQF's rest and magnetic-disturbance detection; Fusion's rejections and
+# recoveries); the calibrated gyro, accelerometer and magnetometer.
 # The file of the command above, opened in Rerun's web viewer (`rerun run.rrd --web-viewer`; the
 # screenshot is stored beside this notebook, it is not made when the notebook runs):
 
@@ -310,8 +313,13 @@ for entity, count in sorted(samples.items()):
 # errors jump to 3-5 deg inside it. What each carries out of it is heading: about 1.1-1.4 deg
 # averaged over the next two seconds, from 0.2-0.4 deg before, for the filters and the smoother
 # alike (no IMU-only estimator can observe the rotation about the vertical that the gyro missed),
-# and it stays for the rest of the recording. The report of `fusion compare --out DIR` shows the same moments as a figure per recording: the
-# total error around its events, the longest zoomed, with each filter's flag switches marked.
+# and it stays for the rest of the recording. VQF's `rest_detected` step rises in the rests at the
+# start and the end, never inside the freeze: its rest detector watches the gyro and the
+# accelerometer, and the accelerometer sees the motion the frozen gyro misses. The report of
+# `fusion compare --out DIR` shows the same moments as a figure per recording: the total error with
+# the recording's events shaded (rests, freezes, samples marked invalid, tracking gaps, magnetic
+# disturbances, BROAD's movement phases), the longest incidents zoomed, and each estimator's flag
+# switches marked.
 
 # %% [markdown]
 # ## Summary
