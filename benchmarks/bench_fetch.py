@@ -18,37 +18,19 @@ Prints the figures; exits 1 if any of them is not what is expected.
 from __future__ import annotations
 
 import argparse
-import http.server
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from http_mirror import Mirror  # noqa: E402  (the fetch tests' local mirror)
+
 FUSION = [sys.executable, "-m", "fusion"]
-
-
-def serve(root: Path):
-    gets: list[str] = []
-
-    class Handler(http.server.SimpleHTTPRequestHandler):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, directory=str(root), **kwargs)
-
-        def log_message(self, *args):
-            pass
-
-        def do_GET(self):
-            gets.append(self.path)
-            super().do_GET()
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
-    return server, f"http://127.0.0.1:{server.server_address[1]}", gets
 
 
 def lay_out(broad: Path, mirror: Path) -> list[str]:
@@ -91,7 +73,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         trials = lay_out(data / "broad", tmp / "mirror")
-        server, url, gets = serve(tmp / "mirror")
+        mirror = Mirror(tmp / "mirror")
+        url, gets = mirror.url, mirror.requests
         fetched = tmp / "fetched"
 
         code, out, err, seconds = run(["data", "fetch", "broad", "--mirror", url, "--to", str(fetched), "--no-progress"])
@@ -127,7 +110,7 @@ def main() -> int:
         print(f"corrupted {hdf5}.hdf5 on the mirror: exit {code}; file left: {left}; {err.strip()[:240]}")
         if code != 1 or left or "refused and removed" not in err:
             failures.append("the corrupted file was not refused")
-        server.shutdown()
+        mirror.close()
 
         chosen = ",".join(f"broad/{t}" for t in trials[: args.trials])
         results = {}
