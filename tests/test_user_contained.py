@@ -121,7 +121,16 @@ def test_the_command_line_keeps_the_table_and_the_folder(folder):
     assert (folder / "run" / "report.html").is_file()
 
 
-def test_a_real_ctrl_c_in_the_estimator_still_stops(folder):
+@pytest.fixture
+def ctrl_c():
+    """Ctrl-C as a terminal delivers it, whatever started the tests: a shell that runs them in the
+    background leaves SIGINT ignored, which this process and the commands it starts would inherit."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def test_a_real_ctrl_c_in_the_estimator_still_stops(folder, ctrl_c):
     """In this process (run_one, as `fusion panorama` runs it): a KeyboardInterrupt the code raises
     is its row's error; a real SIGINT delivered while it runs stops the caller."""
     rec = datasets.load("sim")
@@ -135,7 +144,7 @@ def test_a_real_ctrl_c_in_the_estimator_still_stops(folder):
 
 
 @pytest.mark.slow
-def test_ctrl_c_on_the_terminal_stops_the_run_with_the_resume_hint(folder):
+def test_ctrl_c_on_the_terminal_stops_the_run_with_the_resume_hint(folder, ctrl_c):
     """The user's Ctrl-C (SIGINT to the command's process group) while a user's estimator runs in its
     worker: the run stops as before (status 130) and says how to continue it."""
     env = dict(os.environ, MPLBACKEND="Agg", STARTED=str(folder / "started"))
