@@ -4,7 +4,8 @@
 defaults: noise weighting, robust accelerometer loss, gyro bias and scale variables, velocity
 model); the solver is what differs. On a recording with a magnetometer (9-D) both add the
 magnetometer's heading-only term to the cost (`smoother_cost`; its measurements and gates:
-`fusion.estimators.smoother_mag`) and solve again from the 6-D solution. The unknowns are the unit quaternions q_t (one per
+`fusion.estimators.smoother_mag`) and solve again from the 6-D solution (solved until its inclination
+has settled: `presolve_tol_rad`). The unknowns are the unit quaternions q_t (one per
 sample), the horizontal velocities v_t and the calibration variables theta. A step moves every
 quaternion along the unit sphere,
 
@@ -91,13 +92,15 @@ from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_bande
 
 
 from .gn import released_scales
-from .smoother import BatchSmoother, SmootherParams, SolverLog, progress_bar, retract, solution_diagnostics
+from .smoother import (BatchSmoother, SmootherParams, SolverLog, inclination_step, progress_bar, retract,
+                       solution_diagnostics)
 from .smoother_cost import Linearization, SmootherProblem
 from .smoother_solve import banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"
 MAX_HALVINGS = 50  # 2^-50: no step of that length decreases the cost in double precision
-RIDGE = 1e-9  # relative ridge on M's diagonal: keeps the factorisation safe, changes p by ~1e-9
+RIDGE = 1e-12  # relative ridge on M's diagonal, for the factorisation's safety; small enough to leave the
+# smooth heading corrections alone, whose curvature is ~1e-9 of M's diagonal on long recordings (`gn.INITIAL_DAMPING`)
 
 
 @dataclass(frozen=True)
@@ -209,9 +212,11 @@ class GradientDescentSmoother(BatchSmoother):
             return KernelChain(ops, lin, free)
         return Preconditioner(lin, self.params.precond, free)
 
-    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
+    def solve(self, problem: SmootherProblem, q: np.ndarray, presolve: bool = False) -> tuple[np.ndarray, dict]:
         """Preconditioned gradient descent from q (T, 4) unit quaternions (velocities and
-        calibration variables from zero); returns (q, diagnostics)."""
+        calibration variables from zero); returns (q, diagnostics). presolve: a stage also ends
+        when a full step (alpha = 1) changes no sample's inclination by more than
+        `presolve_tol_rad` (`BatchSmoother.solve`)."""
         p = self.params
         theta = np.zeros(problem.n_theta)
         v = problem.zero_velocity()
@@ -260,6 +265,8 @@ class GradientDescentSmoother(BatchSmoother):
                 if accepted:
                     iterations += 1
                     decrease = (cost - cost_new) / max(cost, 1e-300)
+                    if presolve and alpha == 1.0 and inclination_step(q, d_q[:, :3]) < p.presolve_tol_rad:
+                        decrease = 0.0  # the inclination has settled: as converged, for the presolve
                     q, v, theta, cost = q_new, v_new, theta_new, cost_new
                     age += 1
                     log.record(cost, q)
@@ -267,7 +274,7 @@ class GradientDescentSmoother(BatchSmoother):
                     bar.update(1)
                     bar.set_postfix(cost=f"{cost:.6g}", alpha=f"{alpha:.3g}")
                 small = decrease < p.tol
-                stage_end = staged and (decrease < p.tol or iterations >= stage1_iter)
+                stage_end = staged and not presolve and (decrease < p.tol or iterations >= stage1_iter)
                 if (small and not lagged) and not stage_end:
                     converged = True  # a fresh M's step no longer helps: at the minimum (to tol)
                     break

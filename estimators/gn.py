@@ -12,8 +12,15 @@ with impl="numpy" the reference stores the matrix in LAPACK band form and solves
 `scipy.linalg.solveh_banded` (the border's P columns as further right-hand sides).
 
 Levenberg-Marquardt (Marquardt 1963): solve (H + lambda diag(H)) delta = -g, accept the
-step if the cost decreases (lambda /= 10), otherwise reject it (lambda *= 10). Stops when
-the relative cost decrease of an accepted step is below `tol` or after `max_iter` iterations.
+step if the cost decreases (lambda /= 10, down to 1e-12), otherwise reject it (lambda *= 10).
+Stops when the relative cost decrease of an accepted step is below `tol` or after `max_iter`
+iterations. lambda starts at 1e-9 (`INITIAL_DAMPING`), not at the customary 1e-3 to 1e-6:
+Marquardt's scaling by diag(H) is set by the stiffest term, the motion term's 1 / (Q dt) per
+sample (10^6 at 100 Hz), while a smooth heading correction spread over the recording, which
+the magnetometer term asks for, has a curvature many decades below it (for a profile over N
+samples about diag(H) (pi / N)^2, 10^-9 of it for 52,000 samples). A lambda of 1e-6 damps that
+correction into a crawl: on BROAD trial 15 (9-D) the solve took 26 iterations with it and 13
+with 1e-9, to a lower cost (`python benchmarks/bench_smoother.py`, "iterations").
 
 Per-sample variables are the rotation increment and, with the velocity model, the two
 horizontal velocities (5x5 blocks). Scale-error variables are released only after a first
@@ -26,7 +33,8 @@ it releases nothing after a first stage that was cut, it goes on with the same v
 On a recording with a magnetometer (9-D) the magnetometer then corrects the heading, and only
 the heading: by default its heading residual joins the cost (`smoother_cost`, the magnetometer
 term, measured and gated at the 6-D solution by `fusion.estimators.smoother_mag`) and the cost
-is solved again from there; mag_term=stage corrects the 6-D solution afterwards instead.
+is solved again from there (that 6-D solve only until the inclination has settled:
+`presolve_tol_rad`); mag_term=stage corrects the 6-D solution afterwards instead.
 
 Observability of the calibration (diagnostics "theta_std"): the posterior std of each
 calibration variable, from the inverse of its Schur complement at the solution, next to
@@ -36,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .smoother import BatchSmoother, SolverLog, progress_bar, solution_diagnostics
+from .smoother import BatchSmoother, SolverLog, inclination_step, progress_bar, solution_diagnostics
 from .smoother_cost import SmootherProblem
 from .smoother_solve import solve_normal_equations, theta_posterior_std  # noqa: F401 (their home until now)
 
@@ -55,21 +63,26 @@ def released_scales(posterior_std: np.ndarray, prior_std: np.ndarray, ratio: flo
     return posterior_std < ratio * prior_std
 
 
+INITIAL_DAMPING = 1e-9  # lambda at the start of each stage (module docstring); 1e-12 its floor
+
+
 class GaussNewtonSmoother(BatchSmoother):
     """Whole-trajectory smoother: manifold Levenberg-Marquardt on block-tridiagonal normal equations."""
 
     name = "gn"
 
-    def solve(self, problem: SmootherProblem, q: np.ndarray) -> tuple[np.ndarray, dict]:
+    def solve(self, problem: SmootherProblem, q: np.ndarray, presolve: bool = False) -> tuple[np.ndarray, dict]:
         """Levenberg-Marquardt from q (T, 4) unit quaternions (calibration variables from zero).
 
-        Returns the optimised (T, 4) quaternions and the diagnostics.
+        Returns the optimised (T, 4) quaternions and the diagnostics. presolve: a stage also ends
+        when an accepted step, taken with at most the initial damping, changes no sample's
+        inclination by more than `presolve_tol_rad` (`BatchSmoother.solve`).
         """
         p = self.params
         theta = np.zeros(problem.n_theta)
         v = problem.zero_velocity()
         ops = self.operations(problem)
-        damping = 1e-6
+        damping = INITIAL_DAMPING
         converged = False
         iterations = 0
         # Two stages. Stage 1 solves with the scale errors held at zero (from a drifting start,
@@ -98,7 +111,8 @@ class GaussNewtonSmoother(BatchSmoother):
                 stage_done = at_minimum
                 if not at_minimum:
                     decrease = (lin.cost - cost_new) / max(lin.cost, 1e-300)
-                    at_minimum = decrease < p.tol
+                    at_minimum = decrease < p.tol or (presolve and damping <= INITIAL_DAMPING
+                                                      and inclination_step(q, delta[:, :3]) < p.presolve_tol_rad)
                     stage_done = at_minimum or (staged and iterations >= stage1_iter)
                     q, theta, v = q_new, theta_new, v_new
                     damping = max(damping / 10.0, 1e-12)
@@ -109,14 +123,14 @@ class GaussNewtonSmoother(BatchSmoother):
                     bar.update(1)
                     bar.set_postfix(cost=f"{lin.cost:.6g}")
                 if stage_done:
-                    if staged:
+                    if staged and not presolve:
                         staged = False
                         std = ops.theta_std(q, theta, v, lin)
                         stage1 = (q, theta, v, lin.cost, std)
                         released = released_scales(std[nb:], 1.0 / np.sqrt(problem.w_theta[nb:]), p.scale_release_ratio)
                         free = np.concatenate([np.ones(nb, bool), released])
                         if released.any():
-                            damping = 1e-6
+                            damping = INITIAL_DAMPING
                             continue
                         if not at_minimum:  # stage 1 was cut at its cap: stage 2 goes on with the same variables
                             continue
