@@ -20,7 +20,7 @@ sample (10^6 at 100 Hz), while a smooth heading correction spread over the recor
 the magnetometer term asks for, has a curvature many decades below it (for a profile over N
 samples about diag(H) (pi / N)^2, 10^-9 of it for 52,000 samples). A lambda of 1e-6 damps that
 correction into a crawl: on BROAD trial 15 (9-D) the solve took 26 iterations with it and 13
-with 1e-9, to a lower cost (`python benchmarks/bench_smoother.py`, "iterations").
+with 1e-9, to a lower cost (docs/results.md, "The smoothers' iterations, measured").
 
 Per-sample variables are the rotation increment and, with the velocity model, the two
 horizontal velocities (5x5 blocks). Scale-error variables are released only after a first
