@@ -137,8 +137,9 @@ class SmootherParams(FormerSpellings):
     corrects the heading only. By default (mag_term="cost") its heading residual is a term of
     the cost (`smoother_cost`, the magnetometer term), with the gates, hard-iron fit and measured
     headings of `fusion.estimators.smoother_mag.measurements` taken at the 6-D solution (solved
-    until its inclination has settled, `presolve_tol_rad`), which the cost is then solved again from; the motion term then sets how fast the heading may
-    follow the magnetometer (sqrt(Rm / Q), about 30 s). mag_term="stage"
+    until its inclination has settled, `presolve_tol_rad`), which the cost is then solved again
+    from; the motion term then sets how fast the heading may follow the magnetometer (sqrt(Rm /
+    Q), about 30 s). mag_term="stage"
     instead corrects the 6-D solution afterwards (`smoother_mag.heading_correction`: a
     heading-error random walk of density Qm, started at the anchor's variance `init_var_rad2`,
     smoothed over the same headings), a rotation about the world vertical that leaves the
