@@ -40,8 +40,8 @@ injection, reset with the reset Jacobian taken as I; `_accel`):
                   the 0.5 s window misses (a sustained acceleration, as of a slow translation, changes
                   little within it): the squared deviation of the window's mean from the low-pass in
                   the strapdown frame, less what the calibration explains, trace(H_c P_c H_c^T) with
-                  the lag's Jacobians H_c = [H_b, H_s] below and the scale prior added to P_ss (the
-                  rate errors the model lacks), and less the low-passed norm deviation squared (what
+                  the lag's Jacobians H_c = [H_b, H_s] below and, with scale states, the scale prior
+                  added to P_ss (the rate errors the model lacks), and less the low-passed norm deviation squared (what
                   the low-pass holds of gross samples) (`_accel.AccDisturbance.slow_power`); a
                   Gauss-Markov process of correlation time tauslow (2 s), after the external-
                   acceleration state of Lee, Park & Robinovitch 2012, IEEE TIM 61(8), but as noise
@@ -192,9 +192,11 @@ class EKFParams(BiasFilterParams):
     slow_disturbance_corr_s (tauslow): correlation time, s, of the slow external acceleration
         (a sustained linear acceleration, as of a slow translation), whose power the raw
         accelerometer sample's noise takes from the deviation of the disturbance window's mean
-        from the low-pass, less what the calibration's uncertainty explains
-        (`_accel.AccDisturbance.slow_power`; "Update" in the module docstring). 0: no slow
-        component (the model before it); it needs the low-pass's lag (bias states, `taulp` > 0).
+        from the low-pass, less what the calibration's uncertainty and gross samples explain
+        (`_accel.AccDisturbance.slow_power`; "Update" in the module docstring; a Gauss-Markov
+        external acceleration as in Lee, Park & Robinovitch 2012, IEEE TIM 61(8)). 0: no slow
+        component (the model before it); it needs the low-pass's lag (bias states, `tauc` > 0,
+        `taulp` > 0). 1-5 s change little (`docs/results.md`, "Slow translation, simulated").
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
