@@ -11,8 +11,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numpy as np
-
 from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BODY, DIST_HAS_LOWPASS, DIST_HAS_MEAN,
                      DIST_LAG_B, DIST_LAG_S, DIST_LOWPASS, DIST_LOWPASS_MEAN, DIST_LOWPASS_NORM, DIST_LOWPASS_VAR,
                      DIST_MEAN, DIST_STATE, DIST_VAR)
@@ -205,9 +203,10 @@ def lag_jacobian(H, st, n):
 
 
 @mirrors("fusion.estimators._accel.AccDisturbance.slow_power")
-def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s):
+def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s, Hc):
     """`AccDisturbance.slow_power` on the disturbance state `st`, for the gravity direction h
-    (body) and the filter's covariance P (its calibration block P[3:n, 3:n]); -> g^2."""
+    (body) and the filter's covariance P (its calibration block P[3:n, 3:n]); -> g^2. Hc: (3, >= 6)
+    scratch, [H_b, H_s] in its first six columns."""
     if st[DIST_HAS_LOWPASS] == 0.0 or st[DIST_HAS_MEAN] == 0.0 or st[DIST_AGE] < lowpass_s:
         return 0.0
     m, lp = DIST_MEAN, DIST_LOWPASS
@@ -215,8 +214,7 @@ def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s):
     dev = ex * ex + ey * ey + ez * ez
     f = DIST_FRAME
     qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
-    Hc = np.empty((3, 6))  # [H_b, H_s] = [A N_b, -A N_s], A = [h]x R_I^T (`LowpassLag.jacobian`)
-    for c in range(6):
+    for c in range(6):  # [H_b, H_s] = [A N_b, -A N_s], A = [h]x R_I^T (`LowpassLag.jacobian`)
         sign = 1.0 if c < 3 else -1.0
         o = (DIST_LAG_B if c < 3 else DIST_LAG_S) + c % 3
         vx, vy, vz = rotate_floats(qi, st[o], st[o + 3], st[o + 6])
@@ -265,18 +263,18 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 @mirrors("fusion.estimators._accel.accelerometer_update_input")
 def accelerometer_update_input(dist, dq, ax, ay, az, dt, scale, rate_noise, o, lag, rate, slow_corr, hx, hy, hz, P, n,
-                               scale_prior_var):
+                               scale_prior_var, W):
     """The measurement and variance of one accelerometer update, as the filters' steps choose
     them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq,
     and with `lag` the low-pass's lag, `step` with rate (2, 3) as there), with slow_corr > 0 its
     slow component (`slow_power` for the gravity direction h and the covariance P of error
-    dimension n), the low-pass frame drift (rate_noise: the filter's rate noise density), the raw
+    dimension n; W: its (3, >= 6) scratch), the low-pass frame drift (rate_noise: the filter's rate noise density), the raw
     or the low-passed sample (`_accel.acc_measurement`), its variance times the gate's scale;
     without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2, low-passed)."""
     if o.corr_s > 0.0:
         d = update(dist, dq, ax, ay, az, dt, o, lag, rate)
         if slow_corr > 0.0:  # as the power of the fast process with the same density
-            d = max(d, slow_power(dist, hx, hy, hz, P, n, scale_prior_var, o.lowpass_s) * (slow_corr / o.corr_s))
+            d = max(d, slow_power(dist, hx, hy, hz, P, n, scale_prior_var, o.lowpass_s, W) * (slow_corr / o.corr_s))
         drift = lowpass_drift_density(o.lowpass_s, rate_noise)
         mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
         return mx, my, mz, density / dt * scale, lowpassed

@@ -225,7 +225,8 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
             hx, hy, hz = gravity_floats(q)
             mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, d, ax, ay, az, h, scale,
                                                                         o.process_noise, o.acc, with_lag, rate,
-                                                                        o.slow_corr, hx, hy, hz, P, n, o.slow_scale_var)
+                                                                        o.slow_corr, hx, hy, hz, P, n, o.slow_scale_var,
+                                                                        H)  # H: scratch until filled below
             var = r
             accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
