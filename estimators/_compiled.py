@@ -91,7 +91,7 @@ class Settings(NamedTuple):
     chi2: float  # ekf: NIS above which bias and scale are not corrected (inf: never)
     lowpass_calibration: bool  # ekf: the low-passed sample corrects bias and scale
     slow_corr: float  # ekf: the slow disturbance's correlation time, s (0: none; `_accel.AccDisturbance.slow_power`)
-    slow_scale_var: float  # ekf: ... and the scale prior it gives the unmodelled rate error (init_scale_var; 0 without scale)
+    slow_scale_var: float  # ekf: ... and its unmodelled rate error's variance (init_scale_var; 0 without scale)
     scale_noise: float  # ukf: Qs, s
     sqrt_c: float  # ukf: the sigma points' scale sqrt(c)
     mean_tol: float  # ukf: the iterative mean's stopping rule, rad

@@ -268,9 +268,10 @@ def accelerometer_update_input(dist, dq, ax, ay, az, dt, scale, rate_noise, o, l
     them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq,
     and with `lag` the low-pass's lag, `step` with rate (2, 3) as there), with slow_corr > 0 its
     slow component (`slow_power` for the gravity direction h and the covariance P of error
-    dimension n; W: its (3, >= 6) scratch), the low-pass frame drift (rate_noise: the filter's rate noise density), the raw
-    or the low-passed sample (`_accel.acc_measurement`), its variance times the gate's scale;
-    without the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2, low-passed)."""
+    dimension n; W: its (3, >= 6) scratch), the low-pass frame drift (rate_noise: the filter's
+    rate noise density), the raw or the low-passed sample (`_accel.acc_measurement`), its variance
+    times the gate's scale; without the disturbance model the raw sample and R / dt.
+    -> (z (3 floats), r g^2, low-passed)."""
     if o.corr_s > 0.0:
         d = update(dist, dq, ax, ay, az, dt, o, lag, rate)
         if slow_corr > 0.0:  # as the power of the fast process with the same density

@@ -360,9 +360,10 @@ class EKF(KalmanFilter):
             H[2, 0], H[2, 1] = -h[1], h[0]
             H[:, 3:] = 0.0
             slow = p.slow_disturbance_corr_s if self._with_lag else 0.0  # the slow external acceleration
+            prior = p.init_scale_var if n > 6 else 0.0  # the rate error the calibration states lack
             meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
                                                                  p.process_noise_rad2_s, rate, 1.0 + self.s, slow,
-                                                                 H[:, :3], P[3:n, 3:n], p.init_scale_var if n > 6 else 0.0)
+                                                                 H[:, :3], P[3:n, 3:n], prior)
             self.acc_var = r
             if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
                 H_b, H_s = self._dist.lag_jacobian(H[:, :3])
