@@ -40,9 +40,10 @@ DIST_LOWPASS_VAR = 17  # its running variance about that mean, g^2
 DIST_HAS_BODY = 18  # flag: lowpass_body is available
 DIST_BODY = 19  # lowpass_body (3), unit, body frame
 DIST_DENSITY = 22  # lowpass_density, g^2 s
-DIST_LAG_B = 23  # LowpassLag.N[0] = N_b (3 x 3, row by row)
-DIST_LAG_S = 32  # LowpassLag.N[1] = N_s (3 x 3, row by row)
-DIST_STATE = 41  # the array's length
+DIST_LOWPASS_NORM = 23  # lp_norm, g: | |a| - 1 | low-passed
+DIST_LAG_B = 24  # LowpassLag.N[0] = N_b (3 x 3, row by row)
+DIST_LAG_S = 33  # LowpassLag.N[1] = N_s (3 x 3, row by row)
+DIST_STATE = 42  # the array's length
 
 
 def acc_variance_scale(acc_g: np.ndarray, gate: str, gate_g: float) -> float:
@@ -107,11 +108,12 @@ class AccDisturbance:
     With `lag=True` (and `lowpass_s > 0`) it also carries the low-pass's lag behind a frame that
     drifts with a gyro bias or scale error (`LowpassLag`), advanced with the frame: `update` and
     `turn` then take the step's bias-corrected rate `u` and scale gain `1 + s`, and
-    `lag_jacobian` gives the low-passed sample's calibration Jacobians.
+    `lag_jacobian` gives the low-passed sample's calibration Jacobians. `slow_power` then measures
+    the external acceleration that the window misses: a sustained one changes little within it.
     """
 
     __slots__ = ("window_s", "m", "v", "qi", "age", "lowpass_s", "lowpass_window_s", "lp", "lp_mean", "lp_v",
-                 "lowpass_body", "lowpass_density", "lag")
+                 "lowpass_body", "lowpass_density", "lp_norm", "lag")
 
     def __init__(self, window_s: float, lowpass_s: float = 0.0, lowpass_window_s: float = 3.0,
                  lag: bool = False) -> None:
@@ -131,6 +133,7 @@ class AccDisturbance:
         self.lp_v = 0.0  # its running variance about that mean, g^2
         self.lowpass_body: np.ndarray | None = None  # (3,) unit, body frame; None: not yet available
         self.lowpass_density = math.inf  # g^2 s
+        self.lp_norm = 0.0  # | |a| - 1 | low-passed, g
 
     def state(self) -> np.ndarray:
         """(DIST_STATE,) float64, the state as the compiled filters (`_compiled_accel`) carry it,
@@ -151,6 +154,7 @@ class AccDisturbance:
         st[DIST_DENSITY] = self.lowpass_density
         if self.lag is not None:
             st[DIST_LAG_B:DIST_STATE] = self.lag.N.ravel()
+        st[DIST_LOWPASS_NORM] = self.lp_norm
         return st
 
     def set_state(self, state: np.ndarray) -> None:
@@ -163,6 +167,7 @@ class AccDisturbance:
         self.lowpass_density = s[DIST_DENSITY]
         if self.lag is not None:
             self.lag.N[:] = np.reshape(state[DIST_LAG_B:DIST_STATE], (2, 3, 3))
+        self.lp_norm = s[DIST_LOWPASS_NORM]
 
     def turn(self, dq: tuple, dt_s: float = 0.0, u: np.ndarray | None = None, gain: np.ndarray | None = None) -> None:
         """Advance the frame by the rate increment `dq` (4 floats, body) of a step without an
@@ -202,7 +207,7 @@ class AccDisturbance:
         # it makes v the mean over the samples available so far instead of starting at 0.
         seen = -math.expm1(-self.age / self.window_s)
         if self.lowpass_s > 0.0:
-            self._lowpass(wx, wy, wz, dt_s)
+            self._lowpass(wx, wy, wz, abs(norm_dev), dt_s)
         if self.lag is not None:
             self.lag.step(self.qi, u, gain, dt_s, fresh, True)
         return max(self.v / seen, inst, nd2)
@@ -212,15 +217,47 @@ class AccDisturbance:
         (`LowpassLag.jacobian`), from hx = [h]x (3, 3)."""
         return self.lag.jacobian(hx, self.qi)
 
-    def _lowpass(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
-        """Feed a_I (g) to the low-pass; update `lowpass_body` and `lowpass_density`."""
+    def slow_power(self, hx: np.ndarray, P_cal: np.ndarray, scale_prior_var: float) -> float:
+        """The power (g^2) of the external acceleration slower than the variance window and
+        faster than the low-pass: the squared deviation `|m - lp|^2` of the window's mean from the
+        low-passed signal (both in the frame I), less what the filter's calibration uncertainty
+        explains. A sustained acceleration (a slow translation) moves the window's mean away from
+        the low-pass while the window's variance `v` stays small; but so does the frame's drift
+        with a bias or scale error, which the low-pass trails by its lag (`LowpassLag`): with the
+        lag's Jacobians `H_c = [H_b, H_s]` (`lag_jacobian`, from hx = [h]x (3, 3)) and the
+        filter's calibration covariance P_cal ((3, 3) bias, or (6, 6) bias and scale), the
+        expected squared lag is `trace(H_c P_cal H_c^T) + scale_prior_var |H_s|_F^2`. The second
+        term gives every rate a relative error of the scale prior's size (`init_scale_var`; `ekf`
+        passes 0 without scale states, where the gyro is declared calibrated) that the posterior
+        does not remove: what a gyro's misalignment, cross-axis sensitivity
+        and nonlinearity turn into frame drift is outside the calibration model, and it grows
+        with the rate, as the drift of a fast-turning body does. What the low-pass still holds
+        of gross samples (a saturated stretch, an impact) is explained too, by at least the
+        low-passed norm deviation `lp_norm^2` (|a - e_z| >= | |a| - 1 |, sample by sample). Only
+        the excess counts; 0 until the low-pass has run for its time constant (it starts at one
+        sample, whose disturbance it carries), and without the lag."""
+        if self.lag is None or self.lp is None or self.m is None or self.age < self.lowpass_s:
+            return 0.0
+        (mx, my, mz), (lx, ly, lz) = self.m, self.lp
+        dev = (mx - lx) ** 2 + (my - ly) ** 2 + (mz - lz) ** 2
+        H_b, H_s = self.lag_jacobian(hx)
+        H_c = H_b if P_cal.shape[0] == 3 else np.hstack((H_b, H_s))
+        explained = float(np.trace(H_c @ P_cal @ H_c.T)) + scale_prior_var * float(np.sum(H_s * H_s))
+        explained += self.lp_norm * self.lp_norm
+        return max(0.0, dev - explained)
+
+    def _lowpass(self, wx: float, wy: float, wz: float, norm_dev: float, dt_s: float) -> None:
+        """Feed a_I (g) and its norm deviation `| |a| - 1 |` (g) to the low-pass; update
+        `lowpass_body`, `lowpass_density` and `lp_norm` (the norm deviation low-passed alike)."""
         if self.lp is None:
             self.lp = self.lp_mean = (wx, wy, wz)
+            self.lp_norm = norm_dev
         beta = -math.expm1(-dt_s / self.lowpass_s)
         gamma = -math.expm1(-dt_s / self.lowpass_window_s)
         lx, ly, lz = self.lp
         lx, ly, lz = lx + beta * (wx - lx), ly + beta * (wy - ly), lz + beta * (wz - lz)
         self.lp = (lx, ly, lz)
+        self.lp_norm += beta * (norm_dev - self.lp_norm)
         mx, my, mz = self.lp_mean
         ex, ey, ez = lx - mx, ly - my, lz - mz
         self.lp_mean = (mx + gamma * ex, my + gamma * ey, mz + gamma * ez)
@@ -355,7 +392,9 @@ def acc_measurement(acc_g: np.ndarray, dist: AccDisturbance, density_g2_s: float
 
 def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
                                rate_noise_rad2_s: float, u: np.ndarray | None = None,
-                               gain: np.ndarray | None = None) -> tuple[np.ndarray, float, bool]:
+                               gain: np.ndarray | None = None, slow_corr_s: float = 0.0, hx: np.ndarray | None = None,
+                               P_cal: np.ndarray | None = None,
+                               scale_prior_var: float = 0.0) -> tuple[np.ndarray, float, bool]:
     """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
     per axis g^2, low-passed)`.
 
@@ -363,12 +402,18 @@ def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: t
     rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
     (`acc_variance_scale`); rate_noise_rad2_s: the filter's rate noise density, for the frame
     drift and the residual's weight; u, gain: the step's rate for the lag (`AccDisturbance.update`).
+    slow_corr_s > 0 (`ekf`'s `slow_disturbance_corr_s`, with the lag): the external acceleration
+    has a second, slow component, of power `AccDisturbance.slow_power(hx, P_cal, scale_prior_var)`
+    and correlation time slow_corr_s, whose density `2 slow_corr_s d_slow` the raw sample's
+    noise takes where it exceeds the fast one's `2 disturbance_corr_s d` (the larger of the two).
     Without the disturbance model: the raw sample and R / dt.
     (`_compiled_accel.accelerometer_update_input` is the same in the kernels.)
     """
     if p.disturbance_corr_s <= 0.0:
         return acc_g, p.acc_noise_g2_s / dt_s * scale, False
     d = dist.update(dq, acc_g, dt_s, u, gain)
+    if slow_corr_s > 0.0:  # as the power of the fast process with the same density
+        d = max(d, dist.slow_power(hx, P_cal, scale_prior_var) * (slow_corr_s / p.disturbance_corr_s))
     drift = lowpass_drift_density(p.acc_lowpass_s, rate_noise_rad2_s)
     meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
                                                rate_noise_rad2_s)

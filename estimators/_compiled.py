@@ -90,6 +90,8 @@ class Settings(NamedTuple):
     scale_max: float  # clipping of the scale
     chi2: float  # ekf: NIS above which bias and scale are not corrected (inf: never)
     lowpass_calibration: bool  # ekf: the low-passed sample corrects bias and scale
+    slow_corr: float  # ekf: the slow disturbance's correlation time, s (0: none; `_accel.AccDisturbance.slow_power`)
+    slow_scale_var: float  # ekf: ... and its unmodelled rate error's variance (init_scale_var; 0 without scale)
     scale_noise: float  # ukf: Qs, s
     sqrt_c: float  # ukf: the sigma points' scale sqrt(c)
     mean_tol: float  # ukf: the iterative mean's stopping rule, rad
@@ -117,6 +119,8 @@ def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noi
         rest_noise=float(p.rest_noise_rad2_s) if bias else 0.0,
         bias_max=float(p.bias_max_rad_s) if bias else math.inf, scale_max=float(p.scale_max) if bias else math.inf,
         chi2=float(chi2), lowpass_calibration=bool(nv == 0 or getattr(p, "lowpass_calibration", True)),
+        slow_corr=float(getattr(p, "slow_disturbance_corr_s", 0.0)) if models_lag(p, n) else 0.0,
+        slow_scale_var=float(p.init_scale_var) if bias and n > 6 else 0.0,
         scale_noise=float(scale_noise), sqrt_c=float(sqrt_c), mean_tol=float(mean_tol),
         mean_max_iter=int(mean_max_iter), quat=quat_settings(), cov=cov_settings(), acc=acc_settings(p),
         rest=rest_settings(rest if rest_on else None), mag=mag_settings(p), test=scale_test_settings(scale_test))

@@ -12,8 +12,8 @@ import math
 from typing import NamedTuple
 
 from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BODY, DIST_HAS_LOWPASS, DIST_HAS_MEAN,
-                     DIST_LAG_B, DIST_LAG_S, DIST_LOWPASS, DIST_LOWPASS_MEAN, DIST_LOWPASS_VAR, DIST_MEAN, DIST_STATE,
-                     DIST_VAR)
+                     DIST_LAG_B, DIST_LAG_S, DIST_LOWPASS, DIST_LOWPASS_MEAN, DIST_LOWPASS_NORM, DIST_LOWPASS_VAR,
+                     DIST_MEAN, DIST_STATE, DIST_VAR)
 from ._compiled_quaternion import multiply_floats, normalize_floats, rotate_floats, rotation_floats
 from ._numba import forget_stale, mirrors, _jit
 
@@ -68,6 +68,7 @@ def lose_frame(st):
     st[DIST_LOWPASS_VAR] = 0.0  # lp_v
     st[DIST_HAS_BODY] = 0.0  # no lowpass_body
     st[DIST_DENSITY] = math.inf  # lowpass_density
+    st[DIST_LOWPASS_NORM] = 0.0  # lp_norm
 
 
 @mirrors("fusion.estimators._accel.AccDisturbance._turn")
@@ -108,7 +109,7 @@ def update(st, dq, ax, ay, az, dt, o, lag, rate):
     st[DIST_AGE] += dt
     seen = -math.expm1(-st[DIST_AGE] / o.window)
     if o.lowpass_s > 0.0:
-        _lowpass(st, qi, wx, wy, wz, dt, o)
+        _lowpass(st, qi, wx, wy, wz, abs(norm_dev), dt, o)
     if lag:
         step(st, rate, fresh, dt, True, o.lowpass_s)
     d = st[DIST_VAR] / seen  # max(v / seen, inst, nd2) with Python's max semantics
@@ -120,18 +121,21 @@ def update(st, dq, ax, ay, az, dt, o, lag, rate):
 
 
 @mirrors("fusion.estimators._accel.AccDisturbance._lowpass")
-def _lowpass(st, qi, wx, wy, wz, dt, o):
-    """`AccDisturbance._lowpass`: a_I low-passed, its density, its direction in the body frame."""
+def _lowpass(st, qi, wx, wy, wz, norm_dev, dt, o):
+    """`AccDisturbance._lowpass`: a_I low-passed, its density, its direction in the body frame, the
+    norm deviation low-passed."""
     lp, lm = DIST_LOWPASS, DIST_LOWPASS_MEAN
     if st[DIST_HAS_LOWPASS] == 0.0:
         st[DIST_HAS_LOWPASS], st[lp], st[lp + 1], st[lp + 2] = 1.0, wx, wy, wz
         st[lm], st[lm + 1], st[lm + 2] = wx, wy, wz
+        st[DIST_LOWPASS_NORM] = norm_dev
     beta = -math.expm1(-dt / o.lowpass_s)
     gamma = -math.expm1(-dt / o.lowpass_window)
     lx = st[lp] + beta * (wx - st[lp])
     ly = st[lp + 1] + beta * (wy - st[lp + 1])
     lz = st[lp + 2] + beta * (wz - st[lp + 2])
     st[lp], st[lp + 1], st[lp + 2] = lx, ly, lz
+    st[DIST_LOWPASS_NORM] += beta * (norm_dev - st[DIST_LOWPASS_NORM])
     ex, ey, ez = lx - st[lm], ly - st[lm + 1], lz - st[lm + 2]
     st[lm], st[lm + 1], st[lm + 2] = st[lm] + gamma * ex, st[lm + 1] + gamma * ey, st[lm + 2] + gamma * ez
     st[DIST_LOWPASS_VAR] += gamma * (ex * ex + ey * ey + ez * ez - st[DIST_LOWPASS_VAR])
@@ -198,6 +202,39 @@ def lag_jacobian(H, st, n):
                 H[i, 3 + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
 
+@mirrors("fusion.estimators._accel.AccDisturbance.slow_power")
+def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s, Hc):
+    """`AccDisturbance.slow_power` on the disturbance state `st`, for the gravity direction h
+    (body) and the filter's covariance P (its calibration block P[3:n, 3:n]); -> g^2. Hc: (3, >= 6)
+    scratch, [H_b, H_s] in its first six columns."""
+    if st[DIST_HAS_LOWPASS] == 0.0 or st[DIST_HAS_MEAN] == 0.0 or st[DIST_AGE] < lowpass_s:
+        return 0.0
+    m, lp = DIST_MEAN, DIST_LOWPASS
+    ex, ey, ez = st[m] - st[lp], st[m + 1] - st[lp + 1], st[m + 2] - st[lp + 2]
+    dev = ex * ex + ey * ey + ez * ez
+    f = DIST_FRAME
+    qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
+    for c in range(6):  # [H_b, H_s] = [A N_b, -A N_s], A = [h]x R_I^T (`LowpassLag.jacobian`)
+        sign = 1.0 if c < 3 else -1.0
+        o = (DIST_LAG_B if c < 3 else DIST_LAG_S) + c % 3
+        vx, vy, vz = rotate_floats(qi, st[o], st[o + 3], st[o + 6])
+        Hc[0, c] = sign * (-hz * vy + hy * vz)  # [h]x v
+        Hc[1, c] = sign * (hz * vx - hx * vz)
+        Hc[2, c] = sign * (-hy * vx + hx * vy)
+    k = n - 3  # 3 (bias) or 6 (bias and scale)
+    explained = 0.0
+    for i in range(k):  # trace(H_c P_cal H_c^T)
+        for j in range(k):
+            explained += (Hc[0, i] * Hc[0, j] + Hc[1, i] * Hc[1, j] + Hc[2, i] * Hc[2, j]) * P[3 + i, 3 + j]
+    hs2 = 0.0
+    for i in range(3):
+        for j in range(3, 6):
+            hs2 += Hc[i, j] * Hc[i, j]
+    explained += scale_prior_var * hs2
+    explained += st[DIST_LOWPASS_NORM] * st[DIST_LOWPASS_NORM]
+    return max(0.0, dev - explained)
+
+
 @mirrors("fusion.estimators._accel.lowpass_drift_density")
 def lowpass_drift_density(lowpass_s, rate_noise):
     """`_accel.lowpass_drift_density`."""
@@ -225,15 +262,20 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 
 @mirrors("fusion.estimators._accel.accelerometer_update_input")
-def accelerometer_update_input(dist, dq, ax, ay, az, dt, scale, rate_noise, o, lag, rate):
+def accelerometer_update_input(dist, dq, ax, ay, az, dt, scale, rate_noise, o, lag, rate, slow_corr, hx, hy, hz, P, n,
+                               scale_prior_var, W):
     """The measurement and variance of one accelerometer update, as the filters' steps choose
     them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq,
-    and with `lag` the low-pass's lag, `step` with rate (2, 3) as there),
-    the low-pass frame drift (rate_noise: the filter's rate noise density), the raw or the
-    low-passed sample (`_accel.acc_measurement`), its variance times the gate's scale; without
-    the disturbance model the raw sample and R / dt. -> (z (3 floats), r g^2, low-passed)."""
+    and with `lag` the low-pass's lag, `step` with rate (2, 3) as there), with slow_corr > 0 its
+    slow component (`slow_power` for the gravity direction h and the covariance P of error
+    dimension n; W: its (3, >= 6) scratch), the low-pass frame drift (rate_noise: the filter's
+    rate noise density), the raw or the low-passed sample (`_accel.acc_measurement`), its variance
+    times the gate's scale; without the disturbance model the raw sample and R / dt.
+    -> (z (3 floats), r g^2, low-passed)."""
     if o.corr_s > 0.0:
         d = update(dist, dq, ax, ay, az, dt, o, lag, rate)
+        if slow_corr > 0.0:  # as the power of the fast process with the same density
+            d = max(d, slow_power(dist, hx, hy, hz, P, n, scale_prior_var, o.lowpass_s, W) * (slow_corr / o.corr_s))
         drift = lowpass_drift_density(o.lowpass_s, rate_noise)
         mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
         return mx, my, mz, density / dt * scale, lowpassed

@@ -222,10 +222,12 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
             for i in range(3):
                 rate[1, i] = 1.0 + s[i] if n > 6 else 1.0
         if scale < math.inf:
-            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, d, ax, ay, az, h, scale,
-                                                                        o.process_noise, o.acc, with_lag, rate)
-            var = r
             hx, hy, hz = gravity_floats(q)
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, d, ax, ay, az, h, scale,
+                                                                        o.process_noise, o.acc, with_lag, rate,
+                                                                        o.slow_corr, hx, hy, hz, P, n, o.slow_scale_var,
+                                                                        H)  # H: scratch until filled below
+            var = r
             accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
                 accel.lag_jacobian(H, st.dist, n)

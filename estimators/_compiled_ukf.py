@@ -239,7 +239,8 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
             mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, dq, ax, ay, az, h, scale, q_rate,
-                                                                        o.acc, with_lag, rate)
+                                                                        o.acc, with_lag, rate, 0.0, 0.0, 0.0, 0.0, P,
+                                                                        n, 0.0, H)  # no slow component
             var = r
             lagged = with_lag and lowpassed
             if lagged:  # the low-passed sample's lag (`AccDisturbance.lag_jacobian`)

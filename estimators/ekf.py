@@ -34,9 +34,17 @@ Rest (bias rows; `_rest`): after `rest_time_s` still, the zero-rate pseudo-measu
 Update (accelerometer = gravity in the body frame; Sola 2017, Secs. 6.1-6.3: correction,
 injection, reset with the reset Jacobian taken as I; `_accel`):
     h(q) = R(q)^T e_z (g),  H = [[h]x, 0, 0]          (exp(e)^T h ~ h + h x e)
-    R_k = (R + 2 tauc d_k) / dt I   adaptive: d_k the external-acceleration power of
-                  `_accel.AccDisturbance`, measured without the filter's attitude (Suh 2010,
-                  IEEE TIM 59(12), adapts R to the external acceleration)
+    R_k = (R + max(2 tauc d_k, 2 tauslow d_slow)) / dt I   adaptive: d_k the external-acceleration
+                  power of `_accel.AccDisturbance`, measured without the filter's attitude (Suh 2010,
+                  IEEE TIM 59(12), adapts R to the external acceleration); d_slow its slow part, which
+                  the 0.5 s window misses (a sustained acceleration, as of a slow translation, changes
+                  little within it): the squared deviation of the window's mean from the low-pass in
+                  the strapdown frame, less what the calibration explains, trace(H_c P_c H_c^T) with
+                  the lag's Jacobians H_c = [H_b, H_s] below and, with scale states, the scale prior
+                  added to P_ss (the rate errors the model lacks), and less the low-passed norm deviation squared (what
+                  the low-pass holds of gross samples) (`_accel.AccDisturbance.slow_power`); a
+                  Gauss-Markov process of correlation time tauslow (2 s), after the external-
+                  acceleration state of Lee, Park & Robinovitch 2012, IEEE TIM 61(8), but as noise
     a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Sec. 3.2, eq. 7),
                   rotated back into the body, with R_k = (R + S_lp + S_drift) / dt, whenever
                   that density is the smaller (`_accel.acc_measurement`). S_lp is the residual
@@ -181,6 +189,14 @@ class EKFParams(BiasFilterParams):
         sample also corrects the gyro bias and scale (False, the default: the attitude and
         velocity only; see "Velocity" in the module docstring). Without the velocity states it
         always does.
+    slow_disturbance_corr_s (tauslow): correlation time, s, of the slow external acceleration
+        (a sustained linear acceleration, as of a slow translation), whose power the raw
+        accelerometer sample's noise takes from the deviation of the disturbance window's mean
+        from the low-pass, less what the calibration's uncertainty and gross samples explain
+        (`_accel.AccDisturbance.slow_power`; "Update" in the module docstring; a Gauss-Markov
+        external acceleration as in Lee, Park & Robinovitch 2012, IEEE TIM 61(8)). 0: no slow
+        component (the model before it); it needs the low-pass's lag (bias states, `tauc` > 0,
+        `taulp` > 0). 1-5 s change little (`docs/results.md`, "Slow translation, simulated").
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
         `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
@@ -205,6 +221,7 @@ class EKFParams(BiasFilterParams):
     velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
     velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv", "search": Tunable(1e-2, 1e2)})
     lowpass_calibration: bool = field(default=False, metadata={"alias": "lpcal"})
+    slow_disturbance_corr_s: float = field(default=2.0, metadata={"alias": "tauslow"})
     impl: Literal["compiled", "numpy"] = "compiled"
 
     def _check(self) -> None:
@@ -217,13 +234,16 @@ class EKFParams(BiasFilterParams):
                              f"got {self.velocity_bound_m2_s!r}")
         if self.impl not in ("compiled", "numpy"):
             raise ValueError(f"ekf: impl must be compiled or numpy, got {self.impl!r}")
+        if not (self.slow_disturbance_corr_s >= 0.0 and math.isfinite(self.slow_disturbance_corr_s)):
+            raise ValueError(f"ekf: slow_disturbance_corr_s must be a finite number >= 0 (0: off), "
+                             f"got {self.slow_disturbance_corr_s!r}")
         if self.estimate_scale and not self.estimate_bias:
             raise ValueError("ekf: estimate_scale needs estimate_bias (the error state is [attitude, bias, scale])")
 
     def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
         bias = ("estimate_bias", (True,))
         names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
-                 "rest_time_s", "rest_noise_rad2_s")
+                 "rest_time_s", "rest_noise_rad2_s", "slow_disturbance_corr_s")
         return {**super()._only_with(), **{name: bias for name in names}}
 
     @property
@@ -332,9 +352,6 @@ class EKF(KalmanFilter):
         scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
         rate = u if valid else None  # the lag's inputs (`AccDisturbance.update`)
         if scale < math.inf:
-            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
-                                                                 p.process_noise_rad2_s, rate, 1.0 + self.s)
-            self.acc_var = r
             w, x, y, z = q
             h = gravity_in_body_floats(w, x, y, z)
             H = self._H
@@ -342,6 +359,12 @@ class EKF(KalmanFilter):
             H[1, 0], H[1, 2] = h[2], -h[0]
             H[2, 0], H[2, 1] = -h[1], h[0]
             H[:, 3:] = 0.0
+            slow = p.slow_disturbance_corr_s if self._with_lag else 0.0  # the slow external acceleration
+            prior = p.init_scale_var if n > 6 else 0.0  # the rate error the calibration states lack
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
+                                                                 p.process_noise_rad2_s, rate, 1.0 + self.s, slow,
+                                                                 H[:, :3], P[3:n, 3:n], prior)
+            self.acc_var = r
             if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
                 H_b, H_s = self._dist.lag_jacobian(H[:, :3])
                 H[:, 3:6] = H_b

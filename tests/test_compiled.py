@@ -33,6 +33,8 @@ SPECS = (
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
     # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
     "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25", "ekf:lpcal=true",
+    # ekf without the slow external acceleration, and with a longer one
+    "ekf:tauslow=0", "ekf:tauslow=5",
     # ekf's scale test off, and deciding within the windows (wide error probabilities), on three axes without
     # heading_free
     "ekf:sprt=0", "ekf:sprt=0.3", "ekf:sprt=0.45,saxes=xyz,hf=false",
@@ -222,6 +224,9 @@ def test_the_cases_reach_the_rarer_branches(sim, course, broad):
     assert build("ekf").estimate(broken(sim[0]), wrong_start(sim[1])).diagnostics["bias_guarded"].any()
     assert runs["ukf-bias:iters=2", "sim"].diagnostics["mean_iteration_cap_hits"] > 0
     assert all(runs["ekf:gate=skip,gate_g=0.05", name].diagnostics["updates_skipped"] > 0 for name in ("sim", "course", "broad"))
+    # the slow external acceleration acts on the BROAD trial (on the other two, it stays within what the
+    # calibration explains)
+    assert not np.array_equal(runs["ekf", "broad"].quat_wxyz, build("ekf:tauslow=0").estimate(*broad).quat_wxyz)
 
 
 @pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])

@@ -75,11 +75,13 @@ def test_recovers_after_nan_and_saturated_stretch():
     acc[560:600] = 8.0
     est = build("ekf").estimate(imu.replace(gyr_rad_s=gyr, acc_g=acc), truth[0])
     assert np.all(np.isfinite(est.quat_wxyz))
-    # 0.351 deg measured over the last 300 samples, + 15 % (was 2.0)
+    # 0.351 deg measured over the last 300 samples, + 15 % (was 2.0); 0.345 with the slow external
+    # acceleration (0.236 with tauslow=0; 1.30 if the low-pass's hold of the saturated samples counted as one)
     assert np.sqrt(np.mean(inclination_deg(truth[1200:], est.quat_wxyz[1200:]) ** 2)) < 0.41
 
 
-@pytest.mark.parametrize("spec", ["ekf:Q=-1", "ekf:R=0", "ekf:Qb=-1e-6", "ekf:Pb0=inf", "ekf:gate=maybe", "ekf:gate_g=-1", "ekf:sigma=kraft"])
+@pytest.mark.parametrize("spec", ["ekf:Q=-1", "ekf:R=0", "ekf:Qb=-1e-6", "ekf:Pb0=inf", "ekf:gate=maybe", "ekf:gate_g=-1",
+                                  "ekf:sigma=kraft", "ekf:tauslow=-1", "ekf:tauslow=inf"])
 def test_bad_parameters_raise(spec):
     with pytest.raises(ValueError):
         build(spec)
@@ -90,6 +92,7 @@ def test_bad_parameters_raise(spec):
     [("ekf:bias=false,scale=false,Qb=1e-6", "ekf: bias_walk_rad2_s3 applies only with estimate_bias=true; it is ignored with estimate_bias=false"),
      ("ekf:bias=false,scale=false,rest_time_s=2", "rest_time_s applies only with estimate_bias=true"),
      ("ekf:scale=false,Ps0=1e-3", "ekf: init_scale_var applies only with estimate_scale=true"),
+     ("ekf:bias=false,scale=false,tauslow=3", "slow_disturbance_corr_s applies only with estimate_bias=true"),
      ("ekf:gate_g=0.5", "ekf: gate_g applies only with gate=skip or inflate")],
 )
 def test_parameter_ignored_by_the_chosen_option_raises(spec, match):
@@ -288,3 +291,41 @@ def test_slow_rocking_with_translation_without_scale_states(spec, bound):
     imu, truth = _slow_rocking_with_translation()
     est = build(spec).estimate(imu, truth[0])
     assert np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2)) < bound
+
+
+def _slow_translation(seconds=90.0, rate_hz=100.0, peak_g=0.1, seed=4):
+    """A body carried along straight horizontal lines by minimum-jerk moves of 3-6 s (Flash & Hogan
+    1985: x(s) = D (10 s^3 - 15 s^4 + 6 s^5), peak acceleration 5.77 D / T^2 = peak_g), one after
+    another in random directions, while it turns slowly (+-10 deg over tens of seconds); a gyro and
+    an accelerometer with the course board's white noise (0.01 rad/s, 0.01 g per sample) and a bias."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * rate_hz)) / rate_hz
+    ext = np.zeros((len(t), 3))
+    start = 3.0
+    while start < seconds - 6.0:
+        T = rng.uniform(3.0, 6.0)
+        inside = (t >= start) & (t < start + T)
+        s = (t[inside] - start) / T
+        heading = rng.uniform(0.0, 2.0 * np.pi)
+        profile = peak_g / 5.7735 * (60 * s - 180 * s**2 + 120 * s**3)
+        ext[inside, :2] = np.outer(profile, [np.cos(heading), np.sin(heading)])
+        start += T
+    w = np.radians(10.0) * 2 * np.pi / 30.0 * np.stack([np.cos(2 * np.pi * t / 30.0), np.sin(2 * np.pi * t / 23.0),
+                                                        0.5 * np.cos(2 * np.pi * t / 41.0)], axis=1)
+    return turning_body(t, w, np.array([1.0, 0.0, 0.0, 0.0]), ext, gyr_std=0.01, acc_std=0.01,
+                        bias=(0.004, -0.003, 0.002), seed=seed, source="slow translation")
+
+
+@pytest.mark.parametrize("impl", ["compiled", "numpy"])
+def test_a_sustained_acceleration_is_not_taken_for_tilt(impl):
+    # A slow translation changes little within the 0.5 s disturbance window: without the slow
+    # external acceleration (tauslow=0) the raw sample keeps a small noise and the attitude follows
+    # the tilted specific force. Inclination RMSE measured 1.63 deg against 2.99 (VQF 3.59; seeds 1-3:
+    # 1.36-1.43 against 2.57-2.64); bounds: the measured value + 15 %, and the ratio 0.55 + 0.1.
+    imu, truth = _slow_translation()
+    rmse = {}
+    for spec in ("ekf:tauslow=2", "ekf:tauslow=0"):
+        est = build(f"{spec},impl={impl}").estimate(imu, truth[0])
+        rmse[spec] = np.sqrt(np.mean(inclination_deg(truth, est.quat_wxyz) ** 2))
+    assert rmse["ekf:tauslow=2"] < 1.88
+    assert rmse["ekf:tauslow=2"] < 0.65 * rmse["ekf:tauslow=0"]
