@@ -42,8 +42,9 @@ GRIDS = {
     "lpcal": ["false", "true"],  # the low-passed sample corrects the calibration beside the velocity (ekf only)
     "sprt": ["0", "0.05", "0.1", "0.2"],  # the scale test's error probabilities (0: no test)
     "Psc": ["3e-5", "1e-4", "3e-4"],  # the scale test's calibrated prior variance (0.5 %, 1 %, 1.7 %)
+    "tauslow": ["0", "1.0", "2.0", "5.0"],  # the slow external acceleration's correlation time, s (0: none; ekf only)
 }
-EKF_ONLY = {"Rv", "Qv", "lpcal"}
+EKF_ONLY = {"Rv", "Qv", "lpcal", "tauslow"}
 
 
 def default_values(estimator: str) -> dict[str, float | bool]:
