@@ -262,18 +262,18 @@ class GradientDescentSmoother(BatchSmoother):
                     alpha *= 0.5
                 lagged = age > 0 and p.precond != "none"  # this direction came from an older point's M
                 decrease = 0.0  # relative; 0 if no step decreased the cost
+                settled = False  # presolve: a full step left every sample's inclination in place
                 if accepted:
                     iterations += 1
                     decrease = (cost - cost_new) / max(cost, 1e-300)
-                    if presolve and alpha == 1.0 and inclination_step(q, d_q[:, :3]) < p.presolve_tol_rad:
-                        decrease = 0.0  # the inclination has settled: as converged, for the presolve
+                    settled = presolve and alpha == 1.0 and inclination_step(q, d_q[:, :3]) < p.presolve_tol_rad
                     q, v, theta, cost = q_new, v_new, theta_new, cost_new
                     age += 1
                     log.record(cost, q)
                     steps.append(alpha)
                     bar.update(1)
                     bar.set_postfix(cost=f"{cost:.6g}", alpha=f"{alpha:.3g}")
-                small = decrease < p.tol
+                small = decrease < p.tol or settled
                 stage_end = staged and not presolve and (decrease < p.tol or iterations >= stage1_iter)
                 if (small and not lagged) and not stage_end:
                     converged = True  # a fresh M's step no longer helps: at the minimum (to tol)

@@ -431,6 +431,7 @@ FUSION_FLAGS = {"accelerometer_ignored": ("accelerometer_ignored", False),
                 "overrange_recovery": ("overrange_recovery", False), "startup": ("startup", False),
                 "magnetometer_ignored": ("magnetometer_ignored", True),
                 "magnetic_recovery": ("magnetic_recovery", True)}
+_FUSION_STATES = {"accelerometer_ignored", "magnetometer_ignored"}  # read from `get_internal_states()`
 
 
 class FusionPeer(RecursiveEstimator):
@@ -464,7 +465,8 @@ class FusionPeer(RecursiveEstimator):
         mag_ut, mag_ok = (imu.mag_ut, imu.mag_valid) if mag else (None, np.zeros(n, dtype=bool))
         out = np.empty((n, 4))
         out[0] = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz) if mag else init_quat_wxyz
-        names = [name for name, magnetic in FUSION_FLAGS.values() if mag or not magnetic]
+        read = [(key, key in _FUSION_STATES) for key, (_, magnetic) in FUSION_FLAGS.items() if mag or not magnetic]
+        names = [FUSION_FLAGS[key][0] for key, _ in read]
         rows = []
         for k in range(n - 1):
             ahrs.set_sample_period(dt[k])
@@ -474,8 +476,7 @@ class FusionPeer(RecursiveEstimator):
                 ahrs.update_no_magnetometer(rate_deg_s[k], acc_g[k + 1])
             out[k + 1] = ahrs.get_quaternion()
             f, st = ahrs.get_flags(), ahrs.get_internal_states()
-            rows.append((st.accelerometer_ignored, f.acceleration_recovery, f.overrange_recovery, f.startup)
-                        + ((st.magnetometer_ignored, f.magnetic_recovery) if mag else ()))
+            rows.append(tuple(getattr(st if state else f, key) for key, state in read))
         flags = np.zeros((n, len(names)), dtype=bool)
         if rows:
             flags[1:] = rows

@@ -56,6 +56,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from .metrics import KINDS
+from .series import events_of
 
 INSTALL = "pip install 'fusion[viz]'"
 TIMELINE = "time"
@@ -193,7 +194,7 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
                 send(f"error/{kind}/{name}", x[good], rr.Scalars.columns(scalars=err[good]))
 
     # the recording's events, as steps, and one line each as it starts
-    events = recording_events(recording, s)
+    events = s.events if s.events is not None else events_of(recording)  # kept by the series, else found again
     starts = []
     for name, spans in events.items():
         entity = f"events/{event_entity(name)}"
@@ -244,15 +245,6 @@ def _log_recording(rr: Any, stream: Any, recording: Any, s: Any, data_dir: Any, 
     camera = _log_camera(rr, stream, f"{root}/world/truth/body/camera", recording, t0, data_dir, camera_hz)
     return _tab(rrb, root, s.id, [names[e] for e in sorted(s.beliefs)], bool(events), camera,
                 [names[e] for e in sorted(s.flags)])
-
-
-def recording_events(recording: Any, s: Any) -> dict[str, list[tuple[float, float]]]:
-    """The recording's events as (start, stop) spans, s since its first IMU sample, by name (only
-    those that occur; `fusion.evaluation.series.events_of`): those the series kept, else found again
-    in the recording."""
-    from .series import events_of
-
-    return s.events if s.events is not None else events_of(recording)
 
 
 def event_entity(name: str) -> str:
