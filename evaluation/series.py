@@ -97,9 +97,7 @@ def recording_part(rec, truth_at_imu=None) -> dict[str, np.ndarray]:
                 truth_quat=np.asarray(truth.quat_wxyz) if truth is not None else np.empty((0, 4)))
     if truth_at_imu is not None:
         part["truth_at_imu"] = np.asarray(truth_at_imu(), dtype=float)
-    events = [(name, span) for name, spans in events_of(rec).items() for span in spans]
-    part["event_names"] = np.array([name for name, _ in events], dtype=str)
-    part["event_spans_s"] = np.array([span for _, span in events], dtype=float).reshape(-1, 2)
+    part.update(_event_arrays(events_of(rec)))
     return part
 
 
@@ -227,6 +225,14 @@ def assemble(recording: dict[str, np.ndarray], labels: list[str], causal: list[b
                            _events(recording.get("event_names"), recording.get("event_spans_s")))
 
 
+def _event_arrays(events: dict[str, list[tuple[float, float]]]) -> dict[str, np.ndarray]:
+    """The `event_names` (M,) and `event_spans_s` (M, 2) arrays of an events' dict (`_events` reads
+    them back)."""
+    flat = [(name, span) for name, spans in events.items() for span in spans]
+    return {"event_names": np.array([name for name, _ in flat], dtype=str),
+            "event_spans_s": np.array([span for _, span in flat], dtype=float).reshape(-1, 2)}
+
+
 def _events(names: np.ndarray | None, spans: np.ndarray | None) -> dict[str, list[tuple[float, float]]] | None:
     """The events' dict from their `event_names` and `event_spans_s` arrays (None: not kept)."""
     if names is None or spans is None:
@@ -261,9 +267,7 @@ def save(path: Path, s: RecordingSeries) -> None:
     for e, flags in s.flags.items():
         arrays.update({f"flag_{e}_{name}": np.packbits(np.asarray(flag, bool)) for name, flag in flags.items()})
     if s.events is not None:
-        events = [(name, span) for name, spans in s.events.items() for span in spans]
-        arrays["event_names"] = np.array([name for name, _ in events], dtype=str)
-        arrays["event_spans_s"] = np.array([span for _, span in events], dtype=float).reshape(-1, 2)
+        arrays.update(_event_arrays(s.events))
     np.savez_compressed(path, **arrays)
 
 
