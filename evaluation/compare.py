@@ -74,6 +74,17 @@ def recording_alignments(results: list[Result]) -> list[dict[str, Any]]:
     return list(out.values())
 
 
+def not_scored_recordings(results: list[Result]) -> list[dict[str, str]]:
+    """One entry per recording that was not scored, in run order: `{"dataset", "reason"}`, the reason
+    its rows carry (`Result.not_scored`: no truth, truth unusable, alignment undetermined or poor, or
+    files that cannot be read)."""
+    out: dict[str, dict[str, str]] = {}
+    for r in results:
+        if r.not_scored and r.dataset not in out:
+            out[r.dataset] = {"dataset": r.dataset, "reason": r.not_scored}
+    return list(out.values())
+
+
 def recording_facts(results: list[Result]) -> list[dict[str, Any]]:
     """One entry per scored recording whose rows know them, in run order: `{"dataset", "protocol",
     "truth"}`, how its rows were scored ("full" or "broad": `Result.protocol`) and what its truth is
@@ -91,19 +102,20 @@ def recording_facts(results: list[Result]) -> list[dict[str, Any]]:
 
 def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, Any]:
     """The document `--json` writes: `results`, `alignments` (one per recording, empty without
-    `--align`), `recordings` (one per recording with truth: `recording_facts`), `statistics` (every
+    `--align`), `recordings` (one per recording with truth: `recording_facts`), `not_scored` (one per
+    recording that was not scored, with its reason: `not_scored_recordings`), `statistics` (every
     metric's, `fusion.evaluation.stats.run_statistics`), `datasets` (each dataset's means apart and
     together: `across_datasets`), `settings`, `versions`."""
     return {"results": [r.to_json() for r in results], "alignments": recording_alignments(results),
-            "recordings": recording_facts(results),
+            "recordings": recording_facts(results), "not_scored": not_scored_recordings(results),
             "statistics": run_statistics(summary_groups(results)).to_json(),
             "datasets": across_datasets(results), "settings": settings,
             "versions": versions()}
 
 
-ALIGN_NOTE = ("after --align: truth mapped into our frames as A R_truth B, A = R_ourworld_truthworld and "
-              "B = R_truthbody_imubody fitted once per recording from its gyro, accelerometer and truth, "
-              "the same for every estimator")
+ALIGN_NOTE = ("aligned (--align, or a truth in frames of its own): truth mapped into our frames as A R_truth B, "
+              "A = R_ourworld_truthworld and B = R_truthbody_imubody fitted once per recording from its gyro, "
+              "accelerometer and truth, the same for every estimator")
 
 
 def dataset_group(dataset: str) -> str:
@@ -200,7 +212,7 @@ def across_rows(results: list[Result], primary: str) -> tuple[list[list[str]], l
     for entry in summary["all"]:
         label = entry["estimator"]
         values = [f"{entry['rmse_deg'][k]:.2f}" for k in KINDS] if entry["rmse_deg"] else ["-"] * 3
-        us = np.mean([r.us_per_sample for r in results if r.estimator == label and r.error is None] or [np.nan])
+        us = np.mean([r.us_per_sample for r in results if r.estimator == label and r.ran] or [np.nan])
         rows.append([f"mean {ACROSS} ({n})", label, *values, "", f"{us:.1f}", entry["imu"]])
         keys.append((ACROSS, label))
         ci = entry["ci95_deg"][primary]
@@ -229,6 +241,8 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
     if align is None:
         align = any(r.alignment for r in results)
     header = ["dataset", "estimator", "total", "inclination", "heading", "coverage", "us/sample"]
+    not_scored = not_scored_recordings(results)
+    results = [r for r in results if r.readable]  # the rows of recordings that could be read: the others are listed
     rows = []
     for r in results:
         rmse = [f"{r.rmse_deg[k]:.2f}" for k in KINDS] if r.rmse_deg else ["failed" if r.error else "-"] * 3
@@ -244,7 +258,7 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
                 if not mine:
                     continue
                 mean = [f"{np.mean([r.rmse_deg[k] for r in scored]):.2f}" for k in KINDS] if scored else ["-"] * 3
-                us = np.mean([r.us_per_sample for r in mine if r.error is None] or [np.nan])
+                us = np.mean([r.us_per_sample for r in mine if r.ran] or [np.nan])
                 name = f"mean ({len(scored)})" if group is None else f"mean {group} ({len(scored)})"
                 means.append([name, label, *mean, "", f"{us:.1f}", sensors(scored or mine)])
                 keys.append((group, label))
@@ -286,7 +300,7 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
     out += [line(r) for r in scored_rows]
     if unscored_rows:
         if scored_rows or means:
-            out += [f"without ground truth (not scored): {len({r.dataset for r in results if not r.rmse_deg and not r.error})} recordings"]
+            out += [f"not scored (the reasons below): {len({r.dataset for r in results if r.not_scored})} recordings"]
         out += [line(r) for r in unscored_rows]
     if failed_rows:
         out += [f"failed (no result; the errors say why): {len(failed_rows)} rows"] + [line(r) for r in failed_rows]
@@ -297,7 +311,16 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
     out += notes
     if any(r.alignment for r in results):
         out += ["", format_alignments(results)]
+    if not_scored:
+        out += ["", format_not_scored(not_scored, len({r.dataset for r in results} | {e["dataset"] for e in not_scored}))]
     return "\n".join(out)
+
+
+def format_not_scored(entries: list[dict[str, str]], recordings: int) -> str:
+    """The table's footer: how many of the run's recordings were not scored, and each one's reason
+    (`not_scored_recordings`), one line each."""
+    return "\n".join([f"not scored: {len(entries)} of {recordings} recordings (facts about the data: the run went on "
+                      "without them)"] + [f"  {e['dataset']}: {e['reason']}" for e in entries])
 
 
 def sensors(results: list[Result]) -> str:

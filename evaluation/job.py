@@ -54,6 +54,12 @@ class Result:
     recording (`fusion.evaluation.compare.recording_facts`), not in the rows.
     traceback: a failed row whose user code raised: the traceback of the user's own frames
         (`fusion.estimators.user.failure_site`); None otherwise.
+    not_scored: why the row's recording was not scored, one line starting with one of
+        `NOT_SCORED` ("cannot be read": its files could not be read and no estimator ran; "no truth",
+        "truth unusable": `fusion.types.Recording.truth_problem`; "alignment undetermined",
+        "alignment poor": with `--align`, `fusion.evaluation.align.Alignment.problem`); the same for
+        every row of a recording; None for a scored row and a failed one. A fact about the data: the
+        run goes on, and its exit status does not change.
     """
 
     dataset: str
@@ -73,6 +79,18 @@ class Result:
     protocol: str | None = None
     truth: str | None = None
     traceback: str | None = None
+    not_scored: str | None = None
+
+    @property
+    def readable(self) -> bool:
+        """The row's recording could be read (its estimator ran, or failed)."""
+        return not (self.not_scored or "").startswith(UNREADABLE)
+
+    @property
+    def ran(self) -> bool:
+        """The estimator ran to its end on the recording: not failed, the recording readable (its
+        time means something)."""
+        return self.error is None and self.readable
 
     @property
     def heading_offset_removed(self) -> bool:
@@ -107,8 +125,9 @@ class Result:
     def to_json(self) -> dict[str, Any]:
         """The row of `results.json` (the keys are a documented format: docs/json-format.md; `panorama`
         only with `--panorama`; `alignment` null unless the row was scored with `--align`;
-        `error` only on a failed row, `traceback` only on a failed row whose user code raised;
-        `protocol` and `truth` go into the document's `recordings`, once per recording)."""
+        `error` only on a failed row, `traceback` only on a failed row whose user code raised,
+        `not_scored` only on a row of a recording that was not scored; `protocol` and `truth` go into
+        the document's `recordings`, once per recording)."""
         row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
@@ -127,6 +146,8 @@ class Result:
             row["error"] = self.error
         if self.traceback is not None:
             row["traceback"] = self.traceback
+        if self.not_scored is not None:
+            row["not_scored"] = self.not_scored
         return row
 
     @classmethod
@@ -136,12 +157,48 @@ class Result:
         return cls(r["dataset"], r["estimator"], r["samples"], r["seconds"], r["rmse_deg"], r["max_deg"],
                    panorama=r.get("panorama"), alignment=r.get("alignment"), scored_samples=r.get("scored_samples"),
                    coverage=r.get("coverage"), error=r.get("error"), magnetometer=bool(r.get("magnetometer", False)),
-                   protocol=r.get("protocol"), truth=r.get("truth"), traceback=r.get("traceback"))
+                   protocol=r.get("protocol"), truth=r.get("truth"), traceback=r.get("traceback"),
+                   not_scored=r.get("not_scored"))
 
 
 def default_protocol(recording: Recording) -> str:
     """"broad" for recordings that carry a movement mask (BROAD trials), else "full"."""
     return "broad" if recording.movement is not None else "full"
+
+
+# Why a recording was not scored (`Result.not_scored` starts with one of these). The reasons are facts
+# about the data, not failures: such a recording costs only itself.
+UNREADABLE = "cannot be read"  # its files: the loader's one line (no estimator ran)
+NO_TRUTH = "no truth"  # the file holds none (a course test recording, a static RepoIMU file)
+TRUTH_UNUSABLE = "truth unusable"  # `fusion.loaders.usable_truth`, `overlap_problem`
+ALIGNMENT_UNDETERMINED = "alignment undetermined"  # `fusion.evaluation.align.fit_alignment` raised
+ALIGNMENT_POOR = "alignment poor"  # `fusion.evaluation.align.Alignment.problem`
+NOT_SCORED = (UNREADABLE, NO_TRUTH, TRUTH_UNUSABLE, ALIGNMENT_UNDETERMINED, ALIGNMENT_POOR)
+
+
+@dataclass(frozen=True)
+class Unreadable:
+    """A recording whose files could not be read: its id and why (the loader's one line, naming the
+    file). Its jobs become rows `unreadable_row`, not failures."""
+
+    id: str
+    why: str
+
+
+def unreadable_row(recording: Unreadable, label: str) -> Result:
+    """The row of an estimator on a recording that could not be read: not run, not scored."""
+    return Result(recording.id, label, 0, 0.0, None, None, not_scored=f"{UNREADABLE}: {recording.why}")
+
+
+def no_truth_reason(recording: Recording) -> str:
+    """Why a recording without truth is not scored: its `truth_problem`, or that its file holds none."""
+    return recording.truth_problem or f"{NO_TRUTH} (its files hold none)"
+
+
+def without_truth(recording: Recording, why: str) -> Recording:
+    """The recording with its truth set aside, `why` (one line) recorded as its `truth_problem`: its
+    estimators still run (from the accelerometer's tilt), unscored."""
+    return replace(recording, truth=None, truth_problem=why)
 
 
 def recording_alignment(recording: Recording) -> Alignment | None:
@@ -152,7 +209,27 @@ def recording_alignment(recording: Recording) -> Alignment | None:
     try:
         return fit_alignment(recording.imu, recording.truth)
     except ValueError as exc:
-        raise ValueError(f"{recording.id}: {exc}") from None
+        raise ValueError(f"{recording.id}: {ALIGNMENT_UNDETERMINED}: {exc}") from None
+
+
+def aligns(recording: Recording, align: bool) -> bool:
+    """Whether the recording is scored through an alignment: `--align` asked for it, or its truth is in
+    frames of its own (`Recording.truth_needs_alignment`)."""
+    return align or recording.truth_needs_alignment
+
+
+def checked_alignment(recording: Recording) -> tuple[Alignment | None, str | None]:
+    """The recording's alignment and, when the recording cannot be scored through it, why (one line
+    starting "alignment undetermined" or "alignment poor", `Alignment.problem`); `(None, None)`
+    without truth."""
+    if recording.truth is None:
+        return None, None
+    try:
+        alignment = fit_alignment(recording.imu, recording.truth)
+    except ValueError as exc:
+        return None, f"{ALIGNMENT_UNDETERMINED}: {' '.join(str(exc).split())}"
+    problem = alignment.problem()
+    return alignment, f"{ALIGNMENT_POOR}: {problem}" if problem else None
 
 
 def aligned(recording: Recording, alignment: Alignment | None) -> Recording:
@@ -263,9 +340,11 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
 
     spec: a resolved spec (`fusion.estimators.resolve`), a spec, or its text (`"ukf:R=1e-3"`).
     align: score against the truth mapped into our frames (`fusion.evaluation.align`): True fits the
-        recording's alignment here; an `Alignment` (fitted once per recording by the caller)
-        is used as given. The initial orientation then comes from the aligned truth
-        (`init` None or "truth"), so every estimator starts in our frames.
+        recording's alignment here (`checked_alignment`: one it cannot be scored through leaves the
+        row unscored, saying why), as False does for a recording whose truth is in frames of its own
+        (`Recording.truth_needs_alignment`); an `Alignment` (fitted once per recording by the caller)
+        is used as given. The initial orientation then comes from the aligned truth (`init` None or
+        "truth"), so every estimator starts in our frames.
 
     Whatever the estimator raises ends this job only: an exception, and also SystemExit
     (`sys.exit` in its code) and a KeyboardInterrupt its code raises itself, become the
@@ -278,7 +357,11 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     entry = spec if isinstance(spec, ResolvedSpec) else resolve(spec)
-    alignment = align if isinstance(align, Alignment) else recording_alignment(recording) if align else None
+    alignment = align if isinstance(align, Alignment) else None
+    if alignment is None and aligns(recording, bool(align)):
+        alignment, problem = checked_alignment(recording)
+        if problem:
+            recording = without_truth(recording, problem)
     recording = aligned(recording, alignment)
     q0 = initial_orientation(recording, init)
     warm_up(entry, recording, q0)
@@ -355,6 +438,7 @@ def run_one(recording: Recording, spec: ResolvedSpec | EstimatorSpec | str, init
         scored_samples=result_score.samples if result_score else None,
         coverage=result_score.coverage if result_score else None, magnetometer=nine_d,
         protocol=protocol if result_score else None, truth=truth_system(recording) if result_score else None,
+        not_scored=None if result_score else no_truth_reason(recording),
     )
 
 
@@ -414,18 +498,29 @@ class JobOutput:
     recording_part: dict[str, np.ndarray] | None = None
     warnings: tuple[str, ...] = ()
 
+    def after(self, earlier: tuple[str, ...]) -> "JobOutput":
+        """The output with `earlier` warnings (its recording's loader's) before its own."""
+        return replace(self, warnings=tuple(dict.fromkeys(earlier + self.warnings))) if earlier else self
 
-def run_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None,
-            truth_at_imu: Any = None) -> JobOutput:
+
+def run_job(job: Job, rec: Recording | Unreadable, entry: ResolvedSpec, alignment: Alignment | None,
+            truth_at_imu: Any = None, problem: str | None = None) -> JobOutput:
     """`run_one` as a run's job: a failure becomes a row with its `error` (one line naming the
     estimator and the recording) instead of an exception; the row is a summary unless `job.keep`;
-    the warnings raised are returned (`JobOutput.warnings`), not shown.
+    the warnings raised are returned (`JobOutput.warnings`), not shown. A recording that could not be
+    read (`Unreadable`) gives its row (`unreadable_row`) without running anything.
 
     truth_at_imu: a callable giving the truth on the IMU stamps (for a filter's consistency plot
         data; the caller keeps it once per recording), or None.
+    problem: why the recording cannot be scored through its `alignment` (`checked_alignment`): its
+        truth is set aside and the estimator runs unscored; None otherwise.
     """
     from . import series
 
+    if isinstance(rec, Unreadable):
+        return JobOutput(unreadable_row(rec, entry.label))
+    if problem:
+        rec, truth_at_imu = without_truth(rec, problem), None
     with warnings.catch_warnings(record=True) as caught:  # shown by the process that runs the run
         warnings.simplefilter("always")
         shown = aligned(rec, alignment)

@@ -36,7 +36,7 @@ import numpy as np
 from . import series as series_io
 from .output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
 from .compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, across_datasets, dataset_group, format_coverage,
-                      format_table, heading_offset_note, sensors, shows_imu, summary_groups)
+                      format_table, heading_offset_note, not_scored_recordings, sensors, shows_imu, summary_groups)
 from .job import GENERIC_TRUTH, TRUTH_SYSTEMS
 from .metrics import KINDS
 from .stats import Comparison, RunStatistics, dropped_text, run_statistics
@@ -372,6 +372,8 @@ def _row_problem(r: Any) -> str | None:
         return "'magnetometer' must be true or false"
     if r.get("error") is not None and not (isinstance(r["error"], str) and r.get("rmse_deg") is None):
         return "'error' must be a string, on a row without scores"
+    if r.get("not_scored") is not None and not (isinstance(r["not_scored"], str) and r.get("rmse_deg") is None):
+        return "'not_scored' must be a string, on a row without scores"
     if r.get("panorama") is not None and not (isinstance(r["panorama"], dict) and all(
             v is None or _number(v) for v in r["panorama"].values())):
         return "'panorama' must be null or an object of numbers"
@@ -416,8 +418,10 @@ def _fmt(v: Any) -> str:
 
 def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
     """(header, rows) of the per-run table and of the per-estimator means, as text cells; rows
-    without ground truth come after the scored ones."""
-    rows = [r for r in doc["results"] if r["rmse_deg"]] + [r for r in doc["results"] if not r["rmse_deg"]]
+    without ground truth come after the scored ones; the rows of recordings that could not be read
+    are left out (`_not_scored_rows` lists them)."""
+    readable = [r for r in doc["results"] if Result.from_json(r).readable]
+    rows = [r for r in readable if r["rmse_deg"]] + [r for r in readable if not r["rmse_deg"]]
     imu = shows_imu([Result.from_json(r) for r in rows])  # rows of both kinds can appear: say which is which
     header = ["dataset", "estimator", "samples", "scored samples", "coverage", *(f"{k} RMSE" for k in KINDS),
               *(f"{k} max" for k in KINDS), "us/sample", *(["imu"] if imu else [])]
@@ -439,7 +443,7 @@ def _tables(doc: dict[str, Any]) -> tuple[list[str], list[list[str]], list[str],
             if not mine:
                 continue
             values = [_fmt(float(np.mean([r.rmse_deg[k] for r in scored]))) if scored else "-" for k in KINDS]
-            us = np.mean([r.us_per_sample for r in mine])
+            us = np.mean([r.us_per_sample for r in mine if r.ran] or [np.nan])
             means.append([label, str(len(scored)) if group is None else f"{len(scored)} ({group})", *values, f"{us:.1f}",
                           *([sensors(scored or mine)] if imu else [])])
     means += _across_means(rows, imu)
@@ -454,7 +458,7 @@ def _across_means(rows: list[dict[str, Any]], imu: bool) -> list[list[str]]:
     out = []
     for entry in summary["all"]:
         values = [_fmt(entry["rmse_deg"][k]) if entry["rmse_deg"] else "-" for k in KINDS]
-        us = np.mean([r.us_per_sample for r in results if r.estimator == entry["estimator"]])
+        us = np.mean([r.us_per_sample for r in results if r.estimator == entry["estimator"] and r.ran] or [np.nan])
         out.append([entry["estimator"], f"{entry['recordings']} (all {len(summary['datasets'])} datasets, each once)",
                     *values, f"{us:.1f}", *([entry["imu"]] if imu else [])])
     return out
@@ -501,6 +505,19 @@ def _truth_text(doc: dict[str, Any]) -> str:
     return "the truth (" + "; ".join(f"{name} for {', '.join(groups)}" for name, groups in per_group.items()) + ")"
 
 
+NOT_SCORED_HEADER = ["recording", "why it was not scored"]
+NOT_SCORED_TEXT = ("Recordings the run could not score, each with its reason (no truth, truth unusable, alignment "
+                   "undetermined or poor, files that cannot be read): facts about the data, not failures; the rest "
+                   "of the run went on without them. Those that could be read ran every estimator, unscored.")
+
+
+def _not_scored_rows(doc: dict[str, Any]) -> list[list[str]]:
+    """One row per recording that was not scored: its id and reason (results.json's `not_scored`,
+    or from the rows of an older document)."""
+    entries = doc.get("not_scored") or not_scored_recordings([Result.from_json(r) for r in doc["results"]])
+    return [[e["dataset"], e["reason"]] for e in entries]
+
+
 def _coverage_text(doc: dict[str, Any]) -> str:
     """The note under the results table when a row was scored on too little of its recording."""
     return LOW_COVERAGE_NOTE if any(Result.from_json(r).low_coverage for r in doc["results"]) else ""
@@ -511,8 +528,8 @@ ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body 
 
 
 def _alignment_text(doc: dict[str, Any]) -> str:
-    if doc.get("settings", {}).get("align"):
-        return ("Aligned (--align): the truth was mapped into our frames as A R_truth B, with A = R_ourworld_truthworld "
+    if doc.get("settings", {}).get("align") or recording_alignments_of(doc):
+        return ("Aligned (--align, or a truth in frames of its own): the truth was mapped into our frames as A R_truth B, with A = R_ourworld_truthworld "
                 "(a tilt only) and B = R_truthbody_imubody fitted once per recording from its gyro, accelerometer and "
                 "truth, the same for every estimator; this hides a constant IMU-to-marker mounting rotation and a "
                 "tilted truth world, not an estimator's errors.")
@@ -688,6 +705,8 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
     lines += ["", f"Errors: total = geodesic angle between estimate and {_truth_text(doc)}; inclination = angle between "
               "the true and estimated gravity direction; heading = twist about world z of the error. "
               + _alignment_text(doc), ""]
+    if _not_scored_rows(doc):
+        lines += ["## Not scored", "", NOT_SCORED_TEXT, ""] + md_table(NOT_SCORED_HEADER, _not_scored_rows(doc)) + [""]
     if _alignment_rows(doc):
         lines += ["## Alignment (--align)", ""] + md_table(ALIGNMENT_HEADER, _alignment_rows(doc)) + [""]
     if _tuning_text(doc):
@@ -766,10 +785,13 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         f"and {html.escape(_truth_text(doc))}; inclination = angle between the true and estimated gravity direction; "
         f"heading = twist about world z of the error. {html.escape(_alignment_text(doc))}</p>",
         _html_table(mean_header, means, "means", 1),
-        "<h2>Results per recording</h2><p>Recordings without ground truth (not scored) come last.</p>",
+        "<h2>Results per recording</h2><p>Recordings that were not scored come last (their reasons: "
+        "<a href=\"#not-scored\">Not scored</a>).</p>",
         _html_table(header, body, "results", 2),
         *([f"<p>{html.escape(_coverage_text(doc))}</p>"] if _coverage_text(doc) else []),
         *([f"<p>{'<br>'.join(html.escape(n) for n in _imu_notes(doc))}</p>"] if _imu_notes(doc) else []),
+        *(['<h2 id="not-scored">Not scored</h2>', f"<p>{html.escape(NOT_SCORED_TEXT)}</p>",
+           _html_table(NOT_SCORED_HEADER, _not_scored_rows(doc), "not-scored", 9)] if _not_scored_rows(doc) else []),
         *(["<h2>Alignment (--align)</h2>", _html_table(ALIGNMENT_HEADER, _alignment_rows(doc), "alignment", 1)]
           if _alignment_rows(doc) else []),
         *(["<h2>Tuning: library default, best common setting, per-recording best, out of sample</h2>",

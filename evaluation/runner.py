@@ -34,10 +34,17 @@ jobs=1: its code may end the process it runs in (`os._exit`, a segfault in a lib
 which costs that job's row (`fusion.evaluation.pool.WorkerDied`), not the run; `sys.exit` and a
 KeyboardInterrupt it raises itself are rows too (`fusion.evaluation.job.run_one`).
 
-With `align`, a recording's alignment (`fusion.evaluation.align`) is fitted from the recording alone
+With `align` (and for a recording whose truth is in frames of its own, `Recording.truth_needs_alignment`),
+a recording's alignment (`fusion.evaluation.align`) is fitted from the recording alone
 the first time a process needs it and kept with the loaded recording, so every job of that
 recording uses it (each worker that touches the recording fits it once; the fit is
 deterministic, so they agree bit for bit).
+
+A recording that cannot be scored costs only itself: one whose files cannot be read becomes an
+`Unreadable` when it is loaded, and each of its jobs a row saying so without running anything; one
+without usable truth, or (with `align`) without an alignment it can be scored through, runs its
+estimators unscored. Their rows carry the reason (`Result.not_scored`); only when no selected
+recording can be read at all does the run end with an error.
 
 Dask: with `scheduler` (the address of a running dask.distributed scheduler) the same jobs run on
 that cluster's workers (`_run_dask`), submitted with `pure=False` and `retries`, collected as they
@@ -52,7 +59,7 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
@@ -62,7 +69,8 @@ from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording
 
 from .align import Alignment
-from .job import Job, JobOutput, Result, failed, recording_alignment, run_job, truth_system, warn_low_coverage
+from .job import (UNREADABLE, Job, JobOutput, Result, Unreadable, aligns, checked_alignment, failed, run_job,
+                  truth_system, warn_low_coverage)
 from .pool import TaskTimeout, WorkerDied, WorkerPool, default_jobs
 from .settings import RunSettings
 
@@ -84,19 +92,24 @@ class WorkerState:
         self.items = list(items)
         self.entries = list(entries)
         self.load = load
-        self._loaded: dict[int, Recording] = {}
-        self._alignments: dict[int, Alignment | None] = {}
+        self._loaded: dict[int, Loaded] = {}
+        self._alignments: dict[int, tuple[Alignment | None, str | None]] = {}
         self._truth_at_imu: dict[tuple[int, bool], Any] = {}
 
-    def recording(self, index: int) -> Recording:
+    def recording(self, index: int) -> Recording | Unreadable:
+        return self.loaded(index).recording
+
+    def loaded(self, index: int) -> "Loaded":
         if index not in self._loaded:
             item = self.items[index]
-            self._loaded[index] = item if isinstance(item, Recording) else self.load.load(item)
+            self._loaded[index] = Loaded(item) if isinstance(item, Recording) else load_recording(self.load, item)
         return self._loaded[index]
 
-    def alignment(self, index: int) -> Alignment | None:
+    def alignment(self, index: int) -> tuple[Alignment | None, str | None]:
+        """The recording's alignment and why it cannot be scored through it (`checked_alignment`)."""
         if index not in self._alignments:
-            self._alignments[index] = recording_alignment(self.recording(index))
+            rec = self.recording(index)
+            self._alignments[index] = (None, None) if isinstance(rec, Unreadable) else checked_alignment(rec)
         return self._alignments[index]
 
     def truth_at_imu(self, index: int, align: bool) -> Callable | None:
@@ -106,22 +119,49 @@ class WorkerState:
         from .job import aligned
 
         rec = self.recording(index)
-        if rec.truth is None:
+        if isinstance(rec, Unreadable) or rec.truth is None:
             return None
 
         def compute() -> Any:
             key = (index, align)
             if key not in self._truth_at_imu:
-                shown = aligned(rec, self.alignment(index) if align else None)
+                shown = aligned(rec, self.alignment(index)[0] if align else None)
                 self._truth_at_imu[key] = consistency.truth_on(shown.truth, shown.imu.t)
             return self._truth_at_imu[key]
 
         return compute
 
     def run(self, job: Job) -> JobOutput:
-        align = job.settings.align
-        return run_job(job, self.recording(job.recording), self.entries[job.estimator],
-                       self.alignment(job.recording) if align else None, self.truth_at_imu(job.recording, align))
+        rec = self.recording(job.recording)
+        align = not isinstance(rec, Unreadable) and aligns(rec, job.settings.align)
+        alignment, problem = self.alignment(job.recording) if align else (None, None)
+        output = run_job(job, rec, self.entries[job.estimator], alignment, self.truth_at_imu(job.recording, align),
+                         problem)
+        return output.after(self.loaded(job.recording).warnings)
+
+
+@dataclass(frozen=True, eq=False)
+class Loaded:
+    """A recording as a process loaded it (`load_recording`): the recording, or `Unreadable`, and the
+    warnings its loader raised (their texts: shown once by the process that runs the run, as a job's
+    are, however many processes load it)."""
+
+    recording: Recording | Unreadable
+    warnings: tuple[str, ...] = ()
+
+
+def load_recording(load: LoadOptions, source: Source) -> Loaded:
+    """The recording, loaded as `load` says, or `Unreadable` with the loader's one-line message
+    (`ValueError`, `FileNotFoundError` and other `OSError`s: a file that cannot be read costs only
+    its recording), with the loader's warnings. An `ImportError` (an optional package a format
+    needs) still ends the run."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            recording = load.load(source)
+        except (ValueError, OSError) as exc:
+            recording = Unreadable(source.id, " ".join(str(exc).split()))
+    return Loaded(recording, tuple(dict.fromkeys(str(w.message) for w in caught)))
 
 
 _WORKER: WorkerState | None = None  # in a pool worker: its state, set once by `_start_worker`
@@ -236,6 +276,11 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     finally:
         bar.close()
     out = [results[n] for n in sorted(tasks)]
+    if out and not any(r.readable for r in out):  # nothing ran: that is an error, not a table of reasons
+        reasons = list(dict.fromkeys(r.not_scored[len(UNREADABLE) + 2:] for r in out))
+        raise ValueError(reasons[0] if len(reasons) == 1 else
+                         f"none of the {len(items)} selected recordings can be read: {reasons[0]} (and "
+                         f"{len(reasons) - 1} more)")
     warn_low_coverage(out)
     return out
 
@@ -260,14 +305,25 @@ def _given(value: Any) -> Any:
     return value
 
 
-def _dask_job(job: Job, rec: Recording, entry: ResolvedSpec, alignment: Alignment | None) -> JobOutput:
+def _dask_job(job: Job, loaded: Loaded, entry: ResolvedSpec,
+              fitted: tuple[Alignment | None, str | None] | None) -> JobOutput:
     """A job as a task on a Dask worker (the recording and its alignment are tasks of their own)."""
     from . import consistency
     from .job import aligned
 
-    shown = aligned(rec, alignment)
-    truth_at_imu = (lambda: consistency.truth_on(shown.truth, shown.imu.t)) if shown.truth is not None else None
-    return run_job(job, rec, entry, alignment, truth_at_imu)
+    rec = loaded.recording
+    alignment, problem = fitted or (None, None)
+    truth_at_imu = None
+    if not isinstance(rec, Unreadable) and rec.truth is not None and not problem:
+        shown = aligned(rec, alignment)
+        truth_at_imu = lambda: consistency.truth_on(shown.truth, shown.imu.t)  # noqa: E731
+    return run_job(job, rec, entry, alignment, truth_at_imu, problem).after(loaded.warnings)
+
+
+def _fit_alignment(loaded: Loaded, align: bool) -> tuple[Alignment | None, str | None]:
+    """A Dask task: `checked_alignment` of a loaded recording that `aligns`; (None, None) for others."""
+    rec = loaded.recording
+    return checked_alignment(rec) if not isinstance(rec, Unreadable) and aligns(rec, align) else (None, None)
 
 
 def _run_dask(tasks: list[tuple[int, Job]], items: list, entries: list[ResolvedSpec], scheduler: str,
@@ -298,8 +354,9 @@ def _run_dask(tasks: list[tuple[int, Job]], items: list, entries: list[ResolvedS
             raise ValueError(f"--scheduler {scheduler}: no worker connected within {WORKER_WAIT_S:.0f} s") from None
         needed = {job.recording for _, job in tasks}
         shared = _recordings_on(client, items, load, scatter, needed)
-        alignments = {i: client.submit(recording_alignment, shared[i], pure=False, retries=RETRIES)
-                      for i in sorted({job.recording for _, job in tasks if job.settings.align})}
+        align = tasks[0][1].settings.align if tasks else False  # (one run: one setting)
+        alignments = {i: client.submit(_fit_alignment, shared[i], align, pure=False, retries=RETRIES)
+                      for i in sorted({job.recording for _, job in tasks})}
         # each spec as a task of its own (not scattered): a worker that dies with its result costs a
         # recomputation, where scattered data would be lost with the last worker that held it
         specs = {j: client.submit(_given, entries[j], pure=False, retries=RETRIES)
@@ -336,9 +393,9 @@ def _recordings_on(client: Any, items: list, load: LoadOptions, scatter: bool | 
         if i not in needed:
             out.append(None)
         elif isinstance(item, Source) and not scatter:
-            out.append(client.submit(load.load, item, pure=False, retries=RETRIES))
+            out.append(client.submit(load_recording, load, item, pure=False, retries=RETRIES))
         else:
-            rec = item if isinstance(item, Recording) else load.load(item)
+            rec = Loaded(item) if isinstance(item, Recording) else load_recording(load, item)
             out.append(client.scatter(rec, broadcast=True, hash=False))
     return out
 

@@ -293,7 +293,7 @@ def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
 def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
             results: list[Result], document: dict[str, Any], s: RunSettings, keys: Sequence[str] = ()) -> Run:
     """The table, the results document and the report folder of a finished run."""
-    table = format_table(results, align=s.align, primary=s.primary)
+    table = format_table(results, align=s.align or None, primary=s.primary)  # None: where a row was aligned
     sweep = (ablate.sweep_summary([r.to_json() for r in results], groups=_trial_groups(sources))
              if document.get("kind") == "ablate" else None)
     if sweep:
@@ -357,7 +357,8 @@ def _write_rerun(parts: Any, entries: list[ResolvedSpec], sources: list, results
     from .rerun_log import write
 
     load = s.load_options()
-    recordings = (load.load(source) for source in sources)
+    per = len(entries)
+    recordings = (load.load(source) for i, source in enumerate(sources) if results[i * per].readable)
     write(s.rerun, zip(recordings, _series(parts, entries, len(sources), results, keys, Path(), tum=False)),
           data_dir=s.resolved_data_dir())
 
@@ -385,7 +386,7 @@ def _trial_groups(sources: list) -> dict[str, list[str]]:
 
 def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, results: list[Result],
             keys: list[str], stage: Path, tum: bool = True) -> Iterator[Any]:
-    """Each recording's series, assembled from its jobs' parts in the journal, one at a time (so
+    """Each readable recording's series, assembled from its jobs' parts in the journal, one at a time (so
     that at most one recording's plot data is in memory); on the way (`tum`), each estimate and the
     truth it was scored against are written as TUM files into `stage/trajectories/<recording>/`,
     to the precision the data carry, each with a header naming the estimator, the recording and
@@ -396,7 +397,9 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
 
     per = len(entries)
     for i in range(recordings):
-        shown = [j for j in range(per) if results[i * per + j].error is None]
+        if not results[i * per].readable:  # its files could not be read: nothing ran, nothing to draw
+            continue
+        shown = [j for j in range(per) if results[i * per + j].ran]
         first = journal.load_part(keys[i * per])  # the recording's arrays come with its first job
         parts = [first if j == 0 else journal.load_part(keys[i * per + j]) for j in shown]
         recording = {k[4:]: v for k, v in first.items() if k.startswith("rec_")}

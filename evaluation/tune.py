@@ -46,7 +46,7 @@ from fusion.estimators.search import Tunable, alias_of, search_space
 from fusion.selection import note, select_sources
 
 from .job import Result
-from .metrics import KINDS
+from .metrics import KINDS, MIN_COVERAGE
 from .settings import RunSettings
 
 PathLike = str | os.PathLike
@@ -470,18 +470,17 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
         config = TuneSettings(estimators=estimators, dataset=dataset, **settings)
     command = command or f"run_tune({config.estimators!r}, {config.dataset!r})"
     entries = resolve_all(config.estimators)
+    split = None
     if config.train is not None:
         train = select_sources(config.train, config.data_dir, config.calibration)
         test = select_sources(config.test, config.data_dir, config.calibration)
+        split = [[s.id for s in train], [s.id for s in test]]
         sources = list({s.id: s for s in train + test}.values())
-        folds = [Fold("train", tuple(s.id for s in train), tuple(s.id for s in test))]
-        all_ids = [s.id for s in train]
     else:
         sources = select_sources(config.dataset, config.data_dir, config.calibration)
-        folds = folds_of(sources, config.by)
-        all_ids = [s.id for s in sources]
     if not out:
         scores = Scores(sources, config)
+        folds, all_ids = _folds(config, entries, scores, split)
         tunings = _tune_all(entries, scores, folds, all_ids, None)
         return _finish(config, entries, scores, tunings, folds, command, json_path)
     with OutputFolder(out) as folder:
@@ -496,10 +495,36 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
                 note(f"resuming {folder.path}: {len(journal.done)} scores computed before")
             storage = _optuna_storage(journal.run_dir) if config.search == "tpe" else None
             scores = Scores(sources, config, journal)
+            folds, all_ids = _folds(config, entries, scores, split)
             tunings = _tune_all(entries, scores, folds, all_ids, storage)
             return _finish(config, entries, scores, tunings, folds, command, json_path, (folder, journal))
         finally:
             journal.close()
+
+
+def _folds(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores,
+           split: list[list[str]] | None) -> tuple[list[Fold], list[str]]:
+    """The folds and the recordings tuned on (`all_ids`), over the recordings that can be scored: each
+    estimator's default is run on every selected recording first (the first candidate of every
+    search), and a recording whose rows were not scored (`Result.not_scored`: no truth, its files
+    unreadable, ...) or were scored on too little of it (`Result.low_coverage`) is left out of the
+    folds, with a note naming it and why. split: the ids of `--train` and `--test`, or None for folds
+    over `--dataset`."""
+    ids = list(scores.sources)
+    rows = scores.evaluate([candidate_spec(e, {}) for e in entries if not e.cls.partial], ids)
+    reasons = {rid: r.not_scored for (_, rid), r in rows.items() if r.not_scored}
+    reasons.update({rid: f"its truth covers {100 * r.coverage:.2g}% of what is scored (at least {MIN_COVERAGE:.0%})"
+                    for (_, rid), r in rows.items() if r.low_coverage and rid not in reasons})
+    if reasons:
+        note(f"tune: {len(reasons)} of {len(ids)} recordings cannot be scored and are left out: "
+             + "; ".join(f"{rid}: {why}" for rid, why in reasons.items()))
+    if split is None:
+        kept = [s for s in scores.sources.values() if s.id not in reasons]
+        return folds_of(kept, config.by), [s.id for s in kept]
+    train_ids, test_ids = ([rid for rid in ids if rid not in reasons] for ids in split)
+    if not train_ids or not test_ids:
+        raise ValueError(f"tune: no recording of --{'train' if not train_ids else 'test'} can be scored")
+    return [Fold("train", tuple(train_ids), tuple(test_ids))], train_ids
 
 
 OPTUNA_JOURNAL = "optuna-journal.log"

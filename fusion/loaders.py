@@ -24,10 +24,16 @@ Time stamps (`repair_time` then `check_sampling`, applied by every loader):
   across the gap instead of integrating a stale rate over it (see `invalidate_gaps`). If the
   gaps cover more than half of the recording's span, the file is rejected (broken stamps).
 
-Values: NaN or Inf IMU values are rejected (NaN truth rows are tracking gaps and kept);
-complex, string, object or structured arrays are rejected; values in physical units must be
-physically plausible (`check_physical`, `physical_samples`); truth quaternions must be unit
-quaternions (`unit_quaternions`), rotation matrices proper rotations (`matrices_to_quat`).
+Values: NaN or Inf IMU values are rejected; complex, string, object or structured arrays are
+rejected; values in physical units must be physically plausible (`check_physical`,
+`physical_samples`).
+
+Truth, row by row (`truth_quaternions`, `truth_matrices`, `overlap_problem`): rows without an
+orientation (NaN, all zero) are tracking gaps; rows that are not an orientation (a quaternion far
+from unit norm, a matrix far from a rotation) become gaps too, with a warning counting them. A
+recording whose truth is unusable as a whole (no row usable, most rows not orientations, no
+overlap with the IMU) is read without it, and `Recording.truth_problem` says why: its IMU still
+runs every estimator; the run lists it as not scored, with that reason.
 MATLAB and HDF5 files are read in a forked child process (`read_isolated`): a corrupt file can
 crash SciPy's or HDF5's C reader, and a crash must stay an error.
 
@@ -568,31 +574,102 @@ def invalidate_gaps(imu: ImuSamples) -> ImuSamples:
 
 
 def matrices_to_quat(matrices: np.ndarray, path: Path | str) -> np.ndarray:
-    """(K, 3, 3) rotation matrices -> (K, 4) wxyz; non-finite rows stay NaN.
-
-    Rejects matrices that are far from orthonormal (a wrong layout would be).
-    """
+    """(K, 3, 3) rotation matrices -> (K, 4) wxyz, every one a proper rotation (a sensor's
+    mounting, `T_BS`); a truth's matrices go through `truth_matrices`, row by row."""
     from scipy.spatial.transform import Rotation
 
+    matrices = np.asarray(matrices, dtype=float)
+    if not np.all(np.isfinite(matrices)):
+        raise ValueError(f"{path}: a rotation matrix holds NaN or Inf")
+    with np.errstate(over="ignore", invalid="ignore"):
+        error = np.abs(np.einsum("kij,kil->kjl", matrices, matrices) - np.eye(3)).max()
+    if not error <= MATRIX_TOLERANCE:
+        raise ValueError(f"{path}: not a rotation matrix (R^T R differs from I)")
+    if np.any(np.linalg.det(matrices) < 0):
+        raise ValueError(f"{path}: a reflection (determinant -1), not a rotation matrix")
+    return Rotation.from_matrix(matrices).as_quat(scalar_first=True)
+
+
+# A truth is read row by row (a motion-capture system loses markers and glitches): rows that hold no
+# orientation are gaps, and rows that are not one (a quaternion far from unit norm, a matrix far from a
+# rotation) become gaps too, counted in a warning. Only when most rows that hold something are not an
+# orientation is the whole truth refused (a wrong layout or unit, not glitches), and then the recording
+# is read without it, saying why (`Recording.truth_problem`): its IMU is still worth running.
+TRUTH_BAD_FRACTION = 0.5  # more than this fraction of a truth's rows not orientations: the truth is unusable
+MATRIX_TOLERANCE = 1e-2  # |R^T R - I| of a rotation matrix as files print them
+
+
+def truth_quaternions(path: Path | str, quat_wxyz: np.ndarray, what: str,
+                      tolerance: float) -> tuple[np.ndarray | None, str | None]:
+    """A truth's (N, 4) quaternions, row by row: `(quat, None)` with rows normalised, and NaN where a
+    row holds no orientation (not finite, or all zero: markers not seen) or is not one (its norm more
+    than `tolerance` from 1: counted in a warning naming the file); `(None, why)` when no row is
+    usable (`usable_truth`). what: the rows, for messages ("Vicon orientation rows (w, x, y, z)")."""
+    quat = np.array(quat_wxyz, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = np.linalg.norm(quat, axis=1)
+    held = np.isfinite(norm) & (norm > 0.0)
+    unit = held & (np.abs(norm - 1.0) <= tolerance)
+    off = norm[held & ~unit]
+    low, high = (f"{off.min():.3g}", f"{off.max():.3g}") if len(off) else ("", "")
+    detail = f"not unit quaternions (|q| {low if low == high else f'from {low} to {high}'})"
+    problem = usable_truth(path, what, held, unit, detail)
+    if problem is not None:
+        return None, problem
+    quat[unit] /= norm[unit, None]
+    quat[~unit] = np.nan
+    return quat, None
+
+
+def truth_matrices(path: Path | str, matrices: np.ndarray, what: str) -> tuple[np.ndarray | None, str | None]:
+    """A truth's (K, 3, 3) rotation matrices as (K, 4) wxyz quaternions, row by row as
+    `truth_quaternions`: NaN where a matrix is not finite, or is not a proper rotation (|R^T R - I|
+    beyond `MATRIX_TOLERANCE`, or a reflection: counted in a warning); `(None, why)` when none is usable."""
+    from scipy.spatial.transform import Rotation
+
+    matrices = np.asarray(matrices, dtype=float)
+    held = np.all(np.isfinite(matrices), axis=(1, 2))
+    rotation = held.copy()
+    m = matrices[held]
+    with np.errstate(over="ignore", invalid="ignore"):  # a matrix of 1e200s: not a rotation (inf error)
+        error = np.nan_to_num(np.abs(np.einsum("kij,kil->kjl", m, m) - np.eye(3)).max(axis=(1, 2)), nan=np.inf)
+        reflection = np.linalg.det(m) < 0
+    rotation[held] = (error <= MATRIX_TOLERANCE) & ~reflection
+    parts = []
+    if np.any(error > MATRIX_TOLERANCE):
+        parts.append(f"not rotation matrices (|R^T R - I| up to {error.max():.3g})")
+    if np.any(reflection & (error <= MATRIX_TOLERANCE)):
+        parts.append("reflections (determinant -1)")
+    problem = usable_truth(path, what, held, rotation, " or ".join(parts))
+    if problem is not None:
+        return None, problem
     quat = np.full((len(matrices), 4), np.nan)
-    good = np.all(np.isfinite(matrices), axis=(1, 2))
-    if not np.any(good):
-        raise ValueError(f"{path}: no finite rotation matrix")
-    m = matrices[good]
-    err = np.abs(np.einsum("kij,kil->kjl", m, m) - np.eye(3)).max()
-    if err > 1e-2:
-        raise ValueError(f"{path}: 'rots' are not rotation matrices (|R^T R - I| up to {err:.3g})")
-    if np.any(np.linalg.det(m) < 0):
-        raise ValueError(f"{path}: 'rots' hold reflections (determinant -1), not rotation matrices")
-    quat[good] = Rotation.from_matrix(m).as_quat(scalar_first=True)
-    return quat
+    quat[rotation] = Rotation.from_matrix(matrices[rotation]).as_quat(scalar_first=True)
+    return quat, None
+
+
+def usable_truth(path: Path | str, what: str, held: np.ndarray, good: np.ndarray, detail: str) -> str | None:
+    """Whether a truth can be used, from its rows: `held` (N,) bool, the rows holding something;
+    `good`, those that are orientations (`detail` says what the others are). None when it can (the bad
+    rows, if any, are counted in a warning naming the file: they become gaps); else why not, one line
+    starting "no truth" (no row holds anything) or "truth unusable" (most rows that do are not
+    orientations, more than `TRUTH_BAD_FRACTION`: a wrong layout or unit)."""
+    n_held, n_bad = int(held.sum()), int((held & ~good).sum())
+    if n_held == 0:
+        return f"no truth: its {what} hold no orientation (every row empty, zero or not finite)"
+    if n_bad > TRUTH_BAD_FRACTION * n_held:
+        return f"truth unusable: {n_bad} of its {n_held} {what} are {detail} (a wrong layout or unit?)"
+    if n_bad:
+        warnings.warn(f"{path}: {n_bad} of {n_held} {what} are {detail}; read as truth gaps", stacklevel=3)
+    return None
 
 
 def unit_quaternions(path: Path | str, quat_wxyz: np.ndarray, what: str, tolerance: float) -> np.ndarray | None:
-    """(N, 4) truth quaternions, rows normalised, rows that are not finite (tracking lost) NaN;
-    None when no row is finite. Refused when a finite row's norm is more than `tolerance` from 1
-    (a wrong layout or unit); `what` names them in the message."""
-    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite, so not truth
+    """(N, 4) quaternions of an estimate (a trajectory file: `fusion.trajectory_files`), rows
+    normalised, rows that are not finite NaN; None when no row is finite. Refused when a finite
+    row's norm is more than `tolerance` from 1 (a wrong layout or unit); `what` names them in the
+    message. (A truth is read row by row instead: `truth_quaternions`.)"""
+    with np.errstate(over="ignore"):  # a 1e308 row has an infinite norm: not finite
         norm = np.linalg.norm(quat_wxyz, axis=1)
     ok = np.isfinite(norm)
     if not np.any(ok):
@@ -658,11 +735,13 @@ def check_magnetometer(path: Path | str, mag: np.ndarray, name: str) -> np.ndarr
     return mag
 
 
-def check_overlap(truth: Trajectory | None, imu_t: np.ndarray, path: Path | str | None, problem: str) -> None:
-    """Refuse a truth whose time span does not overlap the IMU's (`problem` says so, after the
-    truth's `path`)."""
+def overlap_problem(truth: Trajectory | None, imu_t: np.ndarray, what: str) -> str | None:
+    """Why a truth cannot be scored against the IMU: its time span does not overlap the IMU's
+    (`what` says whose, e.g. "the VICON file's"), as a `Recording.truth_problem`; None when it does
+    (or there is no truth)."""
     if truth is not None and not (truth.t[0] < imu_t[-1] and imu_t[0] < truth.t[-1]):
-        raise ValueError(f"{path}: {problem}")
+        return f"truth unusable: {what} time span ({truth.t[0]:.6g}..{truth.t[-1]:.6g} s) does not overlap the IMU's"
+    return None
 
 
 def seconds_since(sec: np.ndarray, nsec: np.ndarray, origin: tuple[int, int]) -> np.ndarray:

@@ -55,7 +55,8 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
     aligned = [s.id for s in sources if s.kind == "repoimu"]
     if aligned:  # its truth is the Vicon markers' orientation in the Vicon frame (fusion.formats.repoimu)
         note(f"{aligned[0]}{f' and {len(aligned) - 1} more' if len(aligned) > 1 else ''}: RepoIMU's truth is the "
-             "markers' orientation in the Vicon frame, not the IMU's: score with --align")
+             "markers' orientation in the Vicon frame, not the IMU's: scored through an alignment fitted per "
+             "recording, as --align does")
     merged = datasets.describe_merged(sources)
     if merged:
         note(f"identical recordings counted once: {merged}")
@@ -79,12 +80,26 @@ def load_selected(dataset: str = "all", data_dir: str | os.PathLike | None = Non
                   progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
                   mag: bool = True) -> list[Recording]:
     """The recordings `dataset` names (`select_sources`), loaded and calibrated (`load_options`);
-    progress: a progress bar on stderr, one step per recording."""
+    progress: a progress bar on stderr, one step per recording. A recording whose files cannot be
+    read costs only itself: a warning with the loader's one line, and the others are loaded; when
+    none can be read, the first one's error is raised."""
+    import warnings
+
     from tqdm import tqdm
 
     options = load_options(calibration, dropouts, imu_topic, truth_topic, mag)
-    return [options.load(source) for source in tqdm(select_sources(dataset, data_dir, calibration), desc="loading",
-                                                     disable=not progress, file=sys.stderr, leave=False)]
+    loaded, errors = [], []
+    for source in tqdm(select_sources(dataset, data_dir, calibration), desc="loading", disable=not progress,
+                       file=sys.stderr, leave=False):
+        try:
+            loaded.append(options.load(source))
+        except (ValueError, OSError) as exc:
+            errors.append(exc)
+    if errors and not loaded:
+        raise errors[0]
+    for exc in errors:
+        warnings.warn(f"{' '.join(str(exc).split())}; skipped (the other recordings go on)", stacklevel=2)
+    return loaded
 
 
 def calibration_settings(calibration: str | os.PathLike | None) -> dict | None:

@@ -260,6 +260,13 @@ class Recording:
     movement: (N,) bool over the IMU samples, the movement phases a benchmark scores
         (BROAD's `movement`, a CSV `movement` column), or None. A recording that has one is
         scored with the BROAD protocol by default (`fusion.evaluation.metrics.score`).
+    truth_problem: why a recording whose file holds a truth was read without it, one line starting
+        "no truth" (no row holds an orientation) or "truth unusable" (most rows are not
+        orientations, or its span misses the IMU's: `fusion.loaders.usable_truth`); None otherwise.
+    truth_needs_alignment: the truth is given in frames of its own (a world whose vertical is not z,
+        a marker body that is not the IMU's: RepoIMU's Vicon orientations), as its format says; it
+        is scored through an alignment fitted per recording (`fusion.evaluation.align`) whether or
+        not `--align` is given. False for truths already in our frames (VICON of the course, BROAD).
     """
 
     id: str
@@ -269,6 +276,8 @@ class Recording:
     calibration: Any = None
     camera: Any = None
     movement: np.ndarray | None = None
+    truth_problem: str | None = None
+    truth_needs_alignment: bool = False
 
     def __post_init__(self) -> None:
         if self.movement is not None:

@@ -109,9 +109,18 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     assert code == 0, err
     doc = json.loads((tmp_path / "r.json").read_text())
     ids = [r["dataset"] for r in doc["results"]]
-    assert [i for i in ids if not i.startswith("broad/")] == [f"ece276a/{n}" for n in range(1, 10)]
-    assert len([i for i in ids if i.startswith("broad/")]) == 14 and len(ids) == 23
-    assert all(r["rmse_deg"] for r in doc["results"])  # the truth-less 2018 copies are merged away
+    assert [i for i in ids if i.startswith("ece")] == [f"ece276a/{n}" for n in range(1, 10)]
+    assert len([i for i in ids if i.startswith("broad/")]) == 14
+    assert len([i for i in ids if i.startswith("repoimu/")]) == 89 and len(ids) == 9 + 14 + 89
+    # the truth-less 2018 copies are merged away; every recording is scored or listed with its reason
+    # (RepoIMU's static files hold no truth; a few of its trials cannot be aligned)
+    unscored = {e["dataset"]: e["reason"] for e in doc["not_scored"]}
+    assert all(r["rmse_deg"] or r["not_scored"] == unscored[r["dataset"]] for r in doc["results"])
+    assert unscored and all(rid.startswith("repoimu/") for rid in unscored)
+    assert {rid for rid, why in unscored.items() if why.startswith("no truth")} == {
+        *(f"repoimu/Pendulum/Pendulum_Test01{ab}_Static_Segment_{n}" for ab in "ab" for n in (1, 2, 3)),
+        "repoimu/TStick/TStick_Test01_Static"}
+    assert out.splitlines()[-len(unscored) - 1].startswith(f"not scored: {len(unscored)} of {len(ids)} recordings")
     merged = doc["settings"]["merged"]
     assert merged["ece276a/4"] == ["ece276a-2018/4", "ese650/4"] and len(merged) == 9
     notes = [line for line in err.splitlines() if "identical recordings counted once" in line]
@@ -121,11 +130,15 @@ def test_dataset_all_over_shared_data_counts_each_recording_once(data_dir, tmp_p
     # one mean per folder (recordings of different sensors and protocols are never pooled), then the
     # mean of the folders' means, each folder counted once
     means = [line.split() for line in lines if line.startswith("mean ")]
+    scored = {"repoimu/Pendulum": sum(i.startswith("repoimu/Pendulum/") and i not in unscored for i in ids),
+              "repoimu/TStick": sum(i.startswith("repoimu/TStick/") and i not in unscored for i in ids)}
     assert [m[:4] for m in means] == [["mean", "broad", "(14)", "dr"], ["mean", "ece276a", "(9)", "dr"],
-                                      ["mean", "all", "datasets", "(2)"]]
-    assert float(means[2][5]) == pytest.approx((float(means[0][4]) + float(means[1][4])) / 2, abs=0.011)
+                                      ["mean", "repoimu/Pendulum", f"({scored['repoimu/Pendulum']})", "dr"],
+                                      ["mean", "repoimu/TStick", f"({scored['repoimu/TStick']})", "dr"],
+                                      ["mean", "all", "datasets", "(4)"]]
+    assert float(means[4][5]) == pytest.approx(np.mean([float(m[4]) for m in means[:4]]), abs=0.011)
     (together,) = doc["datasets"]["all"]
-    assert together["datasets"] == 2 and together["recordings"] == 23
+    assert together["datasets"] == 4 and together["recordings"] == 23 + sum(scored.values())
     first_mean = next(i for i, line in enumerate(lines) if line.startswith("mean "))
     first_row = next(i for i, line in enumerate(lines) if line.startswith(("broad/", "ece276a/")))
     assert first_mean < first_row  # the summary comes first
@@ -136,7 +149,7 @@ def test_rows_without_truth_come_after_the_scored_ones(data_dir, capsys):
                          "--data-dir", str(data_dir), "--no-progress")
     assert code == 0, err
     lines = out.splitlines()
-    order = [i for key in ("mean (1)", "sim ", "without ground truth", "ece276a-2018/3")
+    order = [i for key in ("mean (1)", "sim ", "not scored (the reasons below)", "ece276a-2018/3")
              for i, line in enumerate(lines) if line.startswith(key)]
     assert len(order) == 4 and order == sorted(order)
 

@@ -101,9 +101,14 @@ def test_unreadable_file_is_not_merged_and_fails_when_loaded(three_formats):
 def test_shared_data_counts_the_nine_course_sessions_once(data_dir):
     sources = datasets.select("all", data_dir)
     ids = [s.id for s in sources]
-    assert [i for i in ids if not i.startswith("broad/")] == [f"ece276a/{n}" for n in range(1, 10)]
+    assert [i for i in ids if i.startswith("ece")] == [f"ece276a/{n}" for n in range(1, 10)]
     assert len([i for i in ids if i.startswith("broad/")]) == 14  # BROAD trials are distinct
-    for s in (s for s in sources if not s.id.startswith("broad/")):
+    # RepoIMU as published: every one of its 89 files is a recording (29 T-stick, 60 pendulum segments)
+    repoimu = [s for s in sources if s.id.startswith("repoimu/")]
+    assert {s.kind for s in repoimu} == {"repoimu"} and len(repoimu) == 89
+    assert sum(s.id.startswith("repoimu/TStick/") for s in repoimu) == 29
+    assert len(ids) == 9 + 14 + 89
+    for s in (s for s in sources if s.id.startswith("ece")):
         assert s.vicon is not None
         n = s.id.split("/")[1]
         assert s.aliases == (f"ece276a-2018/{n}", f"ese650/{n}")

@@ -7,6 +7,7 @@ The files are synthetic (an analytic motion, exact gyro, accelerometer and magne
 what the reader must return is known exactly.
 """
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -104,21 +105,40 @@ def test_inspect_counts_the_repeated_stamps_and_the_truth_gap(data_dir, capsys):
 
 
 def test_align_finds_the_truth_frame(data_dir):
-    """Integrating the exact gyro from the aligned truth reproduces it; unaligned, the 20-deg
-    world tilt and the 30-deg marker rotation show as errors."""
+    """RepoIMU's truth is in frames of its own, so every run scores it through an alignment, with or
+    without --align: integrating the exact gyro from the aligned truth reproduces it, and the fit
+    finds the 20-deg world tilt and the 30-deg marker rotation. Scored as if its frames were ours,
+    they would show as errors."""
     from fusion.evaluation.compare import compare
+    from fusion.evaluation.job import run_one
 
     (source,) = datasets.select("repoimu/tstick/TStick_Test02_Trial1", data_dir)
     rec = datasets.LoadOptions().load(source)
+    assert rec.truth_needs_alignment
     (plain,) = compare(["dr"], [rec])
     (fitted,) = compare(["dr"], [rec], align=True)
-    assert fitted.rmse_deg["inclination"] < 0.05 and fitted.rmse_deg["total"] < 0.05
-    assert plain.rmse_deg["inclination"] > 10.0
+    for row in (plain, fitted):
+        assert row.rmse_deg["inclination"] < 0.05 and row.rmse_deg["total"] < 0.05
+        assert row.alignment["world_angle_deg"] == pytest.approx(20.0, abs=0.05)
+        assert row.alignment["body_angle_deg"] == pytest.approx(30.0, abs=0.05)
+    as_ours = run_one(replace(rec, truth_needs_alignment=False), "dr")
+    assert as_ours.alignment is None and as_ours.rmse_deg["inclination"] > 10.0
+
+
+def test_a_file_without_truth_is_a_recording_without_truth(tmp_path):
+    """A static file (every Vicon row zero: markers never seen) is read as published, without truth;
+    the recording says why, and the run lists it as not scored."""
+    path = tmp_path / "repoimu" / "static.csv"
+    write_repoimu(path, n=600, gap_rows=600, repeats=())
+    with pytest.warns(UserWarning, match="no truth: its Vicon orientation rows .* hold no orientation"):
+        imu, truth, _ = load_repoimu(path)
+    assert truth is None and len(imu) == 600
+    rec = datasets.LoadOptions().load(datasets.select(str(path), tmp_path)[0])
+    assert rec.truth is None and rec.truth_problem.startswith("no truth: ")
 
 
 @pytest.mark.parametrize("problem, writer, message", [
     ("columns", dict(columns=11), "11 columns, RepoIMU files have 14"),
-    ("no truth", dict(gap_rows=600, repeats=()), "holds no quaternion"),
 ])
 def test_bad_files_one_line_naming_the_file(tmp_path, problem, writer, message):
     path = tmp_path / "repoimu" / "bad.csv"

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..loaders import (check_file, check_overlap, matrices_to_quat, one_line, parse_rows, physical_samples,
-                       repair_time, seconds_since, text_lines, unit_quaternions)
+from ..loaders import (check_file, matrices_to_quat, one_line, overlap_problem, parse_rows, physical_samples,
+                       repair_time, seconds_since, text_lines, truth_quaternions)
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -132,19 +132,21 @@ def truth_folder(mav0: Path) -> Path | None:
     return next((mav0 / f for f in TRUTH_FOLDERS if (mav0 / f / "data.csv").is_file()), None)
 
 
-def read_truth(mav0: Path, origin_ns: int) -> tuple[Trajectory, Path] | None:
-    """`(truth, path)`: the IMU's orientation `R_world_imu` from the truth's data.csv and the two
-    T_BS (see the module docstring), its time in s since `origin_ns`; None without a truth folder."""
+def read_truth(mav0: Path, origin_ns: int) -> tuple[Trajectory | None, str | None]:
+    """`(truth, problem)`: the IMU's orientation `R_world_imu` from the truth's data.csv and the two
+    T_BS (see the module docstring), its time in s since `origin_ns`, rows far from unit norm made
+    gaps; `(None, None)` without a truth folder; `(None, why)` when its rows are unusable
+    (`fusion.loaders.truth_quaternions`)."""
     folder = truth_folder(mav0)
     if folder is None:
-        return None
+        return None, None
     path = folder / "data.csv"
     stamps, cols = _table(path, TRUTH_COLUMNS)
     quat = np.column_stack([cols[c] for c in TRUTH_COLUMNS])
     t, quat = repair_time(_seconds(stamps, origin_ns, path), path, quat)
-    quat = unit_quaternions(path, quat, "q_RS_w, q_RS_x, q_RS_y, q_RS_z rows", 1e-2)
+    quat, problem = truth_quaternions(path, quat, "q_RS_w, q_RS_x, q_RS_y, q_RS_z rows", 1e-2)
     if quat is None:
-        raise ValueError(f"{path}: no finite quaternion q_RS_w, q_RS_x, q_RS_y, q_RS_z")
+        return None, problem
     truth_b_s = sensor_rotation(folder / "sensor.yaml")
     imu_b_s = sensor_rotation(mav0 / "imu0" / "sensor.yaml")
     if truth_b_s is not None or imu_b_s is not None:
@@ -156,7 +158,7 @@ def read_truth(mav0: Path, origin_ns: int) -> tuple[Trajectory, Path] | None:
             r_world_imu = r_world_imu * imu_b_s  # R_RB * R_BI = R_RI
         quat = quat.copy()
         quat[ok] = r_world_imu.as_quat(scalar_first=True)
-    return Trajectory(t, quat), path
+    return Trajectory(t, quat), None
 
 
 class AslFormat(Format):
@@ -172,13 +174,14 @@ class AslFormat(Format):
                 yield Source(recording_id(root, mav0.parent, strip_suffix=False), self.kind, mav0)
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
-        imu, imu_path, origin_ns = read_imu(source.imu)
-        found = read_truth(source.imu, origin_ns)
-        truth = None
-        if found is not None:
-            truth, truth_path = found
-            check_overlap(truth, imu.t, truth_path, f"truth time span does not overlap the IMU's {imu_path}")
-        return Recording(source.id, imu, truth)
+        imu, _, origin_ns = read_imu(source.imu)
+        try:  # a truth folder that cannot be read costs the truth, not the recording
+            truth, problem = read_truth(source.imu, origin_ns)
+        except ValueError as exc:
+            truth, problem = None, f"truth unusable: {' '.join(str(exc).split())}"
+        if truth is not None:
+            problem = overlap_problem(truth, imu.t, f"the {truth_folder(source.imu).name} folder's")
+        return Recording(source.id, imu, None if problem else truth, truth_problem=problem)
 
     def holds(self, source: Source) -> Holds:
         return Holds(truth=truth_folder(source.imu) is not None, movement=False, magnetometer=False, gyr_timing="end",

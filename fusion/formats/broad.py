@@ -25,6 +25,7 @@ In a data directory, every `.hdf5`/`.h5` file and every `.mat` not named like a 
 from __future__ import annotations
 
 import json
+import warnings
 
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..loaders import MAX_STEP_S, MIN_STEP_S, check_declared, physical_samples, read_isolated, read_mat, unit_quaternions
+from ..loaders import MAX_STEP_S, MIN_STEP_S, check_declared, physical_samples, read_isolated, read_mat, truth_quaternions
 from ..types import ImuSamples, Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 from .course import is_course_file
@@ -110,15 +111,25 @@ def _columns(data: dict[str, Any], key: str, cols: int, n: int | None, path: Pat
     return arr
 
 
-def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
-    """One BROAD trial: `(imu, truth, movement)`.
+def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory | None, np.ndarray]:
+    """One BROAD trial: `(imu, truth, movement)` (`read_broad`; an unusable truth is None, with a
+    warning saying why)."""
+    imu, truth, movement, problem = read_broad(path)
+    if problem is not None:
+        warnings.warn(f"{path}: {problem}; loaded without ground truth", stacklevel=2)
+    return imu, truth, movement
+
+
+def read_broad(path: str | Path) -> tuple[ImuSamples, Trajectory | None, np.ndarray, str | None]:
+    """One BROAD trial: `(imu, truth, movement, truth_problem)`.
 
     imu: `ImuSamples` on `t = k / sampling_rate` s (k = 0..N-1), gyro rad/s, accelerometer
         in g (`imu_acc / 9.80665`), magnetometer uT (`imu_mag`, when the trial has it), body =
         IMU frame; `gyr_timing` "end" (gyro sample k is the rate over (t[k-1], t[k]], as VQF,
         which BROAD's authors wrote, integrates it).
     truth: `Trajectory` of `opt_quat` (wxyz, `R_world_imu`, z up) on the same stamps, NaN
-        rows kept (tracking lost), other rows normalised.
+        rows kept (tracking lost), rows far from unit norm made gaps (`fusion.loaders.truth_quaternions`);
+        None when no row is usable, and truth_problem (one line) says why (None otherwise).
     movement: (N,) bool, the samples BROAD scores (all True if the file has no mask).
     """
     path = Path(path)
@@ -146,10 +157,8 @@ def load_broad(path: str | Path) -> tuple[ImuSamples, Trajectory, np.ndarray]:
     # BROAD: gyro k covers (t[k-1], t[k]]
     imu, quat, movement = physical_samples(path, np.arange(n) / rate[0], gyr, acc, names, "end", quat, movement,
                                            mag_ut=mag, mag_name="'imu_mag'")
-    quat = unit_quaternions(path, quat, "'opt_quat' rows (w, x, y, z)", 1e-2)
-    if quat is None:
-        raise ValueError(f"{path}: 'opt_quat' has no finite row")
-    return imu, Trajectory(imu.t, quat), movement
+    quat, problem = truth_quaternions(path, quat, "'opt_quat' rows (w, x, y, z)", 1e-2)
+    return imu, None if quat is None else Trajectory(imu.t, quat), movement, problem
 
 
 TRIALS_JSON_MAX_BYTES = 1_000_000  # BROAD's lists 39 trials in about 10 kB
@@ -198,8 +207,8 @@ class BroadFormat(Format):
                 yield Source(recording_id(root, path), self.kind, path)
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
-        imu, truth, movement = load_broad(source.imu)
-        return Recording(source.id, imu, truth, movement=movement)
+        imu, truth, movement, problem = read_broad(source.imu)
+        return Recording(source.id, imu, truth, movement=movement, truth_problem=problem)
 
     def holds(self, source: Source) -> Holds:
         names = set(read_trial(source.imu))  # a trial's arrays are small (some 10 MB): read, not parsed

@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..calibration import BoardModel, Calibration, calibrate
-from ..loaders import (ADC_LIMIT_COUNTS, check_overlap, field_array, matrices_to_quat, numeric_array, read_mat,
+from ..loaders import (ADC_LIMIT_COUNTS, field_array, numeric_array, overlap_problem, read_mat, truth_matrices,
                        read_pickle, repair_time, time_row)
 from ..types import ImuSamples, RawImu, Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source
@@ -109,7 +110,9 @@ def load_imu(path: Path) -> RawImu:
 def load_vicon(path: str | Path) -> Trajectory:
     """VICON `viconRotN.p` or `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
 
-    Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them.
+    Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them; so do
+    matrices that are not rotations (counted in a warning, `fusion.loaders.truth_matrices`). Raises
+    ValueError naming the file when it cannot be read or holds no usable rotation.
     """
     path = Path(path)
     obj = read_mat(path) if path.suffix == ".mat" else read_pickle(path)
@@ -119,7 +122,10 @@ def load_vicon(path: str | Path) -> Trajectory:
     t = time_row(field_array(obj, "ts", path), rots.shape[2], path)
     matrices = np.moveaxis(rots, 2, 0)  # (K, 3, 3)
     t, matrices = repair_time(t, path, matrices)
-    return Trajectory(t, matrices_to_quat(matrices, path))
+    quat, problem = truth_matrices(path, matrices, "'rots' matrices")
+    if quat is None:
+        raise ValueError(f"{path}: {problem}")
+    return Trajectory(t, quat)
 
 
 def calibrated_samples(raw: RawImu, calib: Calibration, dropouts: bool) -> ImuSamples:
@@ -177,9 +183,16 @@ class CourseFormat(Format):
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
         raw = load_imu(source.imu)
-        truth = load_vicon(source.vicon) if source.vicon else None
-        check_overlap(truth, raw.t, source.vicon, f"VICON time span does not overlap the IMU file {source.imu}")
-        return calibrated_recording(source.id, raw, truth, options.board, options.dropouts, camera=source.cam)
+        truth, problem = None, None
+        if source.vicon:  # a VICON file that cannot be used costs the truth, not the recording
+            try:
+                truth = load_vicon(source.vicon)
+            except ValueError as exc:
+                problem = f"truth unusable: {exc}"
+            problem = problem or overlap_problem(truth, raw.t, f"{source.vicon.name}'s")
+        rec = calibrated_recording(source.id, raw, None if problem else truth, options.board, options.dropouts,
+                                   camera=source.cam)
+        return replace(rec, truth_problem=problem) if problem else rec
 
     def holds(self, source: Source) -> Holds:
         return Holds(truth=source.vicon is not None, movement=False, magnetometer=False, gyr_timing="start",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..loaders import check_file, parse_rows, physical_samples, text_lines, unit_quaternions
+from ..loaders import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -42,8 +42,18 @@ def load_csv(path: str | Path, with_movement: bool = False):
     optional quaternion is the ground truth `R_world_body`, scalar first (NaN rows = no truth);
     the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
     Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
-    without the column).
+    without the column); truth None without truth columns, or with a warning saying why they are
+    unusable (`fusion.loaders.truth_quaternions`).
     """
+    imu, truth, movement, problem = read_csv(path)
+    if problem is not None:
+        warnings.warn(f"{path}: {problem}; loaded without ground truth", stacklevel=2)
+    return (imu, truth, movement) if with_movement else (imu, truth)
+
+
+def read_csv(path: str | Path) -> tuple:
+    """`load_csv`'s `(imu, truth, movement, truth_problem)`: truth_problem says why truth columns
+    were not usable (one line, `fusion.types.Recording.truth_problem`), None otherwise."""
     path = Path(path)
     text = text_lines(path)
     header = _header(text[0])
@@ -65,14 +75,11 @@ def load_csv(path: str | Path, with_movement: bool = False):
     mag = np.column_stack([col[c] for c in CSV_MAG]) if all(c in header for c in CSV_MAG) else None
     imu, quat, movement = physical_samples(path, col["t"], gyr, acc, CSV_COLUMNS[1:], "end", quat, movement,
                                            mag_ut=mag, mag_name="columns mx,my,mz")
-    extra = (movement if "movement" in col else None,) if with_movement else ()
+    movement = movement if "movement" in col else None
     if not has_truth:
-        return (imu, None, *extra)
-    quat = unit_quaternions(path, quat, "truth quaternions (qw,qx,qy,qz)", 1e-3)
-    if quat is None:
-        warnings.warn(f"{path}: the truth columns hold no finite quaternion; loaded without ground truth", stacklevel=2)
-        return (imu, None, *extra)
-    return (imu, Trajectory(imu.t, quat), *extra)
+        return imu, None, movement, None
+    quat, problem = truth_quaternions(path, quat, "truth rows (qw,qx,qy,qz)", 1e-3)
+    return imu, None if quat is None else Trajectory(imu.t, quat), movement, problem
 
 
 class CsvFormat(Format):
@@ -85,8 +92,8 @@ class CsvFormat(Format):
                 yield Source(recording_id(root, path), self.kind, path)
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
-        imu, truth, movement = load_csv(source.imu, with_movement=True)
-        return Recording(source.id, imu, truth, movement=movement)
+        imu, truth, movement, problem = read_csv(source.imu)
+        return Recording(source.id, imu, truth, movement=movement, truth_problem=problem)
 
     def holds(self, source: Source) -> Holds:
         check_file(source.imu)

@@ -15,12 +15,15 @@ gyroscope in rad/s (the units as published, read as they are), then the magnetom
 handled here:
 
 - rows where the markers were not seen hold an all-zero quaternion: truth gaps (NaN rows), not a
-  rotation;
+  rotation; the static files hold nothing else and are read without truth (`Recording.truth_problem`);
+- a few rows hold a quaternion far from unit norm (|q| 0.006-0.95 in seven pendulum files): truth
+  gaps too, counted in a warning (`fusion.loaders.truth_quaternions`);
 - some rows repeat the previous row's time stamp: dropped (the first row of each stamp kept), and
   their count said in a warning, which `fusion inspect` prints with the recording;
 - the Vicon orientation is the marker body's in the Vicon frame, neither the IMU's axes nor an
-  up-pointing world: score with `--align` (`fusion.evaluation` fits the constant world tilt and
-  IMU-to-marker rotation from the recording's own gyro, accelerometer and truth). The fitted
+  up-pointing world: its recordings say so (`Recording.truth_needs_alignment`), and every run
+  scores them through an alignment (`fusion.evaluation.align` fits the constant world tilt and
+  IMU-to-marker rotation from the recording's own gyro, accelerometer and truth), as `--align` does. The fitted
   world rotation is a tilt only: the Vicon frame's heading against magnetic north stays, so a 9-D
   row's heading error includes that constant angle (its inclination does not; with `--mag off`
   the 6-D rows start from the truth's heading and only drift from it);
@@ -41,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..loaders import check_file, parse_rows, physical_samples, text_lines, unit_quaternions
+from ..loaders import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -62,12 +65,22 @@ def is_repoimu(path: str | Path) -> bool:
 
 
 def load_repoimu(path: str | Path) -> tuple:
-    """One RepoIMU file: `(imu, truth, repeated)`.
+    """One RepoIMU file: `(imu, truth, repeated)` (`read_repoimu`; a file without usable truth gives
+    None, with a warning saying why)."""
+    imu, truth, repeated, problem = read_repoimu(path)
+    if problem is not None:
+        warnings.warn(f"{path}: {problem}; loaded without ground truth", stacklevel=2)
+    return imu, truth, repeated
+
+
+def read_repoimu(path: str | Path) -> tuple:
+    """One RepoIMU file: `(imu, truth, repeated, truth_problem)`.
 
     imu: `ImuSamples` (gyro rad/s, accelerometer in g from m/s^2, magnetometer uT, IMU frame,
         `gyr_timing` "end"); truth: `Trajectory` of the Vicon quaternions (w, x, y, z, the marker
         body in the Vicon frame: use `--align`), NaN rows where the file holds an all-zero
-        quaternion; repeated: the number of rows dropped for repeating a time stamp.
+        quaternion or one far from unit norm, or None (a static file); repeated: the number of
+        rows dropped for repeating a time stamp; truth_problem: why truth is None (one line), or None.
     """
     path = Path(path)
     lines = text_lines(path)
@@ -87,8 +100,7 @@ def load_repoimu(path: str | Path) -> tuple:
                       "each stamp kept)", stacklevel=2)
         table = table[~repeated]
         t = table[:, 0]
-    quat = table[:, 1:5].copy()
-    quat[np.all(quat == 0.0, axis=1)] = np.nan  # markers not seen: a gap, not a rotation
+    quat = table[:, 1:5]  # all-zero rows (markers not seen) become gaps in `truth_quaternions`
     mag = table[:, 11:14]
     with np.errstate(invalid="ignore"):
         norm = np.nanmedian(np.linalg.norm(mag, axis=1))
@@ -97,10 +109,8 @@ def load_repoimu(path: str | Path) -> tuple:
     names = ("gyroscope x", "gyroscope y", "gyroscope z", "acceleration x", "acceleration y", "acceleration z")
     imu, quat = physical_samples(path, t, table[:, 8:11], table[:, 5:8], names, "end", quat, mag_ut=mag,
                                  mag_name="magnetometer columns")
-    quat = unit_quaternions(path, quat, "Vicon orientation rows (w, x, y, z)", 1e-2)
-    if quat is None:
-        raise ValueError(f"{path}: the Vicon orientation holds no quaternion (every row is zero: markers never seen)")
-    return imu, Trajectory(imu.t, quat), n_repeated
+    quat, problem = truth_quaternions(path, quat, "Vicon orientation rows (w, x, y, z)", 1e-2)
+    return imu, None if quat is None else Trajectory(imu.t, quat), n_repeated, problem
 
 
 class RepoImuFormat(Format):
@@ -113,8 +123,8 @@ class RepoImuFormat(Format):
                 yield Source(recording_id(root, path), self.kind, path)
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
-        imu, truth, _ = load_repoimu(source.imu)
-        return Recording(source.id, imu, truth)
+        imu, truth, _, problem = read_repoimu(source.imu)
+        return Recording(source.id, imu, truth, truth_problem=problem, truth_needs_alignment=True)
 
     def holds(self, source: Source) -> Holds:
         check_file(source.imu)

@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from ..loaders import (MAX_SAMPLES, check_overlap, one_line, physical_samples, repair_time, seconds_since,
-                       unit_quaternions)
+from ..loaders import (MAX_SAMPLES, one_line, overlap_problem, physical_samples, repair_time, seconds_since,
+                       truth_quaternions)
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -234,8 +234,9 @@ def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
 
 
 def read_bag(path: Path, imu_topic: str | None = None, truth_topic: str | None = None):
-    """`(imu, truth)` of a bag: `ImuSamples` (through `fusion.loaders.physical_samples`) and the
-    truth `Trajectory` or None (see the module docstring for the topics)."""
+    """`(imu, truth, truth_problem)` of a bag: `ImuSamples` (through `fusion.loaders.physical_samples`),
+    the truth `Trajectory` (rows far from unit norm made gaps) or None (see the module docstring for
+    the topics), and why a truth topic's messages were unusable (one line) or None."""
     with _reader(path) as reader:
         topics = _topics(reader)
         imu_topic = choose_topic(path, topics, imu_topic, (IMU_TYPE,), "--imu-topic", required=True)
@@ -247,17 +248,17 @@ def read_bag(path: Path, imu_topic: str | None = None, truth_topic: str | None =
                       for axis in "xyz")
         (imu,) = physical_samples(what, _seconds(ns, origin_ns), gyr_acc[:, :3], gyr_acc[:, 3:], names, "end")
         if truth_topic is None:
-            return imu, None
+            return imu, None, None
         what = f"{path} [{truth_topic}]"
-        ns, xyzw = read_topic(reader, truth_topic, topics[truth_topic], what, ORIENTATION)
-    quat = xyzw[:, [3, 0, 1, 2]]  # x y z w -> w x y z
-    t, quat = repair_time(_seconds(ns, origin_ns), what, quat)
-    quat = unit_quaternions(what, quat, "orientations (x, y, z, w)", 1e-2)
-    if quat is None:
-        raise ValueError(f"{what}: no finite orientation")
-    truth = Trajectory(t, quat)
-    check_overlap(truth, imu.t, what, f"truth time span does not overlap the IMU's ({imu_topic})")
-    return imu, truth
+        try:  # a truth topic that cannot be read costs the truth, not the recording
+            ns, xyzw = read_topic(reader, truth_topic, topics[truth_topic], what, ORIENTATION)
+            t, quat = repair_time(_seconds(ns, origin_ns), what, xyzw[:, [3, 0, 1, 2]])  # x y z w -> w x y z
+        except ValueError as exc:
+            return imu, None, f"truth unusable: {' '.join(str(exc).split())}"
+    quat, problem = truth_quaternions(what, quat, f"{truth_topic} orientations (x, y, z, w)", 1e-2)
+    truth = None if quat is None else Trajectory(t, quat)
+    problem = problem or overlap_problem(truth, imu.t, f"{truth_topic}'s")
+    return imu, None if problem else truth, problem
 
 
 def _is_rosbag2_folder(path: Path) -> bool:
@@ -279,8 +280,8 @@ class RosbagFormat(Format):
                 yield Source(recording_id(root, path), self.kind, path)
 
     def read(self, source: Source, options: ReadOptions) -> Recording:
-        imu, truth = read_bag(Path(source.imu), options.imu_topic, options.truth_topic)
-        return Recording(source.id, imu, truth)
+        imu, truth, problem = read_bag(Path(source.imu), options.imu_topic, options.truth_topic)
+        return Recording(source.id, imu, truth, truth_problem=problem)
 
     def holds(self, source: Source) -> Holds:
         with _reader(Path(source.imu)) as reader:
