@@ -19,7 +19,7 @@ import time
 import dask
 from distributed import LocalCluster
 
-from fusion.evaluation.runner import WORKER_ENVIRON
+from fusion.evaluation.run.runner import WORKER_ENVIRON
 from fusion.evaluation.runs import run_compare
 
 

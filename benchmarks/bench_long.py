@@ -8,8 +8,8 @@ of one hour at 100 Hz (360,000 samples), and whether memory grows linearly (10, 
 
 Each (estimator, duration) runs in a fresh subprocess, so estimators do not share a peak:
 the worker simulates the recording (`fusion.sim`), calibrates it, runs the estimator, scores
-it (`fusion.evaluation.metrics.score`) and reports the wall time of each phase (and the CPU time of the
-estimate: the smoothers run on two threads, `_compiled_smoother_cost.range_cost` and `_eliminate_in_ranges`), its peak resident
+it (`fusion.evaluation.scoring.metrics.score`) and reports the wall time of each phase (and the CPU time of the
+estimate: the smoothers run on two threads, `smoothers._compiled_cost.range_cost` and `_eliminate_in_ranges`), its peak resident
 memory (`VmHWM` from /proc/self/status, or `ru_maxrss`) and, for the smoothers, the number of
 iterations. The row `(none)` is the same pipeline
 without an estimator: the simulator, calibration and scoring themselves.
@@ -54,11 +54,11 @@ def peak_rss_mb() -> float:
 
 def worker(name: str, duration_s: float, one_thread: bool = False) -> dict:
     """One pipeline run in this (fresh) process; returns the figures as a dict. one_thread: the
-    smoothers on one thread (`_compiled_smoother_ranges.SPLIT_MIN_SAMPLES` and `RANGE_SAMPLES` out of reach)."""
+    smoothers on one thread (`smoothers._compiled_ranges.SPLIT_MIN_SAMPLES` and `RANGE_SAMPLES` out of reach)."""
     import numpy as np
 
     from fusion import estimators
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion.calibration import calibrate
     from fusion.sim import SimSettings, simulate
 
@@ -78,7 +78,7 @@ def worker(name: str, duration_s: float, one_thread: bool = False) -> dict:
         except ImportError as exc:
             return {**out, "skipped": str(exc)}
         if one_thread:
-            from fusion.estimators import _compiled_smoother_ranges
+            from fusion.estimators.smoothers import _compiled_ranges as _compiled_smoother_ranges
 
             _compiled_smoother_ranges.SPLIT_MIN_SAMPLES = sys.maxsize
             _compiled_smoother_ranges.RANGE_SAMPLES = (sys.maxsize, sys.maxsize)

@@ -14,8 +14,8 @@ import time
 import tracemalloc
 
 
-from fusion.evaluation import camsim
-from fusion.evaluation.panorama import Stitcher
+from fusion.evaluation.panorama import camsim
+from fusion.evaluation.panorama.recording import Stitcher
 from fusion import datasets
 
 

@@ -7,9 +7,9 @@ For `madgwick`, `mahony` and `ahrs-ekf`, on a BROAD trial (286 Hz; 6-D with the 
 dropped, and 9-D) and a course recording (100 Hz, 6-D): the whole-recording `estimate` with
 `impl=library` (the `ahrs` package's update called per sample, the reference; one run, on the
 first `--library-samples` samples if given) and with `impl=compiled` (the numba twin of
-`_compiled_peers`, best of at least `--repeat` runs), their ratio, and VQF's adapter
+`peers._compiled_ahrs`, best of at least `--repeat` runs), their ratio, and VQF's adapter
 (`vqf`, the `vqf` package's C++ `updateBatch`) on the same samples for scale. Then the time to
-compile the twins (`_compiled_peers.load`) in a fresh process with an empty numba cache, and to
+compile the twins (`peers._compiled_ahrs.load`) in a fresh process with an empty numba cache, and to
 load them from the cache in another. Figures taken while other jobs share the machine are noisy;
 compare them on a quiet machine. Without data the built-in `sim` recording is used (and said so).
 """
@@ -34,7 +34,7 @@ PEERS = ("madgwick", "mahony", "ahrs-ekf")
 _FIRST_CALL = r"""
 import json, time
 t0 = time.perf_counter()
-from fusion.estimators import _compiled_peers
+from fusion.estimators.peers import _compiled_ahrs as _compiled_peers
 t1 = time.perf_counter()
 _compiled_peers.load()
 print(json.dumps({"import": t1 - t0, "kernels": time.perf_counter() - t1}))
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         cold, cached = compile_times(_FIRST_CALL)
         print("numba twins in a fresh process (s):")
         print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
-        print(f"{'import fusion.estimators._compiled_peers':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
+        print(f"{'import fusion.estimators.peers._compiled_ahrs':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
         print(f"{'compile / load the three kernels':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
 
 

@@ -51,7 +51,8 @@ def main() -> None:
 
 def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t0 = time.perf_counter()
-    from fusion.evaluation import report, runner, series as series_io
+    from fusion.evaluation.report import render as report
+    from fusion.evaluation.run import runner, series as series_io
     from fusion.evaluation.compare import results_json
     from fusion.estimators import resolve_all
     from fusion import datasets
@@ -71,7 +72,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
         estimate[r.estimator] += r.seconds
 
     # scoring, serially in this process (it also runs inside each job)
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     t = time.perf_counter()
     for rec, r in zip((rec for rec in recordings for _ in entries), results):
         if rec.truth is not None:
@@ -96,7 +97,7 @@ def breakdown(args: argparse.Namespace, data_dir: Path, out: Path) -> None:
     t = time.perf_counter()
     report._render_recording(str(out / "series" / "000.npz"), str(out))
     t_one = time.perf_counter() - t
-    from fusion.evaluation import plots
+    from fusion.evaluation.report import plots
     first = series_io.load(out / "series" / "000.npz")
     t = time.perf_counter()
     for e in first.beliefs:

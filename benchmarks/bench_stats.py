@@ -1,4 +1,4 @@
-"""Time the statistics a comparison adds (`fusion.evaluation.stats`): 13 estimators x 14 recordings.
+"""Time the statistics a comparison adds (`fusion.evaluation.scoring.stats`): 13 estimators x 14 recordings.
 
     python benchmarks/bench_stats.py [--estimators 13] [--recordings 14] [--repeat 5]
 
@@ -32,7 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import json, sys, time
 import numpy as np
-from fusion.evaluation import compare, job  # what a compare has imported before its table
+from fusion.evaluation import compare
+from fusion.evaluation.run import job  # what a compare has imported before its table
 k, n = int(sys.argv[1]), int(sys.argv[2])
 rng = np.random.default_rng(2006)
 rows = []
@@ -43,7 +44,7 @@ for j in range(n):
         rows.append(job.Result(f"broad/{j:02d}", f"est{i:02d}", 50000, 0.5, rmse, dict(rmse), scored_samples=50000,
                                coverage=1.0, magnetometer=True))
 t0 = time.perf_counter()
-from fusion.evaluation import stats
+from fusion.evaluation.scoring import stats
 run = stats.run_statistics(compare.summary_groups(rows))
 t1 = time.perf_counter()
 table = compare.format_table(rows)
@@ -53,7 +54,7 @@ t2 = time.perf_counter()
 stats._statistics.cache_clear()
 stats.run_statistics(compare.summary_groups(rows))
 t3 = time.perf_counter()
-from fusion.evaluation.stats_plots import cd_figure
+from fusion.evaluation.report.stats_plots import cd_figure
 for c in run.comparisons:
     cd_figure(c.statistics, c.metric).savefig("/dev/null", format="png")
 t4 = time.perf_counter()

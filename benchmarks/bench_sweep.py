@@ -25,7 +25,7 @@ import subprocess
 import sys
 import time
 
-from fusion.evaluation.ablate import PRESETS, format_sweep, sweep_summary
+from fusion.evaluation.sweeps.ablate import PRESETS, format_sweep, sweep_summary
 from fusion.evaluation.runs import run_ablate
 
 
@@ -78,7 +78,7 @@ def main() -> None:
         import dask
         from distributed import LocalCluster
 
-        from fusion.evaluation.runner import WORKER_ENVIRON
+        from fusion.evaluation.run.runner import WORKER_ENVIRON
 
         # docs/dask.md's worker environment, unless --dask-default-environ asks for dask's own
         with dask.config.set({} if args.dask_default_environ else WORKER_ENVIRON):

@@ -10,7 +10,7 @@ and tests/user_fixtures/my_ukf.py hold them):
 - a complementary filter, a plain function `f(t, gyro, acc, q0)`: called directly on the contract's
   arrays, against `fusion compare`'s job (the arrays built from the recording, the output checked:
   shape, finiteness, norms, the convention-slip test) timed as the table times it;
-- a FilterPy UKF through `fusion.estimators.filterpy_adapter`: the filter's own predict/update loop
+- a FilterPy UKF through `fusion.estimators.adapters.filterpy`: the filter's own predict/update loop
   written by hand, against the adapter's `estimate`.
 
 The job's time is what the table reports (`seconds`: the estimator's `estimate`, the checks of
@@ -57,9 +57,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
     from fusion import datasets
-    from fusion.estimators import resolve, user
-    from fusion.evaluation.job import run_one
-    from fusion.evaluation.metrics import score
+    from fusion.estimators import resolve
+    from fusion.estimators.adapters import user
+    from fusion.evaluation.run.job import run_one
+    from fusion.evaluation.scoring.metrics import score
 
     rec = datasets.load(args.dataset, args.data_dir)
     q0 = datasets.initial_orientation(rec)

@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from fusion import datasets  # noqa: E402
 from fusion.checks import clock_offset  # noqa: E402
 from fusion.estimators import build  # noqa: E402
-from fusion.evaluation.metrics import score  # noqa: E402
+from fusion.evaluation.scoring.metrics import score  # noqa: E402
 from fusion.types import Trajectory  # noqa: E402
 
 BANDS_HZ = ((None, 0.5), (0.5, 4.0), (4.0, None))

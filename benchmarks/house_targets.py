@@ -7,7 +7,7 @@ Prints every function of `evaluation/` that takes more than `--max-params` param
 `cls` not counted; `*args` and `**kwargs` count one each) and every module of `estimators/` over
 `--max-lines` lines, then one line of counts. The command entry points (`ENTRY_POINTS`: `runs.py`'s
 `run_*` and `tune.run_tune`, the keyword APIs the commands call) are listed apart; everything below
-them counts, `fusion.evaluation.runner.run` included (it takes the run's settings as one
+them counts, `fusion.evaluation.run.runner.run` included (it takes the run's settings as one
 `RunSettings`, or their fields as keywords).
 """
 from __future__ import annotations

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from motion_helpers import turning_body  # noqa: E402
 
 from fusion.estimators import build  # noqa: E402
-from fusion.evaluation.metrics import error_angles  # noqa: E402
+from fusion.evaluation.scoring.metrics import error_angles  # noqa: E402
 from fusion.types import STANDARD_GRAVITY_M_S2  # noqa: E402
 
 NOISE = {100.0: (0.01, 0.01), 285.7: (0.002, 0.006)}  # (gyro rad/s, acc g) std per sample

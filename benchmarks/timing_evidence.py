@@ -36,7 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fusion.estimators import build  # noqa: E402
-from fusion.evaluation.metrics import score  # noqa: E402
+from fusion.evaluation.scoring.metrics import score  # noqa: E402
 from fusion import datasets  # noqa: E402
 from fusion.checks import clock_offset  # noqa: E402
 from fusion.types import ImuSamples, Recording, Trajectory  # noqa: E402

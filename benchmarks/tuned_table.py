@@ -1,7 +1,7 @@
 """The README's tuned tables from a `fusion tune` run's results.json: per estimator, the library
 default and the out-of-sample (tuned) mean, the tuned row's 95 % bootstrap interval over the
 recordings, its wins / ties / losses against the best tuned row and the Holm-corrected Wilcoxon
-p-value (`fusion.evaluation.stats.paired_statistics` over the tuned rows alone), and the mark
+p-value (`fusion.evaluation.scoring.stats.paired_statistics` over the tuned rows alone), and the mark
 `*` for rows not significantly worse than the best; then the Friedman p-value.
 
     python benchmarks/tuned_table.py runs/tune-broad9/results.json
@@ -13,7 +13,7 @@ import json
 import math
 from pathlib import Path
 
-from fusion.evaluation.stats import no_statistics_reason, paired_statistics
+from fusion.evaluation.scoring.stats import no_statistics_reason, paired_statistics
 
 
 def tuned_table(doc: dict) -> str:

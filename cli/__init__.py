@@ -4,7 +4,7 @@
 
 Each `cmd_*` makes one library call with the parsed arguments and prints what it
 returns (`fusion.evaluation.runs.run_compare`, `run_ablate`, `run_inspect`, `run_calibrate`,
-`run_panorama`, `fusion.evaluation.report.render`). Bad input gives
+`run_panorama`, `fusion.evaluation.report.render.render`). Bad input gives
 one line `fusion: error: ...` and exit code 1, never a traceback; SIGTERM stops a run as Ctrl-C does.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from fusion.selection import note
 
 
 # The loading options of every command that reads recordings, in this order in `--help`
-# (`fusion.evaluation.settings.RunSettings`' fields: their options are described there).
+# (`fusion.evaluation.run.settings.RunSettings`' fields: their options are described there).
 _DATA_FIELDS = ("dataset", "data_dir", "init", "progress", "dropouts", "mag", "imu_topic", "truth_topic", "calibration")
 
 
@@ -35,7 +35,7 @@ def _settings_options(names: Sequence[str] | None = None, command: str | None = 
     `command` offers (in field order)."""
     import dataclasses
 
-    from fusion.evaluation.settings import Option, RunSettings
+    from fusion.evaluation.run.settings import Option, RunSettings
 
     fields = {f.name: f for f in dataclasses.fields(RunSettings) if isinstance(f.metadata["cli"], Option)}
     chosen = names if names is not None else [n for n, f in fields.items() if command in f.metadata["cli"].commands]
@@ -45,7 +45,7 @@ def _settings_options(names: Sequence[str] | None = None, command: str | None = 
 def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | None = None,
                        command: str | None = None) -> None:
     """One option per `RunSettings` field (`_settings_options`), as its metadata (`Option`) says."""
-    from fusion.evaluation.settings import AS_FIELD
+    from fusion.evaluation.run.settings import AS_FIELD
 
     for f, option in _settings_options(names, command):
         default = f.default if option.default == AS_FIELD else option.default
@@ -85,7 +85,7 @@ def _command(args: argparse.Namespace) -> str:
 
 
 def _run_options(args: argparse.Namespace) -> dict:
-    """The options of `compare` and `ablate`: every field of `fusion.evaluation.settings.RunSettings`
+    """The options of `compare` and `ablate`: every field of `fusion.evaluation.run.settings.RunSettings`
     the command offers an option for, but the selection (given by position) and `resume`
     (`_resume`), and the command line itself (`command`); a field the command has no option for
     keeps its default."""
@@ -121,7 +121,7 @@ def _resume(args: argparse.Namespace) -> int:
     if given:
         raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs, --scheduler, "
                          f"--scatter, --json or --no-progress only (not --{given[0].replace('_', '-')})")
-    from fusion.evaluation.settings import HOW, RunSettings
+    from fusion.evaluation.run.settings import HOW, RunSettings
 
     options = _run_options(args)
     how = {name: options[name] for name in (*RunSettings.part(HOW), "json_path") if name not in ("resume", "overwrite")}
@@ -138,7 +138,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from fusion.evaluation.tune import run_tune
+    from fusion.evaluation.sweeps.tune import run_tune
 
     how = dict(jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler)
     if args.resume:
@@ -174,7 +174,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from fusion.evaluation.report import render
+    from fusion.evaluation.report.render import render
 
     print(render(args.folder, jobs=args.jobs, progress=not args.no_progress))
     return 0
@@ -307,7 +307,7 @@ def _add_run_args(parser: argparse.ArgumentParser, command: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fusion.evaluation.ablate import PRESETS
+    from fusion.evaluation.sweeps.ablate import PRESETS
 
     parser = argparse.ArgumentParser(
         prog="fusion", description="Orientation estimation from gyroscope, accelerometer and magnetometer, estimators "
@@ -516,7 +516,7 @@ def _resume_hint(args: argparse.Namespace) -> str:
     folder = getattr(args, "resume", None) or getattr(args, "out", None)
     if args.command not in ("compare", "ablate", "tune") or not folder:
         return ""
-    from fusion.evaluation.journal import JOURNAL, RUN_DIR
+    from fusion.evaluation.run.journal import JOURNAL, RUN_DIR
 
     if not (Path(folder) / RUN_DIR / JOURNAL).is_file():
         return ""

@@ -23,10 +23,12 @@ LAYERS = [("cli", "cli/, fusion/__main__.py"), ("evaluation", "evaluation/"),
 
 
 def modules() -> dict[str, Path]:
+    """Module name -> source file, for every module of the four folders and their subpackages."""
     out = {}
     for folder, package in FOLDERS.items():
-        for path in sorted((ROOT / folder).glob("*.py")):
-            out[package if path.stem == "__init__" else f"{package}.{path.stem}"] = path
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = [package, *path.relative_to(ROOT / folder).with_suffix("").parts]
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
     return out
 
 

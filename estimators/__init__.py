@@ -19,15 +19,15 @@ from typing import Any, Iterable
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
-from .ekf import EKF
-from .gd import GradientDescentSmoother
-from .gn import GaussNewtonSmoother
-from .peers import (  # optional libraries, imported when built: pip install -e '.[peers]'
+from .filters.ekf import EKF
+from .smoothers.gd import GradientDescentSmoother
+from .smoothers.gn import GaussNewtonSmoother
+from .peers.vqf_fusion import (  # optional libraries, imported when built: pip install -e '.[peers]'
     BasicVQFPeer, FusionPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
 )
-from .peers_ahrs import AhrsEKFPeer, MadgwickPeer, MahonyPeer
+from .peers.ahrs_filters import AhrsEKFPeer, MadgwickPeer, MahonyPeer
 from .params import EstimatorSpec, make_params, parse_specs
-from .ukf import UKF, UKFBias
+from .filters.ukf import UKF, UKFBias
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,
@@ -54,7 +54,7 @@ class ResolvedSpec:
     built and validated from the spec's overrides; label: the name of its rows in tables and
     results.json (the spec's text for the registry's estimators; `my_ukf.MyUKF:R=0.001` for
     `./my_ukf.py:MyUKF:R=0.001`); origin: where a user's estimator comes from
-    (`fusion.estimators.user.Origin`), None for the registry's.
+    (`fusion.estimators.adapters.user.Origin`), None for the registry's.
     """
 
     spec: EstimatorSpec
@@ -98,10 +98,10 @@ class ResolvedSpec:
 def resolve(spec: EstimatorSpec | str, file: tuple[str, bytes] | None = None) -> ResolvedSpec:
     """The `ResolvedSpec` of one spec (or spec text such as `"ukf:R=1e-3"`): a registered name, an
     installed package's entry point, or a user's `FILE.py:NAME` / `module:NAME`
-    (`fusion.estimators.user`). An unknown name or a bad parameter is a ValueError naming it, a
+    (`fusion.estimators.adapters.user`). An unknown name or a bad parameter is a ValueError naming it, a
     missing optional library `PeerUnavailable`. file: a user's file as (path, contents), read
     elsewhere (another process's copy)."""
-    from . import user
+    from .adapters import user
 
     if isinstance(spec, str):
         (spec,) = parse_specs(spec)
@@ -130,9 +130,9 @@ def resolve(spec: EstimatorSpec | str, file: tuple[str, bytes] | None = None) ->
 
 def resolve_trajectory(name: str, path: str | Path) -> ResolvedSpec:
     """A trajectory another program wrote (a file, or a folder with one file per recording:
-    `fusion.estimators.trajectory_file`) as an estimator whose rows are named `name`."""
-    from . import user
-    from .trajectory_file import TrajectoryFile, TrajectoryFileParams
+    `fusion.estimators.adapters.trajectory_file`) as an estimator whose rows are named `name`."""
+    from .adapters import user
+    from .adapters.trajectory_file import TrajectoryFile, TrajectoryFileParams
 
     if not name or any(c in name for c in ",:=/") or name in ESTIMATORS or name == "truth":
         raise ValueError(f"--trajectory {name}=...: the name must be new, not 'truth', and hold no ',', ':', '=' or '/'")
@@ -189,7 +189,7 @@ def available() -> list[tuple[str, str, str]]:
     """Every estimator a spec can name by itself, as (name, what it is, where it comes from): the
     registry's, then those installed packages register in the entry-point group
     `fusion.estimators` (not imported here)."""
-    from . import user
+    from .adapters import user
 
     import re
 

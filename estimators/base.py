@@ -50,7 +50,7 @@ class Estimator(ABC):
 
     def for_recording(self, recording_id: str) -> "Estimator":
         """The estimator to run on the recording `recording_id` (default: this one). An estimator
-        read from files, one per recording (`fusion.estimators.trajectory_file`), picks its file here."""
+        read from files, one per recording (`fusion.estimators.adapters.trajectory_file`), picks its file here."""
         return self
 
     @abstractmethod

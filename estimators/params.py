@@ -106,7 +106,7 @@ def parse_specs(text: str) -> list[EstimatorSpec]:
     """Split `ukf:R=1e-3,Q=1e-5,gn` into specs (names are not checked here).
 
     A name may refer to user code, `FILE.py:NAME` or `package.module:NAME`
-    (`fusion.estimators.user`): a part after the first `:` without `=` belongs to the name, so
+    (`fusion.estimators.adapters.user`): a part after the first `:` without `=` belongs to the name, so
     `./my_ukf.py:MyUKF:R=1e-3` is the estimator `./my_ukf.py:MyUKF` with R=1e-3.
     """
     specs: list[tuple[str, list[tuple[str, str]]]] = []

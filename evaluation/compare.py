@@ -4,10 +4,10 @@
     from fusion.evaluation.compare import compare
     results = compare(["dr", "ukf:R=1e-3"], [datasets.load("sim")])
 
-Every (recording, estimator) pair is one job (`fusion.evaluation.job.run_one`: build the
+Every (recording, estimator) pair is one job (`fusion.evaluation.run.job.run_one`: build the
 estimator from its spec, time `estimate` on the recording's calibrated samples from the shared
 initial orientation, score it against the truth when there is one), scheduled by
-`fusion.evaluation.runner`. Results come back in a stable order: recordings as given,
+`fusion.evaluation.run.runner`. Results come back in a stable order: recordings as given,
 estimators as given within each recording. This module also formats them (the table,
 the `--json` document).
 """
@@ -21,12 +21,12 @@ import numpy as np
 from fusion.estimators.params import EstimatorSpec
 from fusion.types import Recording
 
-from .job import (  # noqa: F401  (the job layer, re-exported: `from fusion.evaluation.compare import run_one`)
+from .run.job import (  # noqa: F401  (the job layer, re-exported: `from fusion.evaluation.compare import run_one`)
     Result, aligned, default_protocol, recording_alignment, run_one,
 )
-from .metrics import KINDS, MIN_COVERAGE
-from .runner import run
-from .stats import run_statistics, table_column
+from .scoring.metrics import KINDS, MIN_COVERAGE
+from .run.runner import run
+from .scoring.stats import run_statistics, table_column
 
 
 def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Recording], init: str | None = None,
@@ -40,12 +40,12 @@ def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Rec
     recordings: loaded `Recording`s, or dataset `Source`s (loaded once per worker).
     init: `truth`, `accel`, `identity`, or None for each recording's default.
     progress: show a progress bar on stderr.
-    protocol: scoring protocol, "full" or "broad" (`fusion.evaluation.metrics`), or None for each
+    protocol: scoring protocol, "full" or "broad" (`fusion.evaluation.scoring.metrics`), or None for each
         recording's default (`default_protocol`).
     jobs: worker processes (None or 0: all cores); the results do not depend on it
-        (see `fusion.evaluation.runner`).
+        (see `fusion.evaluation.run.runner`).
     align: score against the truth mapped into our frames by constant world and body rotations
-        fitted once per recording from its IMU and truth (`fusion.evaluation.align`), the same for
+        fitted once per recording from its IMU and truth (`fusion.evaluation.scoring.align`), the same for
         every estimator; each result's `alignment` holds them.
     """
     return run(specs, list(recordings), init=init, jobs=jobs, progress=progress, protocol=protocol, align=align,
@@ -88,7 +88,7 @@ def not_scored_recordings(results: list[Result]) -> list[dict[str, str]]:
 def recording_facts(results: list[Result]) -> list[dict[str, Any]]:
     """One entry per scored recording whose rows know them, in run order: `{"dataset", "protocol",
     "truth"}`, how its rows were scored ("full" or "broad": `Result.protocol`) and what its truth is
-    (`fusion.evaluation.job.truth_system`); null where no row knows (rows read back from an older
+    (`fusion.evaluation.run.job.truth_system`); null where no row knows (rows read back from an older
     journal or results.json)."""
     out: dict[str, dict[str, Any]] = {}
     for r in results:
@@ -104,7 +104,7 @@ def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, A
     """The document `--json` writes: `results`, `alignments` (one per recording, empty without
     `--align`), `recordings` (one per recording with truth: `recording_facts`), `not_scored` (one per
     recording that was not scored, with its reason: `not_scored_recordings`), `statistics` (every
-    metric's, `fusion.evaluation.stats.run_statistics`), `datasets` (each dataset's means apart and
+    metric's, `fusion.evaluation.scoring.stats.run_statistics`), `datasets` (each dataset's means apart and
     together: `across_datasets`), `settings`, `versions`."""
     return {"results": [r.to_json() for r in results], "alignments": recording_alignments(results),
             "recordings": recording_facts(results), "not_scored": not_scored_recordings(results),
@@ -145,7 +145,7 @@ def across_datasets(results: list[Result], intervals: Iterable[str] = KINDS) -> 
 
     `per_dataset`: per folder (`dataset_group`, in run order) and estimator, the recordings scored
     (as in the means: a row below `MIN_COVERAGE` or failed is left out), the mean RMSE of each
-    metric and its 95 % BCa interval (`fusion.evaluation.stats.mean_of_means_interval` with one
+    metric and its 95 % BCa interval (`fusion.evaluation.scoring.stats.mean_of_means_interval` with one
     sample: over this estimator's own recordings) and the sensors ("6-D", "9-D", "mixed").
     `all` (with two folders or more, else empty): per estimator the mean of its per-dataset means,
     each dataset counted once whatever its number of recordings, and its interval by the
@@ -154,7 +154,7 @@ def across_datasets(results: list[Result], intervals: Iterable[str] = KINDS) -> 
     every dataset it covers (null otherwise), and is computed for the metrics in `intervals` only.
     Datasets scored by different protocols (`recording_facts`) are averaged as their means stand.
     """
-    from .stats import MIN_RECORDINGS, mean_of_means_interval
+    from .scoring.stats import MIN_RECORDINGS, mean_of_means_interval
 
     intervals = [k for k in intervals]
     folders = list(dict.fromkeys(dataset_group(r.dataset) for r in results if r.rmse_deg))
@@ -231,7 +231,7 @@ def format_table(results: list[Result], align: bool | None = None, primary: str 
     truth last; with alignment, the fitted rotations after it.
 
     align: whether the run used `--align` (None: whether any result carries an alignment).
-    primary: the metric whose statistics the table shows (`fusion.evaluation.stats`): with five
+    primary: the metric whose statistics the table shows (`fusion.evaluation.scoring.stats`): with five
         recordings or more that every row scored, a column of 95 % intervals of the mean on the mean
         rows, marked for the rows not significantly worse than the best, and a note saying so; with
         fewer, a note saying why there are none (the columns as they are).

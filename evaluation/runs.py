@@ -6,13 +6,13 @@ Python the same run is two lines:
     from fusion.evaluation.runs import run_compare
     run = run_compare("dr,ukf", "sim", jobs=1)
 
-`run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.job.Result`,
-without trajectories: see `fusion.evaluation.runner`), `run.document` the results document
+`run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.run.job.Result`,
+without trajectories: see `fusion.evaluation.run.runner`), `run.document` the results document
 (`docs/json-format.md`). Recordings are chosen and loaded as `fusion.selection` says
 (`dataset`, `data_dir`, `calibration`, `dropouts`).
 
 With an output folder (`out`), every finished job is journalled there as it ends
-(`fusion.evaluation.journal`), so that a run stopped at any point continues with
+(`fusion.evaluation.run.journal`), so that a run stopped at any point continues with
 `run_resume(out)` (`fusion compare --resume DIR`), computing only the jobs not yet done.
 """
 from __future__ import annotations
@@ -32,14 +32,14 @@ from fusion.estimators import ResolvedSpec, resolve_all, resolve_trajectory
 from fusion.estimators.params import EstimatorSpec, parse_specs
 from fusion.selection import calibration_settings, load_selected, note, select_sources
 
-from . import ablate
+from .sweeps import ablate
 from .compare import format_table, results_json, versions
-from .job import JobOutput, Result
-from .journal import Journal, fingerprint, job_key
-from .output import OutputFolder
-from .report import git_commit, write_run
-from .runner import run, source_paths
-from .settings import COMPUTED, WRITTEN, RunSettings
+from .run.job import JobOutput, Result
+from .run.journal import Journal, fingerprint, job_key
+from .run.output import OutputFolder
+from .report.render import git_commit, write_run
+from .run.runner import run, source_paths
+from .run.settings import COMPUTED, WRITTEN, RunSettings
 
 PathLike = str | os.PathLike
 
@@ -72,20 +72,20 @@ def run_compare(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] =
 
     estimators: spec text (`"dr,ukf:R=1e-3"`, `"all"`) or a list of specs.
     trajectories: (name, path) pairs: trajectories other programs wrote, in the table as rows
-        named `name` (`fusion.estimators.trajectory_file`: a file with one recording selected, or a
+        named `name` (`fusion.estimators.adapters.trajectory_file`: a file with one recording selected, or a
         folder with one file per recording).
     tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): each estimator it holds runs
-        with its tuned setting (`fusion.evaluation.tune.apply_tuned`).
-    options: the run's settings, `fusion.evaluation.settings.RunSettings`' fields (its docstring
+        with its tuned setting (`fusion.evaluation.sweeps.tune.apply_tuned`).
+    options: the run's settings, `fusion.evaluation.run.settings.RunSettings`' fields (its docstring
         lists them, each one's option help says what it does: `fusion compare --help`). With `out`
         the report folder is locked before any computation and written through a staging folder
-        (`fusion.evaluation.output.OutputFolder`), each job journalled as it ends; a folder that
+        (`fusion.evaluation.run.output.OutputFolder`), each job journalled as it ends; a folder that
         holds another run is refused unless `overwrite`; `resume` continues the unfinished run
         there (`run_resume` repeats its call for you).
     """
     settings = RunSettings(dataset=dataset, data_dir=data_dir, **{**options, "per_recording": True})
     if tuned:
-        from .tune import apply_tuned
+        from .sweeps.tune import apply_tuned
 
         specs = parse_specs(estimators) if isinstance(estimators, str) else list(estimators)
         estimators = ",".join(s.label if isinstance(s, EstimatorSpec) else s for s in apply_tuned(specs, tuned))
@@ -103,11 +103,11 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
                preset: str | None = None, dataset: str = "all", data_dir: PathLike | None = None, *,
                tuned: PathLike | None = None, **options: Any) -> Run:
     """`fusion ablate`: one estimator over a grid of parameter values, or a preset
-    (`fusion.evaluation.ablate`).
+    (`fusion.evaluation.sweeps.ablate`).
 
     estimator: the estimator to sweep, possibly with fixed parameters (`"ukf:Q=1e-5"`).
     params: the grid, as `"R=1e-4,1e-3"` texts or `("R", ["1e-4", "1e-3"])` pairs.
-    preset: a name in `fusion.evaluation.ablate.PRESETS` (instead of estimator and params).
+    preset: a name in `fusion.evaluation.sweeps.ablate.PRESETS` (instead of estimator and params).
     tuned: a tuned-settings file (`fusion tune --out DIR`'s tuned.json): the swept estimator runs
         with its tuned setting for every parameter the grid does not sweep.
     options: as `run_compare` (`RunSettings`' fields); `per_recording`: with `out`, also draw each
@@ -127,7 +127,7 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
             raise ValueError("ablate: --estimator needs at least one --param NAME=V1,V2,...")
         grid = [ablate.parse_param(p) if isinstance(p, str) else (p[0], list(p[1])) for p in params]
         if tuned:
-            from .tune import apply_tuned
+            from .sweeps.tune import apply_tuned
 
             (base,) = apply_tuned(parse_specs(estimator), tuned)
             swept = {name for name, _ in grid}
@@ -192,7 +192,7 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
     root = s.resolved_data_dir()
     load = s.load_options()  # a bad calibration file fails here, before the output folder is touched
     if s.rerun:  # before any work: the package is installed, the file name is a .rrd in a folder
-        from .rerun_log import check_path, require
+        from .report.rerun_log import check_path, require
 
         require()
         check_path(s.rerun)
@@ -258,7 +258,7 @@ def _heartbeat(enabled: bool, first_s: float = 2.0, every_s: float = 4.0) -> Ite
 
 
 def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, s: RunSettings) -> list[str]:
-    """Each job's journal key (recording-major, as `fusion.evaluation.runner.run` numbers them)."""
+    """Each job's journal key (recording-major, as `fusion.evaluation.run.runner.run` numbers them)."""
     options = {"init": s.init, "protocol": s.protocol, "align": s.align, "panorama": s.panorama}
     prints = [fingerprint(source_paths(src), what=src.id) for src in sources]
     return [job_key(dataset=src.id, files=fp, estimator=e.label, origin=e.describe(), load=repr(load), **options)
@@ -329,7 +329,7 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
 
 
 def _series_part(output: JobOutput) -> dict[str, np.ndarray] | None:
-    """What a job adds to its recording's series (`fusion.evaluation.series.job_part`), with its
+    """What a job adds to its recording's series (`fusion.evaluation.run.series.job_part`), with its
     recording's arrays under `rec_` names when it brings them; None without plot data."""
     part = dict(output.part or {})
     part.update({f"rec_{k}": v for k, v in (output.recording_part or {}).items()})
@@ -352,9 +352,9 @@ class _Parts:
 
 def _write_rerun(parts: Any, entries: list[ResolvedSpec], sources: list, results: list[Result], keys: list,
                  s: RunSettings) -> None:
-    """The Rerun recording of a run (`s.rerun`, `fusion.evaluation.rerun_log`): each recording loaded
+    """The Rerun recording of a run (`s.rerun`, `fusion.evaluation.report.rerun_log`): each recording loaded
     again (its sensors, events and camera) beside its series from the jobs' parts."""
-    from .rerun_log import write
+    from .report.rerun_log import write
 
     load = s.load_options()
     per = len(entries)
@@ -393,7 +393,7 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
     whether it used a magnetometer (`fusion.trajectory_files.write_tum`, compact)."""
     from fusion.trajectory_files import write_tum
 
-    from . import series
+    from .run import series
 
     per = len(entries)
     for i in range(recordings):
@@ -423,7 +423,7 @@ def _series(journal: Journal, entries: list[ResolvedSpec], recordings: int, resu
 @dataclass(frozen=True, eq=False)
 class PanoramaRun:
     """A finished `run_panorama`: the recording and estimator, the estimate's panorama
-    (`fusion.evaluation.panorama.Panorama`), its scores (`panorama.panorama_scores`), the image
+    (`fusion.evaluation.panorama.recording.Panorama`), its scores (`panorama.panorama_scores`), the image
     written, where its frames come from (`panorama.frames_origin`), and `text`, what
     `fusion panorama` prints."""
 
@@ -455,7 +455,7 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
                  mag: bool = True) -> PanoramaRun:
     """`fusion panorama`: estimate one recording's orientations with one estimator, stitch its
     frames (its camera's, or frames rendered from a scene with the truth:
-    `fusion.evaluation.panorama.reference_panorama`)
+    `fusion.evaluation.panorama.recording.reference_panorama`)
     into a panorama, score it and write the image to `out` (.png/.jpg).
 
     dataset: names exactly one recording (`fusion.selection.load_selected`); estimator: one spec text.
@@ -464,8 +464,8 @@ def run_panorama(dataset: str, estimator: str | EstimatorSpec | ResolvedSpec, ou
     """
     import cv2
 
-    from .job import run_one
-    from .panorama import (PanoramaGrid, check_options, comparison_image, estimate_panorama, frames_origin,
+    from .run.job import run_one
+    from .panorama.recording import (PanoramaGrid, check_options, comparison_image, estimate_panorama, frames_origin,
                            reference_panorama)
 
     check_options(out, rate_hz)  # before any work: the image format and the frame rate
@@ -523,7 +523,7 @@ def run_inspect(dataset: str = "all", data_dir: PathLike | None = None, *, calib
         Path(json_path).write_text(json.dumps(doc, indent=2) + "\n")
     figures = []
     if out:
-        from .inspect_plots import plot_check
+        from .report.inspect_plots import plot_check
 
         folder = Path(out)
         folder.mkdir(parents=True, exist_ok=True)
@@ -557,14 +557,14 @@ def run_calibrate(dataset: str = "all", data_dir: PathLike | None = None, *, out
 
     out: the calibration file to write; clock_offset: also store each recording's clock offset.
     leave_one_out: first score `estimators` on each recording with the scales fitted on the
-        others (`fusion.evaluation.loo`); align applies to those scores only.
+        others (`fusion.evaluation.sweeps.loo`); align applies to those scores only.
     """
     from fusion import gyro_fit
 
     recordings = load_selected(dataset, data_dir, calibration, dropouts, progress, imu_topic, truth_topic, mag)
     lines, folds = [], []
     if leave_one_out:
-        from .loo import format_folds, leave_one_out as folds_of
+        from .sweeps.loo import format_folds, leave_one_out as folds_of
 
         folds = folds_of([estimators], recordings, init=init, progress=progress, align=align)
         lines += [format_folds(folds), "", format_table([r for f in folds for r in f.results], align=align)]

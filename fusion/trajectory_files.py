@@ -17,7 +17,7 @@ it holds, `# fusion: estimator=ekf recording=broad/10 imu=9-D` (`tum_metadata` r
 and carries the precision the data carry rather than every digit of a double: the time to its own
 resolution when it is 1 us or coarser, else to 1 us (`time_decimals`), quaternions to 1e-7
 (`QUAT_DECIMALS`). Read back on the recording's stamps, such a file gives the estimate to 1e-7
-(`fusion.estimators.trajectory_file` matches stamps within 1 us).
+(`fusion.estimators.adapters.trajectory_file` matches stamps within 1 us).
 """
 from __future__ import annotations
 

@@ -259,13 +259,13 @@ class Recording:
     camera: a camera source (see `fusion.camera`), or None.
     movement: (N,) bool over the IMU samples, the movement phases a benchmark scores
         (BROAD's `movement`, a CSV `movement` column), or None. A recording that has one is
-        scored with the BROAD protocol by default (`fusion.evaluation.metrics.score`).
+        scored with the BROAD protocol by default (`fusion.evaluation.scoring.metrics.score`).
     truth_problem: why a recording whose file holds a truth was read without it, one line starting
         "no truth" (no row holds an orientation) or "truth unusable" (most rows are not
         orientations, or its span misses the IMU's: `fusion.loaders.usable_truth`); None otherwise.
     truth_needs_alignment: the truth is given in frames of its own (a world whose vertical is not z,
         a marker body that is not the IMU's: RepoIMU's Vicon orientations), as its format says; it
-        is scored through an alignment fitted per recording (`fusion.evaluation.align`) whether or
+        is scored through an alignment fitted per recording (`fusion.evaluation.scoring.align`) whether or
         not `--align` is given. False for truths already in our frames (VICON of the course, BROAD).
     """
 

@@ -129,7 +129,7 @@ def marker_pid(path: str | Path) -> int:
 
 
 class RecordingBar:
-    """Stands in for the tqdm bar of `fusion.evaluation.runner`: keeps the time of every update,
+    """Stands in for the tqdm bar of `fusion.evaluation.run.runner`: keeps the time of every update,
     and with `folder` writes `updated-<count>` there at each (for `Gate` jobs to wait on)."""
 
     def __init__(self, total: int, folder: Path | None = None) -> None:
@@ -153,7 +153,7 @@ class RecordingBar:
 
 def record_progress(monkeypatch, folder: Path | None = None) -> list[RecordingBar]:
     """Replace the runner's progress bar; returns the list the bars of later runs are appended to."""
-    from fusion.evaluation import runner
+    from fusion.evaluation.run import runner
 
     bars: list[RecordingBar] = []
 

@@ -22,7 +22,7 @@ import pytest
 
 from fusion import estimators
 from fusion.estimators import Estimator
-from fusion.estimators.peers import PeerUnavailable
+from fusion.estimators.peers.vqf_fusion import PeerUnavailable
 
 COURSE_FILE = Path("ece276a") / "imu" / "imuRaw1.p"  # what a data folder must hold
 

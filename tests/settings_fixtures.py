@@ -1,4 +1,4 @@
-"""Values of `fusion.evaluation.settings.RunSettings`' fields other than their defaults, derived from
+"""Values of `fusion.evaluation.run.settings.RunSettings`' fields other than their defaults, derived from
 each field's command-line option (`Option`), so that a field added with an option is covered by the
 tests of the command line and of the journal without naming it there."""
 from __future__ import annotations
@@ -28,7 +28,7 @@ def not_default(f: dataclasses.Field, option: Any) -> tuple[list[str], Any]:
 
 def not_default_values(names: Any) -> dict[str, Any]:
     """A value other than the default for each of the `RunSettings` fields named."""
-    from fusion.evaluation.settings import RunSettings
+    from fusion.evaluation.run.settings import RunSettings
 
     fields = {f.name: f for f in dataclasses.fields(RunSettings)}
     return {name: not_default(fields[name], fields[name].metadata["cli"])[1] for name in names}

@@ -5,7 +5,7 @@ import numpy as np
 
 
 def dense_normal_matrix(lin) -> np.ndarray:
-    """The Gauss-Newton matrix of a `smoother_cost.Linearization` as one dense symmetric array:
+    """The Gauss-Newton matrix of a `smoothers.cost.Linearization` as one dense symmetric array:
     (B T + P) square, sample blocks first (B = 3, or 5 with velocities), calibration last."""
     T, B = lin.diag.shape[:2]
     P = lin.cross.shape[2]

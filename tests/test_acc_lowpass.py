@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fusion import quaternion as quat
-from fusion.estimators._accel import (
+from fusion.estimators.filters.steps._accel import (
     AccDisturbance,
     acc_measurement,
     lowpass_drift_density,

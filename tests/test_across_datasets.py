@@ -15,10 +15,10 @@ from scipy.spatial.transform import Rotation
 
 from fusion import datasets
 from fusion.cli import main
-from fusion.evaluation import ablate
+from fusion.evaluation.sweeps import ablate
 from fusion.evaluation.compare import ACROSS, across_datasets, format_table, results_json
-from fusion.evaluation.job import Result
-from fusion.evaluation.stats import CI_METHOD, N_RESAMPLES, SEED, mean_of_means_interval, paired_statistics
+from fusion.evaluation.run.job import Result
+from fusion.evaluation.scoring.stats import CI_METHOD, N_RESAMPLES, SEED, mean_of_means_interval, paired_statistics
 
 
 def _results(sizes=(("broad", 6), ("ece276a", 5)), labels=("dr", "ekf"), seed: int = 0,
@@ -132,7 +132,7 @@ def test_one_dataset_has_no_all_line():
 
 
 def test_results_json_and_report_carry_them(tmp_path):
-    from fusion.evaluation.report import write_run
+    from fusion.evaluation.report.render import write_run
 
     results = _results()
     doc = results_json(results, {"command": "fusion compare (test)"})

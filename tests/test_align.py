@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.evaluation.align import fit_alignment
+from fusion.evaluation.scoring.align import fit_alignment
 from fusion.evaluation.compare import Result, aligned, compare, format_table, recording_alignment, run_one
-from fusion.evaluation.metrics import score
+from fusion.evaluation.scoring.metrics import score
 from fusion.estimators.params import EstimatorSpec
 from fusion import datasets
 from fusion.cli import main
@@ -288,7 +288,7 @@ def test_cli_degenerate_truth_is_a_recording_not_scored_with_its_reason(tmp_path
 
 @pytest.mark.slow
 def test_report_rerender_keeps_the_alignment(tmp_path, capsys):
-    from fusion.evaluation.report import render
+    from fusion.evaluation.report.render import render
 
     rec = sim()
     write_csv(tmp_path / "theirs.csv", rec, rotated(rec.truth))

@@ -14,7 +14,7 @@ import scipy.io
 from scipy.spatial.transform import Rotation
 
 from fusion.evaluation.compare import compare, default_protocol
-from fusion.evaluation.metrics import mean_heading_offset, score
+from fusion.evaluation.scoring.metrics import mean_heading_offset, score
 from fusion import datasets, quaternion as quat
 from fusion.broad import load_broad
 from fusion.cli import main

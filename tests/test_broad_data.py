@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fusion.estimators import build
-from fusion.evaluation.metrics import score
+from fusion.evaluation.scoring.metrics import score
 from fusion import datasets
 from fusion.broad import load_broad
 from fusion.cli import main
@@ -152,7 +152,7 @@ def test_vqf_9d_rows_equal_vqf_run_directly(broad_dir, peer, cls, trial):
     """With the magnetometer, our `vqf`, `vqf-basic` and `vqf-offline` rows (9-D: total error,
     no heading offset removed) equal the library's `quat9D` run directly on the file's arrays,
     within 0.01 deg (measured 7.6e-6 over the fourteen trials: in 9-D the adapters start as the
-    library does, `estimators/peers.py`)."""
+    library does, `estimators/peers/vqf_fusion.py`)."""
     vqf = require_module("vqf")
     path = next(broad_dir.glob(f"{trial}.*"))
     rec = datasets.load(str(path))

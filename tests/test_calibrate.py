@@ -31,7 +31,7 @@ def test_fit_recovers_injected_scales_with_freeze_and_offset():
 
 def test_applying_the_fit_makes_dead_reckoning_better():
     from fusion.estimators.dr import DeadReckoning
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     rec = sim_recording("a", gyro_sensitivity_ratio=(1.09, 1.04, 0.96), seed=4)
     fitted = gyro_fit.with_gyro_scale(rec, gyro_fit.fit_recordings([rec]).gyro_scale_factor)

@@ -255,7 +255,7 @@ def test_every_run_setting_has_an_option_that_reaches_it(command):
     import dataclasses
 
     from fusion import cli
-    from fusion.evaluation.settings import API_ONLY, Option, RunSettings
+    from fusion.evaluation.run.settings import API_ONLY, Option, RunSettings
 
     fields = dataclasses.fields(RunSettings)
     assert [f.name for f in fields if f.metadata.get("cli") == API_ONLY] == ["command"]

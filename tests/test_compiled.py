@@ -318,7 +318,8 @@ def test_without_a_writable_cache_folder_the_kernels_still_run():
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
     code = ("import warnings; warnings.simplefilter('always')\n"
-            "from fusion.estimators import _compiled as c, _numba\n"
+            "from fusion.estimators.filters import _compiled as c\n"
+            "from fusion.estimators.kernels import _numba\n"
             "assert not _numba._cache\n"
             "print(c.qmul((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)))\n")
     run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
@@ -333,7 +334,7 @@ def test_numba_is_imported_only_for_the_compiled_filters():
             "for spec in ('ekf:impl=numpy', 'ukf:impl=numpy', 'ukf-bias:impl=filterpy,hf=false'):\n"
             "    build(spec)\n"
             "assert 'numba' not in sys.modules\n"
-            "from fusion.estimators import _compiled\n"
+            "from fusion.estimators.filters import _compiled\n"
             "assert not _compiled._loaded\n"
             "build('ukf')\n"
             "assert _compiled._loaded\n")
@@ -355,12 +356,14 @@ def test_compiled_equals_reference_through_an_unflagged_freeze(data_dir, spec):
     assert np.abs(off.quat_wxyz - a.quat_wxyz).max() > 0.01  # the check changed the estimate
 
 
-KERNEL_MODULES = ("_numba", "_compiled_quaternion", "_compiled_linalg", "_compiled_accel", "_compiled_rest",
-                  "_compiled_stuck", "_compiled_scale_test", "_compiled_magnetometer", "_compiled_ekf", "_compiled_ukf")
+KERNEL_MODULES = ("kernels._numba", "kernels._compiled_quaternion", "kernels._compiled_linalg",
+                  "filters.steps._compiled_accel", "filters.steps._compiled_rest", "filters.steps._compiled_stuck",
+                  "filters.steps._compiled_scale_test", "filters.steps._compiled_magnetometer", "filters._compiled_ekf",
+                  "filters._compiled_ukf")  # below fusion.estimators
 
 
 def _resolve(dotted: str):
-    """The object a dotted name such as `fusion.estimators.ekf.EKF._correct` names (ImportError or
+    """The object a dotted name such as `fusion.estimators.filters.ekf.EKF._correct` names (ImportError or
     AttributeError when there is none)."""
     import importlib
 
@@ -385,7 +388,8 @@ def test_every_kernel_carries_the_name_of_the_numpy_reference_it_declares():
 
     from numba.core.registry import CPUDispatcher
 
-    from fusion.estimators import _compiled, _numba  # noqa: F401  (imports every kernel module)
+    from fusion.estimators.filters import _compiled
+    from fusion.estimators.kernels import _numba  # noqa: F401  (imports every kernel module)
 
     seen = 0
     for name in KERNEL_MODULES:
@@ -403,15 +407,15 @@ def test_every_kernel_carries_the_name_of_the_numpy_reference_it_declares():
             seen += 1
     assert seen >= 30
     # both kernels and the rest detector's names as the brief's examples give them
-    assert _numba.REFERENCES[("fusion.estimators._compiled_ekf", "_correct")] == "fusion.estimators.ekf.EKF._correct"
-    assert _numba.REFERENCES[("fusion.estimators._compiled_rest", "update")] == \
-        "fusion.estimators._rest.RestDetector.update"
+    assert _numba.REFERENCES[("fusion.estimators.filters._compiled_ekf", "_correct")] == "fusion.estimators.filters.ekf.EKF._correct"
+    assert _numba.REFERENCES[("fusion.estimators.filters.steps._compiled_rest", "update")] == \
+        "fusion.estimators.filters.steps._rest.RestDetector.update"
 
 
 def test_the_packed_states_match_their_layout():
     """`state()` of every packed helper has the length its layout declares and puts each field at
     its offset (the kernels read the same offsets)."""
-    from fusion.estimators import _accel, _magnetometer, _rest, _scale_test, _stuck
+    from fusion.estimators.filters.steps import _accel, _magnetometer, _rest, _scale_test, _stuck
 
     dist = _accel.AccDisturbance(1.0, 2.0, 3.0, lag=True)
     dist.update((1.0, 0.0, 0.0, 0.0), np.array([0.1, 0.2, 0.9]), 0.01, np.array([0.1, 0.2, 0.3]), np.ones(3))

@@ -1,4 +1,4 @@
-"""The compiled twins of the `ahrs` filters (`_compiled_peers`) against the library itself.
+"""The compiled twins of the `ahrs` filters (`peers._compiled_ahrs`) against the library itself.
 
 Each of `madgwick`, `mahony` and `ahrs-ekf` runs twice on the same samples, with `impl=compiled`
 (the numba twin, the default) and `impl=library` (the library's update per sample, the
@@ -112,7 +112,7 @@ def test_twin_equals_the_library_on_every_shared_recording(peer, shared_recordin
     over = {key: value for key, value in worst.items() if not value <= TOL}
     # Where they differ by more than TOL, the bound is the library's own rounding: how far its output
     # moves when its accelerometer input moves by one unit in the last place (`rounding_sensitivity`).
-    # The twins round as one OpenBLAS build does (`fusion.estimators._compiled_peers`); another build
+    # The twins round as one OpenBLAS build does (`fusion.estimators.peers._compiled_ahrs`); another build
     # rounds a norm or a product differently in the last bit, and Madgwick's normalised gradient, near
     # zero where the estimate agrees with the accelerometer, turns that bit into up to 1e-8 (measured on
     # ece276a/9 with numpy 2.4's OpenBLAS 0.3.31: twin 8.7e-9, the library against itself 3.5e-8).

@@ -24,16 +24,16 @@ import pytest
 from fusion import datasets
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators import _compiled_smoother as cs
-from fusion.estimators import _compiled_smoother_cost as kernel_cost
-from fusion.estimators import _compiled_smoother_layout as layout
-from fusion.estimators import _compiled_smoother_linearize as kernel_linearize
-from fusion.estimators import _compiled_smoother_ranges as ranges
-from fusion.estimators import _compiled_smoother_start as start
-from fusion.estimators.gd import RIDGE, Preconditioner
-from fusion.estimators.smoother import initial_trajectory, levelled
-from fusion.estimators.smoother_cost import SmootherProblem, Weights
-from fusion.estimators.smoother_solve import solve_normal_equations, theta_posterior_std
+from fusion.estimators.smoothers import _compiled as cs
+from fusion.estimators.smoothers import _compiled_cost as kernel_cost
+from fusion.estimators.smoothers import _compiled_layout as layout
+from fusion.estimators.smoothers import _compiled_linearize as kernel_linearize
+from fusion.estimators.smoothers import _compiled_ranges as ranges
+from fusion.estimators.smoothers import _compiled_start as start
+from fusion.estimators.smoothers.gd import RIDGE, Preconditioner
+from fusion.estimators.smoothers.smoother import initial_trajectory, levelled
+from fusion.estimators.smoothers.cost import SmootherProblem, Weights
+from fusion.estimators.smoothers.solve import solve_normal_equations, theta_posterior_std
 from fusion.types import ImuSamples
 
 COST_RTOL = 1e-9  # the target: final costs equal to the reference within 1e-9
@@ -110,7 +110,7 @@ def test_cost_gradient_and_blocks_equal_the_reference(config):
 @pytest.mark.parametrize("update", ["geodesic", "normalise"])
 @pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
 def test_trial_point_and_its_cost_equal_the_reference(config, update):
-    from fusion.estimators.smoother import ReferenceOps
+    from fusion.estimators.smoothers.smoother import ReferenceOps
 
     problem, q, theta, v = _problem(config)
     rng = np.random.default_rng(5)
@@ -301,17 +301,17 @@ def test_every_kernel_carries_its_references_name():
         if reference.startswith("none"):
             assert re.fullmatch(r"none \(.+\)", reference), f"{name}: 'Reference: none (why)', not {reference!r}"
             continue
-        assert reference.startswith(("fusion.quaternion.", "fusion.estimators.smoother_cost.",
-                                     "fusion.estimators.smoother.")), (name, reference)
+        assert reference.startswith(("fusion.quaternion.", "fusion.estimators.smoothers.cost.",
+                                     "fusion.estimators.smoothers.smoother.")), (name, reference)
         target = pkgutil.resolve_name(reference)
         assert callable(target) and target.__name__ == name, f"{name}: its reference {reference} is {target!r}"
         references[name] = reference
     # what the solvers run, each under its reference's name
-    assert references["cost"] == "fusion.estimators.smoother_cost.SmootherProblem.cost"
-    assert references["linearize"] == "fusion.estimators.smoother_cost.SmootherProblem.linearize"
-    assert references["retract"] == "fusion.estimators.smoother.retract"
-    assert references["levelled"] == "fusion.estimators.smoother.levelled"
-    assert references["robust_terms"] == "fusion.estimators.smoother_cost.robust_terms"
+    assert references["cost"] == "fusion.estimators.smoothers.cost.SmootherProblem.cost"
+    assert references["linearize"] == "fusion.estimators.smoothers.cost.SmootherProblem.linearize"
+    assert references["retract"] == "fusion.estimators.smoothers.smoother.retract"
+    assert references["levelled"] == "fusion.estimators.smoothers.smoother.levelled"
+    assert references["robust_terms"] == "fusion.estimators.smoothers.cost.robust_terms"
 
 
 def test_the_packed_layouts_do_not_overlap():
@@ -334,7 +334,7 @@ def test_the_packed_layouts_do_not_overlap():
 
 def test_compiled_ops_have_the_reference_ops_interface():
     """`CompiledOps` has every public method of `ReferenceOps`, with its parameters first."""
-    from fusion.estimators.smoother import ReferenceOps
+    from fusion.estimators.smoothers.smoother import ReferenceOps
 
     methods = [name for name, f in vars(ReferenceOps).items() if callable(f) and not name.startswith("_")]
     assert set(methods) == {"cost", "trial", "slope", "linearize", "solve", "theta_std"}
@@ -385,7 +385,7 @@ def test_compiled_solves_equal_the_reference_on_the_simulator(spec):
 def test_compiled_solves_equal_the_reference_in_9d(spec):
     """With a magnetometer (a field read along the simulator's truth, a carried magnet over a
     third of it): the 6-D solve as above, then the heading term in the cost solved again from
-    there (the default), or the heading stage (`smoother_mag`, mag_term=stage): the same samples
+    there (the default), or the heading stage (`smoothers.mag`, mag_term=stage): the same samples
     used and the same orientations."""
     imu, truth, q0 = _sim(60.0)
     rot, _ = truth.interpolate(imu.t)
@@ -440,16 +440,16 @@ def test_memory_is_linear_with_a_small_constant(name):
 
 
 # ----------------------------------------------------------------------------- the disk cache
-# The modules whose kernels `CompiledOps` runs (`_compiled_smoother`'s docstring).
-KERNEL_MODULES = ("_compiled_smoother_terms", "_compiled_smoother_cost", "_compiled_smoother_linearize",
-                  "_compiled_smoother_start")
+# The modules whose kernels `CompiledOps` runs (`smoothers._compiled`'s docstring).
+KERNEL_MODULES = ("smoothers._compiled_terms", "smoothers._compiled_cost", "smoothers._compiled_linearize",
+                  "smoothers._compiled_start")  # below fusion.estimators
 # The kernels `load` runs from Python; the others run inside them.
 LOADED_KERNELS = ("cost", "linearize", "back_substitute", "dead_reckoning", "levelled", "norm_error", "dot")
 
 _CACHE_STATS = r"""
 import importlib, json
 from numba.core.registry import CPUDispatcher
-from fusion.estimators import _compiled_smoother as cs
+from fusion.estimators.smoothers import _compiled as cs
 cs.load()
 stats = {}
 for module in %r:

@@ -1,4 +1,4 @@
-"""Filter consistency (`fusion.evaluation.consistency`): exact cases, filters whose noise model
+"""Filter consistency (`fusion.evaluation.scoring.consistency`): exact cases, filters whose noise model
 matches a simulation pass the checks and deliberately over- or underconfident ones fail them,
 edge cases (no covariance, no update, one sample, truth gaps), the series round trip, the
 figure, and the bookkeeping on real recordings."""
@@ -13,8 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.evaluation import consistency as cons
-from fusion.evaluation import plots, series
+from fusion.evaluation.scoring import consistency as cons
+from fusion.evaluation.report import plots
+from fusion.evaluation.run import series
 from fusion.types import Trajectory
 
 from motion_helpers import turning_body
@@ -311,7 +312,7 @@ def test_error_on_a_course_recording_is_the_scored_error(data_dir):
     """ece276a/1 with ekf: |e| of the consistency check is the geodesic error the scoring reports,
     sample for sample (the same truth, the same slerp), and the bookkeeping adds up."""
     from fusion import datasets
-    from fusion.evaluation.job import run_one
+    from fusion.evaluation.run.job import run_one
 
     rec = datasets.load("ece276a/1", data_dir / "ece276a")
     result = run_one(rec, "ekf")
@@ -330,7 +331,7 @@ def test_a_broad_trial_is_decimated_and_counted(data_dir):
     sample is either updated or counted as skipped, and the figure draws a bounded number of
     points."""
     from fusion import datasets
-    from fusion.evaluation.job import run_one
+    from fusion.evaluation.run.job import run_one
 
     require_module("h5py")
     path = data_dir / "broad" / "25_disturbed_tapping_B.hdf5"

@@ -23,7 +23,7 @@ if distributed is None:
 from fusion.cli import main  # noqa: E402
 from fusion import datasets  # noqa: E402
 from fusion.datasets import Source  # noqa: E402
-from fusion.evaluation import runner  # noqa: E402
+from fusion.evaluation.run import runner  # noqa: E402
 from fusion.evaluation.runs import run_ablate, run_compare  # noqa: E402
 
 import cluster_fixtures  # noqa: E402
@@ -218,7 +218,7 @@ def test_a_killed_worker_costs_a_retry_not_a_row(address, data, tmp_path):
 
 
 def test_tune_on_the_cluster_equals_the_local_tuning(address, data):
-    from fusion.evaluation.tune import run_tune
+    from fusion.evaluation.sweeps.tune import run_tune
 
     local = run_tune("madgwick", "all", data_dir=str(data), jobs=1)
     remote = run_tune("madgwick", "all", data_dir=str(data), scheduler=address)

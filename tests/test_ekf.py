@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion.estimators import ESTIMATORS, build
 from fusion.estimators.dr import DeadReckoning
-from fusion.estimators.ekf import EKF, EKFParams
+from fusion.estimators.filters.ekf import EKF, EKFParams
 from fusion import quaternion as quat
 
 from motion_helpers import turning_body
@@ -137,7 +137,7 @@ def test_the_scale_tests_likelihood_ratio_is_the_bayes_factor_of_the_two_priors(
     # A linear Gaussian model of two scale corrections, y = A s + noise: the ratio of the data's
     # marginal likelihoods under the priors N(0, P1 I) and N(0, P0 I), computed directly, equals
     # ScaleTest's expression in the P1 posterior; its update gives the P0 posterior.
-    from fusion.estimators._scale_test import ScaleTest
+    from fusion.estimators.filters.steps._scale_test import ScaleTest
 
     rng = np.random.default_rng(4)
     P1, P0, noise = 1e-2, 1e-4, 0.02

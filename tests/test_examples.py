@@ -39,7 +39,7 @@ def step_by_step_rmse(spec: str) -> dict[str, float]:
     """The README's step-by-step API on `sim`: what every example below must reproduce."""
     from fusion import datasets, estimators
     from fusion.datasets import initial_orientation
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     recording = datasets.load("sim")
     trajectory = estimators.build(spec).estimate(recording.imu, initial_orientation(recording))
@@ -58,7 +58,7 @@ def assert_rows(results, specs: list[str]) -> None:
 
 def test_runner_docstring_example_runs(no_data):
     namespace: dict = {}
-    exec(docstring_example("fusion.evaluation.runner"), namespace)
+    exec(docstring_example("fusion.evaluation.run.runner"), namespace)
     results = namespace["results"]
     assert_rows(results, ["dr", "ukf:R=1e-3"])
     assert all(r.trajectory is None and r.error is None for r in results)  # rows, not trajectories
@@ -76,7 +76,7 @@ def test_compare_docstring_example_runs(no_data):
 
 
 def test_job_docstring_example_runs(no_data):
-    assert_rows([run_example("fusion.evaluation.job")["result"]], ["ukf:R=1e-3"])
+    assert_rows([run_example("fusion.evaluation.run.job")["result"]], ["ukf:R=1e-3"])
 
 
 def test_runs_docstring_example_runs(no_data):

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from fusion.cli import main
-from fusion.evaluation import report, series
-from fusion.evaluation.job import run_one
+from fusion.evaluation.report import render as report
+from fusion.evaluation.run import series
+from fusion.evaluation.run.job import run_one
 from fusion.trajectory_files import read_trajectory, time_decimals, tum_metadata, write_tum
 
 BROAD = "broad/10_undisturbed_slow_translation_A"

@@ -85,8 +85,8 @@ def test_the_detector_checks_its_settings():
 def online_stuck(imu: ImuSamples, rates: np.ndarray) -> np.ndarray:
     """The filters' online check over a recording, compiled: step k integrates `rates[k]` (the
     reading k + 1) with the accelerometer sample k + 1; -> (N - 1,) stuck flags."""
-    from fusion.estimators._compiled_stuck import stuck_intervals
-    from fusion.estimators._stuck import STUCK_THRESHOLDS, stuck_gyro_state
+    from fusion.estimators.filters.steps._compiled_stuck import stuck_intervals
+    from fusion.estimators.filters.steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 
     return stuck_intervals(np.ascontiguousarray(rates), np.diff(imu.t), np.ascontiguousarray(imu.acc_g[1:]),
                            np.ones(len(imu) - 1, bool), stuck_gyro_state(), *STUCK_THRESHOLDS)
@@ -99,7 +99,7 @@ def test_the_filters_online_check_finds_a_stuck_gyro_as_it_happens(rate_hz, seco
     """The filters' causal check (`_stuck.stuck_gyro_update`, the thresholds of `FreezeDetector`)
     marks a stuck gyro from `window_s` after it sticks to its end, and nothing else; the numpy
     step's loop and the compiled batch loop agree."""
-    from fusion.estimators._stuck import STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
+    from fusion.estimators.filters.steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state, stuck_gyro_update
 
     imu = moving_imu(rate_hz, step_deg_s=step)
     first, stop = int(8.0 * rate_hz), int((8.0 + seconds) * rate_hz)
@@ -128,7 +128,7 @@ def test_with_the_freezes_left_in_the_filters_keep_the_course_inclination(data_d
     """`--dropouts off`: the course board's six freezes reach the filters unflagged; the online
     check keeps the inclination near the flagged run's (README, course recordings: ekf 1.56)."""
     from fusion.estimators import build
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     errors = {"ekf": [], "ekf:stuck=false": []}
     for rid in ("ece276a/4", "ece276a/8", "ece276a/9"):
@@ -160,7 +160,7 @@ def test_the_smoothers_find_a_freeze_nobody_flagged(sim_stuck, name):
     (`find_freezes`) marks the stuck span as the loader would have, so the estimate equals the
     flagged run's; without it the smoother integrates the stuck reading."""
     from fusion.estimators import build
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     rec, imu, stuck = sim_stuck
     q0 = datasets.initial_orientation(rec)

@@ -8,9 +8,9 @@ import pytest
 
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators.gd import RIDGE, GDParams, GradientDescentSmoother, Preconditioner
-from fusion.estimators.smoother import SmootherParams
-from fusion.estimators.smoother_cost import SmootherProblem, Weights
+from fusion.estimators.smoothers.gd import RIDGE, GDParams, GradientDescentSmoother, Preconditioner
+from fusion.estimators.smoothers.smoother import SmootherParams
+from fusion.estimators.smoothers.cost import SmootherProblem, Weights
 from fusion.types import ImuSamples
 
 from smoother_helpers import dense_normal_matrix

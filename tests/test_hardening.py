@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.evaluation.metrics import MIN_COVERAGE, score
+from fusion.evaluation.scoring.metrics import MIN_COVERAGE, score
 from fusion.cli import main
 from fusion.types import Trajectory
 
@@ -146,7 +146,7 @@ def test_panorama_bounds(tmp_path, capsys, args, message):
 
 
 def test_rendered_frame_count_is_bounded():
-    from fusion.evaluation import camsim
+    from fusion.evaluation.panorama import camsim
 
     truth = Trajectory(np.array([0.0, 3600.0]), np.tile([1.0, 0, 0, 0], (2, 1)))
     with pytest.raises(ValueError, match="hour: 180000 frames at 50 Hz over 3600 s, more than 20000"):

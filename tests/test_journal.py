@@ -1,4 +1,4 @@
-"""The journal of a run (`fusion.evaluation.journal`): what a stopped run leaves for `--resume`,
+"""The journal of a run (`fusion.evaluation.run.journal`): what a stopped run leaves for `--resume`,
 what resuming reuses and what it computes again, and what a run keeps in memory (rows only)."""
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import json
 
 import pytest
 
-from fusion.evaluation import journal, runs
-from fusion.evaluation.journal import Journal
+from fusion.evaluation.run import journal
+from fusion.evaluation import runs
+from fusion.evaluation.run.journal import Journal
 from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)
 from settings_fixtures import not_default_values
 
@@ -111,7 +112,7 @@ _NOT_DEFAULT = not_default_values(name for name in runs.JOURNALLED if name != "d
 def test_every_journalled_setting_survives_the_journal_and_resume(toy, data, tmp_path, monkeypatch):
     """Each field of `RunSettings` that decides the results is recorded in the journal's call and
     comes back on `--resume` (an option added to the settings is covered here by construction)."""
-    from fusion.evaluation.settings import COMPUTED, WRITTEN, RunSettings
+    from fusion.evaluation.run.settings import COMPUTED, WRITTEN, RunSettings
 
     assert set(runs.JOURNALLED) == (set(RunSettings.part(COMPUTED)) | set(RunSettings.part(WRITTEN))) - {
         "data_dir", "calibration", "out", "json_path", "command"}
@@ -139,7 +140,7 @@ def test_every_setting_comes_back_on_resume_or_is_how_it_runs(toy, data, tmp_pat
     """Every field of `RunSettings`, not only the journalled ones: the paths are recorded beside the
     call (data_dir, calibration: resolved), the command too, the folder is the one resumed, and the
     `how` part and json_path are what `--resume` is given (a new field must be put in one of these)."""
-    from fusion.evaluation.settings import HOW, RunSettings
+    from fusion.evaluation.run.settings import HOW, RunSettings
 
     calibration = str(tmp_path / "calib.json")
     settings = RunSettings(dataset="all", data_dir=str(data), calibration=calibration, **_NOT_DEFAULT)
@@ -161,7 +162,7 @@ def test_every_setting_comes_back_on_resume_or_is_how_it_runs(toy, data, tmp_pat
 
 
 def test_an_older_journal_without_the_newer_settings_resumes_with_their_defaults(toy, data, tmp_path, monkeypatch):
-    from fusion.evaluation.settings import RunSettings
+    from fusion.evaluation.run.settings import RunSettings
 
     seen = []
     monkeypatch.setattr(runs, "_execute", lambda entries, kind, document, s: seen.append(s))

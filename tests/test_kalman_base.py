@@ -1,4 +1,4 @@
-"""The shared skeleton of `ekf`, `ukf` and `ukf-bias` (`fusion.estimators.kalman_base`): the
+"""The shared skeleton of `ekf`, `ukf` and `ukf-bias` (`fusion.estimators.filters.kalman_base`): the
 initial quaternion's check and the error state's covariances, as their docstrings state them.
 That the compiled run ends in the state of the reference loop is tested in test_compiled.py."""
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators._error_state import UNESTIMATED_VAR
-from fusion.estimators.kalman_base import error_state_covariances, initial_quaternion
+from fusion.estimators.filters._error_state import UNESTIMATED_VAR
+from fusion.estimators.filters.kalman_base import error_state_covariances, initial_quaternion
 
 
 @pytest.mark.parametrize("bad", [[np.nan, 0, 0, 1], [0, 0, 0, 0], [1, 0, 0], [[1, 0, 0, 0]]])

@@ -1,7 +1,7 @@
 """The compiled kernels' cache follows the files they call into (`_kernel_cache`)."""
 from __future__ import annotations
 
-from fusion.estimators._kernel_cache import forget_stale_kernels
+from fusion.estimators.kernels._kernel_cache import forget_stale_kernels
 
 
 def test_cache_dropped_when_a_dependency_changes_and_kept_otherwise(tmp_path):

@@ -134,10 +134,10 @@ def cycles(graph_edges) -> list[list[str]]:
 
 
 def test_the_three_folders_are_found():
-    assert {"fusion.cli", "fusion.types", "fusion.estimators", "fusion.estimators.ukf", "fusion.evaluation.runner",
+    assert {"fusion.cli", "fusion.types", "fusion.estimators", "fusion.estimators.filters.ukf", "fusion.evaluation.run.runner",
             "fusion.evaluation.compare"} <= set(MODULES)
-    assert layer("fusion.cli") > layer("fusion.evaluation.runs") > layer("fusion.estimators.ekf") > layer("fusion.types")
-    assert ("fusion.evaluation.compare", "fusion.evaluation.runner") in edges()  # resolution works
+    assert layer("fusion.cli") > layer("fusion.evaluation.runs") > layer("fusion.estimators.filters.ekf") > layer("fusion.types")
+    assert ("fusion.evaluation.compare", "fusion.evaluation.run.runner") in edges()  # resolution works
 
 
 def test_imports_point_down_only():
@@ -186,7 +186,7 @@ def test_the_checks_catch_what_they_look_for():
     """The cycle finder and the layer map on a made-up graph (a test that could fail)."""
     made_up = {("fusion.types", "fusion.cli"), ("fusion.cli", "fusion.types"), ("fusion.sim", "fusion.types")}
     assert cycles(made_up) == [["fusion.cli", "fusion.types"]]
-    assert layer("fusion.evaluation") == layer("fusion.evaluation.plots") == LAYERS.index("evaluation")
+    assert layer("fusion.evaluation") == layer("fusion.evaluation.report.plots") == LAYERS.index("evaluation")
     assert layer("fusion") == LAYERS.index("core")
     assert layer("fusion.cli") == layer(MAIN) == LAYERS.index("cli")
 
@@ -215,7 +215,7 @@ def test_a_folder_imported_under_its_own_name_is_refused(folder):
 
 def test_filterpy_and_scipy_stats_are_imported_only_for_a_ukf():
     """FilterPy imports SciPy's statistics package (about 34 MB resident): a process that builds
-    and runs a smoother or `ekf` does not hold it (`fusion.estimators.quaternion_ukf` is
+    and runs a smoother or `ekf` does not hold it (`fusion.estimators.filters.quaternion_ukf` is
     imported when a UKF is built), one that builds a UKF does."""
     import subprocess
     import sys

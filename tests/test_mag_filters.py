@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 from fusion import datasets
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators.ekf import EKF
-from fusion.estimators.ukf import UKF, UKFBias
-from fusion.evaluation.metrics import error_angles, score
+from fusion.estimators.filters.ekf import EKF
+from fusion.estimators.filters.ukf import UKF, UKFBias
+from fusion.evaluation.scoring.metrics import error_angles, score
 from fusion.types import Trajectory
 
 from mag_helpers import q0, sim_with_magnetometer, with_field_bent, with_magnet_carried, with_magnet_passed

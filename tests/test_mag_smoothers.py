@@ -1,5 +1,5 @@
-"""`gn` and `gd` in 9-D: the magnetometer's heading term in the cost (`smoother_cost`, the
-default) and the heading-only stage after the 6-D solve (`fusion.estimators.smoother_mag`,
+"""`gn` and `gd` in 9-D: the magnetometer's heading term in the cost (`smoothers.cost`, the
+default) and the heading-only stage after the 6-D solve (`fusion.estimators.smoothers.mag`,
 mag_term=stage), their gates and hard-iron fit, and 6-D unchanged.
 
 Simulated cases use the built-in `sim` recording with the body-frame reading of an ENU field
@@ -19,10 +19,10 @@ from scipy.spatial.transform import Rotation
 from fusion import datasets
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators.gd import GradientDescentSmoother
-from fusion.estimators.gn import GaussNewtonSmoother
-from fusion.estimators.smoother_mag import heading_correction, heading_smoother
-from fusion.evaluation.metrics import error_angles, score
+from fusion.estimators.smoothers.gd import GradientDescentSmoother
+from fusion.estimators.smoothers.gn import GaussNewtonSmoother
+from fusion.estimators.smoothers.mag import heading_correction, heading_smoother
+from fusion.evaluation.scoring.metrics import error_angles, score
 from fusion.types import ImuSamples
 
 from mag_helpers import FIELD_ENU_UT, q0, sim_with_magnetometer, with_magnet_carried, with_magnet_passed
@@ -261,7 +261,7 @@ def test_broad_9d_total_error(data_dir, term, trial, bound_deg):
 # ----------------------------------------------------------------------------- the heading term in the cost
 def _mag_problem(loss: str, T: int = 30, seed: int = 0):
     """A small random problem with the magnetometer's heading term: (problem, q, theta, v)."""
-    from fusion.estimators.smoother_cost import SmootherProblem, Weights
+    from fusion.estimators.smoothers.cost import SmootherProblem, Weights
 
     rng = np.random.default_rng(seed)
     t = np.cumsum(0.005 + 0.01 * rng.random(T))
@@ -344,7 +344,7 @@ def test_bad_magnetometer_term_inputs_raise():
 def test_inclination_step_sees_turns_about_horizontal_axes_only():
     """`inclination_step`: a turn about the body's vertical changes the heading only (0); a turn
     about a horizontal axis changes the inclination by its angle; the largest over the samples."""
-    from fusion.estimators.smoother import inclination_step
+    from fusion.estimators.smoothers.smoother import inclination_step
 
     rot = Rotation.from_euler("xyz", [[10, -20, 30], [0, 0, 0], [-40, 5, 170]], degrees=True)
     q = rot.as_quat(scalar_first=True)

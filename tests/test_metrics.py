@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.evaluation.metrics import error_angles, score
+from fusion.evaluation.scoring.metrics import error_angles, score
 from fusion.types import Trajectory
 
 RNG = np.random.default_rng(3)

@@ -113,7 +113,7 @@ def test_nothing_readable_is_an_error(mixed, capsys):
 
 def test_resume_does_not_meet_the_file_again(mixed, tmp_path, capsys, monkeypatch):
     """The rows of an unreadable file are journalled like the others: a resumed run does not read it again."""
-    from fusion.evaluation import runner
+    from fusion.evaluation.run import runner
 
     out_dir = tmp_path / "run"
     monkeypatch.setattr(runner.WorkerState, "run", _stop_after(runner.WorkerState.run, 4))

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from fusion import estimators
-from fusion.evaluation.metrics import score
+from fusion.evaluation.scoring.metrics import score
 from fusion import quaternion as quat
 from fusion.calibration import calibrate
 from fusion.sim import SimSettings, simulate

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-import fusion.estimators.peers as peers
+import fusion.estimators.peers.vqf_fusion as peers
 from fusion import estimators
 from fusion.estimators.dr import DeadReckoning
 

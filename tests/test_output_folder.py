@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.evaluation import journal, output, report
+from fusion.evaluation.run import journal, output
+from fusion.evaluation.report import render as report
 from fusion.cli import main
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from fusion.camera import ArrayCamera, CameraModel, find_camera_file, load_camera
 from fusion.types import Recording, Trajectory
-from fusion.evaluation import camsim
-from fusion.evaluation.panorama import (BLENDS, PanoramaGrid, Stitcher, panorama_scores, psnr_db, score_panorama, ssim,
+from fusion.evaluation.panorama import camsim
+from fusion.evaluation.panorama.recording import (BLENDS, PanoramaGrid, Stitcher, panorama_scores, psnr_db, score_panorama, ssim,
                                  stitch)
 
 GRID = PanoramaGrid()  # 1920 x 960: 0.1875 deg per px, the camera's own resolution
@@ -361,7 +361,7 @@ def test_recording_with_a_camera_file(tmp_path):
 def test_stitching_takes_arrays_and_one_module_reads_the_recordings_files():
     """The stitching and its scores work on arrays (`stitching`: no camera file or scene read
     there); `panorama` reads a recording's camera file or scene and offers the stitching's names."""
-    from fusion.evaluation import panorama, stitching
+    from fusion.evaluation.panorama import recording as panorama, stitching
 
     assert not {"load_camera", "camsim", "scene_for"} & set(vars(stitching))
     assert {"load_camera", "camsim"} <= set(vars(panorama))
@@ -371,7 +371,7 @@ def test_stitching_takes_arrays_and_one_module_reads_the_recordings_files():
 def test_the_panorama_text_says_where_its_frames_come_from(tmp_path, monkeypatch):
     """A recording without camera frames: the text says they were rendered from a scene (which one,
     at what rate) with the ground truth; a recording with a camera: its file."""
-    from fusion.evaluation.panorama import frames_origin
+    from fusion.evaluation.panorama.recording import frames_origin
     from fusion.evaluation.runs import run_panorama
 
     monkeypatch.delenv("FUSION_DATA", raising=False)

@@ -43,9 +43,9 @@ def test_make_params_converts_and_checks():
 def test_filter_params_share_one_base_with_one_alias_per_field():
     import dataclasses as dc
 
-    from fusion.estimators.ekf import EKFParams
-    from fusion.estimators.filter_params import BiasFilterParams, FilterParams
-    from fusion.estimators.ukf import UKFBiasParams, UKFParams
+    from fusion.estimators.filters.ekf import EKFParams
+    from fusion.estimators.filters.filter_params import BiasFilterParams, FilterParams
+    from fusion.estimators.filters.ukf import UKFBiasParams, UKFParams
 
     assert issubclass(UKFParams, FilterParams) and not issubclass(UKFParams, BiasFilterParams)
     assert issubclass(UKFBiasParams, BiasFilterParams) and issubclass(EKFParams, BiasFilterParams)
@@ -72,9 +72,9 @@ def test_filters_and_smoothers_spell_each_noise_one_way():
     alias in the filters and the smoothers alike."""
     import dataclasses as dc
 
-    from fusion.estimators.ekf import EKFParams
+    from fusion.estimators.filters.ekf import EKFParams
     from fusion.estimators.params import FORMERLY_STD
-    from fusion.estimators.smoother import SmootherParams
+    from fusion.estimators.smoothers.smoother import SmootherParams
 
     filt = {f.name: f.metadata.get("alias") for f in dc.fields(EKFParams)}
     smooth = {f.name: f.metadata.get("alias") for f in dc.fields(SmootherParams)}
@@ -104,8 +104,8 @@ def test_former_standard_deviations_are_squared_with_a_warning(old, new, name, v
 
 def test_former_spellings_in_python_and_their_errors():
     from fusion.estimators import build
-    from fusion.estimators.smoother import SmootherParams
-    from fusion.estimators.smoother_cost import Weights
+    from fusion.estimators.smoothers.smoother import SmootherParams
+    from fusion.estimators.smoothers.cost import Weights
 
     with pytest.warns(FutureWarning, match="^gn: gyro_noise_rad_sqrt_s=0.02"):
         assert SmootherParams(gyro_noise_rad_sqrt_s=0.02).process_noise_rad2_s == pytest.approx(4e-4, rel=1e-15)
@@ -122,8 +122,8 @@ def test_former_spellings_in_python_and_their_errors():
 def test_former_attributes_read_as_standard_deviations_with_a_warning():
     import pickle
 
-    from fusion.estimators.ekf import EKFParams
-    from fusion.estimators.smoother import SmootherParams
+    from fusion.estimators.filters.ekf import EKFParams
+    from fusion.estimators.smoothers.smoother import SmootherParams
 
     params = SmootherParams()
     with pytest.warns(FutureWarning, match="^acc_noise_g_sqrt_s .* is now acc_noise_g2_s"):

@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from fusion import estimators
 from fusion.estimators import build
-from fusion.estimators.peers import PeerUnavailable, align_heading
-from fusion.evaluation.metrics import error_angles
+from fusion.estimators.peers.vqf_fusion import PeerUnavailable, align_heading
+from fusion.evaluation.scoring.metrics import error_angles
 from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
@@ -199,7 +199,7 @@ def refusing_the_peer_libraries(real_import_module):
 
 
 def test_missing_library_says_what_to_install(monkeypatch):
-    import fusion.estimators.peers as peers
+    import fusion.estimators.peers.vqf_fusion as peers
 
     monkeypatch.setattr(peers.importlib, "import_module", refusing_the_peer_libraries(peers.importlib.import_module))
     for peer in PEERS:
@@ -249,7 +249,7 @@ def test_reference_figures_on_the_course_recordings(data_dir):
     """The adapters reproduce the reference figures within 0.3 deg (330 mV/g, datasheet gyro scale)."""
     for lib in ("vqf", "ahrs", "imufusion"):
         require_module(lib)
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion import datasets
     from fusion.calibration import BoardModel
 
@@ -266,7 +266,7 @@ def test_reference_figures_on_the_course_recordings(data_dir):
 
 
 def test_cli_names_the_missing_extra(monkeypatch, capsys):
-    import fusion.estimators.peers as peers
+    import fusion.estimators.peers.vqf_fusion as peers
     from fusion.cli import main
 
     monkeypatch.setattr(peers.importlib, "import_module", refusing_the_peer_libraries(peers.importlib.import_module))
@@ -406,7 +406,7 @@ def test_vqf_flags_are_the_librarys_rest_and_disturbance_detection():
     need("vqf")
     import vqf
 
-    from fusion.estimators.peers import _acc_m_s2, _mag_or_zero, _rate_for_constant_ts
+    from fusion.estimators.peers.vqf_fusion import _acc_m_s2, _mag_or_zero, _rate_for_constant_ts
 
     imu, truth = simulate([(3.0, [0, 0, 0]), (5.0, D([30, -10, 40])), (6.0, [0, 0, 0])], euler("xz", [5, 20]))
     noise = np.random.default_rng(3).normal(0.0, 2e-4, imu.gyr_rad_s.shape)
@@ -429,7 +429,7 @@ def test_fusion_flags_are_the_librarys_after_each_update(nine_d):
     the same estimate and flags as the library stepped by hand; a linear acceleration beyond the
     rejection threshold is ignored while it lasts (and not before)."""
     need("fusion-ahrs")
-    from fusion.estimators.peers import FUSION_FLAGS, _acc_m_s2
+    from fusion.estimators.peers.vqf_fusion import FUSION_FLAGS, _acc_m_s2
     from fusion.types import STANDARD_GRAVITY_M_S2
 
     imu, truth = simulate([(2.0, [0, 0, 0]), (4.0, D([20, 0, 10])), (2.0, [0, 0, 0])], euler("x", [5]))

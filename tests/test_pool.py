@@ -1,4 +1,4 @@
-"""The worker pool (`fusion.evaluation.pool`): outcomes as tasks finish, a task's exception
+"""The worker pool (`fusion.evaluation.run.pool`): outcomes as tasks finish, a task's exception
 rebuilt in the parent, a task past its time limit stopped, a dead worker replaced, and no
 worker left after the pool, however it ends."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from cluster_fixtures import alive
-from fusion.evaluation.pool import TaskTimeout, WorkerDied, WorkerPool
+from fusion.evaluation.run.pool import TaskTimeout, WorkerDied, WorkerPool
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from fusion.evaluation.runner import run
+from fusion.evaluation.run.runner import run
 from report_fixtures import recording
 
 import cluster_fixtures

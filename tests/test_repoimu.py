@@ -110,7 +110,7 @@ def test_align_finds_the_truth_frame(data_dir):
     finds the 20-deg world tilt and the 30-deg marker rotation. Scored as if its frames were ours,
     they would show as errors."""
     from fusion.evaluation.compare import compare
-    from fusion.evaluation.job import run_one
+    from fusion.evaluation.run.job import run_one
 
     (source,) = datasets.select("repoimu/tstick/TStick_Test02_Trial1", data_dir)
     rec = datasets.LoadOptions().load(source)

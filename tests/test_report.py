@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.evaluation import plots, pool, runner, series
+from fusion.evaluation.report import plots
+from fusion.evaluation.run import pool, runner, series
 from fusion.cli import main
 
 from optional_helpers import require_module
@@ -286,7 +287,7 @@ def test_library_compare_jobs_keeps_order(toy):
 def test_spawned_workers_run_what_the_parent_registered(toy, monkeypatch):
     """Under 'spawn' a worker starts from the default registry, which has no `toy`: the workers get
     the resolved specs (their classes), so the results are those of a serial run, and the registry
-    is never rewritten (`fusion.evaluation.runner`)."""
+    is never rewritten (`fusion.evaluation.run.runner`)."""
     import multiprocessing
 
     from fusion import estimators
@@ -436,7 +437,7 @@ def test_speed_figure_labels_do_not_overlap():
 
 
 def test_loss_figure_gives_each_smoother_its_own_axis(toy):
-    from fusion.evaluation.series import RecordingSeries
+    from fusion.evaluation.run.series import RecordingSeries
 
     s = _series()
     losses = {1: np.geomspace(20, 5, 150), 2: np.array([8000.0, 2000, 1990, 1990])}
@@ -493,7 +494,8 @@ def _table_cells(page: str, table_id: str) -> list[list[str]]:
 def test_consistency_section_only_for_filters_with_a_covariance(tmp_path, monkeypatch):
     """ekf reports a covariance: its figure and table row appear, with the numbers of
     `consistency.summarize`; dr and the peer vqf do not. The section re-renders from the folder."""
-    from fusion.evaluation import consistency, report
+    from fusion.evaluation.scoring import consistency
+    from fusion.evaluation.report import render as report
 
     data = write_csv_dataset(tmp_path / "data", count=2)
     out = tmp_path / "run"
@@ -555,9 +557,9 @@ def test_a_damaged_belief_in_a_series_file_is_one_line(tmp_path, capsys):
 
 
 def test_importing_the_plotting_modules_leaves_the_backend_alone():
-    # A notebook's inline backend must survive `import fusion.evaluation.plots` (no matplotlib.use).
-    code = ("import matplotlib; matplotlib.use('svg'); import fusion.evaluation.plots, fusion.evaluation.report, "
-            "fusion.evaluation.inspect_plots; print(matplotlib.get_backend())")
+    # A notebook's inline backend must survive `import fusion.evaluation.report.plots` (no matplotlib.use).
+    code = ("import matplotlib; matplotlib.use('svg'); import fusion.evaluation.report.plots, fusion.evaluation.report.render, "
+            "fusion.evaluation.report.inspect_plots; print(matplotlib.get_backend())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "svg"
 
@@ -647,7 +649,7 @@ def test_us_per_sample_leaves_the_first_calls_compilation_out(monkeypatch):
     import time
     from dataclasses import dataclass
 
-    from fusion.evaluation import job
+    from fusion.evaluation.run import job
     from fusion.estimators import ResolvedSpec
     from fusion.estimators.base import Estimator
     from fusion.estimators.params import EstimatorSpec

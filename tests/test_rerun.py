@@ -1,4 +1,4 @@
-"""`fusion compare --rerun FILE.rrd` (`fusion.evaluation.rerun_log`): the file is read back with
+"""`fusion compare --rerun FILE.rrd` (`fusion.evaluation.report.rerun_log`): the file is read back with
 Rerun's own reader (`rerun.chunk.RrdReader`) and holds every entity with the samples it should,
 the truth's quaternions (reordered to Rerun's x y z w) to 1e-6, the estimates on the IMU's stamps,
 the events and every estimator's flags as steps (read back per sample: the estimator's own); without the `viz` extra, `--rerun` says what to install."""
@@ -136,7 +136,7 @@ def test_with_and_without_an_output_folder_the_files_agree(written):
 
 
 def test_flags_switches_are_steps():
-    from fusion.evaluation.rerun_log import event_steps, flag_steps
+    from fusion.evaluation.report.rerun_log import event_steps, flag_steps
 
     x = np.arange(8) * 0.1
     t, v = flag_steps(x, np.array([0, 0, 1, 1, 1, 0, 1, 1], bool))
@@ -154,7 +154,7 @@ def test_the_python_api_writes_whole_results_and_marks_the_invalid_gyro(toy, tmp
     estimators are the event `gyro_invalid`; a label with parameters is one entity (escaped)."""
     rr = require_module("rerun")
     from fusion.evaluation.compare import compare
-    from fusion.evaluation.rerun_log import write_results
+    from fusion.evaluation.report.rerun_log import write_results
 
     rec = recording(N, bad_gyro=(100, 140), rid="toy/1")
     results = compare("dr,toy:g=1.05", [rec])
@@ -209,8 +209,8 @@ def test_every_flag_is_written_and_reads_back_sample_for_sample(sim_run, tmp_pat
     the low-passed accelerometer) are steps under beliefs/<estimator>/flags/<name>: one row at the
     first sample, one per switch and one at the last; the step value at every IMU stamp is the flag."""
     require_module("rerun")
-    from fusion.evaluation import series
-    from fusion.evaluation.rerun_log import write_results
+    from fusion.evaluation.run import series
+    from fusion.evaluation.report.rerun_log import write_results
 
     rec, results = sim_run
     rrd = read_back(write_results(tmp_path / "flags.rrd", [rec], results, camera_hz=0))

@@ -9,7 +9,7 @@ import pytest
 from fusion.cli import main
 from fusion.estimators import ESTIMATORS
 from fusion.estimators.describe import FORMER_TITLE, format_parameters, meanings, parameter_table, unit_of
-from fusion.estimators.ekf import EKFParams
+from fusion.estimators.filters.ekf import EKFParams
 from fusion.estimators.params import FORMERLY_STD, make_params
 from fusion.estimators.search import Tunable, alias_of, default_of, search_space
 

@@ -53,7 +53,7 @@ def test_dead_reckoning_on_exact_rates_tracks_the_truth():
     raw, truth = simulate(SimSettings(duration_s=30, gyro_sensitivity_ratio=(1, 1, 1)))
     from fusion.calibration import calibrate
     from fusion.estimators import build
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     imu = calibrate(raw).apply(raw)
     q0, _ = truth.interpolate(imu.t[:1])

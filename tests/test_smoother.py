@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from fusion.estimators import ESTIMATORS, build
-from fusion.estimators.gd import GDParams, GradientDescentSmoother
-from fusion.estimators.gn import GaussNewtonSmoother, solve_normal_equations
-from fusion.estimators.smoother import SmootherParams
-from fusion.estimators.smoother_cost import SmootherProblem, Weights
-from fusion.estimators.smoother_solve import banded_lower
+from fusion.estimators.smoothers.gd import GDParams, GradientDescentSmoother
+from fusion.estimators.smoothers.gn import GaussNewtonSmoother, solve_normal_equations
+from fusion.estimators.smoothers.smoother import SmootherParams
+from fusion.estimators.smoothers.cost import SmootherProblem, Weights
+from fusion.estimators.smoothers.solve import banded_lower
 from fusion.quaternion import retract
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
@@ -176,7 +176,7 @@ def test_unit_norm_after_every_iteration(spec):
 
 
 def test_smoother_beats_every_filter_on_the_simulated_recording():
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from optional_helpers import build_if_available
 
     imu, truth, q0 = _sim_imu(60.0)
@@ -236,7 +236,7 @@ def test_bad_parameters_raise(text):
 
 
 def test_real_recording_regression(data_dir):
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion import datasets
 
     rec = datasets.load("ece276a/1", data_dir / "ece276a")
@@ -267,7 +267,7 @@ def test_levelled_start():
     (RMS); re-levelled every 10 s by the accelerometer it stays within 6 deg (2.0 RMS measured).
     The first window is left as it is, the corrections turn about horizontal axes only (the
     heading is kept), and the input is not modified."""
-    from fusion.estimators.smoother import levelled
+    from fusion.estimators.smoothers.smoother import levelled
 
     imu, truth, q0 = _sim_imu(300.0)
     rot, _ = truth.interpolate(imu.t)

@@ -10,9 +10,9 @@ from fusion.datasets import calibrated_samples
 from fusion.sim import SimSettings, simulate
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators._compiled_rest import rest_steps
-from fusion.estimators.smoother_cost import SmootherProblem, Weights
-from fusion.evaluation.metrics import score
+from fusion.estimators.filters.steps._compiled_rest import rest_steps
+from fusion.estimators.smoothers.cost import SmootherProblem, Weights
+from fusion.evaluation.scoring.metrics import score
 
 from test_smoother import random_imu, random_point
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fusion.estimators import build
-from fusion.estimators.smoother_cost import SmootherProblem, Weights, robust_loss, sample_durations
+from fusion.estimators.smoothers.cost import SmootherProblem, Weights, robust_loss, sample_durations
 from fusion.quaternion import retract
 from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
@@ -282,7 +282,7 @@ def test_scale_errors_without_information_are_not_released():
 
 
 def test_release_ratio_must_be_a_fraction():
-    from fusion.estimators.smoother import SmootherParams
+    from fusion.estimators.smoothers.smoother import SmootherParams
 
     with pytest.raises(ValueError, match="scale_release_ratio"):
         SmootherParams(scale_release_ratio=0.0)

@@ -63,7 +63,7 @@ def test_the_stopping_rule_leaves_what_the_accuracy_cannot_see(name):
     from scipy.spatial.transform import Rotation
 
     from fusion import datasets
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
 
     rec = datasets.load("sim")
     q0 = datasets.initial_orientation(rec)

@@ -1,4 +1,4 @@
-"""Statistics of a comparison (`fusion.evaluation.stats`): the numbers equal SciPy's, statsmodels'
+"""Statistics of a comparison (`fusion.evaluation.scoring.stats`): the numbers equal SciPy's, statsmodels'
 and scikit-posthocs' own on the same inputs, Holm's adjustment a case worked by hand, and Nemenyi's
 critical difference Demsar's table; properties (order does not matter, a row worse everywhere is
 significantly worse, identical rows tie); complete cases; too few recordings; the JSON; the table
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from fusion.evaluation import stats
+from fusion.evaluation.scoring import stats
 from fusion.evaluation.compare import format_table, results_json, summary_groups
-from fusion.evaluation.job import Result
-from fusion.evaluation.stats import (
+from fusion.evaluation.run.job import Result
+from fusion.evaluation.scoring.stats import (
     MIN_RECORDINGS, N_RESAMPLES, SEED, RunStatistics, Statistics, no_statistics_reason, paired_statistics,
     run_statistics,
 )
@@ -331,7 +331,7 @@ def test_results_json_holds_every_metrics_statistics():
 
 
 def test_report_has_the_statistics_section_and_the_cd_diagrams(tmp_path):
-    from fusion.evaluation.report import render, write_run
+    from fusion.evaluation.report.render import render, write_run
 
     results = _results(recordings=6, labels=("dr", "ekf", "vqf", "gn"))
     out = tmp_path / "run"
@@ -359,7 +359,7 @@ def test_report_has_the_statistics_section_and_the_cd_diagrams(tmp_path):
 
 
 def test_report_with_too_few_recordings_says_why():
-    from fusion.evaluation.report import _markdown
+    from fusion.evaluation.report.render import _markdown
 
     results = _results(recordings=3)
     doc = results_json(results, {})
@@ -368,7 +368,7 @@ def test_report_with_too_few_recordings_says_why():
 
 
 def test_cd_figure_draws_every_row_and_needs_three():
-    from fusion.evaluation.stats_plots import cd_figure
+    from fusion.evaluation.report.stats_plots import cd_figure
 
     s = paired_statistics(_scores(rows=4, recordings=8))
     fig = cd_figure(s, "total RMSE")
@@ -380,7 +380,7 @@ def test_cd_figure_draws_every_row_and_needs_three():
 
 
 def test_report_table_uses_the_runs_primary_metric(tmp_path):
-    from fusion.evaluation.report import write_run
+    from fusion.evaluation.report.render import write_run
 
     results = _results(recordings=6)
     write_run(tmp_path / "a", results_json(results, {"primary": "inclination"}))

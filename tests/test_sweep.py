@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from fusion.cli import main
-from fusion.evaluation import ablate, plots
+from fusion.evaluation.sweeps import ablate
+from fusion.evaluation.report import plots
 from fusion.estimators.params import parse_specs
 
 from report_fixtures import toy, write_csv_dataset  # noqa: F401 (toy is a fixture)

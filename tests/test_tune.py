@@ -16,9 +16,9 @@ import pytest
 
 from fusion.cli import main
 from fusion.estimators import resolve
-from fusion.evaluation import journal as journal_mod
-from fusion.evaluation import tune
-from fusion.evaluation.job import Result
+from fusion.evaluation.run import journal as journal_mod
+from fusion.evaluation.sweeps import tune
+from fusion.evaluation.run.job import Result
 
 COURSE = "ece276a/1,ece276a/2,ece276a/3"
 

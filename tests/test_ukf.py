@@ -6,10 +6,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fusion.estimators import ESTIMATORS, build
-from fusion.estimators._linalg import sqrt_psd
+from fusion.estimators.kernels._linalg import sqrt_psd
 from fusion.estimators.dr import DeadReckoning
-from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints, quaternion_mean
-from fusion.estimators.ukf import UKF, UKFBias, UKFBiasParams, UKFParams
+from fusion.estimators.filters.quaternion_ukf import QuaternionSigmaPoints, quaternion_mean
+from fusion.estimators.filters.ukf import UKF, UKFBias, UKFBiasParams, UKFParams
 from fusion import quaternion as quat
 from fusion.types import ImuSamples
 
@@ -277,7 +277,7 @@ FILTERS = ("ukf", "ukf-bias", "ekf")
 @pytest.fixture(scope="module")
 def real_runs(data_dir):
     """Every filter (defaults) and dr on ece276a 1-9 from the truth: {(spec, n): (Trajectory, Score)}."""
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion import datasets
 
     out = {}
@@ -320,7 +320,7 @@ def test_mean_rmse_on_real_recordings(real_runs, spec, inclination, total):
 def default_runs(data_dir):
     """Every filter with its defaults on ece276a 1-9, loaded as `fusion compare` does (gyro
     freezes detected and masked): {(spec, n): Score}."""
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion import datasets
 
     out = {}
@@ -357,7 +357,7 @@ def test_ukf_beats_dead_reckoning_inclination_on_every_recording(real_runs):
     [("ukf", 1.7, 19.5), ("ukf:hf=true", 2.55, 15.5), ("ukf-bias", 1.1, 7.5), ("ekf", 1.19, 7.91)],
 )
 def test_bounds_on_the_simulated_recording(spec, inclination, total):
-    from fusion.evaluation.metrics import score
+    from fusion.evaluation.scoring.metrics import score
     from fusion import datasets
 
     rec = datasets.load("sim")
@@ -391,7 +391,7 @@ def test_streaming_reset_and_step_equal_estimate(spec, reference):
 def test_filterpy_api_works_on_the_quaternion_ukf():
     """FilterPy's own `predict`/`update` run on `QuaternionUKF` (they are not overridden): a
     board held still with a 20-deg tilt is found from the accelerometer."""
-    from fusion.estimators.quaternion_ukf import QuaternionUKF, unscented_transform_state
+    from fusion.estimators.filters.quaternion_ukf import QuaternionUKF, unscented_transform_state
 
     tilt = Rotation.from_euler("x", 20, degrees=True)
     z = tilt.inv().apply([0.0, 0.0, 1.0])  # what the accelerometer reads, g

@@ -16,8 +16,8 @@ import pytest
 from fusion import datasets
 from fusion.cli import main
 from fusion.estimators import resolve
-from fusion.evaluation.job import run_one
-from fusion.evaluation.pool import death_text
+from fusion.evaluation.run.job import run_one
+from fusion.evaluation.run.pool import death_text
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks workers and sends signals")
 

@@ -1,4 +1,4 @@
-"""Your estimator in the table (`fusion.estimators.user`, `fusion.estimators.filterpy_adapter`):
+"""Your estimator in the table (`fusion.estimators.adapters.user`, `fusion.estimators.adapters.filterpy`):
 a function or an `Estimator` class in a file of yours, a module, an installed package's entry
 point, or a FilterPy filter, run, scored, ablated and reported like ours; what it returns
 checked; bad code one line naming it, the other rows intact, exit status 1."""
@@ -15,9 +15,10 @@ import pytest
 
 from fusion import datasets
 from fusion.cli import main
-from fusion.estimators import resolve, resolve_all, user
-from fusion.evaluation import runner
-from fusion.evaluation.metrics import score
+from fusion.estimators import resolve, resolve_all
+from fusion.estimators.adapters import user
+from fusion.evaluation.run import runner
+from fusion.evaluation.scoring.metrics import score
 from fusion.types import STANDARD_GRAVITY_M_S2
 from report_fixtures import recording
 
@@ -295,7 +296,7 @@ def test_a_spawned_worker_gets_the_file_it_cannot_see(folder, monkeypatch):
     start."""
     import multiprocessing
 
-    from fusion.evaluation import pool
+    from fusion.evaluation.run import pool
 
     monkeypatch.chdir(folder)
     entries = resolve_all("./student.py:complementary")
@@ -419,7 +420,7 @@ def test_a_users_bug_has_a_place(folder, monkeypatch):
     assert [f.split('"')[1] for f in files] == [str(folder / "buggy.py"), str(folder / "buggy_helper.py")]
     assert rows["dr"].error is None and rows["dr"].traceback is None
     assert indexes.to_json()["traceback"] == indexes.traceback and "traceback" not in rows["dr"].to_json()
-    from fusion.evaluation.job import Result
+    from fusion.evaluation.run.job import Result
 
     assert Result.from_json(indexes.to_json()).traceback == indexes.traceback
 

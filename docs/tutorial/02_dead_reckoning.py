@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from fusion import datasets, estimators, gyro_fit
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.evaluation.metrics import score
+from fusion.evaluation.scoring.metrics import score
 from tutorial_data import course_recordings, load_recording
 
 plt.rcParams.update({"figure.figsize": (10, 3.4), "axes.grid": True, "figure.dpi": 90})
@@ -137,7 +137,7 @@ print(f"largest step angle {step_deg.max():.2f} deg; Euler vs exponential map af
 #
 # ## 2.4 Error growth against VICON
 #
-# `fusion.evaluation.metrics.score` slerps VICON onto the estimate's time stamps and returns,
+# `fusion.evaluation.scoring.metrics.score` slerps VICON onto the estimate's time stamps and returns,
 # per sample, three angles: the **total** error (geodesic angle of $R_\text{true}^{-1} R_\text{est}$),
 # the **inclination** error (angle between the true and the estimated gravity direction in the
 # body frame: what an accelerometer could correct) and the **heading** error (the turn about

@@ -13,7 +13,7 @@
 # E. Kraft, "A quaternion-based unscented Kalman filter for orientation tracking", Proc. 6th
 # Int. Conf. Information Fusion, 2003: the filter most orientation courses teach. The toolkit's
 # `ukf` estimator implements it on top of FilterPy's `UnscentedKalmanFilter`
-# (`fusion.estimators.quaternion_ukf.QuaternionUKF`). In this notebook we take one real sample of a
+# (`fusion.estimators.filters.quaternion_ukf.QuaternionUKF`). In this notebook we take one real sample of a
 # recording and run Kraft's steps by hand, printing every number, with the library's own
 # pieces (`QuaternionSigmaPoints`, `quaternion_mean`, `fusion.quaternion`), and check that the
 # result is exactly what the filter computes. Then the whole recording, with the filter's
@@ -48,8 +48,8 @@ import numpy as np
 from fusion import estimators
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints, QuaternionUKF, quaternion_mean, unscented_transform_state
-from fusion.evaluation import consistency
+from fusion.estimators.filters.quaternion_ukf import QuaternionSigmaPoints, QuaternionUKF, quaternion_mean, unscented_transform_state
+from fusion.evaluation.scoring import consistency
 from tutorial_data import load_recording
 
 np.set_printoptions(precision=5, suppress=False, linewidth=110)
@@ -61,8 +61,8 @@ q0 = initial_orientation(rec)
 # %% [markdown]
 # ## 3.1 Kraft's steps, the library's steps
 #
-# The module docstring of `estimators/ukf.py` numbers the steps of one filter cycle 1-9; the code
-# (`estimators/quaternion_ukf.py`) refers to those numbers. The table says what each step is in
+# The module docstring of `estimators/filters/ukf.py` numbers the steps of one filter cycle 1-9; the code
+# (`estimators/filters/quaternion_ukf.py`) refers to those numbers. The table says what each step is in
 # Kraft's filter, and where the library differs from it.
 #
 # | `ukf.py` step | operation | Kraft 2003 |
@@ -339,7 +339,7 @@ def error_and_sigma(spec):
     P = trajectory.diagnostics["cov"][has_truth][:, :3, :3]  # the attitude block
     sigma = np.sqrt(np.diagonal(P, axis1=1, axis2=2))
     nees = np.einsum("ti,tij,tj->t", e, np.linalg.inv(P), e)
-    # The same three lines are what the comparison reports use (fusion.evaluation.consistency):
+    # The same three lines are what the comparison reports use (fusion.evaluation.scoring.consistency):
     belief = consistency.from_trajectory(trajectory, consistency.truth_on(rec.truth, imu.t))
     assert np.allclose(nees, belief.nees[has_truth], rtol=1e-6)
     return e, sigma, nees

@@ -26,7 +26,7 @@
 #
 # Reference for the error-state formulation: J. Sola, "Quaternion kinematics for the error-state
 # Kalman filter", 2017 (arXiv:1711.02508), the chapters on the error-state kinematics and the
-# ESKF; `estimators/ekf.py` states the filter in full in its module docstring.
+# ESKF; `estimators/filters/ekf.py` states the filter in full in its module docstring.
 
 # %%
 # %matplotlib inline
@@ -38,8 +38,8 @@ import numpy as np
 from fusion import datasets, estimators
 from fusion import quaternion as quat
 from fusion.datasets import initial_orientation
-from fusion.estimators.quaternion_ukf import QuaternionSigmaPoints
-from fusion.evaluation.metrics import score
+from fusion.estimators.filters.quaternion_ukf import QuaternionSigmaPoints
+from fusion.evaluation.scoring.metrics import score
 from fusion.types import STANDARD_GRAVITY_M_S2
 from tutorial_data import course_recordings, load_recording
 
@@ -102,7 +102,7 @@ print("F_eb = -J_r(theta) dt, analytic vs numeric:", np.abs(-quat.right_jacobian
 # low-passed in a gyro-only frame (after VQF); that frame drifts under a gyro bias or scale error,
 # and the low-pass trails gravity by the drift of its last second or so. The filters model that
 # lag instead of calling it noise: for the low-passed sample $H = [\,[h]_\times,\ H_b,\ H_s\,]$, with
-# $H_b, H_s$ built from the frame's recent rotations (`fusion.estimators._accel.LowpassLag`;
+# $H_b, H_s$ built from the frame's recent rotations (`fusion.estimators.filters.steps._accel.LowpassLag`;
 # `ukf-bias` adds the same terms to each sigma point's prediction), so the low-passed sample
 # measures the gyro's calibration while the board moves.
 #
@@ -270,7 +270,7 @@ for rid in course_recordings():
 # m/s$\sqrt{\text{s}}$). The Jacobian links the velocity to the tilt in $P$: when the velocity
 # drifts, the pseudo-measurement pulls it back and moves the tilt through that covariance.
 # A linear acceleration that averages out over seconds stays in the velocity instead.
-# `estimators/ekf.py` states the model in full. Here is what the filter believes on the same
+# `estimators/filters/ekf.py` states the model in full. Here is what the filter believes on the same
 # recording:
 
 # %%

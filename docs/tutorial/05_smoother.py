@@ -33,8 +33,8 @@ import numpy as np
 
 from fusion import estimators
 from fusion.datasets import initial_orientation
-from fusion.estimators.smoother_cost import LOSSES, robust_loss
-from fusion.evaluation.metrics import score
+from fusion.estimators.smoothers.cost import LOSSES, robust_loss
+from fusion.evaluation.scoring.metrics import score
 from tutorial_data import first_seconds, load_recording
 
 plt.rcParams.update({"figure.figsize": (10, 3.4), "axes.grid": True, "figure.dpi": 90})
@@ -48,7 +48,7 @@ t = imu.t - imu.t[0]
 #
 # The unknowns are all the orientations $q_0, \dots, q_{T-1}$ (plus, in `gn`'s default, a constant gyro
 # bias and scale error for x and y, $\theta$, and a horizontal velocity per sample, $v_t$). The cost
-# (`fusion.estimators.smoother_cost`) is a weighted least-squares problem:
+# (`fusion.estimators.smoothers.cost`) is a weighted least-squares problem:
 #
 # $$ c = \tfrac12 \sum_t w_{m,t} |r_{m,t}|^2 + \tfrac12 \sum_t w_{a,t}\, c^2 \rho\!\left(\frac{|r_{a,t}|^2}{c^2}\right)
 #      + \tfrac12 w_0 |r_0|^2 + \tfrac12 \theta^\top W_\theta \theta + \text{(velocity terms)} + \text{(rest term)} $$

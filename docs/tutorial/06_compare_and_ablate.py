@@ -226,9 +226,9 @@ for line in sigma_run.table.splitlines():
 # at 5 %), and each row paired against the best by the Wilcoxon signed-rank test, Holm-corrected.
 
 # %%
-from fusion.evaluation.stats import paired_statistics
-from fusion.evaluation.stats_plots import cd_figure
-from fusion.evaluation.tune import run_tune
+from fusion.evaluation.scoring.stats import paired_statistics
+from fusion.evaluation.report.stats_plots import cd_figure
+from fusion.evaluation.sweeps.tune import run_tune
 
 TUNED = "ekf,vqf,madgwick,mahony"
 if len(ids) >= 5:

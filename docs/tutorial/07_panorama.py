@@ -37,10 +37,10 @@ import numpy as np
 from fusion import estimators
 from fusion.camera import CameraModel
 from fusion.datasets import data_dir_from, initial_orientation
-from fusion.evaluation import camsim
-from fusion.evaluation.equirect import PanoramaGrid
-from fusion.evaluation.metrics import score
-from fusion.evaluation.panorama import comparison_image, estimate_panorama, reference_panorama
+from fusion.evaluation.panorama import camsim
+from fusion.evaluation.panorama.equirect import PanoramaGrid
+from fusion.evaluation.scoring.metrics import score
+from fusion.evaluation.panorama.recording import comparison_image, estimate_panorama, reference_panorama
 from tutorial_data import load_recording
 
 plt.rcParams.update({"figure.figsize": (10, 3.4), "figure.dpi": 90})
@@ -115,7 +115,7 @@ plt.show()
 #
 # Stitching is the same map run the other way: for every *panorama* pixel, find where it falls
 # in the frame ($d_\text{body} = R^\top d_\text{world}$, then `project`) and sample the frame there
-# (`fusion.evaluation.panorama.Stitcher`, inverse mapping: no holes). With a wrong $R$, the frame is
+# (`fusion.evaluation.panorama.recording.Stitcher`, inverse mapping: no holes). With a wrong $R$, the frame is
 # pasted in the wrong place. Where does each frame's centre pixel land, with the true orientations?
 
 # %%

@@ -195,7 +195,7 @@ plt.show()
 # ## 8.5 A FilterPy UKF, as the course builds it
 #
 # The course builds its UKF with FilterPy (Labbe's library): an `UnscentedKalmanFilter` with your
-# own `fx` and `hx`. `fusion.estimators.filterpy_adapter.from_filterpy` puts it in the table as it
+# own `fx` and `hx`. `fusion.estimators.adapters.filterpy.from_filterpy` puts it in the table as it
 # is: give it the function that builds your filter and one that reads the quaternion from its
 # state. Here the state is the quaternion itself, averaged with its sign aligned (a simple
 # stand-in for Kraft's iterative mean of notebook 3), and the accelerometer predicts gravity.
@@ -205,7 +205,7 @@ plt.show()
     import numpy as np
     from filterpy.kalman import JulierSigmaPoints, UnscentedKalmanFilter
 
-    from fusion.estimators.filterpy_adapter import from_filterpy
+    from fusion.estimators.adapters.filterpy import from_filterpy
     from student import _mul
 
     G = 9.80665

@@ -22,7 +22,7 @@ handled here:
   their count said in a warning, which `fusion inspect` prints with the recording;
 - the Vicon orientation is the marker body's in the Vicon frame, neither the IMU's axes nor an
   up-pointing world: its recordings say so (`Recording.truth_needs_alignment`), and every run
-  scores them through an alignment (`fusion.evaluation.align` fits the constant world tilt and
+  scores them through an alignment (`fusion.evaluation.scoring.align` fits the constant world tilt and
   IMU-to-marker rotation from the recording's own gyro, accelerometer and truth), as `--align` does. The fitted
   world rotation is a tilt only: the Vicon frame's heading against magnetic north stays, so a 9-D
   row's heading error includes that constant angle (its inclination does not; with `--mag off`

@@ -2,7 +2,7 @@
 import numpy as np
 from filterpy.kalman import JulierSigmaPoints, UnscentedKalmanFilter
 
-from fusion.estimators.filterpy_adapter import from_filterpy
+from fusion.estimators.adapters.filterpy import from_filterpy
 
 G = 9.80665
 

@@ -1,0 +1,484 @@
+"""`ekf`: a multiplicative (error-state) EKF with gyro bias and scale factors in the state.
+
+Contract: `EKF.step` (the reference, numpy) takes one gyro interval (rate (3,) rad/s, body; dt s;
+its validity), the accelerometer sample at its end ((3,) g, body) and optionally the magnetometer
+sample ((3,) uT, body), and returns `R_world_body` (wxyz) after it; `estimate` runs the same loop
+over a recording, compiled by default (`_compiled_ekf.estimate`, the same numbers to 1e-10:
+`tests/test_compiled.py`). How well each choice below does on the recordings, with the commands
+that measure it: `docs/results.md`, "`ekf`'s choices, measured".
+
+State. Nominal: `q = R_world_body` (wxyz), gyro bias `b` (rad/s, body), gyro scale-factor
+corrections `s` (per body axis) and the horizontal velocity `v` (m/s, world, ENU). Error state
+`dx = [e, db, ds, dv]` (11) with the body-frame rotation error `q_true = q exp(e / 2)` (the
+convention of `ukf`), covariance P (11 x 11; without the scale, the bias or the velocity model,
+the blocks that remain, in this order).
+
+Gyro model (Titterton & Weston, "Strapdown Inertial Navigation Technology", 2nd ed. 2004, Ch. 4;
+Farrell, "Aided Navigation", 2008): `w_true = diag(1 + s) (w_meas - b - n)`, n white with density
+Q. `s` is the *correction*: a gyro that reads 9 % high has s = 1/1.09 - 1 = -0.083.
+
+Predict (gyro as control input; Sola 2017, "Quaternion kinematics for the error-state Kalman
+filter", Secs. 5.3-5.4, in discrete time, with the exact rotation of the step instead of its
+first-order approximation):
+    u = w_meas - b,  theta = diag(1 + s) u dt,  q <- q exp(theta / 2)
+    F = [[R(theta)^T, -J_r(theta) diag(1 + s) dt, J_r(theta) diag(u) dt],
+         [0,          I,                            0                   ],
+         [0,          0,                            I                   ]]
+        (J_r the SO(3) right Jacobian: a rate error dw over the step moves the end attitude by
+        J_r(theta) dw dt in the body frame)
+    P <- F P F^T + diag(Q dt, Qb dt, Qsw dt)   (random impulses whose variance grows with dt,
+        Sola 2017, Sec. 5.4)
+Rest (bias rows; `_rest`): after `rest_time_s` still, the zero-rate pseudo-measurement
+    gyr = b + n, H = [0, I, 0] (Laidig & Seel 2023, "VQF", Information Fusion 91, Sec. 3.4);
+    the bias estimate is clipped to `bias_max_rad_s`, the scale to `scale_max`.
+Update (accelerometer = gravity in the body frame; Sola 2017, Secs. 6.1-6.3: correction,
+injection, reset with the reset Jacobian taken as I; `_accel`):
+    h(q) = R(q)^T e_z (g),  H = [[h]x, 0, 0]          (exp(e)^T h ~ h + h x e)
+    R_k = (R + max(2 tauc d_k, 2 tauslow d_slow)) / dt I   adaptive: d_k the external-acceleration
+                  power of `_accel.AccDisturbance`, measured without the filter's attitude (Suh 2010,
+                  IEEE TIM 59(12), adapts R to the external acceleration); d_slow its slow part, which
+                  the 0.5 s window misses (a sustained acceleration, as of a slow translation, changes
+                  little within it): the squared deviation of the window's mean from the low-pass in
+                  the strapdown frame, less what the calibration explains, trace(H_c P_c H_c^T) with
+                  the lag's Jacobians H_c = [H_b, H_s] below and, with scale states, the scale prior
+                  added to P_ss (the rate errors the model lacks), and less the low-passed norm deviation squared (what
+                  the low-pass holds of gross samples) (`_accel.AccDisturbance.slow_power`); a
+                  Gauss-Markov process of correlation time tauslow (2 s), after the external-
+                  acceleration state of Lee, Park & Robinovitch 2012, IEEE TIM 61(8), but as noise
+    a <- the accelerometer low-passed in the gyro-only strapdown frame (VQF, Sec. 3.2, eq. 7),
+                  rotated back into the body, with R_k = (R + S_lp + S_drift) / dt, whenever
+                  that density is the smaller (`_accel.acc_measurement`). S_lp is the residual
+                  external acceleration (`_accel.lowpass_residual_density`), S_drift the rate
+                  noise's drift of the frame; the lag by which the low-pass trails gravity when
+                  the frame drifts with a bias or scale error is modelled, not added as noise:
+                  H = [[h]x, H_b, H_s] (`_accel.LowpassLag`)
+    S = H P H^T + R_k,  K = P H^T S^-1,  dx = K (a - h)
+    heading_free: K <- (I - h h^T) K on the attitude and bias rows (no turn about the
+                  predicted vertical; the Joseph form below is exact for any gain)
+    guard: with NIS = y^T S^-1 y above the 99.9 % point of chi-square(3) (Bar-Shalom, Li &
+                  Kirubarajan 2001, Sec. 5.4), the bias and scale rows of K are zero
+    q <- q exp(dx_e / 2),  b <- b + dx_b,  s <- s + dx_s
+    P <- (I - K H) P (I - K H)^T + K R_k K^T             (Joseph form)
+The scale factors become observable through the accelerometer whenever the board turns about a
+body axis that is not vertical (the z scale needs the z axis tilted while turning).
+
+Velocity (after the prediction, before the rest and accelerometer updates; off with
+`velocity_bound_m2_s` = inf or `use_acc` = False): a hand-held, worn or carried IMU moves with a
+bounded velocity, so the horizontal specific force, integrated, must stay bounded too: the
+smoothers' velocity model (`fusion.estimators.smoothers.cost`), after what VQF exploits with its
+low-pass in an almost inertial frame (Sec. 3.2), as states of the filter (strapdown velocity
+integration, Titterton & Weston 2004, Ch. 3; Sola 2017, Sec. 5.3.3 for its error-state Jacobian):
+    v <- v + (R(q) a)_xy g dt,   P <- V P V^T,  V = I but dv/de = -(R(q) [a]x)_xy g dt
+        (white acceleration noise of variance density Qv g^2 in Q: Qv g^2 dt on v)
+    pseudo-measurement v = 0 with the variance Rv / dt (density Rv), H = [0, 0, 0, I],
+        heading-free gain and Joseph form as for the accelerometer
+A tilt error e turns 1 g into the horizontal acceleration g e, which a bounded velocity cannot
+absorb for long, while a linear acceleration that averages out over seconds can: the velocity
+states follow the translation (`tests/test_ekf.py`) instead of the attitude taking it for gravity.
+With them, the low-passed sample corrects the attitude and the velocity, not the gyro bias and
+scale (`lowpass_calibration`, `lpcal`, False; their gain rows are zero, which the Joseph form keeps
+exact): the velocity integrates the same samples that the low-pass averages, and taken as two
+independent measurements of the calibration they would count that information twice. Without the
+velocity states the low-passed sample is the only correction of the calibration in motion and
+keeps it.
+
+Scale test (6-D; after the updates of each step, until it decides; `scale_test_error` (sprt) = 0
+turns it off; `_scale_test.ScaleTest`): Wald's sequential probability ratio test (Wald 1945,
+"Sequential tests of statistical hypotheses", Ann. Math. Stat. 16(2), Sec. 3) between H1:
+s ~ N(0, Ps0 I), the prior of a gyro read with its datasheet sensitivity, and H0: s ~ N(0, Psc I),
+Psc = 1e-4 (1 %), a calibrated gyro. Exchanging the prior is a pseudo-measurement `s = 0` of
+variance r I, 1/r = 1/Psc - 1/Ps0, so the log-likelihood ratio is, up to constants,
+    ln L = 1/2 s^T S^-1 s + 1/2 ln det S + k/2 ln((1 - Psc/Ps0) / Ps0),  S = P_ss + r I
+(k the number of scale axes, P_ss their covariance). With alpha = beta = sprt (0.1), above
+ln((1 - alpha) / alpha) = 2.2 the test accepts the scale error and stops; below -2.2 it accepts the
+calibrated gyro and makes the pseudo-measurement update once (heading-free gain and Joseph form as
+above). Until it decides, the filter is the one without the test (`tests/test_ekf.py` checks the
+expression against the two priors' evidence computed directly). At the first magnetometer sample
+the test ends undecided: the 9-D filter keeps the 10 % prior, whose scale rows the heading update
+corrects.
+
+Magnetometer (9-D, where the recording has one: `ImuSamples.mag_ut`; after the accelerometer
+update, with the sample at the step's end; `_magnetometer`). The world is ENU (x east, y north,
+z up). The accelerometer owns the inclination; the magnetometer corrects the heading only (VQF,
+Sec. 3.3):
+    m_w = R(q) m = (east, north, up),  psi = atan2(-east, north)      (0 at the true heading)
+    v = R(q)^T e_z (the vertical in the body frame): a turn by phi about the world vertical is
+        the error e = v phi and turns psi by phi, so H = [v^T, 0, 0, 0] (scalar)
+    r_k = Rm / dt (1 + (w_up / mrate)^2),  w_up = (theta . v) / dt the rate about the vertical
+        (a magnetometer sampled late or low-passed errs by the angle turned over its lag)
+    S = H P H^T + r_k,  K = P H^T / S,  then K <- v v^T K on the attitude and bias rows (heading
+        only) and 0 on the velocity rows; the scale rows keep theirs,  dx = K (0 - psi)
+    q <- q exp(dx_e / 2), b <- b + dx_b, s <- s + dx_s;  P <- (I - K H) P (I - K H)^T + r_k K K^T
+        (Joseph form, exact for the restricted gain; Sola 2017, Secs. 6.1-6.3)
+Disturbances (`_magnetometer.MagReference`, VQF Sec. 3.3): the reference norm |m| and dip
+atan2(-up, |(east, north)|) are learned while the samples agree with them; a sample counts while
+|norm - ref| < mnorm ref and |dip - ref| < mdip, and only after that has held for `mtime` s. A
+magnet carried with the sensor adds a constant body-frame offset o (hard iron), fitted without
+the attitude (`_magnetometer.HardIron`: the sphere |m - o| = r, linear least squares in
+[2 o, r^2 - |o|^2] over an exponential window; Vasconcelos et al. 2011, IEEE TAES 47(2), eqs. 4-6,
+the hard-iron part); while the fit is trusted, samples are used with o removed. A field bent in
+direction only passes those gates; the heading gate holds it off: the innovation psi, low-passed
+over `mhgs` s, must satisfy psi^2 < chi2_1(0.999) (H P H^T + mhg^2) (the normalised innovation
+squared against its chi-square bound; Bar-Shalom et al. 2001, Sec. 5.4.2), with a recovery rule
+after `mhgmax` s of rejection (`_magnetometer.MagReference.heading_gate_update`). `--mag off`, or a
+recording without a magnetometer, runs the 6-D filter, bit for bit (`tests/test_mag_filters.py`).
+
+Known limitation (shared by `ukf-bias`): a scale error shows as an attitude error proportional to
+the angle turned. When the board only rocks (bounded angles, under 1 rad/s) while it is moved back
+and forth, the linear acceleration has power at the rocking frequencies, and the filter, which
+models it as noise that is white at the scale of `disturbance_corr_s` (or, for the low-passed
+sample, as the derivative of a bounded velocity), takes part of it for a scale error; with the
+10 % prior (`init_scale_var`) it fits a scale error to an exactly calibrated gyro and loses
+inclination (`tests/test_ekf.py`, a strict xfail). The scale test does not remove it: while the
+translation is taken for a scale error, the data do not favour the calibrated prior. `scale=false`
+or a narrower prior avoids it where the gyro is known to be calibrated.
+
+FilterPy: this filter sits *beside* `filterpy.kalman.ExtendedKalmanFilter`, not on it: FilterPy's
+EKF sizes x and P together, adds the correction (`x + K y`) and predicts with a linear `F x`; for
+an error-state filter with a quaternion nominal state every one of those lines would be
+overridden. The update uses the same Joseph form as FilterPy's `ExtendedKalmanFilter.update`.
+
+Robustness as in `ukf`: invalid or non-finite gyro samples are not integrated (zero rate, no bias
+or scale coupling, attitude noise inflated by `invalid_gyr_var_rad2_s2 dt^2`), non-finite
+accelerometer samples skip the update, the optional fixed gating (`gate`, `gate_g`; off by
+default) inflates R or skips the update when `| |a| - 1 g |` is large, and the covariance is
+symmetrised (eigenvalues clipped if needed) every step (`_linalg.repair_covariance`).
+
+Two implementations (`impl`): `EKF.step` below, in numpy, is the reference and what `reset`/`step`
+(the streaming interface) always run; `"compiled"` (the default) makes `estimate` run the whole
+recording in `_compiled_ekf.estimate`, whose helpers carry the names of the methods they mirror
+(`_compiled_ekf._correct`, `_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from fusion.quaternion import (exp_floats, gravity_in_body_floats, multiply_floats, right_jacobian_floats, rotation_matrix_floats,
+                               skew_floats, unit_array)
+from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
+
+from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
+from ._error_state import axes_mask
+from ..kernels._linalg import inv_sym3, repair_covariance
+from .steps._magnetometer import HardIron, MagReference, heading_update, heading_variance, magnetometer_input
+from .steps._rest import RestDetector, bias_rest_update
+from .steps._scale_test import ScaleTest
+from .steps._stuck import stuck_gyro_state
+from .filter_params import BiasFilterParams
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from ..search import Tunable
+
+
+@dataclass(frozen=True)
+class EKFParams(BiasFilterParams):
+    """Parameters of `ekf`: the fields of `BiasFilterParams` (and through it `FilterParams`,
+    where every field, its unit and alias is documented) with their defaults, plus
+
+    estimate_bias (bias): False drops the bias from the state (and needs scale=false); the
+        bias and rest-detection fields apply only with it.
+    velocity_acc_noise_g2_s (Qv): density of the white acceleration noise in the velocity
+        states' integration, g^2 s (the smoothers' default).
+    velocity_bound_m2_s (Rv): density of the pseudo-measurement v = 0, m^2/s: per second, one
+        observation "v = 0" of variance Rv (m/s)^2 (inf: no velocity states; see the module
+        docstring).
+    lowpass_calibration (lpcal): whether, with the velocity states, the low-passed accelerometer
+        sample also corrects the gyro bias and scale (False, the default: the attitude and
+        velocity only; see "Velocity" in the module docstring). Without the velocity states it
+        always does.
+    slow_disturbance_corr_s (tauslow): correlation time, s, of the slow external acceleration
+        (a sustained linear acceleration, as of a slow translation), whose power the raw
+        accelerometer sample's noise takes from the deviation of the disturbance window's mean
+        from the low-pass, less what the calibration's uncertainty and gross samples explain
+        (`_accel.AccDisturbance.slow_power`; "Update" in the module docstring; a Gauss-Markov
+        external acceleration as in Lee, Park & Robinovitch 2012, IEEE TIM 61(8)). 0: no slow
+        component (the model before it); it needs the low-pass's lag (bias states, `tauc` > 0,
+        `taulp` > 0). 1-5 s change little (`docs/results.md`, "Slow translation, simulated").
+    impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
+        `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
+        numbers either way (to rounding); `reset`/`step` are the numpy code in both.
+
+    The defaults are one set for every recording and rate. `acc_lowpass_s` (taulp) is 2 s here
+    (1 s in `BiasFilterParams`): chosen by leave-one-recording-out over the nine course
+    recordings and BROAD's fourteen trials together, where every fold picks it
+    (`benchmarks/cross_validate.py`; for `ukf-bias`, which has no velocity states, the same
+    procedure does not pick 2 s).
+    """
+
+    owner: ClassVar[str] = "ekf"
+    former_std: ClassVar[tuple[str, ...]] = BiasFilterParams.former_std + (
+        "velocity_acc_noise_g_sqrt_s", "sv", "velocity_bound_m_sqrt_s", "vb")
+
+    # Search ranges (`fusion.estimators.search`): taulp as in `FilterParams` (0.3-10 s, around the
+    # leave-one-out choice); Qv and Rv two decades either side (cross_validate.py tries 9e-6-9e-4 and
+    # 0.25-4; BROAD's fast trials move at about 1 m/s).
+    acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp", "search": Tunable(0.3, 10.0)})
+
+    estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
+    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
+    velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv", "search": Tunable(1e-2, 1e2)})
+    lowpass_calibration: bool = field(default=False, metadata={"alias": "lpcal"})
+    slow_disturbance_corr_s: float = field(default=2.0, metadata={"alias": "tauslow"})
+    impl: Literal["compiled", "numpy"] = "compiled"
+
+    def _check(self) -> None:
+        super()._check()
+        if not (self.velocity_acc_noise_g2_s > 0.0 and math.isfinite(self.velocity_acc_noise_g2_s)):
+            raise ValueError(f"ekf: velocity_acc_noise_g2_s must be a finite number > 0, "
+                             f"got {self.velocity_acc_noise_g2_s!r}")
+        if not self.velocity_bound_m2_s > 0.0:
+            raise ValueError(f"ekf: velocity_bound_m2_s must be > 0 (inf: no velocity model), "
+                             f"got {self.velocity_bound_m2_s!r}")
+        if self.impl not in ("compiled", "numpy"):
+            raise ValueError(f"ekf: impl must be compiled or numpy, got {self.impl!r}")
+        if not (self.slow_disturbance_corr_s >= 0.0 and math.isfinite(self.slow_disturbance_corr_s)):
+            raise ValueError(f"ekf: slow_disturbance_corr_s must be a finite number >= 0 (0: off), "
+                             f"got {self.slow_disturbance_corr_s!r}")
+        if self.estimate_scale and not self.estimate_bias:
+            raise ValueError("ekf: estimate_scale needs estimate_bias (the error state is [attitude, bias, scale])")
+
+    def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
+        bias = ("estimate_bias", (True,))
+        names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
+                 "rest_time_s", "rest_noise_rad2_s", "slow_disturbance_corr_s")
+        return {**super()._only_with(), **{name: bias for name in names}}
+
+    @property
+    def velocity_states(self) -> int:
+        """2 with the velocity model (a finite `velocity_bound_m2_s` and the accelerometer in
+        use), else 0."""
+        return 2 if math.isfinite(self.velocity_bound_m2_s) and self.use_acc else 0
+
+
+# Normalised innovation squared above which the bias and scale are not corrected: the 99.9 %
+# point of chi-square with 3 degrees of freedom (the innovation consistency test, Bar-Shalom,
+# Li & Kirubarajan 2001, Sec. 5.4).
+_CHI2_3DOF = 16.27
+# The velocity model starts at rest (the recordings start still, for the calibration), to this std.
+VELOCITY_INIT_STD_M_S = 0.1
+
+
+class EKF(KalmanFilter):
+    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
+
+    Params = EKFParams
+    LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used",
+                "mag_hard_iron": "hard_iron_used"}
+    magnetometer = True  # 9-D where the recording has a magnetometer (the heading-only update)
+
+    def reset(self, init_quat_wxyz: np.ndarray) -> None:
+        p = self.params
+        n = 3 + 3 * p.estimate_bias + 3 * p.estimate_scale
+        self.n = n
+        self.q = initial_quaternion("ekf", init_quat_wxyz)
+        self.b = np.zeros(3)
+        self.s = np.zeros(3)
+        P0, Qrate, Qbad = error_state_covariances(p, n)
+        self.N = N = n + p.velocity_states  # with the horizontal velocity after [attitude, bias, scale]
+        self.P, self._Qrate, self._Qbad = np.zeros((N, N)), np.zeros((N, N)), np.zeros((N, N))
+        self.P[:n, :n], self._Qrate[:n, :n], self._Qbad[:n, :n] = P0, Qrate, Qbad
+        self.v = np.zeros(2)
+        if N > n:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density Qv g^2
+            self.P[n:, n:] = np.eye(2) * VELOCITY_INIT_STD_M_S**2
+            self._Qrate[n:, n:] = np.eye(2) * STANDARD_GRAVITY_M_S2**2 * p.velocity_acc_noise_g2_s
+        # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
+        self._with_lag = models_lag(p, n)
+        self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
+        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
+        self._stuck = stuck_gyro_state()
+        self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
+                                       axes_mask(p.scale_axes))
+                            if n > 6 else ScaleTest.off())
+        self._mag = MagReference.of(p)
+        self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
+        self._F = np.eye(N)
+        self._H = np.zeros((3, N))
+        self._I = np.eye(N)
+        self.acc_var = math.nan  # accelerometer variance of the last update, g^2 (nan: none)
+        self.at_rest = False  # whether the last step made the rest bias update
+        self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
+        self.guarded = False  # whether the last update left the bias and scale alone (chi-square guard)
+        self.lowpassed = False  # whether the last update used the low-passed accelerometer
+        self.mag_used = False  # whether the last step made the magnetometer's heading update
+        self.hard_iron_used = False  # ... with the sphere fit's offset removed
+        self.n_skipped = self.n_cov_repaired = 0
+
+    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
+             mag_ut: np.ndarray | None = None) -> np.ndarray:
+        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
+        uT, body frame, or None (no magnetometer, or no valid sample): the heading update."""
+        p = self.params
+        n = self.n
+        gyr_valid = self._usable(gyr_rad_s, dt_s, acc_g, gyr_valid)
+        self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
+        self.mag_used = self.hard_iron_used = False
+        Q = self._Qrate * dt_s
+        F = self._F
+        q = self.q.tolist()
+        valid = gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])
+        if valid:
+            u = gyr_rad_s - self.b if n > 3 else gyr_rad_s
+            g = 1.0 + self.s if n > 6 else None
+            tx, ty, tz = (u * g * dt_s) if n > 6 else u * dt_s  # w_true = diag(1 + s) (w_meas - b)
+        else:  # no rate integration; inflate the attitude noise instead
+            tx = ty = tz = 0.0
+            Q = Q + self._Qbad * (dt_s * dt_s)
+            self._dist.lose_frame()
+        d = exp_floats(tx, ty, tz)
+        q = multiply_floats(q, d)  # q exp(theta / 2), as 4 floats
+        F[:3, :3] = rotation_matrix_floats(*d).T  # error transition R(theta)^T
+        if n > 3:
+            Jdt = right_jacobian_floats(tx, ty, tz) * dt_s
+            if n > 6:
+                if valid:
+                    F[:3, 3:6] = -Jdt * g  # d theta / d b = -J_r diag(1 + s) dt
+                    F[:3, 6:n] = Jdt * u  # d theta / d s = J_r diag(w - b) dt
+                else:
+                    F[:3, 3:6] = 0.0  # the rate was not integrated: no bias or scale enters
+                    F[:3, 6:n] = 0.0
+            else:
+                F[:3, 3:6] = -Jdt if valid else 0.0
+        P = F @ self.P @ F.T + Q
+        if self.N > n:
+            q, P = self._velocity_step(q, P, acc_g, dt_s)
+        if n > 3 and valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
+            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
+            dx, P = bias_rest_update(self.b, P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
+            q = self._correct(q, dx)
+            self.at_rest = True
+        scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
+        rate = u if valid else None  # the lag's inputs (`AccDisturbance.update`)
+        if scale < math.inf:
+            w, x, y, z = q
+            h = gravity_in_body_floats(w, x, y, z)
+            H = self._H
+            H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
+            H[1, 0], H[1, 2] = h[2], -h[0]
+            H[2, 0], H[2, 1] = -h[1], h[0]
+            H[:, 3:] = 0.0
+            slow = p.slow_disturbance_corr_s if self._with_lag else 0.0  # the slow external acceleration
+            prior = p.init_scale_var if n > 6 else 0.0  # the rate error the calibration states lack
+            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
+                                                                 p.process_noise_rad2_s, rate, 1.0 + self.s, slow,
+                                                                 H[:, :3], P[3:n, 3:n], prior)
+            self.acc_var = r
+            if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
+                H_b, H_s = self._dist.lag_jacobian(H[:, :3])
+                H[:, 3:6] = H_b
+                if n > 6:
+                    H[:, 6:n] = H_s
+            PHt = P @ H.T
+            S = H @ PHt
+            S[0, 0] += r
+            S[1, 1] += r
+            S[2, 2] += r
+            Sinv = inv_sym3(S)
+            K = PHt @ Sinv
+            if p.heading_free:
+                # Remove the correction about the predicted vertical h (|h| = 1) from the
+                # attitude and bias rows: K <- (I - h h^T) K; the Joseph form stays exact.
+                K[:3] -= np.outer(h, h @ K[:3])
+                if n > 3:
+                    K[3:6] -= np.outer(h, h @ K[3:6])
+            y = meas - h
+            self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
+            # The attitude only, not the bias and scale, is corrected when the innovation is
+            # inconsistent with the predicted covariance (a gyro freeze or a large error: not
+            # through their linearised correlations), and for the low-passed sample when the
+            # velocity states, which measure the frame's drift from the same accelerometer
+            # samples, correct the calibration (module docstring). Any gain is exact in the Joseph form.
+            self.guarded = n > 3 and self.nis > _CHI2_3DOF
+            if self.guarded or (n > 3 and self.lowpassed and self.N > n and not p.lowpass_calibration):
+                K[3:n] = 0.0
+            q = self._correct(q, K @ y)
+            IKH = self._I - K @ H
+            P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
+        else:
+            self.n_skipped += 1
+            if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
+                self._dist.turn(d, dt_s, rate, 1.0 + self.s)
+        if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
+            # 9-D: the heading-only magnetometer update, gated (`_magnetometer.MagReference`, `heading_update`)
+            self._scale_test.stop()  # 9-D: no scale test (module docstring)
+            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, P, mag_ut,
+                                                                          dt_s)
+            if usable:
+                r = heading_variance(p, q, tx, ty, tz, dt_s)  # grown with the rate about the vertical
+                dx, P = heading_update(q, P, n, east, north, r)
+                q = self._correct(q, dx)
+                self.mag_used = True
+        # Wald's test: a scale error, or a calibrated gyro? (`_scale_test.ScaleTest`)
+        dx, P = self._scale_test.step(self.s, P, gravity_in_body_floats(*q) if p.heading_free else None)
+        if dx is not None:
+            q = self._correct(q, dx)
+        if n > 3:
+            self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
+        if n > 6:
+            self.s = np.clip(self.s, -p.scale_max, p.scale_max)
+        self.q = unit_array(q)
+        self.P, repaired = repair_covariance(P)
+        self.n_cov_repaired += repaired
+        return self.q
+
+    def _correct(self, q: tuple, dx: np.ndarray) -> tuple:
+        """Inject an error-state correction dx (N,): `q exp(dx_e / 2)`, `b + dx_b`, `s + dx_s`, `v + dx_v`."""
+        n = self.n
+        if n > 3:
+            self.b = self.b + dx[3:6]
+        if n > 6:
+            self.s = self.s + dx[6:n]
+        if self.N > n:
+            self.v = self.v + dx[n:]
+        return multiply_floats(q, exp_floats(dx[0], dx[1], dx[2]))
+
+    def _velocity_step(self, q: tuple, P: np.ndarray, acc_g: np.ndarray, dt_s: float) -> tuple[tuple, np.ndarray]:
+        """The velocity model after the attitude's prediction (see the module docstring): the
+        horizontal world velocity integrates the specific force at the step's end attitude,
+        then the bounded-velocity pseudo-measurement `v = 0` corrects it (and, through the
+        covariance, the attitude, bias and scale). Returns the corrected (q, P)."""
+        p, n = self.params, self.n
+        R = rotation_matrix_floats(*q)
+        if math.isfinite(acc_g[0]) and math.isfinite(acc_g[1]) and math.isfinite(acc_g[2]):
+            self.v = self.v + (R[:2] @ acc_g) * (STANDARD_GRAVITY_M_S2 * dt_s)
+            # dv/de = -(R [a]x)_xy g dt for the body-frame attitude error at the step's end
+            V = np.eye(self.N)
+            V[n:, :3] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (STANDARD_GRAVITY_M_S2 * dt_s)
+            P = V @ P @ V.T
+        r = p.velocity_bound_m2_s / dt_s
+        S = P[n:, n:] + r * np.eye(2)
+        K = P[:, n:] @ np.linalg.inv(S)
+        if p.heading_free:  # as the accelerometer update: no turn about the vertical h
+            h = gravity_in_body_floats(*q)
+            K[:3] -= np.outer(h, h @ K[:3])
+            if n > 3:
+                K[3:6] -= np.outer(h, h @ K[3:6])
+        q = self._correct(q, K @ -self.v)
+        IKH = self._I.copy()
+        IKH[:, n:] -= K
+        return q, IKH @ P @ IKH.T + r * (K @ K.T)
+
+    def current(self) -> dict[str, Any]:
+        return {"cov": self.P, "gyr_bias_rad_s": self.b, "gyr_scale": self.s, "velocity_m_s": self.v, "acc_var_g2": self.acc_var,
+                "at_rest": self.at_rest, "nis": self.nis, "bias_guarded": self.guarded, "acc_lowpassed": self.lowpassed,
+                "mag_used": self.mag_used, "mag_hard_iron": self.hard_iron_used, "scale_llr": self._scale_test.llr}
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {"updates_skipped": self.n_skipped, "cov_repairs": self.n_cov_repaired,
+                "scale_decision": self._scale_test.decision}
+
+    def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
+        from . import _compiled_ekf
+
+        q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
+        st = kernels.SensorStates(dist=dist, rest=rest, mag=self._mag.state(), hard_iron=self._hard_iron.state(),
+                                  test=self._scale_test.state())
+        o = kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF, scale_test=self._scale_test)
+        self.n_skipped, self.n_cov_repaired = _compiled_ekf.estimate(
+            kernels.inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad, st, o, out)
+        self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
+        self._mag.set_state(st.mag)
+        self._hard_iron.set_state(st.hard_iron)
+        self._scale_test.set_state(st.test)
