@@ -20,14 +20,14 @@ from typing import Any, Iterable
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
 from .filters.ekf import EKF
-from .smoothers.gd import GradientDescentSmoother
-from .smoothers.gn import GaussNewtonSmoother
+from .filters.ukf import UKF, UKFBias
+from .params import EstimatorSpec, make_params, parse_specs
+from .peers.ahrs_filters import AhrsEKFPeer, MadgwickPeer, MahonyPeer
 from .peers.vqf_fusion import (  # optional libraries, imported when built: pip install -e '.[peers]'
     BasicVQFPeer, FusionPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
 )
-from .peers.ahrs_filters import AhrsEKFPeer, MadgwickPeer, MahonyPeer
-from .params import EstimatorSpec, make_params, parse_specs
-from .filters.ukf import UKF, UKFBias
+from .smoothers.gd import GradientDescentSmoother
+from .smoothers.gn import GaussNewtonSmoother
 
 ESTIMATORS: dict[str, type[Estimator]] = {
     "dr": DeadReckoning,

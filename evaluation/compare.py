@@ -24,8 +24,8 @@ from fusion.types import Recording
 from .run.job import (  # noqa: F401  (the job layer, re-exported: `from fusion.evaluation.compare import run_one`)
     Result, aligned, default_protocol, recording_alignment, run_one,
 )
-from .scoring.metrics import KINDS, MIN_COVERAGE
 from .run.runner import run
+from .scoring.metrics import KINDS, MIN_COVERAGE
 from .scoring.stats import run_statistics, table_column
 
 

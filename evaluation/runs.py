@@ -32,14 +32,14 @@ from fusion.estimators import ResolvedSpec, resolve_all, resolve_trajectory
 from fusion.estimators.params import EstimatorSpec, parse_specs
 from fusion.selection import calibration_settings, load_selected, note, select_sources
 
-from .sweeps import ablate
 from .compare import format_table, results_json, versions
+from .report.render import git_commit, write_run
 from .run.job import JobOutput, Result
 from .run.journal import Journal, fingerprint, job_key
 from .run.output import OutputFolder
-from .report.render import git_commit, write_run
 from .run.runner import run, source_paths
 from .run.settings import COMPUTED, WRITTEN, RunSettings
+from .sweeps import ablate
 
 PathLike = str | os.PathLike
 

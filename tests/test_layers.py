@@ -157,6 +157,55 @@ def test_no_import_cycles():
     assert not found, "import cycles:\n" + "\n".join(lines)
 
 
+# Rooms within a layer (subpackages), and the rooms each may import from besides its own and the core:
+# a filter never imports a smoother or a peer, a filter's steps no filter, the kernels no estimator.
+ROOM_RULES = {
+    "fusion.estimators.kernels": set(),
+    "fusion.estimators.filters.steps": {"fusion.estimators.kernels"},
+    "fusion.estimators.filters": {"fusion.estimators.filters.steps", "fusion.estimators.kernels", "fusion.estimators"},
+    "fusion.estimators.smoothers": {"fusion.estimators.filters", "fusion.estimators.filters.steps",
+                                    "fusion.estimators.kernels", "fusion.estimators"},
+    "fusion.estimators.peers": {"fusion.estimators.kernels", "fusion.estimators"},
+    "fusion.estimators.adapters": {"fusion.estimators"},
+    "fusion.evaluation.panorama": set(),
+}
+MAX_MODULES_PER_FOLDER = 15
+
+
+def room(module: str) -> str:
+    """The room (subpackage) a module is in: the longest `ROOM_RULES` key or package it lies in;
+    `fusion.estimators` for the estimators' top folder, `core` for the core."""
+    if layer(module) == LAYERS.index("core"):
+        return "core"
+    for name in sorted(ROOM_RULES, key=len, reverse=True):
+        if module == name or module.startswith(name + "."):
+            return name
+    return ".".join(module.split(".")[:3]) if module.count(".") >= 3 else ".".join(module.split(".")[:2])
+
+
+def test_rooms_point_down():
+    """Within a layer, each room imports only the rooms `ROOM_RULES` allows it (and the core)."""
+    wrong = [f"{a} -> {b} at {where}" for (a, b), where in sorted(edges().items())
+             if room(a) in ROOM_RULES and room(b) not in {room(a), "core", *ROOM_RULES[room(a)]}]
+    assert not wrong, "imports across rooms that ROOM_RULES does not allow:\n" + "\n".join(wrong)
+
+
+def test_rooms_hold_a_readable_number_of_modules():
+    """No folder of estimators/ or evaluation/ holds more than `MAX_MODULES_PER_FOLDER` modules directly."""
+    for folder in ("estimators", "evaluation"):
+        for path in [ROOT / folder, *(p for p in (ROOT / folder).rglob("*") if p.is_dir() and p.name != "__pycache__")]:
+            count = len([p for p in path.glob("*.py") if p.name != "__init__.py"])
+            assert count <= MAX_MODULES_PER_FOLDER, f"{path.relative_to(ROOT)} holds {count} modules"
+
+
+def test_the_room_rules_catch_what_they_look_for():
+    assert room("fusion.estimators.filters.steps._rest") == "fusion.estimators.filters.steps"
+    assert room("fusion.estimators.filters.ekf") == "fusion.estimators.filters"
+    assert room("fusion.estimators.smoothers.gn") == "fusion.estimators.smoothers"
+    assert room("fusion.estimators.base") == "fusion.estimators" and room("fusion.types") == "core"
+    assert "fusion.estimators.smoothers" not in ROOM_RULES["fusion.estimators.filters"]
+
+
 def test_known_cycles_are_still_there():
     graph_edges = edges()
     stale = [edge for edge in KNOWN_CYCLE_EDGES

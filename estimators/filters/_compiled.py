@@ -50,21 +50,21 @@ import numpy as np
 
 from fusion.types import STANDARD_GRAVITY_M_S2
 
+from ..kernels._compiled_linalg import CovSettings, cov_settings
+from ..kernels._compiled_quaternion import QuatSettings, multiply_floats, quat_settings
+from ..kernels._numba import _jit, inputs
 from . import _compiled_ekf, _compiled_ukf
+from .filter_params import BiasFilterParams
 from .steps._accel import AccDisturbance, models_lag
 from .steps._compiled_accel import AccSettings, acc_settings
-from ..kernels._compiled_linalg import CovSettings, cov_settings
 from .steps._compiled_magnetometer import MagSettings, mag_settings
-from ..kernels._compiled_quaternion import QuatSettings, multiply_floats, quat_settings
 from .steps._compiled_rest import RestSettings, rest_settings, rest_steps
 from .steps._compiled_scale_test import ScaleTestSettings, scale_test_settings
 from .steps._compiled_stuck import stuck_intervals
 from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE
-from ..kernels._numba import _jit, inputs
 from .steps._rest import RestDetector
 from .steps._scale_test import TEST_STATE
 from .steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state
-from .filter_params import BiasFilterParams
 
 # `fusion.quaternion.multiply_floats` compiled, under the name the peers' and the smoothers' kernels import.
 qmul = multiply_floats

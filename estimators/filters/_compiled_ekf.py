@@ -18,14 +18,14 @@ import math
 
 import numpy as np
 
-from .steps import _compiled_accel as accel
-from .steps import _compiled_magnetometer as magnetometer
-from .steps import _compiled_rest as rest
-from .steps import _compiled_scale_test as scale_test
 from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, joseph2, repair_covariance
 from ..kernels._compiled_quaternion import (exp_floats, gravity_floats, multiply_floats, normalize_floats, right_jacobian_dt,
                                    rotation_floats)
 from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
+from .steps import _compiled_accel as accel
+from .steps import _compiled_magnetometer as magnetometer
+from .steps import _compiled_rest as rest
+from .steps import _compiled_scale_test as scale_test
 from .steps._scale_test import TEST_DECISION, TEST_LLR, TEST_ON
 
 forget_stale(__file__)

@@ -17,13 +17,13 @@ import math
 
 import numpy as np
 
+from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
+from ..kernels._compiled_quaternion import exp_floats, gravity_floats, log_floats, multiply_floats, normalize_floats
+from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
 from .steps import _compiled_scale_test as scale_test
-from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
-from ..kernels._compiled_quaternion import exp_floats, gravity_floats, log_floats, multiply_floats, normalize_floats
-from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
 from .steps._scale_test import TEST_DECISION, TEST_LLR, TEST_ON
 
 forget_stale(__file__)

@@ -161,16 +161,16 @@ from fusion.quaternion import (exp_floats, gravity_in_body_floats, multiply_floa
                                skew_floats, unit_array)
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
-from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
-from ._error_state import axes_mask
 from ..kernels._linalg import inv_sym3, repair_covariance
+from ..search import Tunable
+from ._error_state import axes_mask
+from .filter_params import BiasFilterParams
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
 from .steps._magnetometer import HardIron, MagReference, heading_update, heading_variance, magnetometer_input
 from .steps._rest import RestDetector, bias_rest_update
 from .steps._scale_test import ScaleTest
 from .steps._stuck import stuck_gyro_state
-from .filter_params import BiasFilterParams
-from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
-from ..search import Tunable
 
 
 @dataclass(frozen=True)

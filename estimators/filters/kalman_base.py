@@ -15,10 +15,10 @@ import numpy as np
 
 from fusion.types import ImuSamples, Trajectory
 
+from ..base import RecursiveEstimator
 from ._error_state import UNESTIMATED_VAR, axes_mask
 from .steps._rest import REST_STATE
 from .steps._stuck import STUCK_THRESHOLDS, stuck_gyro_update
-from ..base import RecursiveEstimator
 
 
 def initial_quaternion(owner: str, init_quat_wxyz: Any) -> np.ndarray:

@@ -114,16 +114,16 @@ from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, multiply_floats, unit_array
 from fusion.types import ImuSamples
 
-from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
-from ._error_state import axes_mask
 from ..kernels._linalg import inv_sym3, repair_covariance
+from ..search import Tunable
+from ._error_state import axes_mask
+from .filter_params import BiasFilterParams, FilterParams, check_nonneg
+from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
+from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
 from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE, HardIron, MagReference, heading_update, heading_variance, magnetometer_input
 from .steps._rest import RestDetector, bias_rest_update
 from .steps._scale_test import ScaleTest
 from .steps._stuck import stuck_gyro_state
-from .filter_params import BiasFilterParams, FilterParams, check_nonneg
-from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
-from ..search import Tunable
 
 Sigma = Literal["kraft", "julier", "merwe"]
 Impl = Literal["compiled", "numpy", "filterpy", "lean"]  # "lean": the former name of "numpy", with a warning

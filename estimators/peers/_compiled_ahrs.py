@@ -7,9 +7,9 @@ them over a grid of parameters and a benchmark's recordings would take hours. He
 `numba.njit` function per filter runs the adapter's whole loop (`peers._marg_loop` in 9-D,
 `RecursiveEstimator.estimate` with the adapter's `step` in 6-D) over a recording, with the
 library's update written out in scalars. Numba, cached on disk, for the reasons `_compiled` gives
-(`_compiled._jit`: the kernels are cached next to this file, IEEE division). The quaternion
+(`kernels._numba._jit`: the kernels are cached next to this file, IEEE division). The quaternion
 product of the 9-D output turn (NWU -> ENU) is `fusion.quaternion`'s own scalar function, compiled
-(`_compiled.qmul`), as `peers` applies it with `quaternion.multiply`;
+(`kernels._compiled_quaternion.multiply_floats`), as `peers` applies it with `quaternion.multiply`;
 `_kernel_cache.forget_stale_kernels` drops this module's cache when `fusion/quaternion.py` changes.
 
 The library is the reference. Every function below names the library method it mirrors and
@@ -67,7 +67,8 @@ from numba.extending import intrinsic
 
 from fusion import quaternion as quat
 
-from ..filters._compiled import _jit, qmul
+from ..kernels._compiled_quaternion import multiply_floats as qmul
+from ..kernels._numba import _jit
 from ..kernels._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__])  # the 9-D output turn compiles fusion.quaternion's product

@@ -15,11 +15,11 @@ from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 from ..base import RecursiveEstimator
+from ..search import Tunable
 from .vqf_fusion import (
     _RZ90, _TINY_RATE_RAD_S, _acc_m_s2, _check_length, _mag_or_zero, _marg_loop, _non_negative, _positive,
     _require,
 )
-from ..search import Tunable
 
 
 # --------------------------------------------------------------------------------------

@@ -18,6 +18,8 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from ..kernels._kernel_cache import forget_stale_kernels
+from ..kernels._numba import _jit
 from . import _compiled_layout as layout
 from . import _compiled_terms as terms
 from ._compiled_layout import (GEODESIC, KEEP_ACC, KEEP_MAG, KEEP_MOTION, KEEP_STEP, N_SUMS, POINT, SUM_ACC,
@@ -26,8 +28,6 @@ from ._compiled_ranges import cost_ranges, run_beside
 from ._compiled_terms import (exp_floats, fill3, keep_floats, load_quat, log_floats, mag_residual,
                                        motion_residual, multiply_floats, normalize_floats, rest_residual, robust_terms,
                                        rotation_floats, split_theta, step_rotvec, total_cost)
-from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 

@@ -49,6 +49,8 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from ..kernels._kernel_cache import forget_stale_kernels
+from ..kernels._numba import _jit
 from . import _compiled_layout as layout
 from . import _compiled_terms as terms
 from ._compiled_layout import (BLOCKS, CARRY_OFF_BLOCK, ELIMINATE, FROM_BLOCKS, N_SUMS, SUM_ACC, SUM_MAG,
@@ -56,8 +58,6 @@ from ._compiled_layout import (BLOCKS, CARRY_OFF_BLOCK, ELIMINATE, FROM_BLOCKS, 
 from ._compiled_terms import (exp_floats, fill3, kept_acc, kept_mag, kept_step, load_quat, log_floats, mag_residual,
                                        motion_residual, multiply_floats, rest_residual, right_jacobian, right_jacobian_inv,
                                        robust_terms, rotation_floats, split_theta, step_rotvec, total_cost)
-from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 

@@ -18,10 +18,10 @@ import numpy as np
 
 from fusion import quaternion as quat
 
-from . import _compiled_terms as terms
-from ._compiled_terms import fill3, load_quat, exp_floats, multiply_floats, normalize_floats, rotation_floats
 from ..kernels._kernel_cache import forget_stale_kernels
 from ..kernels._numba import _jit
+from . import _compiled_terms as terms
+from ._compiled_terms import fill3, load_quat, exp_floats, multiply_floats, normalize_floats, rotation_floats
 
 forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
 

@@ -24,11 +24,11 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from ..kernels._kernel_cache import forget_stale_kernels
+from ..kernels._numba import _jit
 from . import _compiled_layout as layout
 from ._compiled_layout import (B_MAX, KEEP_ACC, KEEP_MAG, KEEP_MOTION, KEEP_STEP, LOSS_CAUCHY, LOSS_HUBER,
                                         LOSS_NONE, SUM_ACC, SUM_MAG, SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
-from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
 
 # the kernels compile fusion.quaternion's scalar path and the layout's constants
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__])

@@ -91,10 +91,10 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
 
+from .cost import Linearization, SmootherProblem
 from .gn import released_scales
 from .smoother import (BatchSmoother, SmootherParams, SolverLog, inclination_step, progress_bar, retract,
                        solution_diagnostics)
-from .cost import Linearization, SmootherProblem
 from .solve import banded_lower
 
 ARMIJO_C1 = 1e-4  # N&W eq. 3.4: "c1 is chosen to be quite small, say 1e-4"

@@ -44,8 +44,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .smoother import BatchSmoother, SolverLog, inclination_step, progress_bar, solution_diagnostics
 from .cost import SmootherProblem
+from .smoother import BatchSmoother, SolverLog, inclination_step, progress_bar, solution_diagnostics
 from .solve import solve_normal_equations, theta_posterior_std  # noqa: F401 (their home until now)
 
 

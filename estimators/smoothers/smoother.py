@@ -29,17 +29,17 @@ from fusion.checks import dropout_mask
 from fusion.quaternion import rotation_matrix
 from fusion.types import ImuSamples, Trajectory
 
-from ..filters._error_state import axes_mask
-from ..filters.steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
 from ..base import Estimator
 from ..dr import DeadReckoning
+from ..filters._error_state import axes_mask
 from ..filters.ekf import EKF
+from ..filters.steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
+from ..filters.ukf import UKF, UKFBias
 from ..params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, parse_specs
 from ..search import Tunable
-from .mag import MagSettings, heading_correction, measurements
 from .cost import AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations
+from .mag import MagSettings, heading_correction, measurements
 from .solve import solve_normal_equations, theta_posterior_std
-from ..filters.ukf import UKF, UKFBias
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.
 INIT_ESTIMATORS: dict[str, type[Estimator]] = {"dr": DeadReckoning, "ukf": UKF, "ukf-bias": UKFBias, "ekf": EKF}

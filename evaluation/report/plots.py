@@ -30,8 +30,8 @@ from scipy.spatial.transform import Rotation
 from fusion.checks import runs
 from fusion.estimators.params import parse_specs
 
-from ..scoring.metrics import KINDS
 from ..run.series import RecordingSeries
+from ..scoring.metrics import KINDS
 
 EULER_SEQ = "ZYX"
 EULER_NAMES = ("roll", "pitch", "yaw")

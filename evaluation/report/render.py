@@ -33,11 +33,11 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ..run import series as series_io
-from ..run.output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
 from ..compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, across_datasets, dataset_group, format_coverage,
                       format_table, heading_offset_note, not_scored_recordings, sensors, shows_imu, summary_groups)
+from ..run import series as series_io
 from ..run.job import GENERIC_TRUTH, TRUTH_SYSTEMS
+from ..run.output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
 from ..scoring.metrics import KINDS
 from ..scoring.stats import Comparison, RunStatistics, dropped_text, run_statistics
 

@@ -55,8 +55,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from ..scoring.metrics import KINDS
 from ..run.series import events_of
+from ..scoring.metrics import KINDS
 
 INSTALL = "pip install 'fusion[viz]'"
 TIMELINE = "time"

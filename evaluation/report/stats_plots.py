@@ -11,8 +11,8 @@ from typing import Any, Mapping
 
 from matplotlib.figure import Figure
 
-from .plots import DPI, color
 from ..scoring.stats import Statistics
+from .plots import DPI, color
 
 
 def cd_figure(statistics: Statistics, title: str = "", colors: Mapping[str, Any] | None = None) -> Figure | None:

@@ -46,8 +46,8 @@ from fusion.estimators.search import Tunable, alias_of, search_space
 from fusion.selection import note, select_sources
 
 from ..run.job import Result
-from ..scoring.metrics import KINDS, MIN_COVERAGE
 from ..run.settings import RunSettings
+from ..scoring.metrics import KINDS, MIN_COVERAGE
 
 PathLike = str | os.PathLike
 

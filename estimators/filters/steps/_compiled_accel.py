@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+from ...kernels._compiled_quaternion import multiply_floats, normalize_floats, rotate_floats, rotation_floats
+from ...kernels._numba import forget_stale, mirrors, _jit
 from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BODY, DIST_HAS_LOWPASS, DIST_HAS_MEAN,
                      DIST_LAG_B, DIST_LAG_S, DIST_LOWPASS, DIST_LOWPASS_MEAN, DIST_LOWPASS_NORM, DIST_LOWPASS_VAR,
                      DIST_MEAN, DIST_STATE, DIST_VAR)
-from ...kernels._compiled_quaternion import multiply_floats, normalize_floats, rotate_floats, rotation_floats
-from ...kernels._numba import forget_stale, mirrors, _jit
 
 forget_stale(__file__)
 

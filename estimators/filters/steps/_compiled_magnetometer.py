@@ -14,9 +14,9 @@ import math
 from typing import Any, NamedTuple
 
 from ...kernels._compiled_quaternion import gravity_floats, rotate_floats
+from ...kernels._numba import forget_stale, mirrors
 from ._magnetometer import (HARD_IRON_A, HARD_IRON_B, HARD_IRON_W, HARD_IRON_YY, HEADING_GATE_CHI2, MAG_DIP,
                             MAG_HAS_REF, MAG_LEARNED, MAG_NORM, MAG_PSI, MAG_REJECTED, MAG_TIME_OK)
-from ...kernels._numba import forget_stale, mirrors
 
 forget_stale(__file__)
 

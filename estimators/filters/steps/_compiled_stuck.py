@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _stuck
 from ...kernels._numba import _jit, compiled, forget_stale
+from . import _stuck
 
 forget_stale(__file__)
 
