@@ -51,6 +51,8 @@ def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | N
         default = f.default if option.default == AS_FIELD else option.default
         kind = {"switch": dict(action="store_true"), "negated": dict(action="store_true"),
                 "on_off": dict(choices=("on", "off"), default="on" if default else "off"),
+                "auto_on_off": dict(choices=("auto", "on", "off"),
+                                    default="auto" if default is None else "on" if default else "off"),
                 "choices": dict(choices=option.choices, default=default),
                 "value": dict(type=_TYPES[option.type] if option.type else None, default=default)}[option.kind]
         parser.add_argument(option.flag, help=option.help, **kind,
@@ -66,6 +68,8 @@ def _setting(args: argparse.Namespace, f, option) -> object:
         return not value
     if option.kind == "on_off":
         return value == "on"
+    if option.kind == "auto_on_off":
+        return None if value == "auto" else value == "on"
     return value  # "value", "choices": as parsed
 
 

@@ -26,7 +26,7 @@ from .run.job import (  # noqa: F401  (the job layer, re-exported: `from fusion.
 )
 from .run.runner import run
 from .scoring.metrics import KINDS, MIN_COVERAGE
-from .scoring.stats import run_statistics, table_column
+from .scoring.stats import dataset_group, run_statistics, table_column  # noqa: F401  (dataset_group re-exported)
 
 
 def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Recording], init: str | None = None,
@@ -116,12 +116,6 @@ def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, A
 ALIGN_NOTE = ("aligned (--align, or a truth in frames of its own): truth mapped into our frames as A R_truth B, "
               "A = R_ourworld_truthworld and B = R_truthbody_imubody fitted once per recording from its gyro, "
               "accelerometer and truth, the same for every estimator")
-
-
-def dataset_group(dataset: str) -> str:
-    """The folder a recording id belongs to: "ece276a/3" -> "ece276a", "broad/06_..." -> "broad";
-    "other" for ids without one (`sim`, files at the top of the data directory)."""
-    return dataset.rsplit("/", 1)[0] if "/" in dataset else "other"
 
 
 def summary_groups(results: list[Result]) -> list[tuple[str | None, list[Result]]]:

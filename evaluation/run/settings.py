@@ -28,7 +28,7 @@ from ..scoring.metrics import KINDS, PROTOCOLS
 COMPUTED, WRITTEN, HOW = "computed", "written", "how"
 API_ONLY = "api-only"  # a field with no option of its own on the command line (see `Option`)
 AS_FIELD = "as the field"  # `Option.default`: the option's default is the field's
-OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off")
+OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off", "auto_on_off")
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,8 @@ class Option:
         `choices`: `--flag C`, one of `choices`;
         `switch`: `--flag` (argparse's store_true): True when given, else the field's default;
         `negated`: `--no-thing` (store_true): False when given, else True;
-        `on_off`: `--flag on|off`, the field's default shown as its default.
+        `on_off`: `--flag on|off`, the field's default shown as its default;
+        `auto_on_off`: `--flag auto|on|off`, None, True or False (auto: the field's default, None).
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
     commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
@@ -111,10 +112,11 @@ class RunSettings:
     dropouts: bool = _part(COMPUTED, datasets.DROPOUTS_DEFAULT, Option(
         "--dropouts", "mark detected gyro freezes and ADC-saturated samples invalid so that no estimator integrates "
         "them (default: on; off for ablations)", kind="on_off"))
-    mag: bool = _part(COMPUTED, True, Option(
-        "--mag", "use the magnetometer where a recording has one (9-D estimation: heading is observable; BROAD's "
+    mag: bool | None = _part(COMPUTED, None, Option(
+        "--mag", "on: use the magnetometer where a recording has one (9-D estimation: heading is observable; BROAD's "
         "protocol then scores the total error without removing a heading offset); off: 6-D, gyro and "
-        "accelerometer only (default: on)", kind="on_off"))
+        "accelerometer only; auto (default): on, unless the run mixes estimators that can and cannot use it: then "
+        "every row is 6-D, like for like (a note says so)", kind="auto_on_off"))
     imu_topic: str | None = _part(COMPUTED, None, Option(
         "--imu-topic", "ROS bags: the sensor_msgs/Imu topic to read (default: the bag's one Imu topic)",
         metavar="TOPIC"))

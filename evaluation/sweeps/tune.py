@@ -35,7 +35,7 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -176,8 +176,8 @@ def scores_per_dataset(tuning: EstimatorTuning) -> list[dict[str, Any]]:
     for rid in tuning.scores_tuned:
         folders.setdefault(dataset_group(rid), []).append(rid)
     return [{"dataset": folder, "recordings": len(ids),
-             "default_deg": _finite(_mean([tuning.scores_default[rid] for rid in ids])),
-             "tuned_deg": _finite(_mean([tuning.scores_tuned[rid] for rid in ids]))} for folder, ids in folders.items()]
+             "default_deg": _finite(_mean({rid: tuning.scores_default[rid] for rid in ids})),
+             "tuned_deg": _finite(_mean({rid: tuning.scores_tuned[rid] for rid in ids}))} for folder, ids in folders.items()]
 
 
 def _finite(x: float) -> float | None:
@@ -327,8 +327,12 @@ class Scores:
         return float(value) if math.isfinite(value) else math.inf
 
 
-def _mean(values: Sequence[float]) -> float:
-    return float(np.mean(values)) if values else math.nan
+def _mean(scores: Mapping[str, float]) -> float:
+    """The mean of recording id -> RMSE as every table takes it: across datasets the mean of the
+    per-dataset means (`fusion.evaluation.scoring.stats.mean_across_datasets`); inf if one is inf."""
+    from ..scoring.stats import mean_across_datasets
+
+    return mean_across_datasets(scores)
 
 
 def _search_grid(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids: list[str]) -> EstimatorTuning:
@@ -341,7 +345,7 @@ def _search_grid(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids
     table = {(k, rid): scores.score(rows[(label, rid)]) for k, label in enumerate(labels) for rid in ids}
 
     def best(train: Sequence[str]) -> int:  # the lowest mean; on a tie the earlier setting (the default first)
-        return int(np.argmin([_mean([table[(k, rid)] for rid in train]) for k in range(len(settings))]))
+        return int(np.argmin([_mean({rid: table[(k, rid)] for rid in train}) for k in range(len(settings))]))
 
     return _tuning(entry, settings, table, best(all_ids), {f.name: best(f.train) for f in folds}, folds, all_ids,
                    scores.settings.mag)
@@ -364,7 +368,7 @@ def _search_tpe(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids:
         label = resolve(spec).label
         for rid in ids:
             table[(k, rid)] = scores.score(rows[(label, rid)])
-        return _mean([table[(k, rid)] for rid in ids])
+        return _mean({rid: table[(k, rid)] for rid in ids})
 
     test_ids = [rid for f in folds for rid in f.test]
     scored({}, sorted(set(all_ids) | set(test_ids)))  # the default everywhere
@@ -384,11 +388,11 @@ def _tuning(entry: ResolvedSpec, settings: list[dict[str, float]], table: dict[t
     common setting's index and each fold's chosen index."""
     test_ids = [rid for f in folds for rid in f.test]
     tuned = {rid: table[(chosen[f.name], rid)] for f in folds for rid in f.test}
-    per_recording = [min(v for (_, r), v in table.items() if r == rid) for rid in all_ids]
+    per_recording = {rid: min(v for (_, r), v in table.items() if r == rid) for rid in all_ids}
     return EstimatorTuning(
-        estimator=entry.label, space=tunable_space(entry, mag), default=_mean([table[(0, rid)] for rid in test_ids]),
-        common_setting=settings[common], common=_mean([table[(common, rid)] for rid in all_ids]),
-        per_recording=_mean(per_recording), out_of_sample=_mean(list(tuned.values())),
+        estimator=entry.label, space=tunable_space(entry, mag), default=_mean({rid: table[(0, rid)] for rid in test_ids}),
+        common_setting=settings[common], common=_mean({rid: table[(common, rid)] for rid in all_ids}),
+        per_recording=_mean(per_recording), out_of_sample=_mean(tuned),
         chosen={name: settings[k] for name, k in chosen.items()},
         scores_default={rid: table[(0, rid)] for rid in test_ids}, scores_tuned=tuned, evaluated=len(settings))
 
