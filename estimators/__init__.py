@@ -23,6 +23,13 @@ from .filters.ekf import EKF
 from .filters.ukf import UKF, UKFBias
 from .params import EstimatorSpec, make_params, parse_specs
 from .peers.ahrs_filters import AhrsEKFPeer, MadgwickPeer, MahonyPeer
+from .peers.ahrs_recursive import (
+    AhrsUKFPeer, AngularRatePeer, AQUAPeer, ComplementaryPeer, FKFPeer, FouratiPeer, ROLEQPeer,
+)
+from .peers.ahrs_single import (
+    DavenportPeer, FAMCPeer, FLAEPeer, FQAPeer, OLEQPeer, QUESTPeer, SAAMPeer, TiltPeer, TRIADPeer,
+)
+from .peers.qmt_filters import OriEstIMUPeer, QmtMadgwickPeer, QmtMahonyPeer
 from .peers.vqf_fusion import (  # optional libraries, imported when built: pip install -e '.[peers]'
     BasicVQFPeer, FusionPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
 )
@@ -43,6 +50,25 @@ ESTIMATORS: dict[str, type[Estimator]] = {
     "mahony": MahonyPeer,
     "ahrs-ekf": AhrsEKFPeer,
     "fusion-ahrs": FusionPeer,
+    "aqua": AQUAPeer,
+    "complementary": ComplementaryPeer,
+    "fkf": FKFPeer,
+    "fourati": FouratiPeer,
+    "roleq": ROLEQPeer,
+    "ahrs-ukf": AhrsUKFPeer,
+    "ahrs-angular": AngularRatePeer,
+    "qmt-oriestimu": OriEstIMUPeer,
+    "qmt-madgwick": QmtMadgwickPeer,
+    "qmt-mahony": QmtMahonyPeer,
+    "davenport": DavenportPeer,
+    "quest": QUESTPeer,
+    "oleq": OLEQPeer,
+    "flae": FLAEPeer,
+    "fqa": FQAPeer,
+    "saam": SAAMPeer,
+    "triad": TRIADPeer,
+    "famc": FAMCPeer,
+    "tilt": TiltPeer,
 }
 
 
