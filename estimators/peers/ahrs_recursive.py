@@ -171,8 +171,9 @@ class AQUAParams:
 
 
 class AQUAPeer(_AhrsRecursive):
-    """AQUA, the algebraic quaternion filter (Valenti et al. 2015), `ahrs.filters.AQUA.updateIMU`
-    (6-D) and `updateMARG` (9-D, NWU turned to ENU)."""
+    """AQUA, the algebraic quaternion filter (Valenti et al. 2015), from the `ahrs` package.
+
+    `ahrs.filters.AQUA.updateIMU` (6-D) and `updateMARG` (9-D, NWU turned to ENU)."""
 
     Params = AQUAParams
     _name = "aqua"
@@ -222,8 +223,9 @@ def _fill_forward(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 class ComplementaryPeer(_AhrsRecursive):
-    """The complementary filter of roll, pitch (and, in 9-D, yaw) angles, `ahrs.filters.Complementary`
-    (batch only; one constant sample time)."""
+    """A complementary filter of roll, pitch and yaw angles, from the `ahrs` package.
+
+    `ahrs.filters.Complementary` (batch only; one constant sample time; 6-D: roll and pitch)."""
 
     Params = ComplementaryParams
     _name = "complementary"
@@ -283,9 +285,11 @@ class FKFParams:
 
 
 class FKFPeer(_AhrsRecursive):
-    """FKF, the fast Kalman filter (Guo et al. 2017): the quaternion from accelerometer and
-    magnetometer in closed form as the measurement of a linear Kalman filter, `ahrs.filters.FKF`
-    (9-D; 6-D with a virtual field: module docstring). NWU, turned to ENU."""
+    """FKF, the fast linear Kalman filter (Guo et al. 2017), from the `ahrs` package.
+
+    The quaternion from accelerometer and magnetometer in closed form as the measurement of a
+    linear Kalman filter, `ahrs.filters.FKF` (9-D; 6-D with a virtual field: module docstring).
+    NWU, turned to ENU."""
 
     Params = FKFParams
     _name = "fkf"
@@ -333,8 +337,9 @@ class FouratiParams:
 
 
 class FouratiPeer(_AhrsRecursive):
-    """Fourati's nonlinear complementary filter (Fourati et al. 2011), `ahrs.filters.Fourati.update`
-    (9-D; 6-D with a virtual field: module docstring). ENU."""
+    """Fourati's nonlinear complementary filter (Fourati et al. 2011), from the `ahrs` package.
+
+    `ahrs.filters.Fourati.update` (9-D; 6-D with a virtual field: module docstring). ENU."""
 
     Params = FouratiParams
     _name = "fourati"
@@ -375,9 +380,10 @@ class ROLEQParams:
 
 
 class ROLEQPeer(_AhrsRecursive):
-    """ROLEQ, the recursive optimal linear estimator of the quaternion (Zhou et al. 2018): the gyro
-    step, then one step of OLEQ's power iteration, `ahrs.filters.ROLEQ` (9-D; 6-D with a virtual
-    field: module docstring). ENU."""
+    """ROLEQ, the recursive OLEQ (Zhou et al. 2018), from the `ahrs` package.
+
+    The gyro step, then one step of OLEQ's power iteration, `ahrs.filters.ROLEQ` (9-D; 6-D with a
+    virtual field: module docstring). ENU."""
 
     Params = ROLEQParams
     _name = "roleq"
@@ -429,8 +435,10 @@ class AhrsUKFParams:
 
 
 class AhrsUKFPeer(_AhrsRecursive):
-    """The `ahrs` package's quaternion UKF, `ahrs.filters.UKF.update` (6-D, or 9-D with its
-    magnetic reference set to the recording's field in ENU). ENU."""
+    """A quaternion UKF, from the `ahrs` package.
+
+    `ahrs.filters.UKF.update` (6-D, or 9-D with its magnetic reference set to the recording's field
+    in ENU). ENU."""
 
     Params = AhrsUKFParams
     _name = "ahrs-ukf"
@@ -475,7 +483,9 @@ class AngularRateParams:
 
 
 class AngularRatePeer(_AhrsRecursive):
-    """The gyro's integration alone, `ahrs.filters.AngularRate.update` (6-D; no correction)."""
+    """The gyro's integration alone (no correction), from the `ahrs` package.
+
+    `ahrs.filters.AngularRate.update`."""
 
     Params = AngularRateParams
     magnetometer = False

@@ -37,8 +37,8 @@ with the accelerometer (the angle between the two is the same in body and world)
 returns the accelerometer's inclination and the body x axis's zero heading, as Tilt does, whatever
 its weights, to the method's own accuracy at such a site. (With a horizontal virtual field, dip 0,
 FLAE's closed form fails on 70 % of random orientations; with 60 deg it works as in 9-D.)
-In 6-D the estimate is then turned once about the vertical so that its heading at the first sample
-equals the initial orientation's (`align_heading`), as offlineVQF's is; in 9-D the magnetometer
+In 6-D the estimate is then turned once about the vertical so that its heading at the first usable
+sample after the seed equals the initial orientation's (`align_heading`), as offlineVQF's is; in 9-D the magnetometer
 sets the heading.
 
 Rows: row 0 is the initial orientation, as for every causal estimator here; row k >= 1 is the
@@ -151,6 +151,7 @@ class SingleSampleEstimator(Estimator):
             mag = np.where(imu.mag_valid[:, None], imu.mag_ut, 0.0)
             usable &= np.any(mag != 0.0, axis=1)
             dip = measured_dip_deg(imu)
+        usable[0] = False  # row 0 is the seed: the method runs on samples 1.. (OLEQ's random draws start there)
         est = np.full((n, 4), np.nan)
         if np.any(usable):
             if imu.has_mag:
@@ -206,8 +207,9 @@ class DavenportParams:
 
 
 class DavenportPeer(SingleSampleEstimator):
-    """Davenport's q method (Davenport 1968): the eigenvector of the largest eigenvalue of K, per
-    sample, `ahrs.filters.Davenport` (single-sample)."""
+    """Davenport's q method (Davenport 1968), from the `ahrs` package.
+
+    The eigenvector of the largest eigenvalue of K, per sample, `ahrs.filters.Davenport`."""
 
     Params = DavenportParams
     _name = "davenport"
@@ -238,8 +240,10 @@ class QUESTParams:
 
 
 class QUESTPeer(SingleSampleEstimator):
-    """QUEST (Shuster & Oh 1981): Davenport's eigenvalue by Newton's method on the characteristic
-    polynomial, per sample, `ahrs.filters.QUEST` (single-sample)."""
+    """QUEST (Shuster & Oh 1981), from the `ahrs` package.
+
+    Davenport's eigenvalue by Newton's method on the characteristic polynomial, per sample,
+    `ahrs.filters.QUEST` (its singularity at rotations of 180 deg is not avoided)."""
 
     Params = QUESTParams
     _name = "quest"
@@ -271,8 +275,9 @@ class OLEQParams:
 
 
 class OLEQPeer(SingleSampleEstimator):
-    """OLEQ, the optimal linear estimator of the quaternion (Zhou et al. 2018): a power iteration per
-    sample, `ahrs.filters.OLEQ` (single-sample; at most 21 steps from a random start)."""
+    """OLEQ, the optimal linear estimator of the quaternion (Zhou et al. 2018), from the `ahrs` package.
+
+    A power iteration per sample, `ahrs.filters.OLEQ` (at most 21 steps from a random start)."""
 
     Params = OLEQParams
     _name = "oleq"
@@ -312,8 +317,9 @@ class FLAEParams:
 
 
 class FLAEPeer(SingleSampleEstimator):
-    """FLAE, the fast linear attitude estimator (Wu et al. 2018), per sample, `ahrs.filters.FLAE`
-    (single-sample)."""
+    """FLAE, the fast linear attitude estimator (Wu et al. 2018), from the `ahrs` package.
+
+    Per sample, `ahrs.filters.FLAE`."""
 
     Params = FLAEParams
     _name = "flae"
@@ -334,8 +340,10 @@ class NoTunedParams:
 
 
 class FQAPeer(SingleSampleEstimator):
-    """FQA, the factored quaternion algorithm (Yun et al. 2008): elevation, roll and azimuth
-    quaternions, per sample, `ahrs.filters.FQA` (single-sample; accelerometer-only in 6-D)."""
+    """FQA, the factored quaternion algorithm (Yun et al. 2008), from the `ahrs` package.
+
+    Elevation, roll and azimuth quaternions, per sample, `ahrs.filters.FQA` (its accelerometer-only
+    mode in 6-D)."""
 
     Params = NoTunedParams
     _name = "fqa"
@@ -349,8 +357,9 @@ class FQAPeer(SingleSampleEstimator):
 
 
 class SAAMPeer(SingleSampleEstimator):
-    """SAAM, the super-fast attitude from accelerometer and magnetometer (Wu et al. 2018), closed
-    form, per sample, `ahrs.filters.SAAM` (single-sample)."""
+    """SAAM, the super-fast attitude from accelerometer and magnetometer (Wu et al. 2018), from `ahrs`.
+
+    Closed form, per sample, `ahrs.filters.SAAM`."""
 
     Params = NoTunedParams
     _name = "saam"
@@ -360,8 +369,9 @@ class SAAMPeer(SingleSampleEstimator):
 
 
 class FAMCPeer(SingleSampleEstimator):
-    """FAMC, the fast accelerometer-magnetometer combination (Liu et al. 2018), closed form, per
-    sample, `ahrs.filters.FAMC` (single-sample)."""
+    """FAMC, the fast accelerometer-magnetometer combination (Liu et al. 2018), from `ahrs`.
+
+    Closed form, per sample, `ahrs.filters.FAMC`."""
 
     Params = NoTunedParams
     _name = "famc"
@@ -371,8 +381,9 @@ class FAMCPeer(SingleSampleEstimator):
 
 
 class TRIADPeer(SingleSampleEstimator):
-    """TRIAD (Black 1964): two orthonormal triads, the accelerometer's direction exact, per sample,
-    `ahrs.filters.TRIAD` (single-sample)."""
+    """TRIAD (Black 1964), from the `ahrs` package.
+
+    Two orthonormal triads, the accelerometer's direction exact, per sample, `ahrs.filters.TRIAD`."""
 
     Params = NoTunedParams
     _name = "triad"
@@ -385,8 +396,9 @@ class TRIADPeer(SingleSampleEstimator):
 
 
 class TiltPeer(SingleSampleEstimator):
-    """The accelerometer's roll and pitch with a tilt-compensated compass heading, per sample,
-    `ahrs.filters.Tilt` (single-sample; accelerometer-only in 6-D)."""
+    """The accelerometer's tilt with a tilt-compensated compass heading, from the `ahrs` package.
+
+    Roll and pitch per sample, `ahrs.filters.Tilt` (without the compass in 6-D)."""
 
     Params = NoTunedParams
     _name = "tilt"

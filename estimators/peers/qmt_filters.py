@@ -122,8 +122,9 @@ class OriEstIMUParams:
 
 
 class OriEstIMUPeer(Estimator):
-    """qmt's oriEstIMU (Seel & Ruppin 2017; 6-D, or 9-D with its magnetic-disturbance-robust heading
-    correction), from the `qmt` package (C++, double precision)."""
+    """oriEstIMU (Seel & Ruppin 2017), from the `qmt` package.
+
+    6-D, or 9-D with its magnetic-disturbance-robust heading correction (C++, double precision)."""
 
     Params = OriEstIMUParams
     magnetometer = True
@@ -165,8 +166,9 @@ class QmtMadgwickParams:
 
 
 class QmtMadgwickPeer(Estimator):
-    """Madgwick's filter (Madgwick 2010) in Madgwick's C code (single precision), from the `qmt`
-    package (`oriEstMadgwick`; 6-D, or 9-D in ENU)."""
+    """Madgwick's filter in Madgwick's C code (single precision), from the `qmt` package.
+
+    `qmt.oriEstMadgwick` (Madgwick 2010; 6-D, or 9-D in ENU)."""
 
     Params = QmtMadgwickParams
     magnetometer = True
@@ -226,8 +228,9 @@ class QmtMahonyParams:
 
 
 class QmtMahonyPeer(Estimator):
-    """Mahony's filter (Mahony et al. 2008) in Madgwick's C code (single precision), from the `qmt`
-    package (`oriEstMahony`; 6-D, or 9-D in ENU); zero initial bias."""
+    """Mahony's filter in Madgwick's C code (single precision), from the `qmt` package.
+
+    `qmt.oriEstMahony` (Mahony et al. 2008; 6-D, or 9-D in ENU); zero initial bias."""
 
     Params = QmtMahonyParams
     magnetometer = True
