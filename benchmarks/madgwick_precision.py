@@ -9,6 +9,8 @@ Rows (each the mean over the trials of the total RMSE, deg, and the step from th
 
 - `madgwick:beta=0.12`: the `ahrs` package's update in double precision (through our adapter, as the
   README's table; real per-sample dt; its gradient is J^T f, Madgwick 2010, eqs. 25-26, 31-34).
+- `C, double, eq. 31's 2b`: Madgwick's C update in double precision with the field reference's
+  factor 2 of the report's eq. 31 restored (`make_filter`'s b_scale): the published algorithm.
 - `C, double`: Madgwick's C update (the 2012 release's `MadgwickAHRSupdate`/`updateIMU`, its
   gradient multiplied out) in double precision, one constant sample time (1 / sampleFreq).
 - `C, float32, exact 1/sqrt`: the same in single precision with an exact inverse square root,
@@ -42,10 +44,14 @@ from fusion import quaternion as quat  # noqa: E402
 from fusion.types import Trajectory  # noqa: E402
 
 
-def make_filter(dtype, fast: bool):
+def make_filter(dtype, fast: bool, b_scale: float = 1.0):
     """A numba function running Madgwick's C update over a recording in `dtype` arithmetic (float32
-    or float64), with the fast inverse square root when `fast` (float32 only)."""
+    or float64), with the fast inverse square root when `fast` (float32 only). b_scale: the factor on
+    the C code's `_2bx`, `_2bz`: 1 as in the C code, whose `_2bx = sqrt(hx^2 + hy^2)` is b_x itself
+    (eq. 46), not 2 b_x as its name and its use in the objective (eq. 31's 2 b_x terms) say, so that
+    its predicted field has half the measured one's length; 2 restores eq. 31."""
     F = dtype
+    scale = F(b_scale)
     half, one, two, four, eight, onehalf = F(0.5), F(1.0), F(2.0), F(4.0), F(8.0), F(1.5)
     magic = np.int32(0x5F3759DF)
 
@@ -109,8 +115,9 @@ def make_filter(dtype, fast: bool):
             # the earth's field in the world frame, its reference b (eqs. 45-46)
             hx = mx * q0q0 - _2q0my * q3 + _2q0mz * q2 + mx * q1q1 + _2q1 * my * q2 + _2q1 * mz * q3 - mx * q2q2 - mx * q3q3
             hy = _2q0mx * q3 + my * q0q0 - _2q0mz * q1 + _2q1mx * q2 - my * q1q1 + my * q2q2 + _2q2 * mz * q3 - my * q3q3
-            _2bx = np.sqrt(hx * hx + hy * hy)
-            _2bz = -_2q0mx * q2 + _2q0my * q1 + mz * q0q0 + _2q1mx * q3 - mz * q1q1 + _2q2 * my * q3 - mz * q2q2 + mz * q3q3
+            _2bx = scale * np.sqrt(hx * hx + hy * hy)
+            _2bz = scale * (-_2q0mx * q2 + _2q0my * q1 + mz * q0q0 + _2q1mx * q3 - mz * q1q1 + _2q2 * my * q3 - mz * q2q2
+                            + mz * q3q3)
             _4bx, _4bz = two * _2bx, two * _2bz
             # gradient J^T f (eqs. 31-32, 34), multiplied out as in the C code
             fa1 = two * q1q3 - _2q0q2 - ax
@@ -151,7 +158,7 @@ def make_filter(dtype, fast: bool):
     return run
 
 
-VARIANTS = {"C, double": make_filter(np.float64, False), "C, float32, exact 1/sqrt": make_filter(np.float32, False),
+VARIANTS = {"C, double, eq. 31's 2b": make_filter(np.float64, False, 2.0), "C, double": make_filter(np.float64, False), "C, float32, exact 1/sqrt": make_filter(np.float32, False),
             "C, float32, fast 1/sqrt": make_filter(np.float32, True)}
 
 
