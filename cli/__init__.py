@@ -200,10 +200,18 @@ def cmd_list(args: argparse.Namespace) -> int:
 
         print(describe(args.name))
         return 0
+    from fusion.estimators import GROUPS
+
     rows = available()
-    width = max(len(name) for name, _, _ in rows)
-    for name, what, origin in rows:
-        print(f"{name:<{width}}  {what}" + ("" if origin == "fusion" else f"  [{origin}]"))
+    width = max(len(row.name) for row in rows)
+    for group, meaning in GROUPS.items():
+        members = [row for row in rows if row.group == group]
+        if members:
+            print(f"{group} ({meaning}):")
+        for row in members:
+            imu = "6-D/9-D" if row.nine_d else "6-D"
+            print(f"  {row.name:<{width}}  {imu:<7}  {row.what}" + ("" if row.origin == "fusion" else f"  [{row.origin}]"))
+    print("6-D/9-D: fuses the magnetometer where a recording has one; 6-D: gyro and accelerometer only")
     print("\nyour own: FILE.py:NAME or package.module:NAME, with parameters as for ours, e.g. "
           "./my_ukf.py:MyUKF:R=1e-3 (README, 'Your estimator in the table')")
     print("an estimator's parameters, with their units, defaults and search ranges: fusion list NAME")
