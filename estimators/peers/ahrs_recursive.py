@@ -12,7 +12,7 @@ library's own pairing (its batch loops pair gyro t with accelerometer t). Inputs
 library documents: gyro rad/s, accelerometer m/s^2, magnetometer mT (each filter normalises them).
 
 Frames, found by running each on simulated motion in an ENU world and checked by
-`tests/test_ahrs_peers.py`: AQUA's quaternion is the *inverse* of `R_world_body` (Valenti et al.'s
+`tests/test_more_peers.py`: AQUA's quaternion is the *inverse* of `R_world_body` (Valenti et al.'s
 L_G q, the global frame in the local one), its 9-D world x north (NWU); FKF's world is NWU
 (its start, `ecompass(frame="NED")`, is `R_world_body` in NWU, whatever the name); the
 complementary filter's angles are roll, pitch, yaw (ZYX) of `R_world_body` in NWU; Fourati's filter,
