@@ -10,7 +10,7 @@ recording, with the accelerometer in m/s^2 and the magnetometer in mT, the units
 names (Davenport's weights act on the raw vectors: with the defaults the accelerometer's term, some
 96 (m/s^2)^2, outweighs the field's 0.05 mT, and the field sets the heading only; every other method
 normalises both). The frames, found by feeding each exact readings of random orientations (an ENU
-world, a field dipping 67 deg) and checked by `tests/test_ahrs_peers.py`: Tilt, FAMC, Davenport's q
+world, a field dipping 67 deg) and checked by `tests/test_more_peers.py`: Tilt, FAMC, Davenport's q
 method, QUEST and FLAE return `R_world_body` in a z-up world with x north (NWU), SAAM its inverse
 in NWU, TRIAD the inverse in our ENU (given the references below), OLEQ `R_world_body` in ENU
 (`frame="ENU"`), FQA `R_world_body` in NED; the adapter turns each into ENU (x east, y north, z up),
