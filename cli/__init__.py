@@ -159,7 +159,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         run = run_tune(args.estimators, args.dataset, train=args.train, test=args.test, by=args.by,
                        metric=args.metric, search=args.search, budget=args.budget, seed=args.seed,
                        data_dir=args.data_dir, calibration=args.calibration, init=args.init, protocol=args.protocol,
-                       dropouts=args.dropouts == "on", mag=args.mag == "on", align=args.align, out=args.out,
+                       dropouts=args.dropouts == "on", mag=None if args.mag == "auto" else args.mag == "on",
+                       align=args.align, out=args.out,
                        json_path=args.json,
                        overwrite=args.overwrite, command=_command(args), **how)
     print(run.table)

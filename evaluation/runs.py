@@ -38,7 +38,7 @@ from .run.job import JobOutput, Result
 from .run.journal import Journal, fingerprint, job_key
 from .run.output import OutputFolder
 from .run.runner import run, source_paths
-from .run.settings import COMPUTED, WRITTEN, RunSettings
+from .run.settings import COMPUTED, WRITTEN, RunSettings, resolve_mag
 from .sweeps import ablate
 
 PathLike = str | os.PathLike
@@ -171,36 +171,6 @@ JOURNALLED = tuple(f for f in RunSettings.part(COMPUTED) + RunSettings.part(WRIT
                    if f not in ("data_dir", "calibration", "out", "json_path", "command"))
 
 
-def like_for_like(s: RunSettings, entries: Sequence[ResolvedSpec], sources: Sequence[Any]) -> RunSettings:
-    """The run's settings with `--mag auto` (None, the default) resolved: on where every estimator can
-    use a magnetometer; when the run mixes estimators that can and cannot (`Estimator.magnetometer`;
-    trajectory files, whose rows say it themselves, aside) and a selected recording holds one, off,
-    so that every row is 6-D and every ranked group and paired test compares like with like (a note
-    says so, and how to get 9-D rows). `--mag on` keeps the mix: the table's imu column marks the
-    6-D rows, and the statistics compare 6-D and 9-D rows apart."""
-    if s.mag is not None:
-        return s
-    able = [e.label for e in entries if not e.cls.partial and e.cls.magnetometer]
-    blind = [e.label for e in entries if not e.cls.partial and not e.cls.magnetometer]
-    if able and blind and any(_holds_magnetometer(source) for source in sources):
-        note(f"{', '.join(blind)} cannot use a magnetometer: every row is 6-D, so that they all compare like for like "
-             f"(--mag on gives 9-D rows for {', '.join(able)}, ranked apart from the 6-D ones)")
-        return replace(s, mag=False)
-    return replace(s, mag=True)
-
-
-def _holds_magnetometer(source: Any) -> bool:
-    """Whether a recording holds a magnetometer, as its format says from its file (not loaded)."""
-    from fusion.formats import FORMATS
-
-    if not isinstance(source, datasets.Source):
-        return bool(getattr(source.imu, "has_mag", False))
-    try:
-        return FORMATS[source.kind].holds(source).magnetometer
-    except (ValueError, OSError, KeyError):  # a file that cannot be read says so when it is loaded
-        return False
-
-
 def _journal_call(kind: dict[str, Any], settings: RunSettings) -> dict[str, Any]:
     """The call a run's journal records: what kind of run (and its estimators or grid), and the
     journalled settings."""
@@ -214,7 +184,7 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
     if s.resume and not s.out:
         raise ValueError("--resume needs the output folder of the run to continue")
     sources = select_sources(s.dataset, s.data_dir, s.calibration)
-    s = like_for_like(s, entries, sources)
+    s = replace(s, mag=resolve_mag(s.mag, entries, sources))
     files = [e for e in entries if e.cls.partial and not Path(e.params.path).is_dir()]
     if files and len(sources) != 1:
         raise ValueError(f"--trajectory {files[0].label}={files[0].params.path}: a file is one recording's "

@@ -212,3 +212,37 @@ class RunSettings:
     def resolved_data_dir(self) -> Path:
         """The data folder this run reads (`fusion.datasets.data_dir_from`)."""
         return datasets.data_dir_from(self.data_dir)
+
+
+def resolve_mag(mag: bool | None, entries: Any, sources: Any) -> bool:
+    """`--mag` for a run of `entries` (resolved specs) on `sources` (dataset `Source`s or loaded
+    recordings): as given when on or off; auto (None, the default) on where every estimator can use
+    a magnetometer, and off when the run mixes estimators that can and cannot (`Estimator.magnetometer`;
+    trajectory files, whose rows say it themselves, aside) and a selected recording holds one, so that
+    every row is 6-D and every ranked group and paired test compares like with like (a note says so,
+    and how to get 9-D rows). `--mag on` keeps the mix: the table's imu column marks the 6-D rows, and
+    the statistics compare 6-D and 9-D rows apart."""
+    if mag is not None:
+        return mag
+    able = [e.label for e in entries if not e.cls.partial and e.cls.magnetometer]
+    blind = [e.label for e in entries if not e.cls.partial and not e.cls.magnetometer]
+    if able and blind and any(holds_magnetometer(source) for source in sources):
+        from fusion.selection import note
+
+        note(f"{', '.join(blind)} cannot use a magnetometer: every row is 6-D, so that they all compare like for like "
+             f"(--mag on gives 9-D rows for {', '.join(able)}, ranked apart from the 6-D ones)")
+        return False
+    return True
+
+
+def holds_magnetometer(source: Any) -> bool:
+    """Whether a recording holds a magnetometer, as its format says from its file (not loaded); a
+    loaded `Recording`'s samples say it themselves."""
+    from fusion.formats import FORMATS
+
+    if not isinstance(source, datasets.Source):
+        return bool(getattr(source.imu, "has_mag", False))
+    try:
+        return FORMATS[source.kind].holds(source).magnetometer
+    except (ValueError, OSError, KeyError):  # a file that cannot be read says so when it is loaded
+        return False

@@ -88,7 +88,7 @@ class TuneSettings:
     init: str | None = None
     protocol: str | None = None
     dropouts: bool = datasets.DROPOUTS_DEFAULT
-    mag: bool = True
+    mag: bool | None = None  # None: auto, as `fusion compare` (`fusion.evaluation.run.settings.resolve_mag`)
     align: bool = False
     # how it runs: not journalled
     jobs: int | None = field(default=1, metadata={"how": True})
@@ -482,6 +482,7 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
         sources = list({s.id: s for s in train + test}.values())
     else:
         sources = select_sources(config.dataset, config.data_dir, config.calibration)
+    config = _sensors(config, entries, sources)
     if not out:
         scores = Scores(sources, config)
         folds, all_ids = _folds(config, entries, scores, split)
@@ -504,6 +505,23 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
             return _finish(config, entries, scores, tunings, folds, command, json_path, (folder, journal))
         finally:
             journal.close()
+
+
+def _sensors(config: TuneSettings, entries: list[ResolvedSpec], sources: Sequence[Any]) -> TuneSettings:
+    """The tuning's magnetometer switch: `--mag auto` resolved as `fusion compare` does (like for like,
+    `resolve_mag`), and off, with a note naming the parameters left out of the search, when no selected
+    recording holds a magnetometer: a search over what the data cannot exercise chooses nothing."""
+    from ..run.settings import holds_magnetometer, resolve_mag
+
+    mag = resolve_mag(config.mag, entries, sources)
+    if mag and not any(holds_magnetometer(s) for s in sources):
+        unused = [f"{e.label}: {', '.join(a for a in tunable_space(e, True) if a not in tunable_space(e, False))}"
+                  for e in entries if not e.cls.partial and len(tunable_space(e, True)) > len(tunable_space(e, False))]
+        if unused:
+            note("tune: the recordings hold no magnetometer: its parameters are left out of the search ("
+                 + "; ".join(unused) + ")")
+        mag = False
+    return replace(config, mag=mag)
 
 
 def _folds(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores,
@@ -574,9 +592,41 @@ def _setting_text(setting: dict[str, float]) -> str:
     return ",".join(f"{k}={v:g}" for k, v in setting.items()) or "default"
 
 
+def tuned_statistics(tunings: Sequence[dict[str, Any]], metric: str) -> tuple[Any, dict[str, str], str]:
+    """The statistics of the tuned rows (`EstimatorTuning.to_json`'s, each estimator's out-of-sample
+    scores per test recording), as a comparison's table shows them
+    (`fusion.evaluation.scoring.stats.paired_statistics`): the statistics (None with too few
+    recordings), per estimator the cells "[lo, hi]*  W/T/L  Holm p", and the note under the table."""
+    from ..scoring.stats import no_statistics_reason, paired_statistics
+
+    scores = {t["estimator"]: dict(t["scores_tuned_deg"]) for t in tunings}
+    stats = paired_statistics(scores, metric=metric) if len(scores) >= 2 else None
+    cells = {}
+    for label in scores:
+        row = stats.row(label) if stats is not None else None
+        if row is None:
+            cells[label] = f"{'':>17}  {'':>8}  {'':>7}"
+            continue
+        ci = f"[{row.ci_low:.2f}, {row.ci_high:.2f}]" if row.ci_low is not None else "[-, -]"
+        p, wtl = ("best", "-") if row.p_holm is None else (f"{row.p_holm:.3f}", f"{row.wins}/{row.ties}/{row.losses}")
+        cells[label] = f"{ci:>16}{'*' if row.not_worse else ' '}  {wtl:>8}  {p:>7}"
+    if len(scores) < 2:
+        note = "one estimator: its tuned row is compared with nothing"
+    elif stats is None:
+        note = f"no statistics: {no_statistics_reason(scores)}"
+    else:
+        friedman = f"; Friedman p = {stats.friedman_p:.2g}" if stats.friedman_p is not None else ""
+        note = (f"{metric} 95% CI: {stats.ci_method} bootstrap interval of the tuned row's mean over the "
+                f"{len(stats.recordings)} test recordings every row scored; W/T/L and Holm p: paired against the best "
+                f"tuned row ({stats.best}; Wilcoxon signed-rank, Holm-corrected); *: not significantly worse than it"
+                f"{friedman}")
+    return stats, cells, note
+
+
 def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, folds: Sequence[Fold]) -> str:
     """The table `fusion tune` prints: per estimator, its default, best common setting and
-    per-recording best (both in sample), and the out-of-sample figure, in degrees."""
+    per-recording best (both in sample), and the out-of-sample figure, in degrees, with the tuned
+    rows' statistics (`tuned_statistics`: interval, wins/ties/losses and Holm p against the best)."""
     how = (f"chosen on {config.train}, scored on {config.test}" if config.train is not None
            else f"leave one {config.by} out, {len(folds)} folds")
     search = ("the grid preset" if config.search == "grid"
@@ -584,15 +634,17 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     width = max([len(t.estimator) for t in tunings] + [9])
     aligned = ("; against the truth aligned per recording (--align: constant world and body rotations fitted from "
                "the gyro, accelerometer and truth)" if config.align else "")
+    _, cells, note = tuned_statistics([t.to_json() for t in tunings], config.metric)
     lines = [f"{config.metric} RMSE (deg), mean over the test recordings; {how}; search: {search}{aligned}",
              f"{'estimator':<{width}}  {'default':>8}  {'common*':>8}  {'per-rec*':>8}  {'tuned':>8}  "
-             f"{'settings':>8}  common setting"]
+             f"{'95% CI (tuned)':>17}  {'W/T/L':>8}  {'Holm p':>7}  {'settings':>8}  common setting"]
     for t in tunings:
         lines.append(f"{t.estimator:<{width}}  {t.default:8.2f}  {t.common:8.2f}  {t.per_recording:8.2f}  "
-                     f"{t.out_of_sample:8.2f}  {t.evaluated:8d}  {_setting_text(t.common_setting)}")
+                     f"{t.out_of_sample:8.2f}  {cells[t.estimator]}  {t.evaluated:8d}  {_setting_text(t.common_setting)}")
     lines.append("* in sample (chosen and judged on the recordings tuned on): the best common setting over them, "
                  "and each one's own best (an upper bound); default, tuned: over the test recordings, tuned out of "
                  "sample (each scored with the setting chosen without it)")
+    lines.append(note)
     return "\n".join(lines + _per_dataset_lines(tunings, folds, width))
 
 
