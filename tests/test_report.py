@@ -337,9 +337,12 @@ window.addEventListener('load', function () {
       return Array.prototype.map.call(r.cells, function (c) { return c.innerText.trim(); });
     });
   });
+  var rights = {};
+  document.querySelectorAll('table').forEach(function (t) { rights[t.id] = t.getBoundingClientRect().right; });
   var pre = document.createElement('pre');
   pre.id = 'check-result';
-  pre.textContent = JSON.stringify({imgs: imgs, tables: tables});
+  pre.textContent = JSON.stringify({imgs: imgs, tables: tables, rights: rights, inner: window.innerWidth,
+                                    scroll: document.documentElement.scrollWidth});
   document.body.appendChild(pre);
 });
 </script>"""
@@ -398,6 +401,30 @@ def test_report_html_in_headless_chromium(run_dir, tmp_path):
     assert shot.is_file(), proc.stderr[-2000:]
     spread, colours = _png_stats(shot)
     assert spread > 0.05 and colours > 50
+
+
+def test_long_ids_fit_a_1400_px_window(toy, tmp_path):
+    """Recordings with long ids (RepoIMU's) and long estimator labels: at 1400 px the results table
+    fits the window (its ids wrap), with its last column, us/sample, in view; nothing scrolls sideways."""
+    exe = _chromium()
+    data = write_csv_dataset(tmp_path / "data")
+    deep = tmp_path / "data" / "repoimu_like" / "Pendulum_Long_Folder_Name"
+    deep.mkdir(parents=True)
+    for k, csv in enumerate(sorted((tmp_path / "data" / "lab").glob("*.csv"))):
+        shutil.move(csv, deep / f"Pendulum_Test03_Trial{k + 1}_Segment_{k + 1}_with_a_long_suffix.csv")
+    out = tmp_path / "run"
+    assert main(["compare", "--estimators", "dr,ukf:R=0.001,Q=0.0001", "--data-dir", str(data), "--out", str(out),
+                 "--jobs", "1", "--no-progress"]) == 0
+    checked = out / "check.html"
+    checked.write_text((out / "report.html").read_text().replace("</body>", CHECK_SCRIPT + "</body>"))
+    proc = _chromium_run(exe, tmp_path / "profile", "--window-size=1400,1000", "--virtual-time-budget=10000",
+                         "--dump-dom", checked.as_uri())
+    match = re.search(r'<pre id="check-result">(.*?)</pre>', proc.stdout, re.S)
+    assert match, proc.stderr[-2000:]
+    found = json.loads(html.unescape(match.group(1)))
+    assert found["inner"] == 1400 and found["scroll"] <= found["inner"], found
+    assert found["rights"]["results"] <= found["inner"]
+    assert found["tables"]["results"][0][-1] in ("us/sample", "imu")
 
 
 def test_vicon_gaps_of_recording_6_are_shaded(data_dir):
@@ -571,14 +598,14 @@ MIXED_BROAD = "broad/10_undisturbed_slow_translation_A"
 
 @pytest.mark.slow
 def test_the_report_says_what_each_row_is(data_dir, tmp_path, capsys):
-    """A BROAD trial (dr 6-D, ekf 9-D: it has a magnetometer) and a course recording: table.txt,
+    """A BROAD trial (dr 6-D, ekf 9-D with --mag on: it has a magnetometer) and a course recording: table.txt,
     report.md and report.html have a 6-D/9-D column; the heading-offset note names the rows it was
     removed from (6-D on BROAD) and those it was not (9-D; the course recording's, full protocol);
     the truth is BROAD's optical system for the trial and VICON for the course recording, in the
     text and the figure captions."""
     out = tmp_path / "run"
-    assert main(["compare", "--estimators", "dr,ekf", "--dataset", f"{MIXED_BROAD},ece276a/3", "--data-dir",
-                 str(data_dir), "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
+    assert main(["compare", "--estimators", "dr,ekf", "--mag", "on", "--dataset", f"{MIXED_BROAD},ece276a/3",
+                 "--data-dir", str(data_dir), "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     doc = json.loads((out / "results.json").read_text())
     assert doc["recordings"] == [{"dataset": MIXED_BROAD, "protocol": "broad", "truth": "optical motion capture (BROAD)"},

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import math
 import re
+import textwrap
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -150,6 +152,13 @@ def _new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), dpi=DPI, layout="constrained")
 
 
+def _suptitle(fig: Figure, text: str, fontsize: float = 11, **kwargs: Any) -> None:
+    """The figure's title, wrapped to its width (a long recording id would run off both ends);
+    `kwargs` as `Figure.suptitle`'s."""
+    chars = max(20, int(fig.get_figwidth() * 72 / (0.56 * fontsize)))  # about 0.56 em a character
+    fig.suptitle("\n".join(textwrap.fill(line, chars) for line in text.split("\n")), fontsize=fontsize, **kwargs)
+
+
 def euler_figure(s: RecordingSeries, truth: str = TRUTH) -> Figure:
     """Roll, pitch and yaw of the truth (named `truth`: VICON, BROAD's optical motion capture, ...)
     and of every estimator, on one shared time axis."""
@@ -177,7 +186,7 @@ def euler_figure(s: RecordingSeries, truth: str = TRUTH) -> Figure:
     handles, labels = axes[0].get_legend_handles_labels()
     handles += _shade_handles(s, truth)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
-    fig.suptitle(f"{s.id}: orientation R_world_body as Euler angles (yaw-pitch-roll, {EULER_SEQ})", fontsize=11)
+    _suptitle(fig, f"{s.id}: orientation R_world_body as Euler angles (yaw-pitch-roll, {EULER_SEQ})", fontsize=11)
     return fig
 
 
@@ -202,7 +211,7 @@ def error_figure(s: RecordingSeries, truth: str = TRUTH) -> Figure | None:
     handles, labels = axes[0].get_legend_handles_labels()
     handles += _shade_handles(s, truth)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 6), fontsize=9)
-    fig.suptitle(f"{s.id}: error against {truth} (total = geodesic angle, inclination = gravity direction, "
+    _suptitle(fig, f"{s.id}: error against {truth} (total = geodesic angle, inclination = gravity direction, "
                  "heading = twist about world z)", fontsize=10)
     return fig
 
@@ -226,7 +235,7 @@ def loss_figure(s: RecordingSeries) -> Figure | None:
         ax.grid(alpha=0.3, which="both")
         ax.set_title(_display_label(s.labels[e], s.causal[e]), fontsize=10, loc="left")
     axes[-1].set_xlabel("iteration")
-    fig.suptitle(f"{s.id}: smoother cost per iteration (each estimator's own cost, own y axis)", fontsize=11)
+    _suptitle(fig, f"{s.id}: smoother cost per iteration (each estimator's own cost, own y axis)", fontsize=11)
     return fig
 
 
@@ -244,8 +253,27 @@ def rmse_matrix(rows: list[dict], kind: str) -> tuple[list[str], list[str], np.n
 
 
 def _short(label: str, limit: int = 32) -> str:
-    """A tick label that cannot squeeze the axes away: long ids (file paths) keep their end."""
-    return label if len(label) <= limit else "..." + label[-(limit - 3):]
+    """A label that cannot squeeze the axes away: a long one keeps its start and its end, the middle
+    elided ("repoimu/Pe…_Segment_1")."""
+    if len(label) <= limit:
+        return label
+    head = (limit - 1) // 2
+    return label[:head] + "…" + label[-(limit - 1 - head):]
+
+
+def short_names(ids: list[str], limit: int = 34) -> list[str]:
+    """Tick labels for recording ids: each id's shortest trailing part (in path components) that is
+    unique among them (`broad/01_undisturbed_slow_rotation_A` -> `01_undisturbed_slow_rotation_A`
+    when no other folder has one of that name), then `_short`."""
+    parts = [i.split("/") for i in ids]
+    out = []
+    for p in parts:
+        for k in range(1, len(p) + 1):
+            tail = "/".join(p[-k:])
+            if sum("/".join(q[-k:]) == tail for q in parts) == 1 or k == len(p):
+                out.append(_short(tail, limit))
+                break
+    return out
 
 
 def _heatmap(ax, m: np.ndarray, rows: list[str], cols: list[str], title: str, cbar_label: str, fig: Figure) -> None:
@@ -253,8 +281,10 @@ def _heatmap(ax, m: np.ndarray, rows: list[str], cols: list[str], title: str, cb
     finite = m[np.isfinite(m)]
     vmax = float(finite.max()) if finite.size else 1.0
     image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=vmax or 1.0, aspect="auto")
-    ax.set_xticks(range(len(cols)), [_short(c) for c in cols],
-                  rotation=45 if max(map(len, cols), default=0) > 4 else 0, ha="right", fontsize=8)
+    names = short_names(cols)
+    slanted = max(map(len, names), default=0) > 4
+    ax.set_xticks(range(len(cols)), names, rotation=40 if slanted else 0, ha="right" if slanted else "center",
+                  rotation_mode="anchor", fontsize=8)
     ax.set_yticks(range(len(rows)), [_short(r) for r in rows], fontsize=8)
     if m.size <= 400:
         for (i, j), v in np.ndenumerate(m):
@@ -276,7 +306,7 @@ def summary_rmse_figure(rows: list[dict]) -> Figure:
     for ax, kind in zip(axes, KINDS):
         _, _, m = rmse_matrix(rows, kind)
         _heatmap(ax, m, labels, datasets, f"{kind} RMSE [deg]", "deg", fig)
-    fig.suptitle("RMSE per estimator and recording (grey: no ground truth)", fontsize=11)
+    _suptitle(fig, "RMSE per estimator and recording (grey: no ground truth)", fontsize=11)
     return fig
 
 
@@ -442,7 +472,7 @@ def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:
         if len(groups) > 1:
             ax.legend(fontsize=8)
     # two short lines: one panel is narrower than the one-line title
-    fig.suptitle(f"{name}: mean {kind} RMSE against each parameter\n(over the recordings with truth)", fontsize=11)
+    _suptitle(fig, f"{name}: mean {kind} RMSE against each parameter\n(over the recordings with truth)", fontsize=11)
     return fig
 
 
@@ -478,7 +508,7 @@ def sweep_figure(rows: list[dict], kind: str = "total") -> Figure | None:
     axes[0].set_ylabel(f"mean {kind} RMSE [deg]")
     axes[0].set_ylim(bottom=0)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{name}: mean {kind} RMSE against each parameter (minimum over the others)\n"
+    _suptitle(fig, f"{name}: mean {kind} RMSE against each parameter (minimum over the others)\n"
                  f"best common setting: {labels[best]}, {means[best]:.2f} deg", fontsize=10)
     return fig
 
@@ -732,7 +762,7 @@ def consistency_figure(s: RecordingSeries, e: int, max_bins: int = MAX_BINS, sum
     axes[-1].set_xlabel("time since first IMU sample [s]")
     axes[-1].set_xlim(0, span)
     label = _display_label(s.labels[e], s.causal[e])
-    fig.suptitle(f"{s.id}, {label}: attitude error against the filter's ±3σ, NIS, events"
+    _suptitle(fig, f"{s.id}, {label}: attitude error against the filter's ±3σ, NIS, events"
                  + (", gyro bias" if has_bias else ""), fontsize=10, y=1 - 0.15 / height, va="top")
     return fig
 
@@ -808,8 +838,9 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     (`recording_events`: no truth in grey, gyro invalid in red, the others in `EVENT_STYLES`'
     colours) and each estimator's flag switches marked (`flag_switches`): over the whole recording,
     then zoomed to `window_s` either side of its `max_windows` longest events (rests and movement
-    phases are shaded, not zoomed on; events closer than two windows share one). None without
-    truth, or with neither events nor flags."""
+    phases are shaded, not zoomed on; events closer than two windows share one; an event whose
+    window holds no scored sample, as outside BROAD's movement phases, is not zoomed on: its panel
+    would be empty). None without truth, or with neither events nor flags."""
     if not s.has_truth or not np.isfinite(s.err_deg).any():
         return None
     events = recording_events(s)
@@ -825,9 +856,11 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
             near[-1] = (near[-1][0], max(near[-1][1], b), " + ".join(kinds))
         else:
             near.append((a, b, kind))
-    windows = sorted(sorted(near, key=lambda ev: ev[0] - ev[1])[:max_windows])
     t0 = float(s.imu_t[0])
     x = s.imu_t - t0
+    scored = np.isfinite(s.err_deg[:, 0]).any(axis=0)
+    near = [ev for ev in near if scored[(x >= ev[0] - t0 - window_s) & (x <= ev[1] - t0 + window_s)].any()]
+    windows = sorted(sorted(near, key=lambda ev: ev[0] - ev[1])[:max_windows])
     ncols = max(len(windows), 1)
     layout = [["all"] * ncols] + ([["flags"] * ncols] if flagged else []) + ([[f"w{i}" for i in range(ncols)]]
                                                                               if windows else [])
@@ -884,6 +917,6 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     longest = max(len(h.get_label()) for h in handles)  # columns that fit the figure's width (11 in at 9 pt)
     fig.legend(handles=handles, loc="outside lower center", ncol=max(1, min(len(handles), 4, 110 // (longest + 8))),
                fontsize=9)
-    fig.suptitle(f"{s.id}: total error against {truth} around the events"
+    _suptitle(fig, f"{s.id}: total error against {truth} around the events"
                  + (f" (dashed: the {len(windows)} longest, zoomed below)" if windows else ""), fontsize=10)
     return fig

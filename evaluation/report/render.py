@@ -729,7 +729,7 @@ _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:2em auto;max-width:1200px;padding:0 1em;color:#222}
 h1{font-size:1.6em}h2{font-size:1.25em;margin-top:1.6em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:.5em 0;font-size:.9em}
-th,td{border:1px solid #ccc;padding:.25em .6em}th{background:#f3f3f3}
+th,td{border:1px solid #ccc;padding:.25em .6em;overflow-wrap:anywhere}th{background:#f3f3f3}
 td.num{text-align:right;font-variant-numeric:tabular-nums}
 pre{background:#f6f6f6;padding:.6em;overflow-x:auto}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
