@@ -105,8 +105,9 @@ SCALE_AXIS_RATIO = 1e-2  # fit a gyro scale factor only on axes with 1 % of the 
 class Alignment:
     """The constant rotations between the truth's frames and ours (module docstring).
 
-    world: A = R_ourworld_truthworld (a tilt only: the smallest rotation taking the truth
-        world's up direction to our z).
+    world: A = R_ourworld_truthworld: the smallest rotation taking the truth world's up
+        direction to our z, then, with a magnetometer, the turn about z taking its north to ours
+        (`north_deg`; module docstring, steps 2 and 3).
     body: B = R_truthbody_imubody.
     rate_pairs: how many (truth rate, gyro rate) pairs B was fitted on.
     rate_residual_deg_s: median of |omega_truth - B omega_gyro| over those pairs, deg/s.
