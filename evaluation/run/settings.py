@@ -28,7 +28,7 @@ from ..scoring.metrics import KINDS, PROTOCOLS
 COMPUTED, WRITTEN, HOW = "computed", "written", "how"
 API_ONLY = "api-only"  # a field with no option of its own on the command line (see `Option`)
 AS_FIELD = "as the field"  # `Option.default`: the option's default is the field's
-OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off")
+OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off", "append")
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,9 @@ class Option:
         `choices`: `--flag C`, one of `choices`;
         `switch`: `--flag` (argparse's store_true): True when given, else the field's default;
         `negated`: `--no-thing` (store_true): False when given, else True;
-        `on_off`: `--flag on|off`, the field's default shown as its default.
+        `on_off`: `--flag on|off`, the field's default shown as its default;
+        `append`: `--flag VALUE`, repeatable: the texts given, in order (the field's default when
+            none is given).
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
     commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
