@@ -206,3 +206,30 @@ def test_the_summary_and_robustness_against_a_hand_computation():
     assert robust["jitter"]["breaks_at"] is None and stress.robust_cell(robust["jitter"]) == "> 1 ms"
     assert robust["drops"]["breaks_at"] == 0.1 and robust["drops"]["failed"] == 1
     assert [f["kind"] for f in d["faults"]] == ["gyro-saturation", "drops", "jitter"]  # the registry's order
+
+
+def test_rerun_holds_the_dose_response_and_the_faulted_sensors(data, tmp_path):
+    from optional_helpers import require_module
+
+    require_module("rerun")
+    from test_rerun import read_back
+
+    path = tmp_path / "stress.rrd"
+    run = runs.run_stress("dr", "all", data, faults=["gyro-bias-step=1,5", "jitter=2"], rerun=path, jobs=1)
+    back = read_back(path)
+    summary = stress.stress_summary([r.to_json() for r in run.results])
+    for f in summary["datasets"][0]["faults"]:
+        (e,) = f["estimators"]
+        entity = back[f"/stress/lab/{f['kind']}/dr"]
+        assert entity["level"] == list(range(1 + len(f["severities"])))
+        np.testing.assert_allclose([v[0] for v in entity["Scalars:scalars"]],
+                                   [p["mean_deg"] for p in [e["clean"], *e["points"]]], rtol=1e-12)
+        assert back[f"/stress/lab/{f['kind']}/levels"]["TextLog:text"][-1] == [
+            f"level {len(f['severities'])}: {f['severities'][-1]:g} {f['unit']}"]
+    # the first recording's gyro, clean and at the worst severity: the step's 5 deg/s in the second half
+    clean = np.array(back["/sensors/gyro-bias-step/gyro_deg_s/clean"]["Scalars:scalars"])
+    faulted = np.array(back["/sensors/gyro-bias-step/gyro_deg_s/faulted"]["Scalars:scalars"])
+    step = np.linalg.norm(faulted - clean, axis=1)
+    np.testing.assert_allclose(step[-100:], 5.0, rtol=1e-5)  # stored as float32
+    assert step[:100].max() == 0.0
+    assert len(back["/sensors/jitter/stamp_error_ms"]["Scalars:scalars"]) == 600
