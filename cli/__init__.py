@@ -347,6 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  fusion compare --estimators ukf,gd --dataset all      # the main job (the simulated recording without data)\n"
                "  fusion compare --estimators ./my_ukf.py:MyUKF,ekf --dataset ece276a/1\n"
                "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
+               "  fusion stress --estimators ekf,vqf --dataset 'broad/*' --out runs/stress   # under sensor faults\n"
                "  fusion inspect --dataset ece276a/1\n"
                "  fusion list\n"
                "  fusion data fetch broad && fusion compare --estimators ekf,vqf --dataset 'broad/*'\n"
@@ -395,6 +396,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated estimators with optional parameters, as for compare (default: all)")
     _add_data_args(p)
     _add_run_args(p, "stress")
+    next(a for a in p._actions if a.dest == "rerun").help = (
+        "also write a Rerun recording (fusion.evaluation.report.rerun_log.write_stress): each fault's "
+        "dose-response, and the first recording's sensor clean and at the fault's worst severity; open it with "
+        "`rerun FILE.rrd` (needs pip install 'fusion[viz]')")
     p.set_defaults(func=cmd_stress)
 
     p = sub.add_parser("tune", help="tune estimators by one protocol and score them out of sample",

@@ -174,6 +174,10 @@ def test_bad_fault_options_are_one_line_errors(data, capsys):
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1 and "Traceback" not in err
     assert stress.parse_fault("gyro-saturation=250,1000,500") == ("gyro-saturation", (1000.0, 500.0, 250.0))
+    with pytest.raises(SystemExit):
+        main(["stress", "--help"])
+    text = capsys.readouterr().out
+    assert "--fault KIND[=LEVELS]" in text and "mag-soft-iron    %              2, 5, 10, 20, 40" in text
 
 
 def _row(dataset, estimator, kind, severity, total, error=None):
@@ -233,3 +237,17 @@ def test_rerun_holds_the_dose_response_and_the_faulted_sensors(data, tmp_path):
     np.testing.assert_allclose(step[-100:], 5.0, rtol=1e-5)  # stored as float32
     assert step[:100].max() == 0.0
     assert len(back["/sensors/jitter/stamp_error_ms"]["Scalars:scalars"]) == 600
+
+
+def test_a_stress_run_on_a_dask_cluster_gives_the_local_rows(data):
+    """The faults are applied on the workers (`runner._dask_job`), from each recording loaded once."""
+    from optional_helpers import require_module
+
+    distributed = require_module("distributed")
+    faults = ["gyro-bias-walk=0.05", "drops=0.3"]
+    local = runs.run_stress("dr,ekf", "all", data, faults=faults, jobs=1)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        remote = runs.run_stress("dr,ekf", "all", data, faults=faults, scheduler=cluster.scheduler_address)
+    assert _strip(r.to_json() for r in remote.results) == _strip(r.to_json() for r in local.results)
+    assert {r.fault["kind"] for r in remote.results} == {"none", "gyro-bias-walk", "drops"}

@@ -49,7 +49,8 @@ class Option:
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
     commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
-        to calibration, on every command that reads recordings).
+        to calibration, on every command that reads recordings; `fusion stress` offers compare's, but
+        those `fusion.evaluation.sweeps.stress.NOT_OFFERED` names, and its own fields').
     """
 
     flag: str

@@ -54,9 +54,8 @@ class StressSettings(RunSettings):
 
     faults: tuple[str, ...] | None = field(default=None, metadata={"part": COMPUTED, "cli": Option(
         "--fault", "a fault and its severities, KIND=L1,L2,... in the kind's unit, or KIND alone for its five "
-        "documented ones; repeatable (default: every kind at its five). Kinds: "
-        + "; ".join(f"{k.name} ({k.unit}: {', '.join(f'{v:g}' for v in k.levels)})" for k in KINDS.values()),
-        kind="append", metavar="KIND[=LEVELS]", commands=("stress",))})
+        "documented ones; repeatable (default: every kind at its five; the kinds, their units and severities: "
+        "below)", kind="append", metavar="KIND[=LEVELS]", commands=("stress",))})
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -317,11 +316,12 @@ def _robust_table(entries: list[dict[str, Any]], kinds: list[str]) -> list[str]:
     return _columns(head, body)
 
 
-def _columns(head: list[str], body: list[list[str]]) -> list[str]:
+def _columns(head: list[str], body: list[list[str]], left: int = 1) -> list[str]:
+    """Aligned columns: the first `left` to the left, the others (numbers) to the right."""
     widths = [max(len(row[i]) for row in [head, *body]) for i in range(len(head))]
 
     def line(row: list[str]) -> str:
-        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        return "  ".join(c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))).rstrip()
 
     return [line(head), line(["-" * w for w in widths]), *(line(r) for r in body)]
 
@@ -330,5 +330,5 @@ def fault_table() -> str:
     """Every kind: name, unit, documented severities, sensor, model, reference (README, `--help`)."""
     head = ["fault", "unit", "severities", "sensor", "model"]
     body = [[k.name, k.unit, ", ".join(_sev(v) for v in k.levels), k.sensor, k.model] for k in KINDS.values()]
-    return "\n".join(_columns(head, body))
+    return "\n".join(_columns(head, body, left=len(head)))
 
