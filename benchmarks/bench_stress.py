@@ -11,13 +11,16 @@ every `--every` seconds, the memory of that process and of every process below i
 the sum of their resident set sizes (RSS: pages shared between the forked workers and the main
 process counted once per process, an upper bound) and of their proportional set sizes (PSS,
 /proc/PID/smaps_rollup: each shared page split between the processes sharing it, what the run
-really occupies); the peaks of both sums are printed. The load average before and after says how
-busy the machine was.
+really occupies); the peaks of both sums are printed. The CPU time of the run (user + system, the
+main process and the workers it reaped: `getrusage(RUSAGE_CHILDREN)`) divided by the cores used is
+what the run would take on an idle machine with that many cores (a lower bound: it assumes both
+workers busy throughout); the load average before and after says how busy the machine was.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -74,6 +77,7 @@ def main() -> None:
         print("fusion " + shlex.join(argv))
         print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} cores")
         start = time.perf_counter()
+        cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
         child = subprocess.Popen([sys.executable, "-m", "fusion", *argv], stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True)
         peak = {"rss": 0, "pss": 0, "processes": 0}
@@ -91,6 +95,8 @@ def main() -> None:
         sampler.start()
         stdout, stderr = child.communicate()
         wall = time.perf_counter() - start
+        cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (cpu_after.ru_utime - cpu_before.ru_utime) + (cpu_after.ru_stime - cpu_before.ru_stime)
         done.set()
         sampler.join()
         if child.returncode not in (0, 1):
@@ -106,6 +112,8 @@ def main() -> None:
               f"{len({r['estimator'] for r in rows})} estimators), {failed} failed cells; "
               f"estimators' own time {sum(r['seconds'] for r in rows):.0f} s")
         print(f"wall time {wall:.0f} s ({wall / 60:.1f} min; target 15 min) with --jobs {args.jobs}")
+        print(f"CPU time {cpu:.0f} s (user + system, main and workers): on an idle machine with {args.jobs} cores at "
+              f"least {cpu / args.jobs:.0f} s ({cpu / args.jobs / 60:.1f} min)")
         print(f"peak memory of the run (main + workers, sampled every {args.every:g} s): PSS {peak['pss'] / 1024:.0f} "
               f"MiB, RSS {peak['rss'] / 1024:.0f} MiB (shared pages counted per process); target 1 GB; "
               f"up to {peak['processes']} processes")
