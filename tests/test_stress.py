@@ -5,6 +5,7 @@ the results independent of --jobs; and the summary against a hand computation.""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -91,11 +92,13 @@ def test_stress_end_to_end(data, tmp_path, capsys):
     # robustness: the mildest severity at which the mean doubles, else beyond the range
     robust = {(x["estimator"], x["fault"]): x for x in doc["robustness"]["entries"]}
     assert len(robust) == 6
-    for e in step["estimators"]:
+    row = re.split(r"\s{2,}", next(line for line in table[table.index("Robustness"):].splitlines()
+                                    if line.startswith("gyro-bias-step (deg/s)")).strip())
+    for e, cell in zip(step["estimators"], row[1:], strict=True):  # a fault per row, an estimator per column
         x = robust[(e["estimator"], "gyro-bias-step")]
         hit = next((p["severity"] for p in e["points"] if p["mean_deg"] >= 2 * e["clean"]["mean_deg"]), None)
         assert x["breaks_at"] == hit and x["clean_deg"] == e["clean"]["mean_deg"]
-        assert stress.robust_cell(x) in table
+        assert cell == (f"> {x['worst']:g}" if hit is None else f"{hit:g}")
 
     figures = sorted(p.name for p in (out / "figures").glob("stress-*.png"))
     assert figures == ["stress-gyro-bias-step.png", "stress-jitter.png", "stress-mag-hard-iron.png",
@@ -161,7 +164,7 @@ def test_an_estimator_that_fails_costs_its_cell_only(data, tmp_path, monkeypatch
     assert all(r["rmse_deg"] for r in doc["results"] if not r.get("error"))  # every other cell scored
     assert "3 cells failed under a fault" in captured.err
     x = next(x for x in doc["robustness"]["entries"] if x["estimator"] == "fragile")
-    assert (x["breaks_at"], x["failed"]) == (5.0, 1) and stress.robust_cell(x) == "5 % (fails)"
+    assert (x["breaks_at"], x["failed"]) == (5.0, 1) and stress.robust_cell(x, unit=True) == "5 % (fails)"
     assert "x1" in captured.out and "x2" in captured.out
 
 
@@ -207,7 +210,7 @@ def test_the_summary_and_robustness_against_a_hand_computation():
     assert (drops["mean_deg"], drops["scored"], drops["failed"]) == (1.0, 1, 1)
     robust = {x["fault"]: x for x in stress.robustness(summary)["entries"]}
     assert (robust["gyro-saturation"]["breaks_at"], robust["gyro-saturation"]["ratio"]) == (500.0, 2.5)
-    assert robust["jitter"]["breaks_at"] is None and stress.robust_cell(robust["jitter"]) == "> 1 ms"
+    assert robust["jitter"]["breaks_at"] is None and stress.robust_cell(robust["jitter"], unit=True) == "> 1 ms"
     assert robust["drops"]["breaks_at"] == 0.1 and robust["drops"]["failed"] == 1
     assert [f["kind"] for f in d["faults"]] == ["gyro-saturation", "drops", "jitter"]  # the registry's order
 

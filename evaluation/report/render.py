@@ -325,17 +325,13 @@ def _stress_parts(stress: tuple[dict[str, Any], dict[str, Any]] | None, figures:
     per fault its dose-response table (mean [95 % CI] per severity) and figure."""
     if stress is None:
         return []
-    from ..sweeps.stress import BREAKDOWN, robust_cell
+    from ..sweeps.stress import BREAKDOWN, robust_rows
 
     summary, robust = stress
     out = []
     for d in summary["datasets"]:
         kinds = [f["kind"] for f in d["faults"]]
-        entries = {(x["estimator"], x["fault"]): x for x in robust["entries"] if x["dataset"] == d["dataset"]}
-        labels = list(dict.fromkeys(x[0] for x in entries))
-        robust_rows = [[label, _fmt(next((x["clean_deg"] for (lab, _), x in entries.items() if lab == label), None)),
-                        *(robust_cell(entries[(label, k)]) if (label, k) in entries else "-" for k in kinds)]
-                       for label in labels]
+        robust_header, robust_body = robust_rows([x for x in robust["entries"] if x["dataset"] == d["dataset"]], kinds)
         faults = []
         for f in d["faults"]:
             head = ["estimator", "clean", *(f"{v:g} {f['unit']}" for v in f["severities"])]
@@ -348,7 +344,7 @@ def _stress_parts(stress: tuple[dict[str, Any], dict[str, Any]] | None, figures:
             faults.append({"kind": f["kind"], "model": f["model"], "header": head, "rows": rows, "figure": figure})
         grid = next((x for x in figures if x["dataset"] == d["dataset"] and x["fault"] is None), None)
         out.append({"dataset": d["dataset"], "recordings": d["recordings"], "metric": summary["metric"],
-                    "robust_header": ["estimator", "clean", *kinds], "robust_rows": robust_rows, "grid": grid,
+                    "robust_header": robust_header, "robust_rows": robust_body, "grid": grid,
                     "faults": faults, "criterion": robust["criterion"]})
     return out
 

@@ -297,23 +297,31 @@ def _robust_title(metric: str, where: str) -> str:
             f"{BREAKDOWN:g}x the clean mean (or a cell fails); '>' = beyond the tested range (the worst severity shown)")
 
 
-def robust_cell(x: dict[str, Any]) -> str:
-    """A robustness entry as text: `2 deg/s`, `> 10 deg/s` (beyond the range), `2 deg/s (fails)`."""
+def robust_cell(x: dict[str, Any], unit: bool = False) -> str:
+    """A robustness entry as text: `2`, `> 10` (beyond the range), `2 (fails)`; with `unit`, `2 deg/s`."""
+    u = f" {x['unit']}" if unit else ""
     if x["breaks_at"] is None:
-        return f"> {_sev(x['worst'])} {x['unit']}" if x["worst"] is not None else "-"
-    return f"{_sev(x['breaks_at'])} {x['unit']}" + (" (fails)" if x["failed"] else "")
+        return f"> {_sev(x['worst'])}{u}" if x["worst"] is not None else "-"
+    return f"{_sev(x['breaks_at'])}{u}" + (" (fails)" if x["failed"] else "")
+
+
+def robust_rows(entries: list[dict[str, Any]], kinds: list[str]) -> tuple[list[str], list[list[str]]]:
+    """The robustness summary as a table, a fault per row (with its unit) and an estimator per
+    column, the clean errors (deg) first: (header, rows)."""
+    labels = list(dict.fromkeys(x["estimator"] for x in entries))
+    by = {(x["estimator"], x["fault"]): x for x in entries}
+    clean = {label: next((x["clean_deg"] for x in entries if x["estimator"] == label and x["clean_deg"] is not None),
+                         None) for label in labels}
+    body = [["clean error (deg)", *("-" if clean[label] is None else f"{clean[label]:.2f}" for label in labels)]]
+    for kind in kinds:
+        unit = next((x["unit"] for x in entries if x["fault"] == kind), "")
+        body.append([f"{kind} ({unit})", *(robust_cell(by[(label, kind)]) if (label, kind) in by else "-"
+                                           for label in labels)])
+    return ["fault (unit)", *labels], body
 
 
 def _robust_table(entries: list[dict[str, Any]], kinds: list[str]) -> list[str]:
-    labels = list(dict.fromkeys(x["estimator"] for x in entries))
-    by = {(x["estimator"], x["fault"]): x for x in entries}
-    head = ["estimator", "clean", *kinds]
-    body = []
-    for label in labels:
-        clean = next((x["clean_deg"] for x in entries if x["estimator"] == label and x["clean_deg"] is not None), None)
-        body.append([label, "-" if clean is None else f"{clean:.2f}",
-                     *(robust_cell(by[(label, k)]) if (label, k) in by else "-" for k in kinds)])
-    return _columns(head, body)
+    return _columns(*robust_rows(entries, kinds))
 
 
 def _columns(head: list[str], body: list[list[str]], left: int = 1) -> list[str]:
