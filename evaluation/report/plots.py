@@ -950,7 +950,7 @@ def dose_response_figure(fault: dict, metric: str = "total", where: str = "") ->
 
 
 def robustness_figure(robust: dict, dataset: str, kinds: list[str], levels: dict[str, list[float]]) -> Figure | None:
-    """The robustness summary as a grid, estimators x faults: each cell coloured by how many of the
+    """The robustness summary as a grid, faults x estimators (as the table): each cell coloured by how many of the
     fault's tested severities the estimator came through below twice its clean error (0: broke at
     the mildest; all: beyond the range), and labelled with the severity at which it broke (`>` the
     worst: beyond the range). None without entries."""
@@ -959,10 +959,10 @@ def robustness_figure(robust: dict, dataset: str, kinds: list[str], levels: dict
         return None
     labels = list(dict.fromkeys(x["estimator"] for x in entries))
     by = {(x["estimator"], x["fault"]): x for x in entries}
-    m = np.full((len(labels), len(kinds)), np.nan)
-    text = [["-"] * len(kinds) for _ in labels]
-    for i, label in enumerate(labels):
-        for j, kind in enumerate(kinds):
+    m = np.full((len(kinds), len(labels)), np.nan)
+    text = [["-"] * len(labels) for _ in kinds]
+    for i, kind in enumerate(kinds):
+        for j, label in enumerate(labels):
             x = by.get((label, kind))
             if x is None:
                 continue
@@ -970,17 +970,18 @@ def robustness_figure(robust: dict, dataset: str, kinds: list[str], levels: dict
             m[i, j] = (len(tested) if x["breaks_at"] is None else tested.index(x["breaks_at"])) / max(len(tested), 1)
             text[i][j] = (f"> {x['worst']:g}" if x["breaks_at"] is None else f"{x['breaks_at']:g}"
                           + (" x" if x["failed"] else ""))
-    fig = _new_figure(2.5 + 1.25 * len(kinds), 1.6 + 0.42 * len(labels))
+    fig = _new_figure(3.8 + 1.1 * len(labels), 1.4 + 0.42 * len(kinds))
     ax = fig.subplots()
     cmap = matplotlib.colormaps["RdYlGn"].with_extremes(bad="0.85")
     image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=1, aspect="auto")
-    ax.set_xticks(range(len(kinds)), [f"{k}\n[{next(x['unit'] for x in entries if x['fault'] == k)}]" for k in kinds],
-                  rotation=30, ha="right", fontsize=8)
-    ax.set_yticks(range(len(labels)), [_short(label) for label in labels], fontsize=8)
+    ax.set_yticks(range(len(kinds)), [f"{k} [{next(x['unit'] for x in entries if x['fault'] == k)}]" for k in kinds],
+                  fontsize=8)
+    ax.set_xticks(range(len(labels)), [_short(label) for label in labels], rotation=30 if len(labels) > 6 else 0,
+                  ha="right" if len(labels) > 6 else "center", fontsize=8)
     for (i, j), v in np.ndenumerate(m):
         ax.text(j, i, text[i][j], ha="center", va="center", fontsize=7, color="black")
     fig.colorbar(image, ax=ax, label="share of the tested severities survived", shrink=0.9)
-    ax.set_title(f"robustness{f' on {dataset}' if dataset != 'other' else ''}: the severity at which the mean "
+    ax.set_title(f"robustness{f' on {dataset}' if dataset != 'other' else ''}: the severity at which\nthe mean "
                  f"{robust['metric']} RMSE reaches twice the clean one\n(x: a cell failed; > the worst tested: "
                  "beyond the range)", fontsize=9)
     return fig
