@@ -99,21 +99,20 @@ def disturbance(rec, b_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (rec.imu.t[mask] - rec.imu.t[0])[ok], d[ok]
 
 
-def passes(t: np.ndarray, d: np.ndarray, threshold: float, merge_s: float = 0.5) -> list[tuple[float, float]]:
-    """(time s, peak uT) of each stretch above `threshold`, stretches closer than `merge_s` merged."""
+def passes(t: np.ndarray, d: np.ndarray, threshold: float, merge_s: float = 0.5) -> list[tuple[float, float, int]]:
+    """(time s, peak uT, index of the peak) of each stretch above `threshold`, stretches closer than
+    `merge_s` merged."""
     merged: list[list[int]] = []
     for a, b in mask_runs(d > threshold):
         if merged and t[a] - t[merged[-1][1] - 1] < merge_s:
             merged[-1][1] = b
         else:
             merged.append([a, b])
-    return [(float(t[a]), float(d[a:b].max())) for a, b in merged]
+    return [(float(t[a]), float(d[a:b].max()), a + int(np.argmax(d[a:b]))) for a, b in merged]
 
 
-def half_peak_s(t: np.ndarray, d: np.ndarray, at: float) -> float:
-    """How long the disturbance stays above half its peak around the pass starting at `at` s."""
-    near = np.flatnonzero((t > at - 5) & (t < at + 8))
-    i = near[np.argmax(d[near])]
+def half_peak_s(t: np.ndarray, d: np.ndarray, i: int) -> float:
+    """How long the disturbance stays above half its peak around its peak at sample `i`."""
     above = d > d[i] / 2
     lo = hi = i
     while lo > 0 and above[lo - 1]:
@@ -195,10 +194,10 @@ def main() -> None:
         t, d = disturbance(rec, b_world)
         if sel in STATIONARY:
             found = passes(t, d, threshold)
-            peaks += [p for _, p in found]
-            durations += [half_peak_s(t, d, a) for a, _ in found]
-            print(f"  {rec.id}: {len(found)} passes over {threshold:.1f} uT, peaks {', '.join(f'{p:.0f}' for _, p in found)} uT "
-                  f"(at {', '.join(f'{a:.0f}' for a, _ in found)} s), above half their peak for "
+            peaks += [p for _, p, _ in found]
+            durations += [half_peak_s(t, d, i) for _, _, i in found]
+            print(f"  {rec.id}: {len(found)} passes over {threshold:.1f} uT, peaks {', '.join(f'{p:.0f}' for _, p, _ in found)} uT "
+                  f"(at {', '.join(f'{a:.0f}' for a, _, _ in found)} s), above half their peak for "
                   f"{', '.join(f'{x:.2f}' for x in durations[-len(found):])} s")
         else:
             on = d > attached_floor
