@@ -185,7 +185,8 @@ def main() -> None:
     floor = [disturbance(u, b_world)[1] for u in undisturbed]
     threshold = 2 * max(np.percentile(d, 99) for d in floor)
     attached_floor = float(np.median([np.percentile(d, 99) for d in floor]))
-    print(f"the undisturbed trials' disturbance (the field model's residual): median {np.median(np.concatenate(floor)):.1f} "
+    print(f"the undisturbed trials' disturbance (the field model's residual): median "
+          f"{np.median(np.concatenate(floor)):.1f} "
           f"uT, 99th percentiles {', '.join(f'{np.percentile(d, 99):.1f}' for d in floor)} uT: a pass is above "
           f"{threshold:.1f} uT, an attached magnet above {attached_floor:.1f} uT")
     peaks, offsets, durations, attached_share = [], {}, [], []
@@ -196,7 +197,8 @@ def main() -> None:
             found = passes(t, d, threshold)
             peaks += [p for _, p, _ in found]
             durations += [half_peak_s(t, d, i) for _, _, i in found]
-            print(f"  {rec.id}: {len(found)} passes over {threshold:.1f} uT, peaks {', '.join(f'{p:.0f}' for _, p, _ in found)} uT "
+            print(f"  {rec.id}: {len(found)} passes over {threshold:.1f} uT, peaks "
+                  f"{', '.join(f'{p:.0f}' for _, p, _ in found)} uT "
                   f"(at {', '.join(f'{a:.0f}' for a, _, _ in found)} s), above half their peak for "
                   f"{', '.join(f'{x:.2f}' for x in durations[-len(found):])} s")
         else:
@@ -217,7 +219,8 @@ def main() -> None:
           f"{100 * share:.0f} % of their trials")
 
     hard = sorted({round(v, 1) for v in offsets.values()})
-    texts = [f"vibration={vib_rms:.2f}", f"mag-dipole={dipole:.1f}", "mag-hard-iron=" + ",".join(f"{v:g}" for v in hard)]
+    texts = [f"vibration={vib_rms:.2f}", f"mag-dipole={dipole:.1f}",
+             "mag-hard-iron=" + ",".join(f"{v:g}" for v in hard)]
     sim = run_stress(args.estimators, ",".join(undisturbed_ids), faults=texts, jobs=args.jobs).results
     # the variants, as the trials were disturbed: each recording built here, the runner given them loaded
     variants: dict[str, list] = {"vibration in movement": [], "dipole, slow": []}

@@ -388,7 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
                               "  fusion stress --resume runs/stress\n\n"
                               "faults (severity unit, the five run by default, the sensor, the model):\n"
                               + fault_table() + "\n\n"
-                              "A cell (estimator x recording x fault x severity) that fails costs that cell: the tables "
+                              "A cell (estimator x recording x fault x severity) that fails costs that cell: the "
+                              "tables "
                               "count it, results.json keeps its error; the exit status is 1 only when an estimator "
                               "fails on a clean recording.",
                        formatter_class=argparse.RawDescriptionHelpFormatter)

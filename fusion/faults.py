@@ -401,8 +401,8 @@ def mag_dipole(recording: Recording, severity_ut: float, rng: np.random.Generato
     slerped onto the IMU's stamps, held outside its span and across its gaps); without a truth the
     lines are fixed to the body. The field is above half its closest value for 1.53 d / v (0.61 s at
     the defaults); along a pass it can exceed its closest value by up to about 10 % (the dipole's field is
-    strongest along its axis: 1.094 times, the largest over 20,000 random geometries). BROAD's stationary-magnet trials (28, 30)
-    show 33-87 uT at the closest approaches, each above half its peak for 0.05 to 4 s.
+    strongest along its axis: 1.094 times, the largest over 20,000 random geometries). BROAD's
+    stationary-magnet trials (28, 30) show 33-87 uT at the closest approaches, each above half its peak for 0.05 to 4 s.
     `speed_m_s` (not a fault's severity) is for callers that study the pass's duration."""
     imu = recording.imu
     world = np.zeros((len(imu), 3))

@@ -118,7 +118,8 @@ for name, belief, s in (("clean", clean, clean_score), (STEP.label, faulty, bad_
     inside = np.mean(np.abs(belief.err_rad[after]) <= 3 * belief.sigma_rad[after], axis=0)
     print(f"{name:>22}: total RMSE {s.rmse_deg['total']:.2f} deg; after {t_step:.0f} s: inside +-3 sigma "
           f"{np.round(100 * inside, 1)} %, mean NEES {np.nanmean(belief.nees[after]):.2f}, "
-          f"mean NIS {np.nanmean(belief.nis[after]):.3f}; sqrt(P_ii) at the end {np.round(np.degrees(belief.sigma_rad[-1]), 2)} deg")
+          f"mean NIS {np.nanmean(belief.nis[after]):.3f}; sqrt(P_ii) at the end "
+          f"{np.round(np.degrees(belief.sigma_rad[-1]), 2)} deg")
 
 # %% [markdown]
 # The envelope hardly changes with the step: $P$ is propagated by the filter's model (the gyro noise

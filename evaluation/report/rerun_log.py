@@ -425,7 +425,8 @@ def write_stress(path: str | os.PathLike, summary: dict, recording: Any = None, 
                                 stream.send_columns(f"{entity}/{bound}",
                                                     indexes=[rr.TimeColumn(STRESS_TIMELINE, sequence=level[ok])],
                                                     columns=rr.Scalars.columns(scalars=v[ok]))
-                    texts = ["level 0: clean"] + [f"level {k + 1}: {v:g} {f['unit']}" for k, v in enumerate(f["severities"])]
+                    texts = ["level 0: clean"] + [f"level {k + 1}: {v:g} {f['unit']}"
+                                                  for k, v in enumerate(f["severities"])]
                     stream.send_columns(f"{root}/levels",
                                         indexes=[rr.TimeColumn(STRESS_TIMELINE, sequence=np.arange(len(texts)))],
                                         columns=rr.TextLog.columns(text=texts, level=["INFO"] * len(texts)))
@@ -449,7 +450,8 @@ def write_stress(path: str | os.PathLike, summary: dict, recording: Any = None, 
     return path
 
 
-def _log_faulted_sensor(rr: Any, stream: Any, recording: Any, kind: str, severity: float, fault_models: Any) -> str | None:
+def _log_faulted_sensor(rr: Any, stream: Any, recording: Any, kind: str, severity: float,
+                        fault_models: Any) -> str | None:
     """The sensor `kind` changes on `recording`, clean and under it at `severity`, as two series on `time`
     (s since the first sample; time stamps: their error, ms); returns the entity's root, None when the
     fault does not apply."""
@@ -465,8 +467,9 @@ def _log_faulted_sensor(rr: Any, stream: Any, recording: Any, kind: str, severit
         stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=x)],
                             columns=rr.Scalars.columns(scalars=1e3 * (np.asarray(bad.imu.t) - recording.imu.t)))
         return root
-    field, unit, scale = {"gyro": ("gyr_rad_s", "gyro_deg_s", 180.0 / np.pi), "accelerometer": ("acc_g", "acc_g", 1.0),
-                          "magnetometer": ("mag_ut", "mag_ut", 1.0)}.get(sensor, ("gyr_rad_s", "gyro_deg_s", 180.0 / np.pi))
+    gyro = ("gyr_rad_s", "gyro_deg_s", 180.0 / np.pi)
+    field, unit, scale = {"gyro": gyro, "accelerometer": ("acc_g", "acc_g", 1.0),
+                          "magnetometer": ("mag_ut", "mag_ut", 1.0)}.get(sensor, gyro)
     for name, rec in (("clean", recording), ("faulted", bad)):
         values = np.asarray(getattr(rec.imu, field), float) * scale
         good = np.all(np.isfinite(values), axis=1)

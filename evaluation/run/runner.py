@@ -11,10 +11,11 @@ settings passes them whole: `run(specs, sources, settings)`).
 A job (`fusion.evaluation.run.job.Job`) is one (recording, estimator) pair: build, estimate, time,
 score (`fusion.evaluation.run.job.run_job`); in a stress run (`faults`), one (recording, fault,
 estimator) triple, the fault (`fusion.faults.Fault`) applied to the loaded recording in the process
-that runs the job (`WorkerState.faulted`: each recording is still loaded once per process). It carries indices only: into the run's recordings
-(dataset `Source`s, loaded the first time a process needs them and kept, or loaded `Recording`s)
-and into its resolved specs (`fusion.estimators.ResolvedSpec`, resolved once, in the parent, so
-a bad name or parameter fails before any work). Results come back in the serial order
+that runs the job (`WorkerState.faulted`: each recording is still loaded once per process). It
+carries indices only: into the run's recordings (dataset `Source`s, loaded the first time a process
+needs them and kept, or loaded `Recording`s) and into its resolved specs
+(`fusion.estimators.ResolvedSpec`, resolved once, in the parent, so a bad name or parameter fails
+before any work). Results come back in the serial order
 (recording-major, estimators as given) whatever order the jobs finish in, and hold the same
 numbers as a serial run: each job is the same deterministic computation on the same inputs. Only
 `seconds` (wall time) differs.

@@ -294,7 +294,8 @@ def _cell(p: dict[str, Any], clean: float | None) -> str:
 
 def _robust_title(metric: str, where: str) -> str:
     return (f"Robustness{where}: the mildest tested severity at which the mean {metric} RMSE reaches "
-            f"{BREAKDOWN:g}x the clean mean (or a cell fails); '>' = beyond the tested range (the worst severity shown)")
+            f"{BREAKDOWN:g}x the clean mean (or a cell fails); '>' = beyond the tested range (the worst severity "
+            "shown)")
 
 
 def robust_cell(x: dict[str, Any], unit: bool = False) -> str:
