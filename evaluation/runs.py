@@ -231,6 +231,8 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
     root = s.resolved_data_dir()
     load = s.load_options()  # a bad calibration file fails here, before the output folder is touched
     faults = stress.variants(s.plan(), sources, s.mag) if isinstance(s, StressSettings) else None
+    if faults is not None:
+        stress.check_variants(s.plan(), faults)
     series_wanted = (s.per_recording or bool(s.rerun)) and faults is None  # a stress run draws its own
     if s.rerun:  # before any work: the package is installed, the file name is a .rrd in a folder
         from .report.rerun_log import check_path, require

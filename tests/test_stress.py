@@ -177,6 +177,9 @@ def test_bad_fault_options_are_one_line_errors(data, capsys):
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1 and "Traceback" not in err
     assert stress.parse_fault("gyro-saturation=250,1000,500") == ("gyro-saturation", (1000.0, 500.0, 250.0))
+    assert main(["stress", "--estimators", "dr", "--data-dir", str(data), "--dataset", "lab/rec2",
+                 "--fault", "mag-dipole", "--no-progress"]) == 1  # rec2 has no magnetometer
+    assert "no selected recording has a magnetometer" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["stress", "--help"])
     text = capsys.readouterr().out

@@ -127,6 +127,20 @@ def variants(the_plan: Sequence[tuple[str, Sequence[float]]], items: Sequence[An
     return out
 
 
+def check_variants(the_plan: Sequence[tuple[str, Sequence[float]]], per_item: Sequence[Sequence[Fault]]) -> None:
+    """A note for each fault of the plan that no recording runs under (a magnetometer fault without a
+    magnetometer), and a ValueError when that leaves no fault at all."""
+    from fusion.selection import note
+
+    run = {f.kind for faults in per_item for f in faults}
+    missing = [kind for kind, _ in the_plan if kind not in run]
+    if missing and len(missing) == len(the_plan):
+        raise ValueError(f"--fault {', '.join(missing)}: no selected recording has a magnetometer (or --mag off), "
+                         "and these faults change the magnetometer; nothing to stress")
+    for kind in missing:
+        note(f"{kind}: not run: no selected recording has a magnetometer (or --mag off)")
+
+
 def _has_magnetometer(item: Any) -> bool:
     from fusion.types import Recording
 
