@@ -262,7 +262,8 @@ def robustness(summary: dict[str, Any]) -> dict[str, Any]:
                                 "worst": f["severities"][-1] if f["severities"] else None})
     return {"metric": summary["metric"], "criterion": (
         f"the mildest tested severity at which the mean {summary['metric']} RMSE over the recordings reaches "
-        f"{BREAKDOWN:g} times the clean mean, or a cell fails; null: beyond the tested range"), "entries": entries}
+        f"{BREAKDOWN:g} times the clean mean, or a cell fails; none: beyond the tested range ('> the worst "
+        "tested')"), "entries": entries}
 
 
 # --- text ---
