@@ -32,13 +32,20 @@ _DATA_FIELDS = ("dataset", "data_dir", "init", "progress", "dropouts", "mag", "i
 
 def _settings_options(names: Sequence[str] | None = None, command: str | None = None) -> list:
     """(field, `Option`) of each `RunSettings` field in `names` (in that order), or of each that
-    `command` offers (in field order)."""
+    `command` offers (in field order); `stress` offers compare's (but those a stress run has no use
+    for, `fusion.evaluation.sweeps.stress.NOT_OFFERED`) and its own (`StressSettings`')."""
     import dataclasses
 
-    from fusion.evaluation.run.settings import Option, RunSettings
+    from fusion.evaluation.run.settings import Option
+    from fusion.evaluation.sweeps.stress import NOT_OFFERED, StressSettings
 
-    fields = {f.name: f for f in dataclasses.fields(RunSettings) if isinstance(f.metadata["cli"], Option)}
-    chosen = names if names is not None else [n for n, f in fields.items() if command in f.metadata["cli"].commands]
+    fields = {f.name: f for f in dataclasses.fields(StressSettings) if isinstance(f.metadata["cli"], Option)}
+
+    def offered(name: str) -> bool:
+        commands = fields[name].metadata["cli"].commands
+        return command in commands or (command == "stress" and "compare" in commands and name not in NOT_OFFERED)
+
+    chosen = names if names is not None else [n for n in fields if offered(n)]
     return [(fields[name], fields[name].metadata["cli"]) for name in chosen]
 
 
@@ -54,6 +61,7 @@ def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | N
                 "auto_on_off": dict(choices=("auto", "on", "off"),
                                     default="auto" if default is None else "on" if default else "off"),
                 "choices": dict(choices=option.choices, default=default),
+                "append": dict(action="append", default=None),
                 "value": dict(type=_TYPES[option.type] if option.type else None, default=default)}[option.kind]
         parser.add_argument(option.flag, help=option.help, **kind,
                             **({"metavar": option.metavar} if option.metavar else {}))
@@ -70,6 +78,8 @@ def _setting(args: argparse.Namespace, f, option) -> object:
         return value == "on"
     if option.kind == "auto_on_off":
         return None if value == "auto" else value == "on"
+    if option.kind == "append":
+        return None if value is None else tuple(value)
     return value  # "value", "choices": as parsed
 
 
@@ -129,7 +139,8 @@ def _resume(args: argparse.Namespace) -> int:
 
     options = _run_options(args)
     how = {name: options[name] for name in (*RunSettings.part(HOW), "json_path") if name not in ("resume", "overwrite")}
-    return _print_run(run_resume(args.resume, **how), args.verbose)
+    printer = _print_stress if args.command == "stress" else _print_run
+    return printer(run_resume(args.resume, **how), args.verbose)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
@@ -139,6 +150,26 @@ def cmd_compare(args: argparse.Namespace) -> int:
         return _resume(args)
     return _print_run(run_compare(args.estimators, args.dataset, trajectories=args.trajectory, tuned=args.tuned,
                                   **_run_options(args)), args.verbose)
+
+
+def cmd_stress(args: argparse.Namespace) -> int:
+    from fusion.evaluation.runs import run_stress
+
+    if args.resume:
+        return _resume(args)
+    return _print_stress(run_stress(args.estimators, args.dataset, **_run_options(args)), args.verbose)
+
+
+def _print_stress(run, verbose: bool = False) -> int:
+    """Print a stress run's table; a failure on a clean recording as `_print_run` does (exit status
+    1), the cells that failed under a fault in one line (they are results: the table counts them)."""
+    clean = [r for r in run.failed if not r.fault or r.fault.get("kind") == "none"]
+    status = _print_run(type(run)(clean, run.table, run.document, run.report), verbose)
+    faulted = len(run.failed) - len(clean)
+    if faulted:
+        note(f"{faulted} cells failed under a fault (estimator x recording x fault x severity; counted in the "
+             "tables as xN, each error in results.json: --out or --json)")
+    return status
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
@@ -329,6 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  fusion compare --estimators ukf,gd --dataset all      # the main job (the simulated recording without data)\n"
                "  fusion compare --estimators ./my_ukf.py:MyUKF,ekf --dataset ece276a/1\n"
                "  fusion ablate --preset broad-sweep --data-dir ../shared/data/broad --out runs/sweep\n"
+               "  fusion stress --estimators ekf,vqf --dataset 'broad/*' --out runs/stress   # under sensor faults\n"
                "  fusion inspect --dataset ece276a/1\n"
                "  fusion list\n"
                "  fusion data fetch broad && fusion compare --estimators ekf,vqf --dataset 'broad/*'\n"
@@ -356,6 +388,33 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run each estimator the file holds with its tuned setting (the tuned.json of "
                         "`fusion tune --out DIR`); parameters given in a spec win")
     p.set_defaults(func=cmd_compare)
+
+    from fusion.evaluation.sweeps.stress import fault_table
+
+    p = sub.add_parser("stress", help="every estimator under controlled sensor faults, at graded severities: "
+                                      "dose-response curves and each estimator's robustness",
+                       epilog="examples:\n"
+                              "  fusion stress --estimators ekf,vqf,madgwick,mahony,gn --dataset 'broad/*' --out "
+                              "runs/stress --jobs 2\n"
+                              "  fusion stress --estimators ekf,vqf --dataset 'ece276a/*' --fault gyro-bias-step=1,2,5 "
+                              "--fault drops\n"
+                              "  fusion stress --resume runs/stress\n\n"
+                              "faults (severity unit, the five run by default, the sensor, the model):\n"
+                              + fault_table() + "\n\n"
+                              "A cell (estimator x recording x fault x severity) that fails costs that cell: the "
+                              "tables "
+                              "count it, results.json keeps its error; the exit status is 1 only when an estimator "
+                              "fails on a clean recording.",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--estimators", "--estimator", dest="estimators", default="all",
+                   help="comma-separated estimators with optional parameters, as for compare (default: all)")
+    _add_data_args(p)
+    _add_run_args(p, "stress")
+    next(a for a in p._actions if a.dest == "rerun").help = (
+        "also write a Rerun recording (fusion.evaluation.report.rerun_log.write_stress): each fault's "
+        "dose-response, and the first recording's sensor clean and at the fault's worst severity; open it with "
+        "`rerun FILE.rrd` (needs pip install 'fusion[viz]')")
+    p.set_defaults(func=cmd_stress)
 
     p = sub.add_parser("tune", help="tune estimators by one protocol and score them out of sample",
                        epilog="examples:\n"
@@ -527,7 +586,7 @@ class Terminated(KeyboardInterrupt):
 
 def _resume_hint(args: argparse.Namespace) -> str:
     folder = getattr(args, "resume", None) or getattr(args, "out", None)
-    if args.command not in ("compare", "ablate", "tune") or not folder:
+    if args.command not in ("compare", "ablate", "tune", "stress") or not folder:
         return ""
     from fusion.evaluation.run.journal import JOURNAL, RUN_DIR
 

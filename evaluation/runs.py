@@ -6,6 +6,9 @@ Python the same run is two lines:
     from fusion.evaluation.runs import run_compare
     run = run_compare("dr,ukf", "sim", jobs=1)
 
+(`run_stress`, `fusion stress`: the same, each recording also under controlled sensor faults:
+`fusion.evaluation.sweeps.stress`.)
+
 `run.table` is what `fusion compare` prints, `run.results` the rows (`fusion.evaluation.run.job.Result`,
 without trajectories: see `fusion.evaluation.run.runner`), `run.document` the results document
 (`docs/json-format.md`). Recordings are chosen and loaded as `fusion.selection` says
@@ -37,9 +40,10 @@ from .report.render import git_commit, write_run
 from .run.job import JobOutput, Result
 from .run.journal import Journal, fingerprint, job_key
 from .run.output import OutputFolder
-from .run.runner import run, source_paths
+from .run.runner import job_cells, run, source_paths
 from .run.settings import COMPUTED, WRITTEN, RunSettings, resolve_mag
-from .sweeps import ablate
+from .sweeps import ablate, stress
+from .sweeps.stress import StressSettings
 
 PathLike = str | os.PathLike
 
@@ -143,6 +147,35 @@ def run_ablate(estimator: str | None = None, params: Sequence[str | tuple[str, S
     return _execute(entries, kind, document, settings)
 
 
+def run_stress(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] = "all", dataset: str = "all",
+               data_dir: PathLike | None = None, *, faults: Sequence[str] | None = None, **options: Any) -> Run:
+    """`fusion stress`: every estimator on every recording `dataset` names, clean and under each
+    fault at each severity (`fusion.evaluation.sweeps.stress`, `fusion.faults`).
+
+    estimators: as `run_compare`'s.
+    faults: `--fault` texts, "KIND=L1,L2,..." or "KIND" (its documented severities); None: every kind
+        at its five documented severities.
+    options: as `run_compare`'s (`RunSettings`' fields, but panorama and per_recording). The rows
+        carry their `fault`; `run.document` adds `stress` (the dose-response) and `robustness`; the
+        table is the clean rows' (`format_table`), then the dose-response and the robustness summary.
+    """
+    for name in stress.NOT_OFFERED:
+        if name in options and options[name] != getattr(RunSettings(), name):
+            raise ValueError(f"stress: {name} is not offered (a stress run draws no per-recording figures and "
+                             "writes no trajectories)")
+    settings = StressSettings(dataset=dataset, data_dir=data_dir, faults=faults,
+                              **{k: v for k, v in options.items() if k not in stress.NOT_OFFERED})
+    with _heartbeat(settings.progress):
+        entries = resolve_all(estimators)
+    text = estimators if isinstance(estimators, str) else ",".join(e.label for e in entries)
+    the_plan = settings.plan()
+    kind = {"kind": "stress", "estimators": text, "faults": list(settings.faults) if settings.faults else None}
+    document = {"kind": "stress", "estimators": text, "faults": {k: list(levels) for k, levels in the_plan}}
+    if settings.command is None:
+        settings = replace(settings, command=f"run_stress({text!r}, {dataset!r}, faults={faults!r})")
+    return _execute(entries, kind, document, settings)
+
+
 def run_resume(out: PathLike, **how: Any) -> Run:
     """`fusion compare --resume DIR` / `fusion ablate --resume DIR`: continue the unfinished run in
     `out` with the call recorded in its journal; `how` may change only how it runs (jobs, progress,
@@ -155,7 +188,13 @@ def run_resume(out: PathLike, **how: Any) -> Run:
                 "command": header["command"], "out": os.fspath(out), "json_path": json_path}
     settings = RunSettings.from_json(recorded, resume=True, **how)
     options = {f: getattr(settings, f) for f in RunSettings.__dataclass_fields__ if f not in ("dataset", "data_dir")}
-    if call.pop("kind") == "compare":
+    kind = call.pop("kind")
+    if kind == "stress":
+        for name in stress.NOT_OFFERED:
+            options.pop(name)
+        return run_stress(call["estimators"], settings.dataset, settings.data_dir, faults=call.get("faults"),
+                          **options)
+    if kind == "compare":
         options.pop("per_recording")
         trajectories = [tuple(pair) for pair in call.get("trajectories", [])]
         return run_compare(call["estimators"], settings.dataset, settings.data_dir, trajectories=trajectories,
@@ -192,14 +231,19 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
                          "folder with one file per recording")
     root = s.resolved_data_dir()
     load = s.load_options()  # a bad calibration file fails here, before the output folder is touched
+    faults = stress.variants(s.plan(), sources, s.mag) if isinstance(s, StressSettings) else None
+    if faults is not None:
+        stress.check_variants(s.plan(), faults)
+    series_wanted = (s.per_recording or bool(s.rerun)) and faults is None  # a stress run draws its own
     if s.rerun:  # before any work: the package is installed, the file name is a .rrd in a folder
         from .report.rerun_log import check_path, require
 
         require()
         check_path(s.rerun)
     if not s.out:
-        parts = _Parts() if s.rerun else None  # the estimates for the .rrd, kept in memory
-        results = run(entries, sources, s, series=parts is not None, on_done=parts.record if parts else None)
+        parts = _Parts() if s.rerun and faults is None else None  # the estimates for the .rrd, kept in memory
+        results = run(entries, sources, s, series=parts is not None, on_done=parts.record if parts else None,
+                      faults=faults)
         return _finish(None, parts, entries, sources, results, document, s, range(len(results)))
     with OutputFolder(s.out) as folder:
         if not s.resume and not s.overwrite and folder.holds_run():
@@ -208,12 +252,13 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
         call = _journal_call(kind, s)
         header = {"call": call, "data_dir": str(root.resolve()),
                   "calibration": str(Path(s.calibration).resolve()) if s.calibration else None, "command": s.command,
-                  "jobs_total": len(sources) * len(entries), "versions": versions(), "git_commit": git_commit()}
+                  "jobs_total": len(job_cells(len(sources), len(entries), faults)), "versions": versions(),
+                  "git_commit": git_commit()}
         journal = Journal.resume(folder.path) if s.resume else Journal.start(folder.path, header, replace=s.overwrite)
         try:
             if s.resume:
                 _check_resumable(journal, header)
-            keys = _job_keys(entries, sources, load, s)
+            keys = _job_keys(entries, sources, load, s, faults)
             done = {n: Result.from_json(journal.done[key].row) for n, key in enumerate(keys) if key in journal.done}
             if s.resume:
                 note(f"resuming {folder.path}: {len(done)} of {len(keys)} jobs done, {len(keys) - len(done)} to run")
@@ -221,7 +266,7 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
             def record(n: int, output: JobOutput) -> None:
                 journal.record(keys[n], output.result.to_json(), output.result.error, _series_part(output))
 
-            results = run(entries, sources, s, series=s.per_recording or bool(s.rerun), done=done, on_done=record)
+            results = run(entries, sources, s, series=series_wanted, done=done, on_done=record, faults=faults)
             return _finish(folder, journal, entries, sources, results, document, s, keys)
         finally:
             journal.close()
@@ -258,12 +303,15 @@ def _heartbeat(enabled: bool, first_s: float = 2.0, every_s: float = 4.0) -> Ite
         thread.join()
 
 
-def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, s: RunSettings) -> list[str]:
-    """Each job's journal key (recording-major, as `fusion.evaluation.run.runner.run` numbers them)."""
+def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, s: RunSettings,
+              faults: Sequence[Sequence[Any]] | None = None) -> list[str]:
+    """Each job's journal key (recording-major, as `fusion.evaluation.run.runner.run` numbers them:
+    `job_cells`); a stress run's key holds its fault."""
     options = {"init": s.init, "protocol": s.protocol, "align": s.align, "panorama": s.panorama}
     prints = [fingerprint(source_paths(src), what=src.id) for src in sources]
-    return [job_key(dataset=src.id, files=fp, estimator=e.label, origin=e.describe(), load=repr(load), **options)
-            for src, fp in zip(sources, prints) for e in entries]
+    return [job_key(dataset=sources[i].id, files=prints[i], estimator=entries[j].label, origin=entries[j].describe(),
+                    load=repr(load), **options, **({} if fault is None else {"fault": fault.to_json()}))
+            for i, fault, j in job_cells(len(sources), len(entries), faults)]
 
 
 def _same_call(call: dict[str, Any]) -> dict[str, Any]:
@@ -294,6 +342,8 @@ def _check_resumable(journal: Journal, header: dict[str, Any]) -> None:
 def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
             results: list[Result], document: dict[str, Any], s: RunSettings, keys: Sequence[str] = ()) -> Run:
     """The table, the results document and the report folder of a finished run."""
+    if document.get("kind") == "stress":
+        return _finish_stress(folder, journal, entries, sources, results, document, s)
     table = format_table(results, align=s.align or None, primary=s.primary)  # None: where a row was aligned
     sweep = (ablate.sweep_summary([r.to_json() for r in results], groups=_trial_groups(sources))
              if document.get("kind") == "ablate" else None)
@@ -305,19 +355,7 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
              "--web-viewer for a browser)")
     if not (s.json_path or folder):
         return Run(results, table)
-    root = s.resolved_data_dir()
-    settings = {"command": s.command, **document, "dataset": s.dataset,
-                "data_dir": str(root.resolve()),
-                "merged": datasets.merged_ids(sources),
-                "dropouts": "on" if s.dropouts else "off",
-                "calibration": calibration_settings(s.calibration),
-                "init": s.init or ("default (the aligned truth where available, else accel)" if s.align
-                                   else "default (truth where available, else accel)"),
-                "align": bool(s.align), "primary": s.primary,
-                "protocol": s.protocol or "default (broad for recordings with a movement mask, else full)",
-                "estimator_details": {e.label: e.describe() for e in entries},
-                "git_commit": git_commit()}
-    doc = results_json(results, settings)
+    doc = results_json(results, _settings_document(document, sources, entries, s))
     if sweep:
         doc["sweep"] = sweep  # docs/json-format.md
     if s.json_path:
@@ -329,6 +367,59 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         report = write_run(folder, doc, series, journal, jobs=s.jobs, progress=s.progress)
         journal.remove()
     return Run(results, table, doc, report)
+
+
+def _settings_document(document: dict[str, Any], sources: list, entries: list[ResolvedSpec],
+                       s: RunSettings) -> dict[str, Any]:
+    """The results document's `settings`: the command, what `document` says of the run, and the settings."""
+    root = s.resolved_data_dir()
+    return {"command": s.command, **document, "dataset": s.dataset,
+            "data_dir": str(root.resolve()),
+            "merged": datasets.merged_ids(sources),
+            "dropouts": "on" if s.dropouts else "off",
+            "calibration": calibration_settings(s.calibration),
+            "init": s.init or ("default (the aligned truth where available, else accel)" if s.align
+                               else "default (truth where available, else accel)"),
+            "align": bool(s.align), "primary": s.primary,
+            "protocol": s.protocol or "default (broad for recordings with a movement mask, else full)",
+            "estimator_details": {e.label: e.describe() for e in entries},
+            "git_commit": git_commit()}
+
+
+def _finish_stress(folder: OutputFolder | None, journal: Journal | None, entries: list[ResolvedSpec], sources: list,
+                   results: list[Result], document: dict[str, Any], s: RunSettings) -> Run:
+    """A stress run's table (the clean rows', then the dose-response and the robustness summary), its
+    results document (every row with its fault; `stress`, `robustness`; the statistics and the
+    per-dataset means of the clean rows) and its report folder and Rerun recording."""
+    rows = [r.to_json() for r in results]
+    clean = [r for r in results if not r.fault or r.fault["kind"] == stress.NONE]
+    summary = stress.stress_summary(rows, s.primary)
+    robust = stress.robustness(summary)
+    table = (format_table(clean, align=s.align or None, primary=s.primary) + "\n\n"
+             + stress.format_stress(summary, robust))
+    if s.rerun:
+        from .report.rerun_log import write_stress
+
+        write_stress(s.rerun, summary, _first_recording(sources, results, s), data_dir=s.resolved_data_dir())
+    if not (s.json_path or folder):
+        return Run(results, table)
+    doc = results_json(clean, _settings_document(document, sources, entries, s))
+    doc.update(results=rows, stress=summary, robustness=robust)
+    if s.json_path:
+        Path(s.json_path).write_text(json.dumps(doc, indent=2) + "\n")
+    report = None
+    if folder is not None:
+        report = write_run(folder, doc, None, journal, jobs=s.jobs, progress=s.progress)
+        journal.remove()
+    return Run(results, table, doc, report)
+
+
+def _first_recording(sources: list, results: list[Result], s: RunSettings) -> Any:
+    """The first recording of a run that could be read, loaded again (what `--rerun` shows the faults
+    on), or None."""
+    readable = {r.dataset for r in results if r.readable}
+    source = next((src for src in sources if src.id in readable), None)
+    return None if source is None else s.load_options().load(source)
 
 
 def _series_part(output: JobOutput) -> dict[str, np.ndarray] | None:

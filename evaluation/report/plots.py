@@ -920,3 +920,106 @@ def event_error_figure(s: RecordingSeries, truth: str = TRUTH, window_s: float =
     _suptitle(fig, f"{s.id}: total error against {truth} around the events"
                  + (f" (dashed: the {len(windows)} longest, zoomed below)" if windows else ""), fontsize=10)
     return fig
+
+
+# --- stress runs (`fusion stress`: `fusion.evaluation.sweeps.stress.stress_summary`) ---
+
+def dose_response_figure(fault: dict, metric: str = "total", where: str = "") -> Figure:
+    """One fault's dose-response (an entry of `stress_summary`'s `faults`): the mean `metric` RMSE
+    over the recordings against the severity, each estimator a line with markers and its 95 %
+    interval over the recordings shaded, its clean mean a dotted line of its colour (and a point at
+    "clean", left of the severities). The x axis runs from the mildest severity to the worst
+    (reversed for a fault whose smaller severity is worse, a saturation's range), logarithmic when
+    the severities span a factor of 10 or more, as is the y axis when the errors do (20 or more). A
+    point with failed cells is marked with a cross and the count."""
+    levels = np.array(fault["severities"], float)
+    fig = _new_figure(7.8, 4.8)
+    ax = fig.subplots()
+    log_x = levels.size > 1 and np.all(levels > 0) and levels.max() / levels.min() >= 10
+    # "clean" sits one step left of the mildest severity (in the axis's own scale)
+    ordered = np.sort(levels)
+    if log_x:
+        step = np.exp(np.mean(np.diff(np.log(ordered)))) if levels.size > 1 else 2.0
+        clean_x = ordered[-1] * step if fault["lower_is_worse"] else ordered[0] / step
+    else:
+        step = float(np.mean(np.diff(ordered))) if levels.size > 1 else 1.0
+        clean_x = ordered[-1] + step if fault["lower_is_worse"] else ordered[0] - step
+    values = []
+    for e, est in enumerate(fault["estimators"]):
+        c, ls = color(e), linestyle(e)
+        pts = est["points"]
+        ys = np.array([np.nan if p["mean_deg"] is None else p["mean_deg"] for p in pts])
+        clean = est["clean"]["mean_deg"]
+        xs = np.concatenate([[clean_x], levels])
+        yline = np.concatenate([[np.nan if clean is None else clean], ys])
+        ax.plot(xs, yline, marker="o", color=c, linestyle=ls, label=est["estimator"], zorder=3)
+        if clean is not None:
+            ax.axhline(clean, color=c, linestyle=":", linewidth=0.8, alpha=0.7)
+        cis = [est["clean"]["ci95_deg"]] + [p["ci95_deg"] for p in pts]
+        low = np.array([np.nan if ci is None else ci[0] for ci in cis])
+        high = np.array([np.nan if ci is None else ci[1] for ci in cis])
+        if np.isfinite(low).any():
+            ax.fill_between(xs, low, high, color=c, alpha=0.15, linewidth=0)
+        for x, p in zip(levels, pts):
+            if p["failed"]:
+                y = p["mean_deg"] if p["mean_deg"] is not None else (np.nanmax(ys) if np.isfinite(ys).any() else 1.0)
+                ax.plot([x], [y], marker="x", markersize=10, color=c, linestyle="none", zorder=4)
+                ax.annotate(f"{p['failed']} failed", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7,
+                            color=c)
+        values += [v for v in yline if np.isfinite(v)]
+    if log_x:
+        ax.set_xscale("log")
+    ax.set_xticks(np.concatenate([[clean_x], levels]), ["clean", *(f"{v:g}" for v in levels)])
+    ax.minorticks_off()
+    if fault["lower_is_worse"]:
+        ax.invert_xaxis()
+    positive = np.array([v for v in values if v > 0])
+    if positive.size and positive.max() / positive.min() >= 20:
+        ax.set_yscale("log")
+    else:
+        ax.set_ylim(bottom=0)
+    ax.set_xlabel(f"{fault['kind']} [{fault['unit']}]" + ("  (smaller is worse)" if fault["lower_is_worse"] else ""))
+    ax.set_ylabel(f"mean {metric} RMSE [deg]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(f"{fault['kind']}{where}: {fault['model']}\n(shaded: 95 % interval over the recordings; dotted: "
+                 "each estimator's clean error)", fontsize=9)
+    return fig
+
+
+def robustness_figure(robust: dict, dataset: str, kinds: list[str], levels: dict[str, list[float]]) -> Figure | None:
+    """The robustness summary as a grid, faults x estimators (as the table): each cell coloured by how many of the
+    fault's tested severities the estimator came through below twice its clean error (0: broke at
+    the mildest; all: beyond the range), and labelled with the severity at which it broke (`>` the
+    worst: beyond the range). None without entries."""
+    entries = [x for x in robust["entries"] if x["dataset"] == dataset]
+    if not entries:
+        return None
+    labels = list(dict.fromkeys(x["estimator"] for x in entries))
+    by = {(x["estimator"], x["fault"]): x for x in entries}
+    m = np.full((len(kinds), len(labels)), np.nan)
+    text = [["-"] * len(labels) for _ in kinds]
+    for i, kind in enumerate(kinds):
+        for j, label in enumerate(labels):
+            x = by.get((label, kind))
+            if x is None:
+                continue
+            tested = levels[kind]
+            m[i, j] = (len(tested) if x["breaks_at"] is None else tested.index(x["breaks_at"])) / max(len(tested), 1)
+            text[i][j] = (f"> {x['worst']:g}" if x["breaks_at"] is None else f"{x['breaks_at']:g}"
+                          + (" x" if x["failed"] else ""))
+    fig = _new_figure(3.8 + 1.1 * len(labels), 1.4 + 0.42 * len(kinds))
+    ax = fig.subplots()
+    cmap = matplotlib.colormaps["RdYlGn"].with_extremes(bad="0.85")
+    image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0, vmax=1, aspect="auto")
+    ax.set_yticks(range(len(kinds)), [f"{k} [{next(x['unit'] for x in entries if x['fault'] == k)}]" for k in kinds],
+                  fontsize=8)
+    ax.set_xticks(range(len(labels)), [_short(label) for label in labels], rotation=30 if len(labels) > 6 else 0,
+                  ha="right" if len(labels) > 6 else "center", fontsize=8)
+    for (i, j), v in np.ndenumerate(m):
+        ax.text(j, i, text[i][j], ha="center", va="center", fontsize=7, color="black")
+    fig.colorbar(image, ax=ax, label="share of the tested severities survived", shrink=0.9)
+    ax.set_title(f"robustness{f' on {dataset}' if dataset != 'other' else ''}: the severity at which\nthe mean "
+                 f"{robust['metric']} RMSE reaches twice the clean one\n(x: a cell failed; > the worst tested: "
+                 "beyond the range)", fontsize=9)
+    return fig

@@ -6,7 +6,8 @@
     DIR/series/NNN.npz   per recording, the time series the figures need (`fusion.evaluation.run.series`)
     DIR/figures/*.png    per recording: Euler angles over the truth, errors, smoother cost, and per
                          filter with a covariance its consistency (`plots.consistency_figure`);
-                         summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter
+                         summary: RMSE heat maps, accuracy vs speed; ablations: RMSE vs parameter;
+                         stress runs: a dose-response figure per fault and the robustness grid
     DIR/report.html      one page, readable offline: the summary figures embedded (base64 PNG), the
                          per-recording ones linked from figures/ and loaded as the reader scrolls
     DIR/report.md        the same for a repository (links to figures/)
@@ -219,11 +220,16 @@ def render(out_dir: str | Path, jobs: int | None = 1, progress: bool = False) ->
 def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> None:
     """Table, figures and both reports of the run in `source`, written into `dest`."""
     doc = read_results(source / RESULTS)
+    stress = _stress_of(doc)  # a stress run: its dose-response and robustness; the rest is its clean rows'
+    if stress is not None:
+        from ..sweeps.stress import clean_rows
+
+        doc = {**doc, "results": clean_rows(doc["results"])}
     results = [Result.from_json(r) for r in doc["results"]]
     primary = doc["settings"].get("primary")  # the table's statistics metric, when the run chose one
     table = format_table(results, align=bool(doc["settings"].get("align", False)),
                          primary=primary if primary in KINDS else "total")
-    sweep = "\n\n".join(text for text in (_tuning_text(doc), _sweep_text(doc)) if text)
+    sweep = "\n\n".join(text for text in (_tuning_text(doc), _sweep_text(doc), _stress_text(stress)) if text)
     (dest / "table.txt").write_text(table + (f"\n\n{sweep}" if sweep else "") + "\n")
     fig_dir = dest / "figures"
     fig_dir.mkdir(exist_ok=True)
@@ -234,12 +240,125 @@ def _render_into(source: Path, dest: Path, jobs: int | None, progress: bool) -> 
     tasks: list[tuple[Callable, tuple]] = [(_render_summary, (doc, str(fig_dir))),
                                            (_render_statistics, (statistics.to_json(), doc, str(fig_dir)))]
     truths = truth_names(doc)
+    tasks += [(_render_stress, (stress, str(fig_dir)))]
     tasks += [(_render_recording, (str(p), str(fig_dir), truths)) for p in series_paths]
     outputs = _run_tasks(tasks, jobs, progress)
-    summary, cd_figures, per_recording = outputs[0], outputs[1], [fig for figs, _ in outputs[2:] for fig in figs]
-    beliefs = [entry for _, entries in outputs[2:] for entry in entries]
-    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs, statistics, cd_figures))
-    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs, statistics, cd_figures))
+    summary, cd_figures, stress_figures = outputs[0], outputs[1], outputs[2]
+    per_recording = [fig for figs, _ in outputs[3:] for fig in figs]
+    beliefs = [entry for _, entries in outputs[3:] for entry in entries]
+    parts = _stress_parts(stress, stress_figures)
+    (dest / "report.md").write_text(_markdown(doc, table, summary, per_recording, beliefs, statistics, cd_figures,
+                                              parts))
+    (dest / "report.html").write_text(_html(doc, summary, per_recording, fig_dir, beliefs, statistics, cd_figures,
+                                            parts))
+
+
+def _stress_of(doc: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """A stress run's dose-response and robustness (`fusion.evaluation.sweeps.stress`): as its
+    results.json holds them (`stress`, `robustness`, computed from its rows), else from the rows;
+    None for other runs."""
+    if doc["settings"].get("kind") != "stress":
+        return None
+    from ..sweeps.stress import robustness, stress_summary
+
+    summary = doc.get("stress")
+    if not isinstance(summary, dict) or not isinstance(summary.get("datasets"), list):
+        primary = doc["settings"].get("primary")
+        summary = stress_summary(doc["results"], primary if primary in KINDS else "total")
+    robust = doc.get("robustness")
+    if not isinstance(robust, dict) or not isinstance(robust.get("entries"), list):
+        robust = robustness(summary)
+    return summary, robust
+
+
+def _stress_text(stress: tuple[dict[str, Any], dict[str, Any]] | None) -> str:
+    """What `fusion stress` prints under the clean table (`fusion.evaluation.sweeps.stress.format_stress`)."""
+    if stress is None:
+        return ""
+    from ..sweeps.stress import format_stress
+
+    return format_stress(*stress)
+
+
+def _render_stress(stress: tuple[dict[str, Any], dict[str, Any]] | None, fig_dir: str) -> list[dict[str, Any]]:
+    """A stress run's figures: per dataset folder the robustness grid and a dose-response figure per
+    fault (`plots.robustness_figure`, `plots.dose_response_figure`); one entry each: {"dataset",
+    "fault" (None: the grid), "caption", "file"}."""
+    if stress is None:
+        return []
+    from . import plots
+
+    summary, robust = stress
+    several = len(summary["datasets"]) > 1
+    out = []
+    for d in summary["datasets"]:
+        where = f" on {d['dataset']}" if several else ""
+        prefix = f"stress-{plots.slug(d['dataset'])}-" if several else "stress-"
+        kinds = [f["kind"] for f in d["faults"]]
+        fig = plots.robustness_figure(robust, d["dataset"], kinds, {f["kind"]: f["severities"] for f in d["faults"]})
+        if fig is not None:
+            _save(fig, Path(fig_dir) / f"{prefix}robustness.png")
+            out.append({"dataset": d["dataset"], "fault": None, "file": f"{prefix}robustness.png",
+                        "caption": f"robustness{where}: the severity at which each estimator's mean "
+                                   f"{summary['metric']} RMSE reaches twice its clean error"})
+        for f in d["faults"]:
+            name = f"{prefix}{plots.slug(f['kind'])}.png"
+            _save(plots.dose_response_figure(f, summary["metric"], where), Path(fig_dir) / name)
+            out.append({"dataset": d["dataset"], "fault": f["kind"], "file": name,
+                        "caption": f"{f['kind']}{where}: mean {summary['metric']} RMSE against the severity "
+                                   f"({f['unit']}), 95 % interval over the recordings"})
+    return out
+
+
+STRESS_TEXT = (
+    "Every recording was run clean and under each sensor fault at each severity (fusion.faults: each a transform of "
+    "the recording's sensor data, the truth untouched, seeded by the recording and the fault). Per fault and "
+    "estimator: the mean RMSE over the recordings at each severity with its 95 % bootstrap interval (BCa, the "
+    "recordings resampled), over the recordings the estimator was scored on clean (the same at every severity); a "
+    "cell that failed (the estimator raised or diverged) is counted and left out of its point's mean. Robustness: "
+    "the mildest tested severity at which the mean reaches twice the clean mean, or a cell fails; beyond the range "
+    "when none does (tested severities only: no interpolation between them).")
+
+
+def _stress_parts(stress: tuple[dict[str, Any], dict[str, Any]] | None, figures: list[dict[str, Any]]
+                  ) -> list[dict[str, Any]]:
+    """Per dataset folder of a stress run, what its report section shows: the robustness table and
+    per fault its dose-response table (mean [95 % CI] per severity) and figure."""
+    if stress is None:
+        return []
+    from ..sweeps.stress import BREAKDOWN, robust_rows
+
+    summary, robust = stress
+    out = []
+    for d in summary["datasets"]:
+        kinds = [f["kind"] for f in d["faults"]]
+        robust_header, robust_body = robust_rows([x for x in robust["entries"] if x["dataset"] == d["dataset"]], kinds)
+        faults = []
+        for f in d["faults"]:
+            head = ["estimator", "clean", *(f"{v:g} {f['unit']}" for v in f["severities"])]
+            rows = []
+            for e in f["estimators"]:
+                clean = e["clean"]["mean_deg"]
+                rows.append([e["estimator"], _point_text(e["clean"], None, BREAKDOWN),
+                             *(_point_text(p, clean, BREAKDOWN) for p in e["points"])])
+            figure = next((x for x in figures if x["dataset"] == d["dataset"] and x["fault"] == f["kind"]), None)
+            faults.append({"kind": f["kind"], "model": f["model"], "header": head, "rows": rows, "figure": figure})
+        grid = next((x for x in figures if x["dataset"] == d["dataset"] and x["fault"] is None), None)
+        out.append({"dataset": d["dataset"], "recordings": d["recordings"], "metric": summary["metric"],
+                    "robust_header": robust_header, "robust_rows": robust_body, "grid": grid,
+                    "faults": faults, "criterion": robust["criterion"]})
+    return out
+
+
+def _point_text(p: dict[str, Any], clean: float | None, breakdown: float) -> str:
+    text = _fmt(p["mean_deg"])
+    if p["ci95_deg"] is not None:
+        text += f" [{p['ci95_deg'][0]:.2f}, {p['ci95_deg'][1]:.2f}]"
+    if clean and p["mean_deg"] is not None and p["mean_deg"] >= breakdown * clean:
+        text += " !"
+    if p["failed"]:
+        text += f" ({p['failed']} failed)"
+    return text
 
 
 def _tuning_text(doc: dict[str, Any]) -> str:
@@ -669,6 +788,8 @@ def _statistics_parts(statistics: RunStatistics, cd_figures: dict[tuple, tuple[s
 
 def _title(doc: dict[str, Any]) -> str:
     settings = doc.get("settings", {})
+    if settings.get("kind") == "stress":
+        return "fusion stress: estimators under sensor faults"
     if settings.get("kind") == "ablate":
         what = settings.get("preset") or settings.get("estimator", "")
         return f"fusion ablation: {what}"
@@ -677,7 +798,7 @@ def _title(doc: dict[str, Any]) -> str:
 
 def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: list,
               beliefs: list[dict[str, Any]] = (), statistics: RunStatistics | None = None,
-              cd_figures: dict[tuple, tuple[str, str]] | None = None) -> str:
+              cd_figures: dict[tuple, tuple[str, str]] | None = None, stress: list[dict[str, Any]] = ()) -> str:
     header, body, mean_header, means = _tables(doc)
 
     def md_table(head: list[str], rows: list[list[str]]) -> list[str]:
@@ -687,7 +808,20 @@ def _markdown(doc: dict[str, Any], table: str, summary: list, per_recording: lis
 
     settings = doc.get("settings", {})
     lines = [f"# {_title(doc)}", "", "Command:", "", "    " + settings.get("command", "(unknown)"), "",
-             "Re-render without recomputing: `fusion report <this folder>`.", "", "## Means per estimator (RMSE, deg)", ""]
+             "Re-render without recomputing: `fusion report <this folder>`.", ""]
+    if stress:
+        lines += ["## Stress", "", STRESS_TEXT, ""]
+        for part in stress:
+            title = f" on {part['dataset']}" if len(stress) > 1 else ""
+            lines += [f"### Robustness{title} ({part['recordings']} recordings)", "", part["criterion"] + ".", ""]
+            lines += md_table(part["robust_header"], part["robust_rows"]) + [""]
+            lines += [f"![{part['grid']['caption']}](figures/{part['grid']['file']})", ""] if part["grid"] else []
+            for f in part["faults"]:
+                lines += [f"### {f['kind']}{title}", "", f"{f['model']}. Mean {part['metric']} RMSE, deg [95 % CI]; "
+                          "! twice the clean mean or more.", ""] + md_table(f["header"], f["rows"]) + [""]
+                lines += [f"![{f['figure']['caption']}](figures/{f['figure']['file']})", ""] if f["figure"] else []
+        lines += ["## The clean run", "", "The rows without a fault, as `fusion compare` gives them.", ""]
+    lines += ["## Means per estimator (RMSE, deg)", ""]
     lines += md_table(mean_header, means) + ["", "## Results per recording (RMSE and maximum, deg)", ""]
     lines += md_table(header, body) + (["", _coverage_text(doc)] if _coverage_text(doc) else [])
     lines += ["", *_imu_notes(doc)] if _imu_notes(doc) else []
@@ -747,6 +881,27 @@ def _html_table(head: list[str], rows: list[list[str]], table_id: str, numeric_f
     return "\n".join(out) + "</tbody></table>"
 
 
+def _html_stress(stress: list[dict[str, Any]], fig_dir: Path) -> list[str]:
+    """A stress run's section of report.html (`_stress_parts`): robustness, then per fault its table
+    and figure (embedded); [] for other runs."""
+    if not stress:
+        return []
+    out = ['<h2 id="stress">Stress</h2>', f"<p>{html.escape(STRESS_TEXT)}</p>"]
+    for n, part in enumerate(stress):
+        title = f" on {part['dataset']}" if len(stress) > 1 else ""
+        out += [f"<h3>Robustness{html.escape(title)} ({part['recordings']} recordings)</h3>",
+                f"<p>{html.escape(part['criterion'])}.</p>",
+                _html_table(part["robust_header"], part["robust_rows"], f"robustness-{n:02d}", 1)]
+        out += [_img(fig_dir, part["grid"]["caption"], part["grid"]["file"])] if part["grid"] else []
+        for k, f in enumerate(part["faults"]):
+            out += [f"<h3>{html.escape(f['kind'] + title)}</h3>",
+                    f"<p>{html.escape(f['model'])}. Mean {html.escape(part['metric'])} RMSE, deg [95 % CI]; ! twice "
+                    "the clean mean or more.</p>", _html_table(f["header"], f["rows"], f"stress-{n:02d}-{k:02d}", 1)]
+            out += [_img(fig_dir, f["figure"]["caption"], f["figure"]["file"])] if f["figure"] else []
+    out += ["<h2>The clean run</h2><p>The rows without a fault, as <code>fusion compare</code> gives them.</p>"]
+    return out
+
+
 def _img(fig_dir: Path, caption: str, name: str, embed: bool = True) -> str:
     """A figure: embedded (base64 PNG: the page alone shows it) or linked from `figures/` and loaded
     when scrolled to (`loading="lazy"`), so that a report with a hundred figures opens at once."""
@@ -761,7 +916,7 @@ def _img(fig_dir: Path, caption: str, name: str, embed: bool = True) -> str:
 
 def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path,
           beliefs: list[dict[str, Any]] = (), statistics: RunStatistics | None = None,
-          cd_figures: dict[tuple, tuple[str, str]] | None = None) -> str:
+          cd_figures: dict[tuple, tuple[str, str]] | None = None, stress: list[dict[str, Any]] = ()) -> str:
     header, body, mean_header, means = _tables(doc)
     settings = doc.get("settings", {})
     parts = [
@@ -770,6 +925,7 @@ def _html(doc: dict[str, Any], summary: list, per_recording: list, fig_dir: Path
         f"<h1>{html.escape(_title(doc))}</h1>",
         "<p>Command (re-render this page without recomputing: <code>fusion report &lt;folder&gt;</code>):</p>",
         f"<pre>{html.escape(settings.get('command', '(unknown)'))}</pre>",
+        *_html_stress(stress, fig_dir),
         "<h2>Means per estimator</h2><p>RMSE and maximum error in degrees. total = geodesic angle between estimate "
         f"and {html.escape(_truth_text(doc))}; inclination = angle between the true and estimated gravity direction; "
         f"heading = twist about world z of the error. {html.escape(_alignment_text(doc))}</p>",

@@ -366,3 +366,116 @@ def _rgb(color: Any) -> tuple[int, int, int]:
     from matplotlib.colors import to_rgb
 
     return tuple(int(round(255 * c)) for c in to_rgb(color))
+
+
+# --- a stress run (`fusion stress --rerun FILE.rrd`) ---
+
+STRESS_TIMELINE = "level"  # a stress run's dose-response: 0 = clean, k = the fault's k-th severity (mildest first)
+
+
+def write_stress(path: str | os.PathLike, summary: dict, recording: Any = None, *, data_dir: Any = None,
+                 application_id: str = "fusion") -> Path:
+    """A stress run (`fusion.evaluation.sweeps.stress.stress_summary`) as a Rerun recording, one tab per
+    fault (per dataset folder when the run has several):
+
+        stress/<dataset>/<fault>/<estimator>          the mean error over the recordings, deg, on the
+                                                      timeline `level` (0 = clean, k = the k-th severity,
+                                                      mildest first), its 95 % interval as
+                                                      .../ci_low and .../ci_high
+        stress/<dataset>/<fault>/levels               one line per level: its severity and unit
+        sensors/<fault>/<sensor>/clean, .../faulted   with `recording` (the run's first readable one), the
+                                                      sensor the fault changes, clean and at the fault's
+                                                      worst severity (`fusion.faults.apply`), on `time`
+
+    data_dir is not used (the signature of `write`'s)."""
+    rr = require()
+    import rerun.blueprint as rrb
+
+    from fusion import faults as fault_models
+
+    from .plots import color
+
+    path = check_path(path)
+    part = path.with_name(path.name + ".part")
+    several = len(summary["datasets"]) > 1
+    try:
+        with rr.RecordingStream(application_id) as stream:
+            stream.save(part)
+            tabs = []
+            for d in summary["datasets"]:
+                for f in d["faults"]:
+                    root = "/stress/" + "/".join(rr.escape_entity_path_part(p) for p in (d["dataset"], f["kind"]))
+                    for e, est in enumerate(f["estimators"]):
+                        entity = f"{root}/{rr.escape_entity_path_part(est['estimator'])}"
+                        pts = [est["clean"], *est["points"]]
+                        level = np.arange(len(pts))
+                        mean = np.array([np.nan if p["mean_deg"] is None else p["mean_deg"] for p in pts])
+                        rgb = _rgb(color(e))
+                        stream.log(entity, rr.SeriesLines(names=[est["estimator"]], colors=[rgb]), static=True)
+                        good = np.isfinite(mean)
+                        if good.any():
+                            stream.send_columns(entity, indexes=[rr.TimeColumn(STRESS_TIMELINE, sequence=level[good])],
+                                                columns=rr.Scalars.columns(scalars=mean[good]))
+                        for bound, k in (("ci_low", 0), ("ci_high", 1)):
+                            v = np.array([np.nan if p["ci95_deg"] is None else p["ci95_deg"][k] for p in pts])
+                            ok = np.isfinite(v)
+                            if ok.any():
+                                stream.log(f"{entity}/{bound}", rr.SeriesLines(names=[f"{est['estimator']} {bound}"],
+                                                                               colors=[rgb], widths=[0.5]), static=True)
+                                stream.send_columns(f"{entity}/{bound}",
+                                                    indexes=[rr.TimeColumn(STRESS_TIMELINE, sequence=level[ok])],
+                                                    columns=rr.Scalars.columns(scalars=v[ok]))
+                    texts = ["level 0: clean"] + [f"level {k + 1}: {v:g} {f['unit']}"
+                                                  for k, v in enumerate(f["severities"])]
+                    stream.send_columns(f"{root}/levels",
+                                        indexes=[rr.TimeColumn(STRESS_TIMELINE, sequence=np.arange(len(texts)))],
+                                        columns=rr.TextLog.columns(text=texts, level=["INFO"] * len(texts)))
+                    sensor = None
+                    if recording is not None and f["severities"] and (not several or d is summary["datasets"][0]):
+                        sensor = _log_faulted_sensor(rr, stream, recording, f["kind"], f["severities"][-1],
+                                                     fault_models)
+                    views = [rrb.TimeSeriesView(origin=root, name=f"mean {summary['metric']} RMSE [deg] by level",
+                                                contents=["+ $origin/**", f"- {root}/levels"]),
+                             rrb.TextLogView(origin=f"{root}/levels", name="levels")]
+                    if sensor:
+                        views.append(rrb.TimeSeriesView(origin=sensor, name=f"{recording.id}: {sensor.split('/')[-1]}, "
+                                                        f"clean and at {f['severities'][-1]:g} {f['unit']}"))
+                    tabs.append(rrb.Vertical(*views, row_shares=[3, 1, 3][:len(views)],
+                                             name=f"{f['kind']}" + (f" ({d['dataset']})" if several else "")))
+            if tabs:
+                stream.send_blueprint(rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True))
+        os.replace(part, path)
+    finally:
+        part.unlink(missing_ok=True)
+    return path
+
+
+def _log_faulted_sensor(rr: Any, stream: Any, recording: Any, kind: str, severity: float,
+                        fault_models: Any) -> str | None:
+    """The sensor `kind` changes on `recording`, clean and under it at `severity`, as two series on `time`
+    (s since the first sample; time stamps: their error, ms); returns the entity's root, None when the
+    fault does not apply."""
+    if not fault_models.applies(kind, recording):
+        return None
+    bad = fault_models.apply(recording, fault_models.Fault(kind, severity))
+    sensor = fault_models.KINDS[kind].sensor
+    t0 = float(recording.imu.t[0])
+    root = f"/sensors/{rr.escape_entity_path_part(kind)}"
+    if sensor == "time stamps":
+        entity = f"{root}/stamp_error_ms"
+        x = np.asarray(recording.imu.t) - t0
+        stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=x)],
+                            columns=rr.Scalars.columns(scalars=1e3 * (np.asarray(bad.imu.t) - recording.imu.t)))
+        return root
+    gyro = ("gyr_rad_s", "gyro_deg_s", 180.0 / np.pi)
+    field, unit, scale = {"gyro": gyro, "accelerometer": ("acc_g", "acc_g", 1.0),
+                          "magnetometer": ("mag_ut", "mag_ut", 1.0)}.get(sensor, gyro)
+    for name, rec in (("clean", recording), ("faulted", bad)):
+        values = np.asarray(getattr(rec.imu, field), float) * scale
+        good = np.all(np.isfinite(values), axis=1)
+        entity = f"{root}/{unit}/{name}"
+        _series_style(rr, lambda e, *a: [stream.log(e, x, static=True) for x in a], entity,
+                      [f"{name} {axis}" for axis in "xyz"], AXIS_COLORS if name == "faulted" else [(150, 150, 150)] * 3)
+        stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=np.asarray(rec.imu.t)[good] - t0)],
+                            columns=rr.Scalars.columns(scalars=values[good]))
+    return f"{root}/{unit}"

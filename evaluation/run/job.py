@@ -61,6 +61,8 @@ class Result:
         "alignment poor": with `--align`, `fusion.evaluation.scoring.align.Alignment.problem`); the same for
         every row of a recording; None for a scored row and a failed one. A fact about the data: the
         run goes on, and its exit status does not change.
+    fault: the sensor fault the recording was run under (`fusion stress`: `fusion.faults.Fault.to_json`,
+        {"kind", "severity", "unit"}; kind "none" for the clean run); None outside a stress run.
     """
 
     dataset: str
@@ -81,6 +83,7 @@ class Result:
     truth: str | None = None
     traceback: str | None = None
     not_scored: str | None = None
+    fault: dict[str, Any] | None = None
 
     @property
     def readable(self) -> bool:
@@ -127,8 +130,8 @@ class Result:
         """The row of `results.json` (the keys are a documented format: docs/json-format.md; `panorama`
         only with `--panorama`; `alignment` null unless the row was scored with `--align`;
         `error` only on a failed row, `traceback` only on a failed row whose user code raised,
-        `not_scored` only on a row of a recording that was not scored; `protocol` and `truth` go into
-        the document's `recordings`, once per recording)."""
+        `not_scored` only on a row of a recording that was not scored, `fault` only on a stress run's
+        row; `protocol` and `truth` go into the document's `recordings`, once per recording)."""
         row = {
             "dataset": self.dataset,
             "estimator": self.estimator,
@@ -149,6 +152,8 @@ class Result:
             row["traceback"] = self.traceback
         if self.not_scored is not None:
             row["not_scored"] = self.not_scored
+        if self.fault is not None:
+            row["fault"] = self.fault
         return row
 
     @classmethod
@@ -159,7 +164,7 @@ class Result:
                    panorama=r.get("panorama"), alignment=r.get("alignment"), scored_samples=r.get("scored_samples"),
                    coverage=r.get("coverage"), error=r.get("error"), magnetometer=bool(r.get("magnetometer", False)),
                    protocol=r.get("protocol"), truth=r.get("truth"), traceback=r.get("traceback"),
-                   not_scored=r.get("not_scored"))
+                   not_scored=r.get("not_scored"), fault=r.get("fault"))
 
 
 def default_protocol(recording: Recording) -> str:
@@ -477,6 +482,8 @@ class Job:
     keep: return the whole `Result` (trajectory and per-sample errors) instead of its summary.
     truth: what the recording's truth is (`truth_system` of its `Source`), for the row; None: from
         the loaded recording.
+    fault: a `fusion.faults.Fault` the recording is run under (`fusion stress`; the runner applies it
+        to the loaded recording, `fusion.faults.apply`, and the row records it), or None: as loaded.
     """
 
     recording: int
@@ -486,6 +493,7 @@ class Job:
     with_recording: bool = False
     keep: bool = False
     truth: str | None = None
+    fault: Any = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -515,7 +523,17 @@ def run_job(job: Job, rec: Recording | Unreadable, entry: ResolvedSpec, alignmen
         data; the caller keeps it once per recording), or None.
     problem: why the recording cannot be scored through its `alignment` (`checked_alignment`): its
         truth is set aside and the estimator runs unscored; None otherwise.
+    With `job.fault`, `rec` is the recording under that fault (the runner applies it), and the row
+    records the fault (`Result.fault`).
     """
+    output = _run_job(job, rec, entry, alignment, truth_at_imu, problem)
+    if job.fault is None:
+        return output
+    return replace(output, result=replace(output.result, fault=job.fault.to_json()))
+
+
+def _run_job(job: Job, rec: Recording | Unreadable, entry: ResolvedSpec, alignment: Alignment | None,
+             truth_at_imu: Any = None, problem: str | None = None) -> JobOutput:
     from . import series
 
     if isinstance(rec, Unreadable):

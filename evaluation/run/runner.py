@@ -9,10 +9,13 @@ a dask.distributed cluster. The one job runner of `fusion compare` and `fusion a
 settings passes them whole: `run(specs, sources, settings)`).
 
 A job (`fusion.evaluation.run.job.Job`) is one (recording, estimator) pair: build, estimate, time,
-score (`fusion.evaluation.run.job.run_job`). It carries indices only: into the run's recordings
-(dataset `Source`s, loaded the first time a process needs them and kept, or loaded `Recording`s)
-and into its resolved specs (`fusion.estimators.ResolvedSpec`, resolved once, in the parent, so
-a bad name or parameter fails before any work). Results come back in the serial order
+score (`fusion.evaluation.run.job.run_job`); in a stress run (`faults`), one (recording, fault,
+estimator) triple, the fault (`fusion.faults.Fault`) applied to the loaded recording in the process
+that runs the job (`WorkerState.faulted`: each recording is still loaded once per process). It
+carries indices only: into the run's recordings (dataset `Source`s, loaded the first time a process
+needs them and kept, or loaded `Recording`s) and into its resolved specs
+(`fusion.estimators.ResolvedSpec`, resolved once, in the parent, so a bad name or parameter fails
+before any work). Results come back in the serial order
 (recording-major, estimators as given) whatever order the jobs finish in, and hold the same
 numbers as a serial run: each job is the same deterministic computation on the same inputs. Only
 `seconds` (wall time) differs.
@@ -95,6 +98,7 @@ class WorkerState:
         self._loaded: dict[int, Loaded] = {}
         self._alignments: dict[int, tuple[Alignment | None, str | None]] = {}
         self._truth_at_imu: dict[tuple[int, bool], Any] = {}
+        self._faulted: dict[tuple[int, Any], Recording] = {}  # the last few (recording, fault): `faulted`
 
     def recording(self, index: int) -> Recording | Unreadable:
         return self.loaded(index).recording
@@ -131,13 +135,62 @@ class WorkerState:
 
         return compute
 
+    def faulted(self, index: int, fault: Any) -> Recording:
+        """The loaded recording under `fault` (`fusion.faults.apply`, with the run's dropout switch),
+        kept for the next jobs: a stress run's jobs come recording x fault x estimator, so the
+        estimators of one fault follow each other; only the last `FAULTED_KEPT` are kept (a
+        recording under every fault would not fit in memory)."""
+        key = (index, fault)
+        if key not in self._faulted:
+            from fusion.faults import apply
+
+            while len(self._faulted) >= FAULTED_KEPT:
+                self._faulted.pop(next(iter(self._faulted)))
+            self._faulted[key] = apply(self.recording(index), fault, self.load.dropouts)
+        return self._faulted[key]
+
     def run(self, job: Job) -> JobOutput:
         rec = self.recording(job.recording)
         align = not isinstance(rec, Unreadable) and aligns(rec, job.settings.align)
         alignment, problem = self.alignment(job.recording) if align else (None, None)
-        output = run_job(job, rec, self.entries[job.estimator], alignment, self.truth_at_imu(job.recording, align),
-                         problem)
+        truth_at_imu = self.truth_at_imu(job.recording, align)
+        if job.fault is not None and not job.fault.clean and not isinstance(rec, Unreadable):
+            try:
+                rec = self.faulted(job.recording, job.fault)
+            except ValueError as exc:  # a fault that does not fit the recording: one line, its row
+                return fault_failed(job, rec, self.entries[job.estimator], exc)
+            truth_at_imu = _truth_on_stamps(rec, alignment) if job.series else None
+        output = run_job(job, rec, self.entries[job.estimator], alignment, truth_at_imu, problem)
         return output.after(self.loaded(job.recording).warnings)
+
+
+FAULTED_KEPT = 2  # faulted recordings a process keeps (`WorkerState.faulted`)
+
+
+def _truth_on_stamps(rec: Recording, alignment: Alignment | None) -> Callable | None:
+    """A callable giving a (faulted) recording's aligned truth on its own IMU stamps, None without truth."""
+    from ..scoring import consistency
+    from .job import aligned
+
+    if rec.truth is None:
+        return None
+    shown = aligned(rec, alignment)
+    return lambda: consistency.truth_on(shown.truth, shown.imu.t)
+
+
+def fault_failed(job: Job, rec: Recording, entry: ResolvedSpec, exc: Exception) -> JobOutput:
+    """The row of a job whose fault cannot be applied to its recording (`fusion.faults.apply` raised)."""
+    row = failed(rec.id, entry.label, len(rec.imu), f"{rec.id}: estimator {entry.label!r}: {exc}")
+    return JobOutput(replace(row, fault=job.fault.to_json()))
+
+
+def job_cells(recordings: int, estimators: int, faults: Sequence[Sequence[Any]] | None = None
+              ) -> list[tuple[int, Any, int]]:
+    """A run's jobs in their order, as (recording index, fault, estimator index): recording-major,
+    then each of the recording's faults (`faults[i]`; None: one job per estimator, without a fault),
+    then the estimators as given. Job n of a run is `job_cells(...)[n]`."""
+    return [(i, fault, j) for i in range(recordings) for fault in (faults[i] if faults is not None else (None,))
+            for j in range(estimators)]
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,9 +232,9 @@ def _run_in_worker(job: Job) -> JobOutput:
 def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequence[Source | Recording],
         settings: RunSettings | None = None, *, keep: bool = False, series: bool = False,
         done: Mapping[int, Result] | None = None, on_done: Callable[[int, JobOutput], None] | None = None,
-        **options: Any) -> list[Result]:
+        faults: Sequence[Sequence[Any]] | None = None, **options: Any) -> list[Result]:
     """Every estimator on every recording; results in recording-major order (job n is recording
-    n // len(specs) with spec n % len(specs)).
+    n // len(specs) with spec n % len(specs); with `faults`, `job_cells(...)[n]`).
 
     specs: estimator specs, spec texts (`"ukf:R=1e-3"`; `all` expands to the registry) or resolved
         specs (`fusion.estimators.resolve_all`, which resolves the others here, once).
@@ -211,6 +264,9 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     done: rows already known (a resumed run), by job number: not computed again.
     on_done: called here, in this process, with (job number, `JobOutput`) as each job ends (a
         failed job included: its row has an `error`).
+    faults: per recording, the `fusion.faults.Fault`s to run it under (`fusion stress`), each with
+        every estimator; a job's fault is applied where it runs, its row records it (`Result.fault`).
+        None: each recording as loaded.
     """
     if settings is not None and not isinstance(settings, RunSettings):
         raise TypeError(f"run: settings must be a RunSettings (or give its fields as keywords), got {settings!r}")
@@ -227,8 +283,10 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
     if s.panorama:  # the scenes' folder as this process sees it (a worker's $FUSION_DATA is not ours)
         s = replace(s, data_dir=str(s.resolved_data_dir()))
     load = s.load_options()
-    tasks = {i * len(entries) + j: Job(i, j, s, series, j == 0, keep, truths[i])
-             for i in range(len(items)) for j in range(len(entries))}
+    if faults is not None and len(faults) != len(items):
+        raise ValueError(f"run: faults must give one list per recording ({len(items)}), got {len(faults)}")
+    tasks = {n: Job(i, j, s, series, j == 0, keep, truths[i], fault)
+             for n, (i, fault, j) in enumerate(job_cells(len(items), len(entries), faults))}
     todo = [n for n in tasks if n not in done]
     jobs = default_jobs() if not s.jobs else int(s.jobs)
     if jobs < 1:
@@ -248,7 +306,9 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
                 warnings.warn(message, stacklevel=2)
         if on_done is not None:
             on_done(n, output)
-        bar.set_postfix_str(f"{items[tasks[n].recording].id} {entries[tasks[n].estimator].label}")
+        fault = tasks[n].fault
+        bar.set_postfix_str(f"{items[tasks[n].recording].id}{f' {fault.label}' if fault is not None else ''} "
+                            f"{entries[tasks[n].estimator].label}")
         bar.update()
 
     try:
@@ -263,13 +323,17 @@ def run(specs: Iterable[EstimatorSpec | ResolvedSpec | str] | str, items: Sequen
                 for k, outcome in pool.imap_unordered(_run_in_worker, [(tasks[n],) for n in todo]):
                     n = todo[k]
                     rec, entry = items[tasks[n].recording], entries[tasks[n].estimator]
+                    fault = tasks[n].fault
+                    stamp = {} if fault is None else {"fault": fault.to_json()}
                     if isinstance(outcome.error, (TaskTimeout, WorkerDied)):
-                        finished(n, JobOutput(failed(rec.id, entry.label, 0,
-                                                     f"{rec.id}: estimator {entry.label!r}: {outcome.error}")))
+                        finished(n, JobOutput(replace(failed(rec.id, entry.label, 0,
+                                                             f"{rec.id}: estimator {entry.label!r}: {outcome.error}"),
+                                                      **stamp)))
                     elif isinstance(outcome.error, (SystemExit, KeyboardInterrupt)):  # a worker ignores Ctrl-C: not
                         # the user's; raised outside `run_one`'s guard (which makes them rows), e.g. by a user's __del__
-                        finished(n, JobOutput(failed(rec.id, entry.label, 0, f"{rec.id}: estimator {entry.label!r}: "
-                                                     f"its worker process stopped on {outcome.error!r}")))
+                        finished(n, JobOutput(replace(failed(rec.id, entry.label, 0, f"{rec.id}: estimator "
+                                                             f"{entry.label!r}: its worker process stopped on "
+                                                             f"{outcome.error!r}"), **stamp)))
                     else:
                         finished(n, outcome.result())  # re-raises a worker's error (a recording that
                         # cannot be loaded: one line naming its file) here
@@ -313,6 +377,13 @@ def _dask_job(job: Job, loaded: Loaded, entry: ResolvedSpec,
 
     rec = loaded.recording
     alignment, problem = fitted or (None, None)
+    if job.fault is not None and not job.fault.clean and not isinstance(rec, Unreadable):
+        from fusion.faults import apply
+
+        try:
+            rec = apply(rec, job.fault, job.settings.dropouts)
+        except ValueError as exc:
+            return fault_failed(job, rec, entry, exc)
     truth_at_imu = None
     if not isinstance(rec, Unreadable) and rec.truth is not None and not problem:
         shown = aligned(rec, alignment)

@@ -28,7 +28,7 @@ from ..scoring.metrics import KINDS, PROTOCOLS
 COMPUTED, WRITTEN, HOW = "computed", "written", "how"
 API_ONLY = "api-only"  # a field with no option of its own on the command line (see `Option`)
 AS_FIELD = "as the field"  # `Option.default`: the option's default is the field's
-OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off", "auto_on_off")
+OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off", "auto_on_off", "append")
 
 
 @dataclass(frozen=True)
@@ -44,11 +44,14 @@ class Option:
         `switch`: `--flag` (argparse's store_true): True when given, else the field's default;
         `negated`: `--no-thing` (store_true): False when given, else True;
         `on_off`: `--flag on|off`, the field's default shown as its default;
-        `auto_on_off`: `--flag auto|on|off`, None, True or False (auto: the field's default, None).
+        `auto_on_off`: `--flag auto|on|off`, None, True or False (auto: the field's default, None);
+        `append`: `--flag VALUE`, repeatable: the texts given, in order (the field's default when
+            none is given).
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
     commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
-        to calibration, on every command that reads recordings).
+        to calibration, on every command that reads recordings; `fusion stress` offers compare's, but
+        those `fusion.evaluation.sweeps.stress.NOT_OFFERED` names, and its own fields').
     """
 
     flag: str
