@@ -25,11 +25,11 @@ def rows_of(path: Path) -> dict[str, dict]:
 
 @pytest.fixture(scope="module")
 def broad_run(data_dir, tmp_path_factory):
-    """`compare --out` with ekf (9-D: the trial has a magnetometer) and ukf (6-D) on a BROAD trial and a course
-    recording."""
+    """`compare --out --mag on` with ekf (9-D: the trial has a magnetometer) and ukf (6-D) on a BROAD trial and a
+    course recording."""
     out = tmp_path_factory.mktemp("export") / "run"
-    assert main(["compare", "--estimators", "ekf,ukf", "--dataset", f"{BROAD},ece276a/3", "--data-dir", str(data_dir),
-                 "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
+    assert main(["compare", "--estimators", "ekf,ukf", "--mag", "on", "--dataset", f"{BROAD},ece276a/3", "--data-dir",
+                 str(data_dir), "--no-progress", "--jobs", "1", "--out", str(out)]) == 0
     return out
 
 
