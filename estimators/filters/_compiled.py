@@ -25,8 +25,9 @@ streaming user and the tutorial call). Each has a compiled mirror that carries i
     _stuck                                 _compiled_stuck (stuck_gyro_update itself, compiled)
     _scale_test (ScaleTest)                _compiled_scale_test (step)
     _magnetometer                          _compiled_magnetometer (update, magnetometer_input, ...)
-    ekf.EKF                                _compiled_ekf (estimate, _correct, _velocity_step)
-    ukf.UKF, quaternion_ukf                _compiled_ukf (estimate)
+    kalman_base.KalmanFilter (step)        _compiled_kalman (estimate: the one loop of the step, _inject)
+    ekf.EKF                                _compiled_ekf (_predict, _acc_correct, _correct, _velocity_step, ...)
+    ukf.UKF, quaternion_ukf                _compiled_ukf (_predict, _acc_correct, _inject, ...)
 
 Every kernel line implements a line of its reference, in the same order where the order matters
 for rounding, and `tests/test_compiled.py` checks that both paths give the same quaternions and
@@ -36,10 +37,11 @@ states that the kernels carry are laid out once, by the offsets of the numpy mod
 (`_accel.DIST_*`, `_rest.REST_*`, `_magnetometer.MAG_*` and `HARD_IRON_*`, `_scale_test.TEST_*`,
 `_stuck.STUCK_*`), which both sides import.
 
-A kernel run takes the recording (`_numba.Inputs`), the filter's state, the packed states
-(`SensorStates`) and its options (`Settings`, all scalars and small tuples, built by keyword from
-the filter's parameters and the constants of the reference modules at run time, not frozen into
-the cached machine code), and fills one `Outputs`.
+A kernel run (`_compiled_kalman.estimate`) takes the recording (`_numba.Inputs`), the filter's
+state (`_compiled_kalman.FilterState`) and noise (`Noise`), the packed states (`SensorStates`)
+and its options (`Settings`, all scalars and small tuples, built by keyword from the filter's
+parameters and the constants of the reference modules at run time, not frozen into the cached
+machine code), and fills one `Outputs`.
 """
 from __future__ import annotations
 
@@ -53,7 +55,8 @@ from fusion.types import STANDARD_GRAVITY_M_S2
 from ..kernels._compiled_linalg import CovSettings, cov_settings
 from ..kernels._compiled_quaternion import QuatSettings, multiply_floats, quat_settings
 from ..kernels._numba import _jit, inputs
-from . import _compiled_ekf, _compiled_ukf
+from . import _compiled_kalman
+from ._compiled_kalman import FilterState, Noise
 from .filter_params import BiasFilterParams
 from .steps._accel import AccDisturbance, models_lag
 from .steps._compiled_accel import AccSettings, acc_settings
@@ -61,6 +64,7 @@ from .steps._compiled_magnetometer import MagSettings, mag_settings
 from .steps._compiled_rest import RestSettings, rest_settings, rest_steps
 from .steps._compiled_scale_test import ScaleTestSettings, scale_test_settings
 from .steps._compiled_stuck import stuck_intervals
+from .steps._error_state import X_CALIBRATION_AT, ErrorLayout
 from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE
 from .steps._rest import RestDetector
 from .steps._scale_test import TEST_STATE
@@ -69,20 +73,24 @@ from .steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 # `fusion.quaternion.multiply_floats` compiled, under the name the peers' and the smoothers' kernels import.
 qmul = multiply_floats
 
-__all__ = ["Outputs", "SensorStates", "Settings", "inputs", "load", "outputs", "rest_steps", "settings",
-           "stuck_intervals", "_jit", "qmul"]
+__all__ = ["FilterState", "Noise", "Outputs", "SensorStates", "Settings", "estimate", "inputs", "load", "outputs",
+           "rest_steps", "settings", "stuck_intervals", "_jit", "qmul"]
+
+estimate = _compiled_kalman.estimate
 
 
 class Settings(NamedTuple):
     """A kernel run's options, one object (one compiled signature serves every parameter set)."""
 
+    unscented: bool  # the UKFs' step (sigma points), else ekf's (Jacobians)
     n: int  # error-state dimension without the velocity: 3, 6 or 9
     nv: int  # ekf: velocity states, 0 or 2
+    bias: bool  # the bias block (`ErrorLayout.bias`)
+    scale: bool  # the scale block (`ErrorLayout.scale`)
     vel_bound: float  # ekf: Rv, m^2/s
     gravity: float  # 1 g in m/s^2
     use_acc: bool  # the accelerometer update is on
     process_noise: float  # Q, rad^2/s
-    lag: bool  # the low-pass's lag is modelled (`_accel.models_lag`)
     heading_free: bool  # no correction about the vertical
     rest_on: bool  # the rest update is on (a bias filter with a rest detector)
     rest_noise: float  # its variance density, rad^2/s
@@ -104,26 +112,39 @@ class Settings(NamedTuple):
     test: ScaleTestSettings  # the scale test
 
 
-def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noise: float = 0.0,
-             sqrt_c: float = 0.0, mean_tol: float = 0.0, mean_max_iter: int = 0, scale_test: Any = None) -> Settings:
-    """The kernel options of a filter's parameters `p` (a `FilterParams`), error dimension `n`,
-    rest detector `rest` (the `RestDetector` its reset built, or None) and scale test (its
-    `ScaleTest`, or None)."""
-    bias = isinstance(p, BiasFilterParams) and n > 3
+class UnscentedSettings(NamedTuple):
+    """The UKFs' own options (`settings`); `ekf` has none."""
+
+    scale_noise: float = 0.0  # ukf: Qs, s
+    sqrt_c: float = 0.0  # the sigma points' scale sqrt(c)
+    mean_tol: float = 0.0  # the iterative mean's stopping rule, rad
+    mean_max_iter: int = 0  # ... and its iteration cap
+
+
+def settings(p: Any, layout: Any, rest: Any = None, scale_test: Any = None, chi2: float = math.inf,
+             unscented: UnscentedSettings | None = None) -> Settings:
+    """The kernel options of a filter's parameters `p` (a `FilterParams`), its error state's
+    `ErrorLayout`, rest detector `rest` (the `RestDetector` its reset built, or None), scale test
+    (its `ScaleTest`, or None), `ekf`'s chi-square guard `chi2` and the UKFs' `UnscentedSettings`
+    (None: `ekf`)."""
+    bias = isinstance(p, BiasFilterParams) and layout.bias
     rest_on = bias and rest is not None
-    nv = int(getattr(p, "velocity_states", 0))
+    nv = int(layout.velocity_states)
+    ut = unscented if unscented is not None else UnscentedSettings()
     return Settings(
-        n=int(n), nv=nv, vel_bound=float(p.velocity_bound_m2_s) if nv else 0.0, gravity=float(STANDARD_GRAVITY_M_S2),
-        use_acc=bool(p.use_acc), process_noise=float(p.process_noise_rad2_s), lag=bool(models_lag(p, n)),
+        unscented=unscented is not None, n=int(layout.n), nv=nv, bias=bool(layout.bias), scale=bool(layout.scale),
+        vel_bound=float(p.velocity_bound_m2_s) if nv else 0.0, gravity=float(STANDARD_GRAVITY_M_S2),
+        use_acc=bool(p.use_acc), process_noise=float(p.process_noise_rad2_s),
         heading_free=bool(p.heading_free), rest_on=bool(rest_on),
         rest_noise=float(p.rest_noise_rad2_s) if bias else 0.0,
         bias_max=float(p.bias_max_rad_s) if bias else math.inf, scale_max=float(p.scale_max) if bias else math.inf,
         chi2=float(chi2), lowpass_calibration=bool(nv == 0 or getattr(p, "lowpass_calibration", True)),
-        slow_corr=float(getattr(p, "slow_disturbance_corr_s", 0.0)) if models_lag(p, n) else 0.0,
-        slow_scale_var=float(p.init_scale_var) if bias and n > 6 else 0.0,
-        scale_noise=float(scale_noise), sqrt_c=float(sqrt_c), mean_tol=float(mean_tol),
-        mean_max_iter=int(mean_max_iter), quat=quat_settings(), cov=cov_settings(), acc=acc_settings(p),
-        rest=rest_settings(rest if rest_on else None), mag=mag_settings(p), test=scale_test_settings(scale_test))
+        slow_corr=float(getattr(p, "slow_disturbance_corr_s", 0.0)) if models_lag(p, layout.bias) else 0.0,
+        slow_scale_var=float(p.init_scale_var) if bias and layout.scale else 0.0,
+        scale_noise=float(ut.scale_noise), sqrt_c=float(ut.sqrt_c), mean_tol=float(ut.mean_tol),
+        mean_max_iter=int(ut.mean_max_iter), quat=quat_settings(), cov=cov_settings(),
+        acc=acc_settings(p, layout.bias), rest=rest_settings(rest if rest_on else None), mag=mag_settings(p),
+        test=scale_test_settings(scale_test))
 
 
 class SensorStates(NamedTuple):
@@ -156,6 +177,15 @@ class Outputs(NamedTuple):
     scale_llr: np.ndarray  # (N,)
 
 
+def state(q: np.ndarray, calibration: np.ndarray, v: np.ndarray, P: np.ndarray) -> FilterState:
+    """A `FilterState` (copies) of a filter's quaternion q (4,), bias and scale `calibration`
+    (b, s or both, as its state has them), velocity v (2,) and covariance P."""
+    x = np.zeros(X_CALIBRATION_AT + 6)
+    x[:4] = q
+    x[X_CALIBRATION_AT:X_CALIBRATION_AT + len(calibration)] = calibration
+    return FilterState(x=x, v=np.array(v, dtype=float), P=np.array(P, dtype=float))
+
+
 def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[str, Any]) -> Outputs:
     """The `Outputs` of a run over `n_samples`. Row 0 is what `RecursiveEstimator.estimate` records
     after the reset: the initial quaternion as given and the filter's `current()`."""
@@ -185,7 +215,7 @@ def load() -> None:
         return
     n = 9
     p = BiasFilterParams()
-    o = settings(p, n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
+    layout = ErrorLayout.of(n)
     inp = inputs(_OneStep())
     unit = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -195,13 +225,13 @@ def load() -> None:
             rest=RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s).state(), mag=np.zeros(MAG_STATE),
             hard_iron=np.zeros(HARD_IRON_STATE), test=np.zeros(TEST_STATE))
 
-    out = outputs(2, n, unit, {})
-    _compiled_ekf.estimate(inp, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), np.eye(n) * 1e-4,
-                           np.eye(n) * 1e-4, np.zeros((n, n)), states(), o, out)
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
-    _compiled_ukf.estimate(inp, np.concatenate([unit, np.zeros(n - 3)]), np.eye(n) * 1e-4, np.eye(n) * 1e-4,
-                           np.zeros((n, n)), weights, weights, states(), o, out)
+    for unscented in (None, UnscentedSettings(sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)):
+        o = settings(p, layout, unscented=unscented)
+        out = outputs(2, n, unit, {})
+        state = FilterState(x=np.concatenate([unit, np.zeros(6)]), v=np.zeros(2), P=np.eye(n) * 1e-4)
+        estimate(inp, state, Noise(np.eye(n) * 1e-4, np.zeros((n, n)), weights, weights), states(), o, out)
     stuck_intervals(inp.gyr, inp.dt, inp.acc[1:], inp.valid, stuck_gyro_state(), *STUCK_THRESHOLDS)
     _loaded = True
 
