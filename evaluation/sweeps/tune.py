@@ -48,6 +48,7 @@ from fusion.selection import note, select_sources
 from ..run.job import Result
 from ..run.settings import API_ONLY, COMPUTED, HOW, Option, RunSettings
 from ..scoring.metrics import KINDS, MIN_COVERAGE
+from .loo import Fold
 
 PathLike = str | os.PathLike
 
@@ -131,15 +132,6 @@ class TuneSettings(RunSettings):
 
 # Where the results go: `run_tune`'s own arguments, not settings of the tuning.
 _WHERE = ("out", "json_path", "command")
-
-
-@dataclass(frozen=True)
-class Fold:
-    """One fold: choose on `train`, score on `test` (recording ids)."""
-
-    name: str
-    train: tuple[str, ...]
-    test: tuple[str, ...]
 
 
 @dataclass(frozen=True)
