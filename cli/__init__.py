@@ -62,6 +62,8 @@ def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | N
         default = f.default if option.default == AS_FIELD else option.default
         kind = {"switch": dict(action="store_true"), "negated": dict(action="store_true"),
                 "on_off": dict(choices=("on", "off"), default="on" if default else "off"),
+                "auto_on_off": dict(choices=("auto", "on", "off"),
+                                    default="auto" if default is None else "on" if default else "off"),
                 "choices": dict(choices=option.choices, default=default),
                 "value": dict(type=_TYPES[option.type] if option.type else None, default=default)}[option.kind]
         parser.add_argument(option.flag, help=option.help, **kind,
@@ -77,6 +79,8 @@ def _setting(args: argparse.Namespace, f, option) -> object:
         return not value
     if option.kind == "on_off":
         return value == "on"
+    if option.kind == "auto_on_off":
+        return None if value == "auto" else value == "on"
     return value  # "value", "choices": as parsed
 
 
@@ -203,10 +207,18 @@ def cmd_list(args: argparse.Namespace) -> int:
 
         print(describe(args.name))
         return 0
+    from fusion.estimators import GROUPS
+
     rows = available()
-    width = max(len(name) for name, _, _ in rows)
-    for name, what, origin in rows:
-        print(f"{name:<{width}}  {what}" + ("" if origin == "fusion" else f"  [{origin}]"))
+    width = max(len(row.name) for row in rows)
+    for group, meaning in GROUPS.items():
+        members = [row for row in rows if row.group == group]
+        if members:
+            print(f"{group} ({meaning}):")
+        for row in members:
+            imu = "6-D/9-D" if row.nine_d else "6-D"
+            print(f"  {row.name:<{width}}  {imu:<7}  {row.what}" + ("" if row.origin == "fusion" else f"  [{row.origin}]"))
+    print("6-D/9-D: fuses the magnetometer where a recording has one; 6-D: gyro and accelerometer only")
     print("\nyour own: FILE.py:NAME or package.module:NAME, with parameters as for ours, e.g. "
           "./my_ukf.py:MyUKF:R=1e-3 (README, 'Your estimator in the table')")
     print("an estimator's parameters, with their units, defaults and search ranges: fusion list NAME")

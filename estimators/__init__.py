@@ -15,7 +15,7 @@ import dataclasses
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, NamedTuple
 
 from .base import Estimator, RecursiveEstimator
 from .dr import DeadReckoning
@@ -23,6 +23,13 @@ from .filters.ekf import EKF
 from .filters.ukf import UKF, UKFBias
 from .params import EstimatorSpec, make_params, parse_specs
 from .peers.ahrs_filters import AhrsEKFPeer, MadgwickPeer, MahonyPeer
+from .peers.ahrs_recursive import (
+    AhrsUKFPeer, AngularRatePeer, AQUAPeer, ComplementaryPeer, FKFPeer, FouratiPeer, ROLEQPeer,
+)
+from .peers.ahrs_single import (
+    DavenportPeer, FAMCPeer, FLAEPeer, FQAPeer, OLEQPeer, QUESTPeer, SAAMPeer, TiltPeer, TRIADPeer,
+)
+from .peers.qmt_filters import OriEstIMUPeer, QmtMadgwickPeer, QmtMahonyPeer
 from .peers.vqf_fusion import (  # optional libraries, imported when built: pip install -e '.[peers]'
     BasicVQFPeer, FusionPeer, OfflineVQFPeer, PeerUnavailable, VQFPeer,
 )
@@ -43,6 +50,25 @@ ESTIMATORS: dict[str, type[Estimator]] = {
     "mahony": MahonyPeer,
     "ahrs-ekf": AhrsEKFPeer,
     "fusion-ahrs": FusionPeer,
+    "aqua": AQUAPeer,
+    "complementary": ComplementaryPeer,
+    "fkf": FKFPeer,
+    "fourati": FouratiPeer,
+    "roleq": ROLEQPeer,
+    "ahrs-ukf": AhrsUKFPeer,
+    "ahrs-angular": AngularRatePeer,
+    "qmt-oriestimu": OriEstIMUPeer,
+    "qmt-madgwick": QmtMadgwickPeer,
+    "qmt-mahony": QmtMahonyPeer,
+    "davenport": DavenportPeer,
+    "quest": QUESTPeer,
+    "oleq": OLEQPeer,
+    "flae": FLAEPeer,
+    "fqa": FQAPeer,
+    "saam": SAAMPeer,
+    "triad": TRIADPeer,
+    "famc": FAMCPeer,
+    "tilt": TiltPeer,
 }
 
 
@@ -185,19 +211,51 @@ def resolve_all(specs: str | Iterable[EstimatorSpec | str | ResolvedSpec]) -> li
     return out
 
 
-def available() -> list[tuple[str, str, str]]:
-    """Every estimator a spec can name by itself, as (name, what it is, where it comes from): the
-    registry's, then those installed packages register in the entry-point group
+class Listed(NamedTuple):
+    """One row of `fusion list`: the name a spec uses, what it is (its docstring's first line), where
+    it comes from ("fusion" or an installed package), its group (`GROUPS`) and whether it fuses the
+    magnetometer where a recording has one (9-D)."""
+
+    name: str
+    what: str
+    origin: str
+    group: str
+    nine_d: bool
+
+
+# `fusion list`'s groups, in its order: a filter updates from the past samples (ours, VQF, Fusion,
+# the `ahrs` and `qmt` filters, dead reckoning); a smoother sees the whole recording (`causal =
+# False`); a single-sample method determines each sample's orientation from that sample alone
+# (`single_sample = True`: the `ahrs` attitude determinations); an installed package's estimator is
+# not imported to be listed.
+GROUPS = {"recursive filters": "causal: each sample's orientation from the samples up to it",
+          "smoothers": "see the whole recording",
+          "single-sample methods": "each sample's orientation from its own accelerometer and magnetometer",
+          "installed packages": "entry points, not imported here"}
+
+
+def group_of(cls: type[Estimator]) -> str:
+    """The `GROUPS` key of a registered estimator class."""
+    if not cls.causal:
+        return "smoothers"
+    return "single-sample methods" if getattr(cls, "single_sample", False) else "recursive filters"
+
+
+def available() -> list[Listed]:
+    """Every estimator a spec can name by itself, grouped (`GROUPS`, registry order within a group):
+    the registry's, then those installed packages register in the entry-point group
     `fusion.estimators` (not imported here)."""
     from .adapters import user
 
     import re
 
-    rows = [(name, re.sub(r"^`[^`]+`:\s*", "", (cls.__doc__ or cls.__name__).strip().splitlines()[0]), "fusion")
+    rows = [Listed(name, re.sub(r"^`[^`]+`:\s*", "", (cls.__doc__ or cls.__name__).strip().splitlines()[0]), "fusion",
+                   group_of(cls), bool(cls.magnetometer))
             for name, cls in ESTIMATORS.items()]
-    rows += [(name, ep.value, f"entry point of {user._package(ep)}") for name, ep in user.entry_points().items()
-             if name not in ESTIMATORS]
-    return rows
+    rows += [Listed(name, ep.value, f"entry point of {user._package(ep)}", "installed packages", False)
+             for name, ep in user.entry_points().items() if name not in ESTIMATORS]
+    order = list(GROUPS)
+    return sorted(rows, key=lambda row: order.index(row.group))
 
 
 def build(spec: EstimatorSpec | str) -> Estimator:
@@ -205,5 +263,5 @@ def build(spec: EstimatorSpec | str) -> Estimator:
     return resolve(spec).build()
 
 
-__all__ = ["ESTIMATORS", "Estimator", "RecursiveEstimator", "EstimatorSpec", "ResolvedSpec", "available", "build",
+__all__ = ["ESTIMATORS", "GROUPS", "Estimator", "Listed", "RecursiveEstimator", "EstimatorSpec", "ResolvedSpec", "available", "build",
            "resolve", "resolve_all", "resolve_trajectory", "parse_specs", "make_params"]

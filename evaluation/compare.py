@@ -26,7 +26,7 @@ from .run.job import (  # noqa: F401  (the job layer, re-exported: `from fusion.
 )
 from .run.runner import run
 from .scoring.metrics import KINDS, MIN_COVERAGE
-from .scoring.stats import run_statistics, table_column
+from .scoring.stats import dataset_group, run_statistics, table_column  # noqa: F401  (dataset_group re-exported)
 
 
 def compare(specs: Iterable[EstimatorSpec | str] | str, recordings: Iterable[Recording], init: str | None = None,
@@ -116,12 +116,6 @@ def results_json(results: list[Result], settings: dict[str, Any]) -> dict[str, A
 ALIGN_NOTE = ("aligned (--align, or a truth in frames of its own): truth mapped into our frames as A R_truth B, "
               "A = R_ourworld_truthworld and B = R_truthbody_imubody fitted once per recording from its gyro, "
               "accelerometer and truth, the same for every estimator")
-
-
-def dataset_group(dataset: str) -> str:
-    """The folder a recording id belongs to: "ece276a/3" -> "ece276a", "broad/06_..." -> "broad";
-    "other" for ids without one (`sim`, files at the top of the data directory)."""
-    return dataset.rsplit("/", 1)[0] if "/" in dataset else "other"
 
 
 def summary_groups(results: list[Result]) -> list[tuple[str | None, list[Result]]]:
@@ -374,22 +368,34 @@ def format_coverage(r: Result) -> str:
     return f"{100 * r.coverage:.1f}%" + (" LOW" if r.low_coverage else "")
 
 
+ALIGNMENT_HEADER = ["dataset", "world A (x, y, z)", "|A|", "north", "body B (x, y, z)", "|B|", "rate pairs",
+                    "residual deg/s", "of rate", "|g| g", "halves", "quality"]
+ALIGNMENT_NOTE = ("Alignment per recording, deg (rotation vectors: A = R_ourworld_truthworld, a tilt and, with a "
+                  "magnetometer, the turn to magnetic north; B = R_truthbody_imubody; truth in our frames = A R_truth B; "
+                  "residual: the median rate residual, and its share of the median rate; halves: how far B fitted on "
+                  "each half of the recording differ; quality: 'poor' leaves the recording unscored)")
+
+
+def alignment_cells(a: dict[str, Any]) -> list[str]:
+    """One alignment (`Alignment.to_json`, with its `dataset`) as the cells of `ALIGNMENT_HEADER`."""
+    w, b = a["world_deg"], a["body_deg"]
+    rate = a.get("truth_rate_deg_s")
+    share = (f"{100 * a['rate_residual_deg_s'] / rate:.0f} %" if rate and a.get("rate_residual_deg_s") is not None
+             else "-")
+    return [a["dataset"], " ".join(f"{x:+7.2f}" for x in w), f"{np.linalg.norm(w):.2f}", _maybe(a.get("north_deg"), "+.1f"),
+            " ".join(f"{x:+7.2f}" for x in b), f"{np.linalg.norm(b):.2f}", str(a.get("rate_pairs", "-")),
+            _maybe(a.get("rate_residual_deg_s"), ".2f"), share, _maybe(a.get("gravity_g"), ".3f"),
+            _maybe(a.get("halves_deg"), ".1f"), "poor" if a.get("problem") else "ok"]
+
+
 def format_alignments(results: list[Result]) -> str:
-    """The fitted rotations of an `--align` run, one row per recording: rotation vectors
-    (axis * angle) and angles, deg, and the fit's diagnostics."""
-    header = ["dataset", "world A (x, y, z)", "|A|", "body B (x, y, z)", "|B|", "rate pairs", "residual deg/s",
-              "|g| g"]
-    rows = []
-    for a in recording_alignments(results):
-        w, b = a["world_deg"], a["body_deg"]
-        rows.append([a["dataset"], " ".join(f"{x:+7.2f}" for x in w), f"{np.linalg.norm(w):.2f}",
-                     " ".join(f"{x:+7.2f}" for x in b), f"{np.linalg.norm(b):.2f}", str(a.get("rate_pairs", "-")),
-                     _maybe(a.get("rate_residual_deg_s"), ".2f"), _maybe(a.get("gravity_g"), ".3f")])
-    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
-    lines = ["Alignment per recording, deg (rotation vectors: A = R_ourworld_truthworld, a tilt only; "
-             "B = R_truthbody_imubody; truth in our frames = A R_truth B)"]
-    lines += ["  ".join(c.ljust(w) if i < 1 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
-              for row in [header, ["-" * w for w in widths], *rows]]
+    """The fitted rotations of an aligned run, one row per recording (`alignment_cells`): rotation
+    vectors (axis * angle) and angles, deg, and the fit's quality."""
+    rows = [alignment_cells(a) for a in recording_alignments(results)]
+    widths = [max(len(row[i]) for row in [ALIGNMENT_HEADER, *rows]) for i in range(len(ALIGNMENT_HEADER))]
+    lines = [ALIGNMENT_NOTE]
+    lines += ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+              for row in [ALIGNMENT_HEADER, ["-" * w for w in widths], *rows]]
     return "\n".join(lines)
 
 

@@ -38,7 +38,7 @@ from .run.job import JobOutput, Result
 from .run.journal import Journal, fingerprint, job_key
 from .run.output import OutputFolder
 from .run.runner import run, source_paths
-from .run.settings import COMPUTED, WRITTEN, RunSettings
+from .run.settings import COMPUTED, WRITTEN, RunSettings, resolve_mag
 from .sweeps import ablate
 
 PathLike = str | os.PathLike
@@ -184,6 +184,7 @@ def _execute(entries: list[ResolvedSpec], kind: dict[str, Any], document: dict[s
     if s.resume and not s.out:
         raise ValueError("--resume needs the output folder of the run to continue")
     sources = select_sources(s.dataset, s.data_dir, s.calibration)
+    s = replace(s, mag=resolve_mag(s.mag, entries, sources))
     files = [e for e in entries if e.cls.partial and not Path(e.params.path).is_dir()]
     if files and len(sources) != 1:
         raise ValueError(f"--trajectory {files[0].label}={files[0].params.path}: a file is one recording's "
@@ -300,6 +301,8 @@ def _finish(folder: OutputFolder | None, journal: Journal | None, entries: list[
         table += "\n\n" + ablate.format_sweep(sweep)
     if s.rerun:
         _write_rerun(journal, entries, sources, results, list(keys), s)
+        note(f"wrote {s.rerun}; watch it with: rerun {s.rerun} (Rerun's viewer: pip install 'fusion[viz]'; "
+             "--web-viewer for a browser)")
     if not (s.json_path or folder):
         return Run(results, table)
     root = s.resolved_data_dir()

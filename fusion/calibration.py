@@ -89,20 +89,29 @@ _STD_CHUNK = 4096  # windows per chunk in `stationary_mask`
 
 
 def stationary_mask(raw: RawImu, board: BoardModel, detector: RestCriteria) -> np.ndarray:
-    """(N,) bool: samples inside a window whose every channel is still."""
-    n = len(raw.t)
-    window = max(3, int(round(detector.window_s / np.median(np.diff(raw.t))))) if n > 1 else 1
+    """(N,) bool: samples inside a window whose every channel is still (raw counts, judged in
+    physical units through the board's nominal scales)."""
+    return still_mask(raw.t, raw.counts, detector, np.abs(board.scale))
+
+
+def still_mask(t: np.ndarray, values: np.ndarray, detector: RestCriteria,
+               scale: np.ndarray = np.ones(6)) -> np.ndarray:
+    """(N,) bool: samples inside a window whose every channel is still. t: (N,) s; values: (N, 6)
+    accelerometer then gyro channels, in g and rad/s once multiplied by `scale` (6,) (counts and a
+    board's scales, or calibrated samples as they are)."""
+    n = len(t)
+    window = max(3, int(round(detector.window_s / np.median(np.diff(t))))) if n > 1 else 1
     if n < window:
         return np.zeros(n, bool)
     # Per-window standard deviations, (N-w+1, 6). The window view costs nothing, but `.std` on
     # all of it at once makes (N-w+1, 6, w) temporaries (1 GB for an hour at 100 Hz): go by
     # chunks of windows (same numbers, bit for bit; memory bounded).
-    view = sliding_window_view(raw.counts, window, axis=0)
+    view = sliding_window_view(values, window, axis=0)
     std = np.empty((len(view), 6))
     with np.errstate(over="ignore", invalid="ignore"):  # an absurd count (1e308) gives inf/NaN: not still
         for lo in range(0, len(view), _STD_CHUNK):
             std[lo:lo + _STD_CHUNK] = view[lo:lo + _STD_CHUNK].std(axis=-1)
-    std *= np.abs(board.scale)
+    std *= scale
     still_window = (std[:, :3].max(axis=1) < detector.acc_std_g) & (std[:, 3:].max(axis=1) < detector.gyro_std_rad_s)
     # A sample is still only if every window containing it is still (conservative at the
     # edges of a rest, so the first samples of a motion never count as rest).

@@ -1,24 +1,26 @@
 """What a recording really holds: sensor checks behind `fusion inspect` and the dropout mask.
 
-Per recording (`check_recording`):
-- rest periods (every stationary run, `fusion.calibration.stationary_mask`), the calibrated
-  |a| at each rest (a check of the accelerometer scale) and the gyro bias there; the bias
-  drift between the first and the last rest;
+Per recording (`check_recording`), for every format (raw counts or physical units):
+- rest periods (every stationary run, `fusion.calibration.still_mask`, on the raw counts of
+  recordings that have them, else on the calibrated samples), the calibrated |a| at each rest (a
+  check of the accelerometer scale) and the gyro bias there (after the calibration, in deg/s; for
+  raw counts also the zero-rate level in counts that the calibration removes); the bias drift
+  between the first and the last rest;
 - gyro freezes (`detect_freezes`): all three gyro channels flat while the accelerometer shows
   motion, judged against the gyro's own resolution and noise as measured on the recording, so
   for any IMU (the course recordings 1, 2, 4, 5, 8, 9 have one each);
-- samples at the ADC rails (`saturated`: the reading is clipped, so wrong) and samples beyond
-  the gyros' nominal +-300 deg/s (reported only: on this board they are not clipped, the
-  ADC reaches about +-490 deg/s and the values stay smooth);
-- time-stamp jitter and gaps of the IMU;
+- saturation: with raw counts the samples at the ADC rails, and samples beyond the gyros' nominal
+  +-300 deg/s (reported only: on this board they are not clipped, the ADC reaches about
+  +-490 deg/s and the values stay smooth); in physical units the flat tops at an axis' extreme
+  (`FlatTopDetector`), gyro and accelerometer;
+- time-stamp jitter and gaps of the IMU, and how often each sensor's value changes (a file whose
+  rows repeat a sensor's last sample, as RepoIMU's pendulum holds its 50 Hz gyro over 163 Hz rows);
 - VICON gaps (NaN rows) and the IMU-VICON clock offset (`clock_offset`), from the
   cross-correlation of the angular speed measured by the gyro and derived from VICON.
 
 Times in reports are seconds after the first IMU sample (as in `../shared/data/README.md`).
-Freezes are found on the calibrated samples (any recording); saturation and the range checks on
-the raw counts of recordings that have them. `dropout_mask` turns freezes (and saturated samples,
-with raw counts) into `ImuSamples.gyr_valid`; the loader applies it (`fusion.datasets.LoadOptions`
-`dropouts`, the one switch).
+`dropout_mask` turns freezes and saturated gyro samples into `ImuSamples.gyr_valid`; the loader
+applies it (`fusion.datasets.LoadOptions` `dropouts`, the one switch).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from . import quaternion as quat
-from .calibration import BoardModel, Calibration, RestCriteria, stationary_mask
+from .calibration import BoardModel, Calibration, RestCriteria, stationary_mask, still_mask
 from .types import ImuSamples, RawImu, Recording, Trajectory
 
 NOMINAL_GYRO_RANGE_DEG_S = 300.0  # LPR530AL / LY530ALH on the 4x outputs
@@ -83,8 +85,8 @@ class Interval:
 class RestPeriod:
     interval: Interval
     acc_norm_g: float  # |mean calibrated acceleration| over the rest
-    gyro_bias_deg_s: tuple[float, float, float]  # mean calibrated gyro (after the start bias is removed)
-    gyro_mean_counts: tuple[float, float, float]
+    gyro_bias_deg_s: tuple[float, float, float]  # mean calibrated gyro (raw counts: after the start bias is removed)
+    gyro_mean_counts: tuple[float, float, float]  # the zero-rate level in counts (NaN in physical units)
 
 
 @dataclass(frozen=True)
@@ -98,14 +100,25 @@ class Freeze:
 
 @dataclass(frozen=True)
 class RangeCheck:
-    saturated: list[Interval]  # some gyro channel within `rail_counts` of 0 or full scale
+    """Saturation, by `method`: "ADC rails" (raw counts: a channel within `rail_counts` of 0 or full
+    scale) or "flat tops" (physical units: `FlatTopDetector`). The nominal range and the counts'
+    extremes only with raw counts (None otherwise)."""
+
+    saturated: list[Interval]  # some gyro channel saturated
     saturated_samples: int
-    beyond_nominal_samples: tuple[int, int, int]  # per axis |rate| > nominal range
-    beyond_nominal: list[Interval]
+    beyond_nominal_samples: tuple[int, int, int] | None  # per axis |rate| > nominal range
+    beyond_nominal: list[Interval] | None
     max_abs_deg_s: tuple[float, float, float]
-    count_min: tuple[float, float, float]
-    count_max: tuple[float, float, float]
+    count_min: tuple[float, float, float] | None
+    count_max: tuple[float, float, float] | None
     acc_saturated_samples: int
+    method: str = "ADC rails"
+    acc_saturated: list[Interval] = field(default_factory=list)
+
+    def gyro_beyond_range(self) -> list[Interval]:
+        """The spans where the gyro read beyond its range: past the board's nominal range (raw
+        counts), or on a flat top (physical units)."""
+        return self.saturated if self.method == "flat tops" else list(self.beyond_nominal or [])
 
 
 @dataclass(frozen=True)
@@ -116,6 +129,7 @@ class TimingCheck:
     dt_min_s: float
     dt_max_s: float
     gaps: list[Interval]  # steps longer than `gap_factor` x median
+    value_rates_hz: dict[str, float] = field(default_factory=dict)  # per sensor: its value changes per second
 
 
 @dataclass(frozen=True)
@@ -295,6 +309,63 @@ def detect_freezes(imu: ImuSamples, detector: FreezeDetector = FreezeDetector(),
     return out
 
 
+@dataclass(frozen=True)
+class FlatTopDetector:
+    """A sensor's saturation found from its values alone, for files in physical units (no ADC rails
+    to compare with): a flat top at an axis' extreme. Per axis and sign, the band just below the
+    extreme (`band_fraction` of it, or `band_steps` steps of the axis' resolution, whichever is
+    wider) is a flat top when the signal piles up there: at least `min_samples` samples in runs of
+    `min_run` or more, and `pile_ratio` times as many as in the next band down (`next_bands` band
+    widths), and the extreme at least `tail_ratio` times the axis' median magnitude: a signal
+    clipped at the sensor's range sits at it, where an unclipped peak spreads over both bands (and a
+    long rest with gravity on the axis, whose noise stays in the band, is the axis' typical value,
+    not its tail). Held values (a row repeating the sample
+    before it, as RepoIMU's pendulum files hold them) count once. On the shared data it finds the
+    T-stick's gyro clipped at +-7.2-7.4 rad/s (RepoIMU's TStick Test05 and Test10) and nothing on
+    BROAD or the course (whose counts have rails of their own: `saturated_mask`)."""
+
+    band_fraction: float = 0.005
+    band_steps: float = 2.0
+    min_run: int = 3
+    min_samples: int = 10
+    pile_ratio: float = 3.0
+    next_bands: float = 5.0
+    tail_ratio: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("band_fraction", "band_steps", "min_run", "min_samples", "pile_ratio", "next_bands", "tail_ratio"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"FlatTopDetector.{name} must be >= 0, got {getattr(self, name)}")
+
+    def mask(self, values: np.ndarray, ignore: np.ndarray | None = None) -> np.ndarray:
+        """(N, C) bool: the samples of (N, C) `values` on a flat top of their column; `ignore` (N,)
+        bool: samples left out of the search (a frozen gyro's constant level is no flat top)."""
+        values = np.asarray(values, dtype=float)
+        use = np.ones(len(values), bool) if ignore is None else ~np.asarray(ignore, bool)
+        out = np.zeros(values.shape, bool)
+        if not use.any():
+            return out
+        step = resolution(values[use])
+        for c in range(values.shape[1]):
+            fresh = use & np.r_[True, np.diff(values[:, c]) != 0]  # a held value counts once
+            for sign in (1.0, -1.0):
+                v = sign * values[:, c]
+                extreme = v[use].max()
+                if not extreme > self.tail_ratio * np.median(np.abs(v[use])):
+                    continue
+                width = max(self.band_fraction * extreme, self.band_steps * step[c])
+                band = use & (v >= extreme - width)
+                below = fresh & (v < extreme - width) & (v >= extreme - (1 + self.next_bands) * width)
+                plateau = np.zeros(len(v), bool)
+                for first, stop in runs(band):
+                    if fresh[first:stop].sum() >= self.min_run:
+                        plateau[first:stop] = True
+                piled = int((plateau & fresh).sum())
+                if piled >= self.min_samples and piled >= self.pile_ratio * int(below.sum()):
+                    out[:, c] |= plateau
+        return out
+
+
 def saturated_mask(raw: RawImu, board: BoardModel = BoardModel(), rail_counts: float = 2.0) -> np.ndarray:
     """(N,) bool: some gyro channel within `rail_counts` of 0 or of the ADC full scale (clipped)."""
     g = raw.counts[:, 3:]
@@ -304,7 +375,13 @@ def saturated_mask(raw: RawImu, board: BoardModel = BoardModel(), rail_counts: f
 def dropout_mask(imu: ImuSamples, raw: RawImu | None = None, board: BoardModel = BoardModel(),
                  detector: FreezeDetector = FreezeDetector()) -> np.ndarray:
     """(N,) bool `gyr_valid`: `imu.gyr_valid`, and False inside detected freezes and (with raw
-    counts) at saturated samples."""
+    counts) at samples on the ADC's rails.
+
+    A flat top in physical units (`FlatTopDetector`) is reported (`fusion inspect`, the report's
+    "gyro beyond range" events), not marked invalid: there the reading is the sensor's range, a
+    lower bound of the true rate, and integrating it does far better than holding the orientation
+    (RepoIMU's T-stick, clipped at +-7.3 rad/s for up to 8 s: 6-D inclination, `ekf`, Test10 trials
+    5.4-5.9 deg integrated against 23-93 held; `docs/results.md`, "RepoIMU's clipped gyro")."""
     valid = np.array(imu.gyr_valid)
     if raw is not None:
         valid &= ~saturated_mask(raw, board)
@@ -333,30 +410,88 @@ def check_range(raw: RawImu, imu: ImuSamples, board: BoardModel = BoardModel(), 
     )
 
 
-def check_timing(t: np.ndarray, gap_factor: float = 2.0) -> TimingCheck:
-    """Sampling rate, jitter (std of the steps) and gaps (steps > `gap_factor` x median)."""
+def check_timing(t: np.ndarray, gap_factor: float = 2.0, sensors: dict[str, np.ndarray] | None = None,
+                 moving: np.ndarray | None = None) -> TimingCheck:
+    """Sampling rate, jitter (std of the steps), gaps (steps > `gap_factor` x median) and, for each
+    of `sensors` (name -> (N, 3) values on the stamps `t`), how often its value changes while the
+    sensor moves (`value_rate_hz`; moving: (N,) bool, None for every sample)."""
     dt = np.diff(t)
     if len(dt) == 0:
         return TimingCheck(float("nan"), float("nan"), float("nan"), float("nan"), float("nan"), [])
     med = float(np.median(dt))
     gaps = [Interval(float(t[k] - t[0]), float(t[k + 1] - t[0]), 0, int(k), int(k + 1))
             for k in np.flatnonzero(dt > gap_factor * med)]
-    return TimingCheck(float((len(t) - 1) / (t[-1] - t[0])), med, float(dt.std()), float(dt.min()), float(dt.max()), gaps)
+    rates = {name: value_rate_hz(t, values, moving) for name, values in (sensors or {}).items()}
+    return TimingCheck(float((len(t) - 1) / (t[-1] - t[0])), med, float(dt.std()), float(dt.min()), float(dt.max()), gaps,
+                       rates)
 
 
-def rest_periods(raw: RawImu, imu: ImuSamples, board: BoardModel = BoardModel(),
+HELD_RATIO = 0.8  # a sensor whose value changes on fewer than this fraction of the rows holds its samples
+
+
+def value_rate_hz(t: np.ndarray, values: np.ndarray, moving: np.ndarray | None = None) -> float:
+    """How often (N, C) `values` on the stamps `t` (N,) change, per second: the steps between two
+    moving rows (`moving` (N,) bool, None: all) where some channel differs, over those steps' time
+    (rows without a sample, NaN, do not count). A sensor that delivers a new sample on every row
+    changes at the rows' rate (at rest a quantised sensor repeats itself: rests are left out); one
+    whose samples are held over rows (a slower sensor written at a faster clock) at its own."""
+    values = np.asarray(values, dtype=float)
+    step = np.all(np.isfinite(values[1:]), axis=1) & np.all(np.isfinite(values[:-1]), axis=1)
+    if moving is not None:
+        step &= moving[1:] & moving[:-1]
+    span = float(np.diff(t)[step].sum())
+    if not span > 0:
+        return float("nan")
+    return float((np.any(np.diff(values, axis=0) != 0, axis=1) & step).sum() / span)
+
+
+def held_sensors(timing: TimingCheck) -> dict[str, float]:
+    """The sensors of `timing.value_rates_hz` that hold their values over rows (their rate below
+    `HELD_RATIO` of the rows')."""
+    return {name: rate for name, rate in timing.value_rates_hz.items() if rate < HELD_RATIO * timing.rate_hz}
+
+
+def imu_sensors(imu: ImuSamples) -> dict[str, np.ndarray]:
+    """The sensors of a recording by name, for `check_timing`: gyro, accelerometer, magnetometer."""
+    out = {"gyro": imu.gyr_rad_s, "accelerometer": imu.acc_g}
+    if imu.mag_ut is not None:
+        out["magnetometer"] = imu.mag_ut
+    return out
+
+
+def flat_top_range(imu: ImuSamples, detector: FlatTopDetector = FlatTopDetector(),
+                   frozen: np.ndarray | None = None) -> RangeCheck:
+    """The range check of a recording in physical units: the gyro and accelerometer samples on a flat
+    top (`FlatTopDetector`; a frozen gyro, `frozen` (N,) bool, is not searched), and the largest rates."""
+    t0 = imu.t[0]
+    gyro = detector.mask(imu.gyr_rad_s, frozen).any(axis=1)
+    acc = detector.mask(imu.acc_g).any(axis=1)
+    return RangeCheck(
+        saturated=[_interval(imu.t, t0, a, b) for a, b in runs(gyro)], saturated_samples=int(gyro.sum()),
+        beyond_nominal_samples=None, beyond_nominal=None,
+        max_abs_deg_s=tuple(float(v) for v in np.abs(np.rad2deg(imu.gyr_rad_s)).max(axis=0)),
+        count_min=None, count_max=None, acc_saturated_samples=int(acc.sum()), method="flat tops",
+        acc_saturated=[_interval(imu.t, t0, a, b) for a, b in runs(acc)])
+
+
+def rest_periods(raw: RawImu | None, imu: ImuSamples, board: BoardModel = BoardModel(),
                  detector: RestCriteria = RestCriteria()) -> list[RestPeriod]:
     """Every stationary run of at least `detector.min_duration_s` (`check_recording` drops
-    those inside a freeze: a frozen gyro looks still)."""
-    still = stationary_mask(raw, board, detector)
+    those inside a freeze: a frozen gyro looks still): judged on the raw counts where there are
+    some (`stationary_mask`), else on the calibrated samples (`still_mask`)."""
+    if raw is not None:
+        still = stationary_mask(raw, board, detector)
+    else:
+        still = still_mask(imu.t, np.hstack([imu.acc_g, imu.gyr_rad_s]), detector)
     out = []
     for first, stop in runs(still):
-        if raw.t[stop - 1] - raw.t[first] < detector.min_duration_s:
+        if imu.t[stop - 1] - imu.t[first] < detector.min_duration_s:
             continue
         acc = imu.acc_g[first:stop].mean(axis=0)
         gyr = np.rad2deg(imu.gyr_rad_s[first:stop].mean(axis=0))
-        out.append(RestPeriod(_interval(raw.t, raw.t[0], first, stop), float(np.linalg.norm(acc)),
-                              tuple(float(v) for v in gyr), tuple(float(v) for v in raw.counts[first:stop, 3:].mean(axis=0))))
+        counts = raw.counts[first:stop, 3:].mean(axis=0) if raw is not None else np.full(3, np.nan)
+        out.append(RestPeriod(_interval(imu.t, imu.t[0], first, stop), float(np.linalg.norm(acc)),
+                              tuple(float(v) for v in gyr), tuple(float(v) for v in counts)))
     return out
 
 
@@ -541,25 +676,32 @@ def check_recording(recording: Recording, freeze_detector: FreezeDetector = Free
     rng = None
     drift = None
     freezes = detect_freezes(imu, freeze_detector, raw, calib.bias_counts if calib is not None else None)
+    detector = calib.detector if calib is not None else RestCriteria()
+    rests = [r for r in rest_periods(raw, imu, board, detector)
+             if not any(r.interval.first < f.interval.stop and f.interval.first < r.interval.stop for f in freezes)]
+    if len(rests) >= 2:
+        drift = tuple(float(b - a) for a, b in zip(rests[0].gyro_bias_deg_s, rests[-1].gyro_bias_deg_s))
     if raw is not None:
-        detector = calib.detector if calib is not None else RestCriteria()
-        rests = [r for r in rest_periods(raw, imu, board, detector)
-                 if not any(r.interval.first < f.interval.stop and f.interval.first < r.interval.stop for f in freezes)]
-        if len(rests) >= 2:
-            drift = tuple(float(b - a) for a, b in zip(rests[0].gyro_bias_deg_s, rests[-1].gyro_bias_deg_s))
         rng = check_range(raw, imu, board)
     else:
-        notes.append("no raw counts: rest, freeze and range checks skipped")
+        frozen = np.zeros(len(imu), bool)
+        for f in freezes:
+            frozen[f.interval.first:f.interval.stop] = True
+        rng = flat_top_range(imu, frozen=frozen)
     if recording.truth is None:
-        notes.append("no ground truth: VICON checks skipped")
+        notes.append(f"{recording.truth_problem}; truth checks skipped" if recording.truth_problem
+                     else "no ground truth: truth checks skipped")
     vicon = check_vicon(imu, recording.truth, t0) if recording.truth is not None else None
     mag = check_magnetometer(imu)
     if mag is not None and not EARTH_FIELD_UT[0] <= mag.norm_median_ut <= EARTH_FIELD_UT[1]:
         notes.append(f"magnetometer norm {mag.norm_median_ut:.1f} uT is outside the Earth's {EARTH_FIELD_UT[0]:.0f}-"
                      f"{EARTH_FIELD_UT[1]:.0f} uT: a hard-iron offset (iron or a magnet carried with the sensor), or an "
                      "uncalibrated magnetometer")
+    moving = np.ones(len(imu), bool)
+    for r in rests:
+        moving[r.interval.first:r.interval.stop] = False
     return RecordingCheck(recording.id, len(imu), float(imu.t[-1] - t0), rests, drift, freezes, rng,
-                          check_timing(imu.t), vicon, notes, mag)
+                          check_timing(imu.t, sensors=imu_sensors(imu), moving=moving), vicon, notes, mag)
 
 
 def _fmt_intervals(intervals: list[Interval], limit: int = 4) -> str:
@@ -585,29 +727,39 @@ def format_check(c: RecordingCheck) -> str:
     tm = c.timing
     row("IMU rate / jitter", f"{tm.rate_hz:.2f} Hz, dt median {tm.dt_median_s * 1e3:.2f} ms, std {tm.dt_std_s * 1e3:.2f} ms, "
         f"range {tm.dt_min_s * 1e3:.2f}-{tm.dt_max_s * 1e3:.2f} ms; gaps {_fmt_intervals(tm.gaps)}")
+    held = held_sensors(tm)
+    if held:
+        row("held values", ", ".join(f"the {name} changes at {rate:.0f} Hz" for name, rate in held.items())
+            + f" (of {tm.rate_hz:.0f} Hz rows: the rows between repeat its last sample)")
     if c.rests:
         row("rests (s)", ", ".join(f"{r.interval.start_s:.2f}-{r.interval.stop_s:.2f} |a|={r.acc_norm_g:.3f}g" for r in c.rests[:4])
             + (f" (+{len(c.rests) - 4})" if len(c.rests) > 4 else ""))
         last, first = c.rests[-1], c.rests[0]
-        # The bias itself: the first rest's gyro level, which the calibration takes as the bias (so its calibrated
-        # mean reads 0), in counts and in deg/s at the board's nominal scale (`BoardModel.scale`).
+        # The bias after calibration: the gyro's mean at the first rest, deg/s (raw counts: about 0 there, since the
+        # calibration takes that rest's level as the bias; its level in counts is the zero-rate level, apart).
+        row("gyro bias", "[" + ", ".join(f"{v:+.2f}" for v in first.gyro_bias_deg_s) + "] deg/s (mean at the first rest, "
+            f"{first.interval.start_s:.1f}-{first.interval.stop_s:.1f} s, after calibration)")
         if np.all(np.isfinite(first.gyro_mean_counts)):
-            bias_deg_s = np.degrees(np.asarray(first.gyro_mean_counts) * BoardModel().scale[3:])
-            row("gyro bias", "[" + ", ".join(f"{v:+.2f}" for v in bias_deg_s) + "] deg/s (["
-                + ", ".join(f"{v:.1f}" for v in first.gyro_mean_counts) + "] counts at the first rest, "
-                f"{first.interval.start_s:.1f}-{first.interval.stop_s:.1f} s; the zero-rate level the calibration removes)")
+            row("zero-rate level", "[" + ", ".join(f"{v:.1f}" for v in first.gyro_mean_counts) + "] counts at the first "
+                "rest (the level the calibration removes)")
         if c.gyro_bias_drift_deg_s is not None:
             row("gyro bias drift", "[" + ", ".join(f"{v:+.2f}" for v in c.gyro_bias_drift_deg_s)
                 + f"] deg/s (last rest at {last.interval.start_s:.1f} s minus first)")
-    elif c.range is not None:
+    else:
         row("rests", "none found")
     row("gyro freezes (s)", ", ".join(f"{f.interval.start_s:.2f}-{f.interval.stop_s:.2f} ({f.interval.duration_s:.2f} s at "
                                       + _freeze_level(f) + ")" for f in c.freezes) or "none")
-    if c.range is not None:
+    if c.range is not None and c.range.method == "ADC rails":
         r = c.range
         row("gyro range", f"|rate| max [{', '.join(f'{v:.0f}' for v in r.max_abs_deg_s)}] deg/s; "
             f"beyond +-{NOMINAL_GYRO_RANGE_DEG_S:.0f}: {sum(r.beyond_nominal_samples)} axis-samples; "
             f"saturated (ADC rail): {r.saturated_samples} samples {_fmt_intervals(r.saturated)}")
+    elif c.range is not None:
+        r = c.range
+        row("gyro range", f"|rate| max [{', '.join(f'{v:.0f}' for v in r.max_abs_deg_s)}] deg/s; "
+            f"saturated (flat tops): {r.saturated_samples} samples {_fmt_intervals(r.saturated)}")
+        row("accelerometer range", f"saturated (flat tops): {r.acc_saturated_samples} samples "
+            f"{_fmt_intervals(r.acc_saturated)}")
     v = c.vicon
     if v is not None:
         clock = f"truth lags by {v.clock.offset_s * 1e3:+.1f} ms (corr {v.clock.peak_correlation:.3f})" if v.clock else "offset: n/a"

@@ -106,29 +106,35 @@ def select(selection: str, data_dir: str | os.PathLike | None = None, dedupe: bo
     bare numbers (`3`, when one recording has it after merging identical ones), globs
     (`ece276a/*`), paths to files, or paths to folders (every recording found below them).
 
-    `all` means every real recording found, or `sim` when there is none. Raises with the
-    list of available ids when a name matches nothing. dedupe: merge identical recordings
-    (`merge_identical`), so that each is counted once.
+    `all` means every real recording found, or `sim` when there is none. Ids, folder names and globs
+    match regardless of case, on every platform (`repoimu/pendulum/*` selects `repoimu/Pendulum/...`),
+    an exact match first. Raises, listing the folders found and what they hold, when a name matches
+    nothing. dedupe: merge identical recordings (`merge_identical`), so that each is counted once.
     """
     available = discover(data_dir)
     real = [s for rid, s in available.items() if rid != SIM_ID]
+    folded = {rid.casefold(): s for rid, s in available.items()}
     chosen: list[Source] = []
     for token in (tok.strip() for tok in selection.split(",")):
         if not token:
             continue
+        key = token.casefold()
+        prefix = key.rstrip("/") + "/"
         if token == "all":
             matches = real or [available[SIM_ID]]
         elif token in available:
             matches = [available[token]]
+        elif key in folded:
+            matches = [folded[key]]
         elif any(ch in token for ch in "*?["):
-            matches = [s for rid, s in available.items() if fnmatch.fnmatchcase(rid, token)]
+            matches = [s for rid, s in folded.items() if fnmatch.fnmatchcase(rid, key)]
         elif token.isdigit():
             matches = merge_identical([s for rid, s in available.items() if rid.rsplit("/", 1)[-1] == token])
             if len(matches) > 1:
                 raise ValueError(f"dataset {token!r} is ambiguous: {', '.join(s.id for s in matches)} "
                                  "(different recordings); give the id")
-        elif any(rid.startswith(token.rstrip("/") + "/") for rid in available):
-            matches = [s for rid, s in available.items() if rid.startswith(token.rstrip("/") + "/")]
+        elif any(rid.startswith(prefix) for rid in folded):
+            matches = [s for rid, s in folded.items() if rid.startswith(prefix)]
         elif Path(token).is_file():
             matches = [_source_for_file(Path(token))]
         elif Path(token).is_dir():
@@ -139,12 +145,24 @@ def select(selection: str, data_dir: str | os.PathLike | None = None, dedupe: bo
             matches = _fetched(token, data_dir)
         if not matches:
             root = data_dir_from(data_dir)
-            names = ", ".join(available) if len(available) <= 30 else ", ".join(list(available)[:30]) + ", ..."
-            raise ValueError(f"dataset {token!r} not found in {root} (available: {names}){_fetch_hint(token)}")
+            raise ValueError(f"dataset {token!r} not found in {root} (available: {available_text(available)})"
+                             f"{_fetch_hint(token)}")
         chosen.extend(s for s in matches if s not in chosen)
     if not chosen:
         raise ValueError(f"dataset selection {selection!r} names no recording")
     return merge_identical(chosen) if dedupe else chosen
+
+
+def available_text(available: dict[str, Source], limit: int = 12) -> str:
+    """What a data folder holds, for the error of a selection that matches nothing: each folder of
+    recordings with its count and an id as an example (`broad/* (14, e.g. broad/01_...)`), then the
+    recordings directly in it; `limit` entries at most, then how many more."""
+    folders: dict[str, list[str]] = {}
+    for rid in available:
+        folders.setdefault(rid.rsplit("/", 1)[0] + "/*" if "/" in rid else rid, []).append(rid)
+    parts = [f"{name} ({len(ids)}, e.g. {ids[0]})" if len(ids) > 1 or name.endswith("/*") else name
+             for name, ids in folders.items()]
+    return ", ".join(parts[:limit]) + (f", and {len(parts) - limit} more folders" if len(parts) > limit else "")
 
 
 def _public_name(token: str) -> str | None:

@@ -370,6 +370,22 @@ def _umask() -> int:
     return mask
 
 
+def local_path(folder: Path, local_name: str) -> Path:
+    """Where a file of the dataset in `folder` is: `folder / local_name`, or the file there whose path
+    differs only in case (RepoIMU as its repository publishes it: `Pendulum/`, where a fetch writes
+    `pendulum/`), so that a copy laid out either way is found and not fetched twice."""
+    path = folder / local_name
+    if path.is_file() or not folder.is_dir():
+        return path
+    here = folder
+    for part in Path(local_name).parts:
+        names = {p.name.casefold(): p for p in here.iterdir()} if here.is_dir() else {}
+        if part.casefold() not in names:
+            return path
+        here = names[part.casefold()]
+    return here if here.is_file() else path
+
+
 def _url(entry: Entry, mirror: str | None) -> str:
     return f"{mirror.rstrip('/')}/{entry.dataset}/{entry.path}" if mirror else entry.url
 
@@ -377,7 +393,7 @@ def _url(entry: Entry, mirror: str | None) -> str:
 def _get(item: Item, folder: Path, state: _State, mirror: str | None, shared, lock) -> Outcome:
     """One item: verified where it is, else downloaded from its first source that has it."""
     for entry in item.entries:  # already here (in any of its forms)?
-        path = folder / entry.local_name
+        path = local_path(folder, entry.local_name)
         if path.is_file():
             if state.verified(entry.local_name, path, entry.git_blob_sha1):
                 return Outcome(item, "local", path)
@@ -485,7 +501,7 @@ def list_datasets(to: str | os.PathLike | None = None, registry: list[Entry] | N
         present = verified = 0
         for i in chosen:
             for e in i.entries:
-                path = folder / e.local_name
+                path = local_path(folder, e.local_name)
                 if path.is_file():
                     present += 1
                     verified += bool(state and state.verified(e.local_name, path, e.git_blob_sha1))

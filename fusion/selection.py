@@ -64,11 +64,12 @@ def select_sources(dataset: str = "all", data_dir: str | os.PathLike | None = No
 
 
 def load_options(calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
-                 imu_topic: str | None = None, truth_topic: str | None = None, mag: bool = True) -> datasets.LoadOptions:
+                 imu_topic: str | None = None, truth_topic: str | None = None,
+                 mag: bool | None = True) -> datasets.LoadOptions:
     """A calibration file, the dropout switch, a ROS bag's topics (`--imu-topic`, `--truth-topic`;
-    None: the one topic of the type) and the magnetometer switch (`--mag`) as the loading options
-    every command uses."""
-    topics = dict(imu_topic=imu_topic, truth_topic=truth_topic, mag=mag)
+    None: the one topic of the type) and the magnetometer switch (`--mag`; None, auto: on, which a
+    comparison resolves first, `fusion.evaluation.runs`) as the loading options every command uses."""
+    topics = dict(imu_topic=imu_topic, truth_topic=truth_topic, mag=mag is not False)
     if not calibration:
         return datasets.LoadOptions(dropouts=dropouts, **topics)
     calib_file = gyro_fit.read(calibration)
@@ -78,7 +79,7 @@ def load_options(calibration: str | os.PathLike | None = None, dropouts: bool = 
 def load_selected(dataset: str = "all", data_dir: str | os.PathLike | None = None,
                   calibration: str | os.PathLike | None = None, dropouts: bool = datasets.DROPOUTS_DEFAULT,
                   progress: bool = False, imu_topic: str | None = None, truth_topic: str | None = None,
-                  mag: bool = True) -> list[Recording]:
+                  mag: bool | None = True) -> list[Recording]:
     """The recordings `dataset` names (`select_sources`), loaded and calibrated (`load_options`);
     progress: a progress bar on stderr, one step per recording. A recording whose files cannot be
     read costs only itself: a warning with the loader's one line, and the others are loaded; when

@@ -19,6 +19,8 @@ def not_default(f: dataclasses.Field, option: Any) -> tuple[list[str], Any]:
         return [option.flag], False
     if option.kind == "on_off":
         return [option.flag, "off" if f.default else "on"], not f.default
+    if option.kind == "auto_on_off":  # the default is auto (None)
+        return [option.flag, "off"], False
     if option.kind == "choices":
         choice = next(c for c in option.choices if c != f.default)
         return [option.flag, choice], choice

@@ -141,7 +141,16 @@ def test_recovers_after_a_broken_stretch(name, kind):
         assert after["inclination"] <= reference["inclination"] + 2.0, (after, reference)
 
 
-@pytest.mark.parametrize("name", NAMES)
+# Peers whose library itself moves at perfect rest (kept, as every peer equals its library:
+# `tests/test_more_peers.py`): qmt's single-precision Madgwick hops by beta dt about the exact
+# inclination (never reached in float32); the `ahrs` UKF's sigma-point mean drifts; `ahrs`' OLEQ stops
+# its iteration, begun at random, tens of degrees from the solution. Strict: a fixed library fails here.
+MOVES_AT_REST = {"qmt-madgwick": "float32 gradient hops", "ahrs-ukf": "sigma-point mean drifts",
+                 "oleq": "unconverged random-start iteration"}
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=MOVES_AT_REST[n], strict=True))
+                                  if n in MOVES_AT_REST else n for n in NAMES])
 def test_perfect_rest_has_no_division_by_zero(name):
     """Zero rate, exact gravity, exact 100 Hz: the orientation must not move, and no
     floating-point exception (0/0 in a normalised axis, a zero-rate sinc) may occur."""

@@ -298,12 +298,16 @@ def test_table_with_four_recordings_keeps_its_columns_and_says_why():
     assert "no statistics" not in format_table(results[:3])  # one recording: no means, nothing to say
 
 
-def test_six_d_and_nine_d_rows_are_compared_apart_on_total_not_on_inclination():
+def test_six_d_and_nine_d_rows_are_compared_apart_on_every_metric():
+    """Like for like: a 9-D row's inclination is helped by its magnetometer too, so 6-D and 9-D rows
+    are ranked and tested apart on every metric; a group of one row is shown, not ranked or tested."""
     results = _results(labels=("dr", "ukf", "ekf", "vqf", "gn"), mag=("ekf", "vqf", "gn"))
     run = run_statistics(summary_groups(results))
-    assert [(c.imu, c.labels) for c in run.of("total")] == [("6-D", ("dr", "ukf")), ("9-D", ("ekf", "vqf", "gn"))]
-    assert [(c.imu, c.labels) for c in run.of("heading")] == [("6-D", ("dr", "ukf")), ("9-D", ("ekf", "vqf", "gn"))]
-    assert [(c.imu, c.labels) for c in run.of("inclination")] == [(None, ("dr", "ukf", "ekf", "vqf", "gn"))]
+    for metric in ("total", "heading", "inclination"):
+        assert [(c.imu, c.labels) for c in run.of(metric)] == [("6-D", ("dr", "ukf")), ("9-D", ("ekf", "vqf", "gn"))]
+    alone = run_statistics(summary_groups(_results(labels=("dr", "ekf"), mag=("ekf",))))
+    assert [(c.imu, c.statistics, c.reason) for c in alone.of("total")] == [
+        ("6-D", None, "one row (dr): nothing to compare it with"), ("9-D", None, "one row (ekf): nothing to compare it with")]
     notes = format_table(results).splitlines()[-2:]
     assert notes[0].startswith("total 95% CI (6-D rows)") and notes[1].startswith("total 95% CI (9-D rows)")
     assert "Friedman" not in notes[0] and "Friedman" in notes[1]  # two 6-D rows: no Friedman test

@@ -215,3 +215,25 @@ def test_ablate_tuned_fixes_what_the_grid_does_not_sweep(data_dir, tmp_path, cap
     capsys.readouterr()
     assert main(["ablate", "--preset", "sigma", "--dataset", "sim", "--no-progress", "--tuned", str(tuned)]) == 1
     assert "--tuned apply to --estimator" in capsys.readouterr().err
+
+
+def test_a_6d_dataset_tunes_no_magnetometer_parameter_and_the_table_tests_the_tuned_rows(data_dir, capsys):
+    """On the course recordings (no magnetometer), the magnetometer's parameters are left out of the
+    search, with a note naming them (a setting the data cannot exercise is not "chosen"); the table
+    carries the tuned rows' interval, wins/ties/losses and Holm p, as a comparison's does."""
+    import re
+
+    code = main(["tune", "--estimators", "ekf,madgwick", "--dataset", "ece276a/1,ece276a/2,ece276a/3,ece276a/4,ece276a/5",
+                 "--data-dir", str(data_dir), "--no-progress", "--jobs", "1"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    (line,) = [ln for ln in err.splitlines() if "hold no magnetometer" in ln]
+    assert line.endswith("its parameters are left out of the search (ekf: Rm)")
+    assert "Rm=" not in out and "95% CI (tuned)" in out and "W/T/L" in out and "Holm p" in out
+    cells = {m[0]: m for m in re.findall(r"^(\S+) .*?\[([\d.]+), ([\d.]+)\](\*?)\s+(\S+)\s+(\S+)", out, re.M)}
+    assert set(cells) == {"ekf", "madgwick"}
+    (best,) = [label for label, c in cells.items() if c[5] == "best"]
+    other = next(label for label in cells if label != best)
+    assert sum(map(int, cells[other][4].split("/"))) == 5  # wins/ties/losses over the five test recordings
+    assert float(cells[other][5]) <= 1.0 and cells[best][3] == "*"
+    assert f"against the best tuned row ({best}; Wilcoxon signed-rank, Holm-corrected)" in out

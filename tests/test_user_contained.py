@@ -89,13 +89,17 @@ def specs(*names: str) -> str:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("jobs", ["1", "2"])
-def test_every_way_of_ending_the_process_costs_its_row_only(folder, capsys, jobs):
+def test_every_way_of_ending_the_process_costs_its_row_only(folder, capfd, jobs):
+    """capfd: the workers' stderr too (file descriptor 2, which they inherit), so that a crash's own
+    output would show: the segfaulting worker prints nothing, its parent one line."""
     code = main(["compare", "--estimators", specs(*(label.split(".")[1] for label in EXPECTED)) + ",dr",
                  "--dataset", "sim", "--no-progress", "--jobs", jobs, "--json", "r.json"])
-    out, err = capsys.readouterr()
+    out, err = capfd.readouterr()
     assert code == 1
+    assert "Fatal Python error" not in err and "Traceback" not in err, err
     errors = [line for line in err.splitlines() if line.startswith("fusion: error: ")]
     assert len(errors) == len(EXPECTED), errors
+    assert all(line.startswith(("fusion: error: ", "fusion: warning: ")) for line in err.splitlines()), err
     for label, message in EXPECTED.items():
         (line,) = [e for e in errors if f"'{label}'" in e]
         assert line.startswith("fusion: error: sim: estimator") and message in line, line

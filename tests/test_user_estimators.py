@@ -281,7 +281,7 @@ def test_an_installed_package_registers_an_estimator(folder, monkeypatch, capsys
     (folder / "site" / "student_filters.py").write_text(STUDENT)
     monkeypatch.syspath_prepend(str(folder / "site"))
     assert main(["list"]) == 0
-    listed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("comp ")]
+    listed = [line for line in capsys.readouterr().out.splitlines() if line.split()[:1] == ["comp"]]
     assert listed and "student_filters:complementary" in listed[0] and "student-filters 1.0" in listed[0]
     assert main(["compare", "--estimators", "comp:gain=0.05,dr", "--dataset", "sim", "--no-progress",
                  "--json", str(folder / "r.json")]) == 0

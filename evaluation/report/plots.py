@@ -31,7 +31,7 @@ from fusion.checks import runs
 from fusion.estimators.params import parse_specs
 
 from ..run.series import RecordingSeries
-from ..scoring.metrics import KINDS
+from ..scoring.metrics import KINDS, MIN_COVERAGE
 
 EULER_SEQ = "ZYX"
 EULER_NAMES = ("roll", "pitch", "yaw")
@@ -281,14 +281,15 @@ def summary_rmse_figure(rows: list[dict]) -> Figure:
 
 
 def speed_points(rows: list[dict]) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(estimators, mean us/sample over all recordings, mean total RMSE deg over recordings with truth)."""
+    """(estimators, mean us/sample over the recordings it ran on, mean total RMSE deg over recordings
+    with truth, across datasets as the table takes it: `mean_across_datasets`)."""
     labels = list(dict.fromkeys(r["estimator"] for r in rows))
     us, err = [], []
     for label in labels:
         mine = [r for r in rows if r["estimator"] == label]
-        us.append(np.mean([1e6 * r["seconds"] / max(r["samples"], 1) for r in mine]))
-        scored = [r["rmse_deg"]["total"] for r in mine if r["rmse_deg"]]
-        err.append(np.mean(scored) if scored else np.nan)
+        ran = [1e6 * r["seconds"] / r["samples"] for r in mine if r["samples"] and not r.get("error")]
+        us.append(np.mean(ran) if ran else np.nan)
+        err.append(_mean_rmse(rows, label, "total"))
     return labels, np.array(us), np.array(err)
 
 
@@ -397,8 +398,12 @@ def _as_numbers(values: list[str]) -> np.ndarray | None:
 
 
 def _mean_rmse(rows: list[dict], label: str, kind: str) -> float:
-    scored = [r["rmse_deg"][kind] for r in rows if r["estimator"] == label and r["rmse_deg"]]
-    return float(np.mean(scored)) if scored else math.nan
+    """An estimator's mean `kind` RMSE as the table takes it: over the recordings it was scored on
+    (below `MIN_COVERAGE` left out), across datasets the mean of per-dataset means."""
+    from ..scoring.stats import mean_across_datasets
+
+    return mean_across_datasets({r["dataset"]: r["rmse_deg"][kind] for r in rows if r["estimator"] == label
+                                 and r["rmse_deg"] and (r.get("coverage") is None or r["coverage"] >= MIN_COVERAGE)})
 
 
 def param_figure(rows: list[dict], kind: str = "total") -> Figure | None:

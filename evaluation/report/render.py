@@ -33,8 +33,9 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ..compare import (IMU_NOTE, LOW_COVERAGE_NOTE, Result, across_datasets, dataset_group, format_coverage,
-                      format_table, heading_offset_note, not_scored_recordings, sensors, shows_imu, summary_groups)
+from ..compare import (ALIGNMENT_HEADER, IMU_NOTE, LOW_COVERAGE_NOTE, Result, across_datasets, alignment_cells,
+                      dataset_group, format_coverage, format_table, heading_offset_note, not_scored_recordings, sensors,
+                      shows_imu, summary_groups)
 from ..run import series as series_io
 from ..run.job import GENERIC_TRUTH, TRUTH_SYSTEMS
 from ..run.output import LOCK, MANIFEST, RESULTS, STAGING_PREFIX, OutputFolder, _atomic_text, read_manifest  # noqa: F401
@@ -524,9 +525,6 @@ def _coverage_text(doc: dict[str, Any]) -> str:
     return LOW_COVERAGE_NOTE if any(Result.from_json(r).low_coverage for r in doc["results"]) else ""
 
 
-ALIGNMENT_HEADER = ["dataset", "world A rotation vector, deg", "|A| deg", "body B rotation vector, deg", "|B| deg",
-                    "rate pairs", "rate residual deg/s", "|g| g"]
-
 
 def _alignment_text(doc: dict[str, Any]) -> str:
     if doc.get("settings", {}).get("align") or recording_alignments_of(doc):
@@ -538,13 +536,7 @@ def _alignment_text(doc: dict[str, Any]) -> str:
 
 
 def _alignment_rows(doc: dict[str, Any]) -> list[list[str]]:
-    out = []
-    for a in recording_alignments_of(doc):
-        out.append([a["dataset"], ", ".join(f"{x:+.2f}" for x in a["world_deg"]), f"{np.linalg.norm(a['world_deg']):.2f}",
-                    ", ".join(f"{x:+.2f}" for x in a["body_deg"]), f"{np.linalg.norm(a['body_deg']):.2f}",
-                    str(a.get("rate_pairs", "-")), _fmt_opt(a.get("rate_residual_deg_s"), ".2f"),
-                    _fmt_opt(a.get("gravity_g"), ".3f")])
-    return out
+    return [alignment_cells(a) for a in recording_alignments_of(doc)]
 
 
 def recording_alignments_of(doc: dict[str, Any]) -> list[dict[str, Any]]:
@@ -556,10 +548,6 @@ def recording_alignments_of(doc: dict[str, Any]) -> list[dict[str, Any]]:
         if r.get("alignment") and r["dataset"] not in out:
             out[r["dataset"]] = {"dataset": r["dataset"], **r["alignment"]}
     return list(out.values())
-
-
-def _fmt_opt(value: Any, fmt: str) -> str:
-    return "-" if value is None else format(value, fmt)
 
 
 def _settings_items(doc: dict[str, Any]) -> list[tuple[str, str]]:

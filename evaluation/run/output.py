@@ -26,7 +26,10 @@ class OutputFolder:
 
     - Lock: `DIR/.fusion.lock`, held with `fcntl.flock` for the whole run (the PID inside is
       for the message only). A second run on the folder is refused with one line; the kernel
-      releases the lock when a run dies, however it dies, so a crash never leaves it stuck.
+      releases the lock when a run dies, however it dies, so a crash never leaves it stuck. A run
+      that ends removes the file (while it still holds the lock; a run that opened it just before
+      sees that the path no longer names the file it locked, and opens it afresh), so a finished
+      folder holds no lock file.
     - Staging: the run writes into `DIR/.fusion-staging-XXXX/`; on an error, SIGINT or SIGTERM
       that folder is removed and DIR is as it was. Staging folders left by a killed run
       (SIGKILL) are removed by the next run that holds the lock.
@@ -73,6 +76,10 @@ class OutputFolder:
 
     def _release(self) -> None:
         if self._fd is not None:
+            try:
+                os.unlink(self.path / LOCK)  # still held: no other run can have it (`_lock` checks the path)
+            except OSError:
+                pass
             os.close(self._fd)  # closing the descriptor releases the flock
             self._fd = None
 
@@ -149,14 +156,21 @@ def _lock(out: Path) -> int | None:
         import fcntl
     except ImportError:  # not on a POSIX system: no lock
         return None
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        holder = os.read(fd, 32).decode("ascii", "replace").strip()
-        os.close(fd)
-        raise ValueError(f"{out}: in use by another fusion run (pid {holder or 'unknown'}); wait for it to finish "
-                         "or choose another output folder") from None
+    while True:
+        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip()
+            os.close(fd)
+            raise ValueError(f"{out}: in use by another fusion run (pid {holder or 'unknown'}); wait for it to finish "
+                             "or choose another output folder") from None
+        try:
+            if os.fstat(fd).st_ino == os.stat(out / LOCK).st_ino:
+                break  # the file we locked is the one the path names
+        except FileNotFoundError:
+            pass
+        os.close(fd)  # removed by the run that held it as we opened it: lock the new one
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()}\n".encode())
     return fd

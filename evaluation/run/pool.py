@@ -153,9 +153,14 @@ def _worker_main(conn: Connection, parent_pid: int, initializer: Callable | None
 def quiet_worker() -> None:
     """In a worker: Ctrl-C goes to the whole process group, but only the parent acts on it (it
     stops the workers); SIGTERM kills (a forked worker would otherwise inherit the parent's
-    handler)."""
+    handler). A worker that crashes (a segfault in compiled code a user's estimator calls) is
+    reported by the parent in one line (`death_text`): the fault handler a forked worker inherits
+    (Python's `-X faulthandler`, pytest's) would print its own dump of every thread besides."""
+    import faulthandler
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    faulthandler.disable()
 
 
 class _Worker:

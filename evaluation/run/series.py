@@ -118,7 +118,7 @@ def events_of(rec) -> dict[str, list[tuple[float, float]]]:
     out = {"rest": spans(r.interval for r in check.rests),
            "gyro freeze": spans(f.interval for f in check.freezes),
            "gyro invalid": mask_spans(~np.asarray(rec.imu.gyr_valid, bool)),
-           "gyro beyond range": spans(check.range.beyond_nominal) if check.range is not None else [],
+           "gyro beyond range": spans(check.range.gyro_beyond_range()) if check.range is not None else [],
            "time-stamp gap": spans(check.timing.gaps),
            "no truth": spans(check.vicon.gaps) if check.vicon is not None else [],
            "magnetic disturbance": spans(check.magnetometer.disturbed) if check.magnetometer is not None else [],

@@ -28,7 +28,7 @@ from ..scoring.metrics import KINDS, PROTOCOLS
 COMPUTED, WRITTEN, HOW = "computed", "written", "how"
 API_ONLY = "api-only"  # a field with no option of its own on the command line (see `Option`)
 AS_FIELD = "as the field"  # `Option.default`: the option's default is the field's
-OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off")
+OPTION_KINDS = ("value", "choices", "switch", "negated", "on_off", "auto_on_off")
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,8 @@ class Option:
         `choices`: `--flag C`, one of `choices`;
         `switch`: `--flag` (argparse's store_true): True when given, else the field's default;
         `negated`: `--no-thing` (store_true): False when given, else True;
-        `on_off`: `--flag on|off`, the field's default shown as its default.
+        `on_off`: `--flag on|off`, the field's default shown as its default;
+        `auto_on_off`: `--flag auto|on|off`, None, True or False (auto: the field's default, None).
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
     commands: which of compare, ablate and tune offer it (`fusion.cli` offers the loading options,
@@ -116,10 +117,11 @@ class RunSettings:
     dropouts: bool = _part(COMPUTED, datasets.DROPOUTS_DEFAULT, Option(
         "--dropouts", "mark detected gyro freezes and ADC-saturated samples invalid so that no estimator integrates "
         "them (default: on; off for ablations)", kind="on_off"))
-    mag: bool = _part(COMPUTED, True, Option(
-        "--mag", "use the magnetometer where a recording has one (9-D estimation: heading is observable; BROAD's "
+    mag: bool | None = _part(COMPUTED, None, Option(
+        "--mag", "on: use the magnetometer where a recording has one (9-D estimation: heading is observable; BROAD's "
         "protocol then scores the total error without removing a heading offset); off: 6-D, gyro and "
-        "accelerometer only (default: on)", kind="on_off"))
+        "accelerometer only; auto (default): on, unless the run mixes estimators that can and cannot use it: then "
+        "every row is 6-D, like for like (a note says so)", kind="auto_on_off"))
     imu_topic: str | None = _part(COMPUTED, None, Option(
         "--imu-topic", "ROS bags: the sensor_msgs/Imu topic to read (default: the bag's one Imu topic)",
         metavar="TOPIC"))
@@ -223,3 +225,37 @@ class RunSettings:
     def resolved_data_dir(self) -> Path:
         """The data folder this run reads (`fusion.datasets.data_dir_from`)."""
         return datasets.data_dir_from(self.data_dir)
+
+
+def resolve_mag(mag: bool | None, entries: Any, sources: Any) -> bool:
+    """`--mag` for a run of `entries` (resolved specs) on `sources` (dataset `Source`s or loaded
+    recordings): as given when on or off; auto (None, the default) on where every estimator can use
+    a magnetometer, and off when the run mixes estimators that can and cannot (`Estimator.magnetometer`;
+    trajectory files, whose rows say it themselves, aside) and a selected recording holds one, so that
+    every row is 6-D and every ranked group and paired test compares like with like (a note says so,
+    and how to get 9-D rows). `--mag on` keeps the mix: the table's imu column marks the 6-D rows, and
+    the statistics compare 6-D and 9-D rows apart."""
+    if mag is not None:
+        return mag
+    able = [e.label for e in entries if not e.cls.partial and e.cls.magnetometer]
+    blind = [e.label for e in entries if not e.cls.partial and not e.cls.magnetometer]
+    if able and blind and any(holds_magnetometer(source) for source in sources):
+        from fusion.selection import note
+
+        note(f"{', '.join(blind)} cannot use a magnetometer: every row is 6-D, so that they all compare like for like "
+             f"(--mag on gives 9-D rows for {', '.join(able)}, ranked apart from the 6-D ones)")
+        return False
+    return True
+
+
+def holds_magnetometer(source: Any) -> bool:
+    """Whether a recording holds a magnetometer, as its format says from its file (not loaded); a
+    loaded `Recording`'s samples say it themselves."""
+    from fusion.formats import FORMATS
+
+    if not isinstance(source, datasets.Source):
+        return bool(getattr(source.imu, "has_mag", False))
+    try:
+        return FORMATS[source.kind].holds(source).magnetometer
+    except (ValueError, OSError, KeyError):  # a file that cannot be read says so when it is loaded
+        return False

@@ -519,8 +519,10 @@ def run_statistics(groups: Iterable[tuple[str | None, Sequence[Result]]],
     groups: the rows in the groups their means are taken over,
         `fusion.evaluation.compare.summary_groups(results)` (or `[(None, results)]`).
     In a group, the recordings are those with a score on some row; a row scored on less than
-    `MIN_COVERAGE` of a recording, or failed there, has no score on it (as in the means). For
-    `total` and `heading`, 6-D and 9-D rows are compared separately (`Comparison.imu`).
+    `MIN_COVERAGE` of a recording, or failed there, has no score on it (as in the means). 6-D and
+    9-D rows are compared separately (`Comparison.imu`), for every metric: a 9-D row's inclination
+    is helped by its magnetometer too. A comparison of one row ranks and tests nothing: it has no
+    statistics, and its reason says so.
     """
     groups = [(g, list(members)) for g, members in groups]
     out = []
@@ -532,18 +534,22 @@ def run_statistics(groups: Iterable[tuple[str | None, Sequence[Result]]],
             if not recordings:
                 continue
             labels = list(dict.fromkeys(r.estimator for r in members))
-            for imu, mine in _by_imu(members, labels, split=metric != "inclination"):
+            for imu, mine in _by_imu(members, labels):
                 scores = {lab: {r.dataset: r.rmse_deg[metric] if r.in_means else None for r in members
                                 if r.estimator == lab and r.dataset in recordings} for lab in mine}
+                if len(mine) == 1:
+                    out.append(Comparison(metric, group, imu, tuple(mine), None,
+                                          f"one row ({mine[0]}): nothing to compare it with"))
+                    continue
                 stats = paired_statistics(scores, metric)
                 out.append(Comparison(metric, group, imu, tuple(mine), stats,
                                       None if stats else no_statistics_reason(scores)))
     return RunStatistics(tuple(out))
 
 
-def _by_imu(members: list[Result], labels: list[str], split: bool) -> list[tuple[str | None, list[str]]]:
+def _by_imu(members: list[Result], labels: list[str]) -> list[tuple[str | None, list[str]]]:
     """The labels by the sensors their scored rows used ("9-D", "6-D", "mixed"), in run order;
-    one class (None) when they all used the same or `split` is False."""
+    one class (None) when they all used the same."""
     def imu(label: str) -> str:
         mine = [r for r in members if r.estimator == label]
         used = {r.magnetometer for r in ([r for r in mine if r.rmse_deg] or mine)}
@@ -551,10 +557,31 @@ def _by_imu(members: list[Result], labels: list[str], split: bool) -> list[tuple
 
     classes: dict[str, list[str]] = {}
     for label in labels:
-        classes.setdefault(imu(label) if split else "", []).append(label)
+        classes.setdefault(imu(label), []).append(label)
     if len(classes) == 1:
         return [(None, labels)]
     return list(classes.items())
+
+
+# --- means across datasets ---
+
+def dataset_group(dataset: str) -> str:
+    """The folder a recording id belongs to: "ece276a/3" -> "ece276a", "broad/06_..." -> "broad";
+    "other" for ids without one (`sim`, files at the top of the data directory)."""
+    return dataset.rsplit("/", 1)[0] if "/" in dataset else "other"
+
+
+def mean_across_datasets(scores: Mapping[str, float]) -> float:
+    """The one mean of every table, figure and sweep: of `scores` (recording id -> value), per dataset
+    folder (`dataset_group`) the mean over its recordings, then the mean of those, each dataset counted
+    once whatever its number of recordings (recordings of different sensors are never pooled); a plain
+    mean with one folder. NaN without scores."""
+    groups: dict[str, list[float]] = {}
+    for rid, value in scores.items():
+        groups.setdefault(dataset_group(rid), []).append(float(value))
+    if not groups:
+        return math.nan
+    return math.fsum(math.fsum(v) / len(v) for v in groups.values()) / len(groups)
 
 
 # --- the table ---

@@ -106,8 +106,9 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
                   groups: dict[str, Sequence[str]] | None = None) -> dict[str, Any] | None:
     """BROAD's reading of an ablation (rows as in results.json; rows without truth or with low
     coverage left out, as in the means): the best common setting, the one with the lowest mean
-    `kind` RMSE over the recordings (over those every setting was scored on), and per recording
-    its own best setting. None with fewer than two settings or no scored recording.
+    `kind` RMSE over the recordings (over those every setting was scored on; across datasets the
+    table's mean, `fusion.evaluation.scoring.stats.mean_across_datasets`), and per recording its own
+    best setting. None with fewer than two settings or no scored recording.
 
     Returns {"kind", "settings", "recordings", "best_common": {"estimator", "mean_rmse_deg"},
     "per_recording": [{"dataset", "best_estimator", "best_rmse_deg", "common_rmse_deg"}],
@@ -122,6 +123,8 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
     dataset folders or more, "datasets" gives each its own best common setting, its mean, and the
     mean there of the best common setting over all (`_per_dataset`).
     """
+    from ..scoring.stats import mean_across_datasets
+
     labels = list(dict.fromkeys(r["estimator"] for r in rows))
     err: dict[tuple[str, str], float] = {}
     for r in rows:
@@ -131,7 +134,7 @@ def sweep_summary(rows: Sequence[dict[str, Any]], kind: str = "total",
     datasets = [d for d in dict.fromkeys(r["dataset"] for r in rows) if all((d, lab) in err for lab in labels)]
     if len(labels) < 2 or not datasets:
         return None
-    means = {lab: math.fsum(err[(d, lab)] for d in datasets) / len(datasets) for lab in labels}
+    means = {lab: mean_across_datasets({d: err[(d, lab)] for d in datasets}) for lab in labels}  # the table's mean
     best = min(labels, key=lambda lab: means[lab])  # ties: the first listed
     per = []
     for d in datasets:
@@ -166,7 +169,7 @@ def _per_dataset(err: dict[tuple[str, str], float], labels: list[str], datasets:
     per folder, in run order, its own best common setting and mean, and the mean there of the best
     common setting over all recordings ("common_rmse_deg"): does a setting chosen on all the data
     hold on each dataset. [] with one folder."""
-    from ..compare import dataset_group
+    from ..scoring.stats import dataset_group
 
     members: dict[str, list[str]] = {}
     for d in datasets:

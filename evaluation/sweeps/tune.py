@@ -35,7 +35,7 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -181,8 +181,8 @@ def scores_per_dataset(tuning: EstimatorTuning) -> list[dict[str, Any]]:
     for rid in tuning.scores_tuned:
         folders.setdefault(dataset_group(rid), []).append(rid)
     return [{"dataset": folder, "recordings": len(ids),
-             "default_deg": _finite(_mean([tuning.scores_default[rid] for rid in ids])),
-             "tuned_deg": _finite(_mean([tuning.scores_tuned[rid] for rid in ids]))} for folder, ids in folders.items()]
+             "default_deg": _finite(_mean({rid: tuning.scores_default[rid] for rid in ids})),
+             "tuned_deg": _finite(_mean({rid: tuning.scores_tuned[rid] for rid in ids}))} for folder, ids in folders.items()]
 
 
 def _finite(x: float) -> float | None:
@@ -332,8 +332,12 @@ class Scores:
         return float(value) if math.isfinite(value) else math.inf
 
 
-def _mean(values: Sequence[float]) -> float:
-    return float(np.mean(values)) if values else math.nan
+def _mean(scores: Mapping[str, float]) -> float:
+    """The mean of recording id -> RMSE as every table takes it: across datasets the mean of the
+    per-dataset means (`fusion.evaluation.scoring.stats.mean_across_datasets`); inf if one is inf."""
+    from ..scoring.stats import mean_across_datasets
+
+    return mean_across_datasets(scores)
 
 
 def _search_grid(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids: list[str]) -> EstimatorTuning:
@@ -346,7 +350,7 @@ def _search_grid(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids
     table = {(k, rid): scores.score(rows[(label, rid)]) for k, label in enumerate(labels) for rid in ids}
 
     def best(train: Sequence[str]) -> int:  # the lowest mean; on a tie the earlier setting (the default first)
-        return int(np.argmin([_mean([table[(k, rid)] for rid in train]) for k in range(len(settings))]))
+        return int(np.argmin([_mean({rid: table[(k, rid)] for rid in train}) for k in range(len(settings))]))
 
     return _tuning(entry, settings, table, best(all_ids), {f.name: best(f.train) for f in folds}, folds, all_ids,
                    scores.settings.mag)
@@ -369,7 +373,7 @@ def _search_tpe(entry: ResolvedSpec, scores: Scores, folds: list[Fold], all_ids:
         label = resolve(spec).label
         for rid in ids:
             table[(k, rid)] = scores.score(rows[(label, rid)])
-        return _mean([table[(k, rid)] for rid in ids])
+        return _mean({rid: table[(k, rid)] for rid in ids})
 
     test_ids = [rid for f in folds for rid in f.test]
     scored({}, sorted(set(all_ids) | set(test_ids)))  # the default everywhere
@@ -389,11 +393,11 @@ def _tuning(entry: ResolvedSpec, settings: list[dict[str, float]], table: dict[t
     common setting's index and each fold's chosen index."""
     test_ids = [rid for f in folds for rid in f.test]
     tuned = {rid: table[(chosen[f.name], rid)] for f in folds for rid in f.test}
-    per_recording = [min(v for (_, r), v in table.items() if r == rid) for rid in all_ids]
+    per_recording = {rid: min(v for (_, r), v in table.items() if r == rid) for rid in all_ids}
     return EstimatorTuning(
-        estimator=entry.label, space=tunable_space(entry, mag), default=_mean([table[(0, rid)] for rid in test_ids]),
-        common_setting=settings[common], common=_mean([table[(common, rid)] for rid in all_ids]),
-        per_recording=_mean(per_recording), out_of_sample=_mean(list(tuned.values())),
+        estimator=entry.label, space=tunable_space(entry, mag), default=_mean({rid: table[(0, rid)] for rid in test_ids}),
+        common_setting=settings[common], common=_mean({rid: table[(common, rid)] for rid in all_ids}),
+        per_recording=_mean(per_recording), out_of_sample=_mean(tuned),
         chosen={name: settings[k] for name, k in chosen.items()},
         scores_default={rid: table[(0, rid)] for rid in test_ids}, scores_tuned=tuned, evaluated=len(settings))
 
@@ -483,6 +487,7 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
         sources = list({s.id: s for s in train + test}.values())
     else:
         sources = select_sources(config.dataset, config.data_dir, config.calibration)
+    config = _sensors(config, entries, sources)
     if not out:
         scores = Scores(sources, config)
         folds, all_ids = _folds(config, entries, scores, split)
@@ -505,6 +510,23 @@ def run_tune(estimators: str = "all", dataset: str = "all", *, out: PathLike | N
             return _finish(config, entries, scores, tunings, folds, command, json_path, (folder, journal))
         finally:
             journal.close()
+
+
+def _sensors(config: TuneSettings, entries: list[ResolvedSpec], sources: Sequence[Any]) -> TuneSettings:
+    """The tuning's magnetometer switch: `--mag auto` resolved as `fusion compare` does (like for like,
+    `resolve_mag`), and off, with a note naming the parameters left out of the search, when no selected
+    recording holds a magnetometer: a search over what the data cannot exercise chooses nothing."""
+    from ..run.settings import holds_magnetometer, resolve_mag
+
+    mag = resolve_mag(config.mag, entries, sources)
+    if mag and not any(holds_magnetometer(s) for s in sources):
+        unused = [f"{e.label}: {', '.join(a for a in tunable_space(e, True) if a not in tunable_space(e, False))}"
+                  for e in entries if not e.cls.partial and len(tunable_space(e, True)) > len(tunable_space(e, False))]
+        if unused:
+            note("tune: the recordings hold no magnetometer: its parameters are left out of the search ("
+                 + "; ".join(unused) + ")")
+        mag = False
+    return replace(config, mag=mag)
 
 
 def _folds(config: TuneSettings, entries: list[ResolvedSpec], scores: Scores,
@@ -575,9 +597,41 @@ def _setting_text(setting: dict[str, float]) -> str:
     return ",".join(f"{k}={v:g}" for k, v in setting.items()) or "default"
 
 
+def tuned_statistics(tunings: Sequence[dict[str, Any]], metric: str) -> tuple[Any, dict[str, str], str]:
+    """The statistics of the tuned rows (`EstimatorTuning.to_json`'s, each estimator's out-of-sample
+    scores per test recording), as a comparison's table shows them
+    (`fusion.evaluation.scoring.stats.paired_statistics`): the statistics (None with too few
+    recordings), per estimator the cells "[lo, hi]*  W/T/L  Holm p", and the note under the table."""
+    from ..scoring.stats import no_statistics_reason, paired_statistics
+
+    scores = {t["estimator"]: dict(t["scores_tuned_deg"]) for t in tunings}
+    stats = paired_statistics(scores, metric=metric) if len(scores) >= 2 else None
+    cells = {}
+    for label in scores:
+        row = stats.row(label) if stats is not None else None
+        if row is None:
+            cells[label] = f"{'':>17}  {'':>8}  {'':>7}"
+            continue
+        ci = f"[{row.ci_low:.2f}, {row.ci_high:.2f}]" if row.ci_low is not None else "[-, -]"
+        p, wtl = ("best", "-") if row.p_holm is None else (f"{row.p_holm:.3f}", f"{row.wins}/{row.ties}/{row.losses}")
+        cells[label] = f"{ci:>16}{'*' if row.not_worse else ' '}  {wtl:>8}  {p:>7}"
+    if len(scores) < 2:
+        note = "one estimator: its tuned row is compared with nothing"
+    elif stats is None:
+        note = f"no statistics: {no_statistics_reason(scores)}"
+    else:
+        friedman = f"; Friedman p = {stats.friedman_p:.2g}" if stats.friedman_p is not None else ""
+        note = (f"{metric} 95% CI: {stats.ci_method} bootstrap interval of the tuned row's mean over the "
+                f"{len(stats.recordings)} test recordings every row scored; W/T/L and Holm p: paired against the best "
+                f"tuned row ({stats.best}; Wilcoxon signed-rank, Holm-corrected); *: not significantly worse than it"
+                f"{friedman}")
+    return stats, cells, note
+
+
 def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, folds: Sequence[Fold]) -> str:
     """The table `fusion tune` prints: per estimator, its default, best common setting and
-    per-recording best (both in sample), and the out-of-sample figure, in degrees."""
+    per-recording best (both in sample), and the out-of-sample figure, in degrees, with the tuned
+    rows' statistics (`tuned_statistics`: interval, wins/ties/losses and Holm p against the best)."""
     how = (f"chosen on {config.train}, scored on {config.test}" if config.train is not None
            else f"leave one {config.by} out, {len(folds)} folds")
     search = ("the grid preset" if config.search == "grid"
@@ -585,15 +639,17 @@ def format_tuning(tunings: Sequence[EstimatorTuning], config: TuneSettings, fold
     width = max([len(t.estimator) for t in tunings] + [9])
     aligned = ("; against the truth aligned per recording (--align: constant world and body rotations fitted from "
                "the gyro, accelerometer and truth)" if config.align else "")
+    _, cells, note = tuned_statistics([t.to_json() for t in tunings], config.metric)
     lines = [f"{config.metric} RMSE (deg), mean over the test recordings; {how}; search: {search}{aligned}",
              f"{'estimator':<{width}}  {'default':>8}  {'common*':>8}  {'per-rec*':>8}  {'tuned':>8}  "
-             f"{'settings':>8}  common setting"]
+             f"{'95% CI (tuned)':>17}  {'W/T/L':>8}  {'Holm p':>7}  {'settings':>8}  common setting"]
     for t in tunings:
         lines.append(f"{t.estimator:<{width}}  {t.default:8.2f}  {t.common:8.2f}  {t.per_recording:8.2f}  "
-                     f"{t.out_of_sample:8.2f}  {t.evaluated:8d}  {_setting_text(t.common_setting)}")
+                     f"{t.out_of_sample:8.2f}  {cells[t.estimator]}  {t.evaluated:8d}  {_setting_text(t.common_setting)}")
     lines.append("* in sample (chosen and judged on the recordings tuned on): the best common setting over them, "
                  "and each one's own best (an upper bound); default, tuned: over the test recordings, tuned out of "
                  "sample (each scored with the setting chosen without it)")
+    lines.append(note)
     return "\n".join(lines + _per_dataset_lines(tunings, folds, width))
 
 

@@ -11,15 +11,33 @@ text file with two header rows, the quantity and its component:
     0.08;1;0;1.6232e-035;0;-0.071594;0.21157;9.7958;0.002314;-0.00634;0.001322;-0.33533;0.19856;-0.88708
 
 time in s, the Vicon orientation as a quaternion w, x, y, z, the accelerometer in m/s^2 and the
-gyroscope in rad/s (the units as published, read as they are), then the magnetometer. Its traps,
-handled here:
+gyroscope in rad/s (the units as published, read as they are), then the magnetometer. Six pendulum
+files (`Pendulum_Test02*`) use another header, the time's unit in a second row of units, and write
+some numbers with a decimal comma:
+
+    Time;Vicon Orientation;;;;IMU Acceleration;;;IMU Gyroscope;;;IMU Magnetometer;;;
+    s;W;X;Y;Z;X;Y;Z;X;Y;Z;X;Y;Z;
+    0,006;1;-8,00E-05;...
+
+Both forms are read (`header_form`); the field separator is the semicolon, so a comma in a number
+is its decimal mark. Its traps, handled here:
 
 - rows where the markers were not seen hold an all-zero quaternion: truth gaps (NaN rows), not a
   rotation; the static files hold nothing else and are read without truth (`Recording.truth_problem`);
 - a few rows hold a quaternion far from unit norm (|q| 0.006-0.95 in seven pendulum files): truth
   gaps too, counted in a warning (`fusion.format_checks.truth_quaternions`);
-- some rows repeat the previous row's time stamp: dropped (the first row of each stamp kept), and
-  their count said in a warning, which `fusion inspect` prints with the recording;
+- some rows repeat the previous row's time stamp (in some files with other data on the second
+  row): dropped (the first row of each stamp kept), and their count said in a warning, which
+  `fusion inspect` prints with the recording;
+- the pendulum's rows come every 6 ms (163 Hz) while its IMU's values change at about 50 Hz (gyro),
+  49 Hz (magnetometer) and 25 Hz (accelerometer): each row repeats a sensor's last sample until the
+  next arrives. The rows are kept as published, and a warning gives each sensor's rate
+  (`fusion.checks.value_rate_hz`; `fusion inspect` too): measured on the pendulum (`docs/results.md`,
+  "RepoIMU's held samples"), keeping them scores every estimator as well as, or better than,
+  keeping only the rows where the gyro (or any sensor) changed;
+- the T-stick's gyro saturates at about +-7.3 rad/s (420 deg/s; Test05: 600-850 samples per sign):
+  the loader's dropout step finds the flat tops (`fusion.checks.FlatTopDetector`) and marks those
+  samples invalid, as a frozen or clipped gyro is elsewhere;
 - the Vicon orientation is the marker body's in the Vicon frame, neither the IMU's axes nor an
   up-pointing world: its recordings say so (`Recording.truth_needs_alignment`), and every run
   scores them through an alignment (`fusion.evaluation.scoring.align` fits the constant world tilt and
@@ -48,20 +66,30 @@ from ..format_checks import check_file, parse_rows, physical_samples, text_lines
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
-HEADER_START = "time (s);vicon orientation"
+HEADER_FIRST_CELLS = ("time (s)", "time")  # the two header forms' first cell; the second is "vicon orientation"
 COLUMNS = 14  # t; qw qx qy qz; ax ay az; gx gy gz; mx my mz
 FIELD_UT = 50.0  # uT per normalised unit of the magnetometer (see the module docstring)
 NORMALISED_FIELD = (0.2, 5.0)  # a median magnetometer norm in this range is in normalised units
 
 
+def header_form(first_row: str) -> str | None:
+    """Which of RepoIMU's header forms a file's first row is: "time (s)" (`Time (s);Vicon Orientation;...`
+    with a row of components after it) or "time" (`Time;Vicon Orientation;...` with a row of units),
+    None for another file."""
+    cells = [c.strip().lower() for c in first_row.split(";")]
+    if len(cells) >= 2 and cells[0] in HEADER_FIRST_CELLS and cells[1] == "vicon orientation":
+        return cells[0]
+    return None
+
+
 def is_repoimu(path: str | Path) -> bool:
-    """Whether a file starts with RepoIMU's first header row."""
+    """Whether a file starts with one of RepoIMU's header rows."""
     try:
         with open(path, "rb") as f:
             first = f.readline(4096).decode("utf-8-sig", errors="replace")
     except OSError:
         return False
-    return first.strip().lower().startswith(HEADER_START)
+    return header_form(first) is not None
 
 
 def load_repoimu(path: str | Path) -> tuple:
@@ -84,9 +112,11 @@ def read_repoimu(path: str | Path) -> tuple:
     """
     path = Path(path)
     lines = text_lines(path)
-    if len(lines) < 3 or not lines[0].strip().lower().startswith(HEADER_START):
-        raise ValueError(f"{path}: not a RepoIMU file (its first row must start with 'Time (s);Vicon Orientation')")
-    rows = [line.strip().rstrip(";") for line in lines[2:]]  # the header rows end in ';', data rows may too
+    if len(lines) < 3 or header_form(lines[0]) is None:
+        raise ValueError(f"{path}: not a RepoIMU file (its first row must start with 'Time (s);Vicon Orientation' or "
+                         "'Time;Vicon Orientation')")
+    # the header rows end in ';', data rows may too; ';' separates fields, so a ',' is a decimal mark
+    rows = [line.strip().rstrip(";").replace(",", ".") for line in lines[2:]]
     table = parse_rows(path, rows, delimiter=";")
     if table.shape[1] != COLUMNS:
         raise ValueError(f"{path}: {table.shape[1]} columns, RepoIMU files have {COLUMNS} (time; Vicon w,x,y,z; "
@@ -113,9 +143,22 @@ def read_repoimu(path: str | Path) -> tuple:
     return imu, None if quat is None else Trajectory(imu.t, quat), n_repeated, problem
 
 
+def _warn_held(path: Path, imu) -> None:
+    """A warning naming each sensor whose values are held over rows (`fusion.checks.held_sensors`),
+    with its rate: the rows are kept as published (module docstring)."""
+    from ..checks import check_timing, held_sensors, imu_sensors
+
+    timing = check_timing(imu.t, sensors=imu_sensors(imu))
+    held = held_sensors(timing)
+    if held:
+        warnings.warn(f"{path}: rows at {timing.rate_hz:.0f} Hz hold the IMU's values: "
+                      + ", ".join(f"the {name} changes at {rate:.0f} Hz" for name, rate in held.items())
+                      + " (rows kept as published)", stacklevel=3)
+
+
 class RepoImuFormat(Format):
     kind = "repoimu"
-    describe = "RepoIMU .csv (Time (s);Vicon Orientation;...: semicolon-separated, two header rows)"
+    describe = "RepoIMU .csv (Time (s);Vicon Orientation;... or Time;Vicon Orientation;...: semicolon-separated, two header rows)"
 
     def find(self, root: Path | None, paths: Sequence[Path]) -> Iterator[Source]:
         for path in paths:
