@@ -7,8 +7,8 @@ about a second each) of the whole-recording `estimate` (the loop and the per-sam
 diagnostics recording included): the compiled filters (`impl=compiled`, the default), their
 numpy references (`ekf:impl=numpy`, the UKFs' `impl=numpy` and `impl=filterpy`) and VQF (the
 `vqf` package: `VQF.updateBatch` and `offlineVQF`, through this toolkit's adapters) on the
-same recording, with the ratio to VQF. Then the compile time of the numba kernel
-(`_compiled_kalman.estimate`, the one loop of every filter's step, with `ekf`'s and the UKFs' parts; a
+same recording, with the ratio to VQF. Then the compile time of the two numba kernels
+(`_compiled_ekf.estimate`, `_compiled_ukf.estimate`, which serves `ukf` and `ukf-bias`; a
 compiled filter compiles or loads them when it is built, `_compiled.load`), measured in a
 fresh process with an empty cache (`NUMBA_CACHE_DIR` pointed at a new temporary folder: numba
 compiles), and again in another with that cache filled (numba loads the machine code). With

@@ -361,7 +361,7 @@ KERNEL_MODULES = {
     "filters": ("kernels._numba", "kernels._compiled_quaternion", "kernels._compiled_linalg",
                 "filters.steps._compiled_accel", "filters.steps._compiled_rest", "filters.steps._compiled_stuck",
                 "filters.steps._compiled_scale_test", "filters.steps._compiled_magnetometer", "filters._compiled_ekf",
-                "filters._compiled_ukf", "filters._compiled_kalman"),
+                "filters._compiled_ukf"),
     "smoothers": ("smoothers._compiled_terms", "smoothers._compiled_cost", "smoothers._compiled_linearize",
                   "smoothers._compiled_start"),
     "peers": ("peers._compiled_ahrs",),
@@ -425,7 +425,8 @@ def test_every_kernel_carries_the_name_of_the_reference_it_declares(room):
         assert references["_correct"] == "fusion.estimators.filters.ekf.EKF._correct"
         assert _numba.REFERENCES[("fusion.estimators.filters.steps._compiled_rest", "update")] == \
             "fusion.estimators.filters.steps._rest.RestDetector.update"
-        assert references["estimate"] == "fusion.estimators.filters.kalman_base.KalmanFilter.estimate"
+        assert _numba.REFERENCES[("fusion.estimators.filters._compiled_ekf", "estimate")] == \
+            "fusion.estimators.filters.ekf.EKF.estimate"
     if room == "smoothers":  # what the solvers run, each under its reference's name
         assert references["cost"] == "fusion.estimators.smoothers.cost.SmootherProblem.cost"
         assert references["linearize"] == "fusion.estimators.smoothers.cost.SmootherProblem.linearize"

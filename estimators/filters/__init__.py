@@ -1,3 +1,2 @@
 """The recursive filters (`ekf`, `ukf`, `ukf-bias`): each filter beside the state they share
-(`kalman_base`, `filter_params`) and its compiled twin (`_compiled_kalman`, the one loop of every filter's step, with `_compiled_ekf`, `_compiled_ukf`,
-`_compiled`)."""
+(`kalman_base`, `filter_params`) and its compiled twin (`_compiled_ekf`, `_compiled_ukf`, `_compiled`)."""

@@ -25,9 +25,13 @@ streaming user and the tutorial call). Each has a compiled mirror that carries i
     _stuck                                 _compiled_stuck (stuck_gyro_update itself, compiled)
     _scale_test (ScaleTest)                _compiled_scale_test (step)
     _magnetometer                          _compiled_magnetometer (update, magnetometer_input, ...)
-    kalman_base.KalmanFilter (step)        _compiled_kalman (estimate: the one loop of the step, _inject)
-    ekf.EKF                                _compiled_ekf (_predict, _acc_correct, _correct, _velocity_step, ...)
-    ukf.UKF, quaternion_ukf                _compiled_ukf (_predict, _acc_correct, _inject, ...)
+    ekf.EKF (KalmanFilter.step with EKF's parts)   _compiled_ekf (estimate, _correct, _velocity_step)
+    ukf.UKF, quaternion_ukf (the same, UKF's)      _compiled_ukf (estimate)
+
+Each loop is the sequence of `KalmanFilter.step`, section by section (predict, before updates,
+rest, accelerometer, magnetometer, scale test, finish), with its filter's parts written in place:
+one loop per filter, not one loop calling each filter's parts, which ran at half the speed (the
+work arrays of a loop allocated in it are what numba's compiler optimises best).
 
 Every kernel line implements a line of its reference, in the same order where the order matters
 for rounding, and `tests/test_compiled.py` checks that both paths give the same quaternions and
@@ -37,11 +41,10 @@ states that the kernels carry are laid out once, by the offsets of the numpy mod
 (`_accel.DIST_*`, `_rest.REST_*`, `_magnetometer.MAG_*` and `HARD_IRON_*`, `_scale_test.TEST_*`,
 `_stuck.STUCK_*`), which both sides import.
 
-A kernel run (`_compiled_kalman.estimate`) takes the recording (`_numba.Inputs`), the filter's
-state (`_compiled_kalman.FilterState`) and noise (`Noise`), the packed states (`SensorStates`)
-and its options (`Settings`, all scalars and small tuples, built by keyword from the filter's
-parameters and the constants of the reference modules at run time, not frozen into the cached
-machine code), and fills one `Outputs`.
+A kernel run takes the recording (`_numba.Inputs`), the filter's state, the packed states
+(`SensorStates`) and its options (`Settings`, all scalars and small tuples, built by keyword from
+the filter's parameters and the constants of the reference modules at run time, not frozen into
+the cached machine code), and fills one `Outputs`.
 """
 from __future__ import annotations
 
@@ -55,8 +58,7 @@ from fusion.types import STANDARD_GRAVITY_M_S2
 from ..kernels._compiled_linalg import CovSettings, cov_settings
 from ..kernels._compiled_quaternion import QuatSettings, multiply_floats, quat_settings
 from ..kernels._numba import _jit, inputs
-from . import _compiled_kalman
-from ._compiled_kalman import FilterState, Noise
+from . import _compiled_ekf, _compiled_ukf
 from .filter_params import BiasFilterParams
 from .steps._accel import AccDisturbance, models_lag
 from .steps._compiled_accel import AccSettings, acc_settings
@@ -64,7 +66,7 @@ from .steps._compiled_magnetometer import MagSettings, mag_settings
 from .steps._compiled_rest import RestSettings, rest_settings, rest_steps
 from .steps._compiled_scale_test import ScaleTestSettings, scale_test_settings
 from .steps._compiled_stuck import stuck_intervals
-from .steps._error_state import X_CALIBRATION_AT, ErrorLayout
+from .steps._error_state import ErrorLayout
 from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE
 from .steps._rest import RestDetector
 from .steps._scale_test import TEST_STATE
@@ -73,10 +75,8 @@ from .steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 # `fusion.quaternion.multiply_floats` compiled, under the name the peers' and the smoothers' kernels import.
 qmul = multiply_floats
 
-__all__ = ["FilterState", "Noise", "Outputs", "SensorStates", "Settings", "estimate", "inputs", "load", "outputs",
-           "rest_steps", "settings", "stuck_intervals", "_jit", "qmul"]
-
-estimate = _compiled_kalman.estimate
+__all__ = ["Outputs", "SensorStates", "Settings", "UnscentedSettings", "inputs", "load", "outputs", "rest_steps",
+           "settings", "stuck_intervals", "_jit", "qmul"]
 
 
 class Settings(NamedTuple):
@@ -177,15 +177,6 @@ class Outputs(NamedTuple):
     scale_llr: np.ndarray  # (N,)
 
 
-def state(q: np.ndarray, calibration: np.ndarray, v: np.ndarray, P: np.ndarray) -> FilterState:
-    """A `FilterState` (copies) of a filter's quaternion q (4,), bias and scale `calibration`
-    (b, s or both, as its state has them), velocity v (2,) and covariance P."""
-    x = np.zeros(X_CALIBRATION_AT + 6)
-    x[:4] = q
-    x[X_CALIBRATION_AT:X_CALIBRATION_AT + len(calibration)] = calibration
-    return FilterState(x=x, v=np.array(v, dtype=float), P=np.array(P, dtype=float))
-
-
 def outputs(n_samples: int, n: int, init_quat_wxyz: np.ndarray, current: dict[str, Any]) -> Outputs:
     """The `Outputs` of a run over `n_samples`. Row 0 is what `RecursiveEstimator.estimate` records
     after the reset: the initial quaternion as given and the filter's `current()`."""
@@ -225,13 +216,15 @@ def load() -> None:
             rest=RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s).state(), mag=np.zeros(MAG_STATE),
             hard_iron=np.zeros(HARD_IRON_STATE), test=np.zeros(TEST_STATE))
 
+    out = outputs(2, n, unit, {})
+    o = settings(p, layout)
+    _compiled_ekf.estimate(inp, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), np.eye(n) * 1e-4,
+                           np.eye(n) * 1e-4, np.zeros((n, n)), states(), o, out)
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
-    for unscented in (None, UnscentedSettings(sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)):
-        o = settings(p, layout, unscented=unscented)
-        out = outputs(2, n, unit, {})
-        state = FilterState(x=np.concatenate([unit, np.zeros(6)]), v=np.zeros(2), P=np.eye(n) * 1e-4)
-        estimate(inp, state, Noise(np.eye(n) * 1e-4, np.zeros((n, n)), weights, weights), states(), o, out)
+    o = settings(p, layout, unscented=UnscentedSettings(sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20))
+    _compiled_ukf.estimate(inp, np.concatenate([unit, np.zeros(n - 3)]), np.eye(n) * 1e-4, np.eye(n) * 1e-4,
+                           np.zeros((n, n)), weights, weights, states(), o, out)
     stuck_intervals(inp.gyr, inp.dt, inp.acc[1:], inp.valid, stuck_gyro_state(), *STUCK_THRESHOLDS)
     _loaded = True
 

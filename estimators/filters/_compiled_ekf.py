@@ -1,10 +1,12 @@
-"""`ekf` compiled: the parts of `KalmanFilter.step` that are `EKF`'s own (`_predict`,
-`_acc_correct`, `_velocity_step`, `_correct`), which the one compiled loop
-(`_compiled_kalman.estimate`) calls for `ekf`.
+"""`ekf` compiled: the loop of `KalmanFilter.step` with `EKF`'s parts over a whole recording
+(`estimate`), and the kernels of `EKF`'s own helpers (`_correct`, `_velocity_step`).
 
-Every line implements a line of `EKF`'s methods (`fusion.estimators.filters.ekf`, where the equations
-and their papers are), in the same order where the order matters for rounding. Organised
-differently, changing the rounding only (1e-14
+Every line implements a line of `KalmanFilter.step` and `EKF`'s parts (`fusion.estimators.filters.kalman_base`,
+`fusion.estimators.filters.ekf`, where the equations and their papers are), in the same order
+where the order matters for rounding, and the sections of the loop are the sequence's (predict,
+before updates, rest, accelerometer, magnetometer, scale test, finish); the sensor concerns are the
+kernels of `_compiled_accel`, `_compiled_rest`, `_compiled_magnetometer` and `_compiled_scale_test`,
+called under their references' names. Organised differently, changing the rounding only (1e-14
 relative on the recordings; `tests/test_compiled.py` checks 1e-10): the covariance prediction
 uses the block structure of F (`predict_covariance`: the reference multiplies the full matrices;
 zero blocks contribute exact zeros, identity blocks copies), the accelerometer's P H^T only H's
@@ -18,11 +20,16 @@ import math
 
 import numpy as np
 
-from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, joseph2
-from ..kernels._compiled_quaternion import exp_floats, gravity_floats, multiply_floats, right_jacobian_dt, rotation_floats
-from ..kernels._numba import _jit, forget_stale, mirrors
+from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, joseph2, repair_covariance
+from ..kernels._compiled_quaternion import (exp_floats, gravity_floats, multiply_floats, normalize_floats, right_jacobian_dt,
+                                   rotation_floats)
+from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
-from .steps._error_state import BIAS_AT, SCALE_AT, X_BIAS_AT, X_SCALE_AT
+from .steps import _compiled_magnetometer as magnetometer
+from .steps import _compiled_rest as rest
+from .steps import _compiled_scale_test as scale_test
+from .steps._error_state import BIAS_AT, SCALE_AT
+from .steps._scale_test import TEST_DECISION, TEST_LLR, TEST_ON
 
 forget_stale(__file__)
 
@@ -38,7 +45,7 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
     symmetric. With T = F[:3] P (3 x N): the block [:3, :3] is T F[:3]^T, the block [:3, 3:]
     is T[:, 3:] (and its mirror [3:, :3]), the block [3:, 3:] is P's own (T: 3 x N scratch).
     The dense product costs 2 N^3 multiplications, this one 3 n N + 6 n."""
-    for c in range(N):  # T = F[ATTITUDE, :n] P[:n]
+    for c in range(N):  # T = F[:3, :n] P[:n]
         v0, v1, v2 = 0.0, 0.0, 0.0
         for j in range(n):
             pj = P[j, c]
@@ -66,88 +73,28 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
 
 
 @mirrors("fusion.estimators.filters.ekf.EKF._correct")
-def _correct(x, v, dx, o):
-    """`EKF._correct`: inject an error-state correction dx (N,) into x = [q, b, s] (10,) and v (2,)
-    in place: q exp(dx_e / 2) (not renormalised: `_finish` does), b + dx_b, s + dx_s, v + dx_v."""
-    n = o.n
+def _correct(q, b, s, v, dx, n, N, small):
+    """`EKF._correct`: inject an error-state correction dx (N,): q exp(dx_e / 2), b + dx_b, s + dx_s, v + dx_v (in place); -> the new q."""
     for i in range(3):
-        if o.bias:
-            x[X_BIAS_AT + i] = x[X_BIAS_AT + i] + dx[BIAS_AT + i]
-        if o.scale:
-            x[X_SCALE_AT + i] = x[X_SCALE_AT + i] + dx[SCALE_AT + i]
-    for i in range(o.nv):
+        if n > BIAS_AT:  # the bias block
+            b[i] = b[i] + dx[BIAS_AT + i]
+        if n > SCALE_AT:  # the scale block
+            s[i] = s[i] + dx[SCALE_AT + i]
+    for i in range(N - n):
         v[i] = v[i] + dx[n + i]
-    x[0], x[1], x[2], x[3] = multiply_floats((x[0], x[1], x[2], x[3]),
-                                             exp_floats(dx[0], dx[1], dx[2], o.quat.small_angle))
-
-
-@mirrors("fusion.estimators.filters.ekf.EKF._predict")
-def _predict(x, P, gyr, ok, h, noise, dist, o, w):
-    """`EKF._predict`: q <- q exp(theta / 2) in x (10,) = [q, b, s], P <- F P F^T + Q, for the gyro
-    reading gyr (3 floats, rad/s; ok: usable) over the step h (s); noise: `_compiled_kalman.Noise`;
-    dist: the disturbance state (its frame is lost without a usable reading). -> (dq, theta, u, 0,
-    False): the step's rotation, its rotation vector and the bias-corrected rate (the UKF's mean
-    iterations and square-root recovery have no counterpart here)."""
-    n = o.n
-    N = n + o.nv
-    F, J = w.F, w.J
-    gx, gy, gz = gyr
-    ux, uy, uz = gx, gy, gz
-    sx, sy, sz = 1.0, 1.0, 1.0
-    if ok:
-        if o.bias:
-            ux, uy, uz = gx - x[X_BIAS_AT], gy - x[X_BIAS_AT + 1], gz - x[X_BIAS_AT + 2]
-        if o.scale:
-            sx, sy, sz = 1.0 + x[X_SCALE_AT], 1.0 + x[X_SCALE_AT + 1], 1.0 + x[X_SCALE_AT + 2]
-            tx, ty, tz = ux * sx * h, uy * sy * h, uz * sz * h  # w_true = diag(1 + s) (w_meas - b)
-        else:
-            tx, ty, tz = ux * h, uy * h, uz * h
-    else:  # no rate integration; the attitude noise is inflated below
-        tx, ty, tz = 0.0, 0.0, 0.0
-        accel.lose_frame(dist)
-    d = exp_floats(tx, ty, tz, o.quat.small_angle)
-    x[0], x[1], x[2], x[3] = multiply_floats((x[0], x[1], x[2], x[3]), d)
-    # F[ATTITUDE, ATTITUDE] = R(theta)^T; F[ATTITUDE, BIAS] = -J_r diag(1 + s) dt; F[ATTITUDE, SCALE] = J_r diag(w - b) dt
-    dw, dxx, dyy, dzz = d
-    F[0, 0] = 1 - 2 * (dyy * dyy + dzz * dzz)
-    F[1, 0] = 2 * (dxx * dyy - dw * dzz)
-    F[2, 0] = 2 * (dxx * dzz + dw * dyy)
-    F[0, 1] = 2 * (dxx * dyy + dw * dzz)
-    F[1, 1] = 1 - 2 * (dxx * dxx + dzz * dzz)
-    F[2, 1] = 2 * (dyy * dzz - dw * dxx)
-    F[0, 2] = 2 * (dxx * dzz - dw * dyy)
-    F[1, 2] = 2 * (dyy * dzz + dw * dxx)
-    F[2, 2] = 1 - 2 * (dxx * dxx + dyy * dyy)
-    if o.bias:
-        right_jacobian_dt(tx, ty, tz, h, o.quat, J)
-        for i in range(3):
-            for j in range(3):
-                if not ok:  # the rate was not integrated: no bias or scale enters
-                    F[i, BIAS_AT + j] = 0.0
-                    if o.scale:
-                        F[i, SCALE_AT + j] = 0.0
-                elif o.scale:
-                    F[i, BIAS_AT + j] = -J[i, j] * (sx if j == 0 else sy if j == 1 else sz)
-                    F[i, SCALE_AT + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
-                else:
-                    F[i, BIAS_AT + j] = -J[i, j]
-    predict_covariance(P, F, noise.Qrate, noise.Qbad, h, ok, n, N, w.T)  # P <- F P F^T + Q
-    return d, (tx, ty, tz), (ux, uy, uz), 0, False
+    return multiply_floats(q, exp_floats(dx[0], dx[1], dx[2], small))
 
 
 @mirrors("fusion.estimators.filters.ekf.EKF._velocity_step")
-def _velocity_step(P, x, v, acc, h, o, w):
-    """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force acc
-    (3 floats, g) at the attitude q = x[:4], P <- V P V^T with V = I but V[velocity, ATTITUDE] =
-    -(R [a]x)_xy g dt, then the pseudo-measurement v = 0 (variance Rv / dt, H = [0, I], so that
-    P H^T = P[:, velocity] and H P H^T = P[velocity, velocity]) in Joseph form (`joseph2`); the
-    correction into w.dx (N,) (w.K, w.PHt, w.D: N x 3 scratch, two columns used; w.S: 3 x 3
-    scratch, its upper-left 2 x 2 used)."""
-    n = o.n
-    N = n + o.nv
+def _velocity_step(P, n, N, q, v, acc, h, o, w):
+    """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
+    the attitude q, P <- V P V^T with V = I but V[velocity, ATTITUDE] = -(R [a]x)_xy g dt, then the
+    pseudo-measurement v = 0 (variance Rv / dt, H = [0, I], so that P H^T = P[:, n:] and
+    H P H^T = P[n:, n:]) in Joseph form (`joseph2`); the correction into dx (N,) (K, PHt, D:
+    N x 3 scratch, two columns used; S: 3 x 3 scratch, its upper-left 2 x 2 used; w: the
+    `KalmanUpdateWork` holding them); acc: the accelerometer sample, 3 floats, g."""
     K, dx, PHt, S = w.K, w.dx, w.PHt, w.S
     ax, ay, az = acc
-    q = (x[0], x[1], x[2], x[3])
     r00, r01, r02, r10, r11, r12, _, _, _ = rotation_floats(q)  # the first two rows of R(q)
     if math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az):
         g = o.gravity * h
@@ -182,61 +129,190 @@ def _velocity_step(P, x, v, acc, h, o, w):
     joseph2(P, K, PHt, S, N, w.D)
 
 
-@mirrors("fusion.estimators.filters.ekf.EKF._acc_correct")
-def _acc_correct(P, x, v, meas, r, h, lowpassed, dist, o, w):
-    """`EKF._acc_correct`: the accelerometer update with the measurement meas (3 floats, g) of
-    variance r per axis and the gravity direction h (3 floats) at the estimate: H = [[h]x, H_b,
-    H_s, 0], the heading-free gain, the chi-square guard, the Joseph form (`joseph`); the state x,
-    v and P updated in place. -> (NIS, guarded)."""
+@mirrors("fusion.estimators.filters.ekf.EKF.estimate")
+def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
+    """`EKF.estimate`: the loop of `KalmanFilter.step` with `EKF`'s parts over a recording (see `ekf`
+    for the equations).
+
+    inp: the recording (`_numba.Inputs`: the interval rates and steps, the accelerometer, the
+    magnetometer or none). State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N)
+    (N = n + nv, the velocity last) and the packed states st (`_compiled.SensorStates`: the
+    disturbance estimator with its lag, the rest detector, the magnetometer's reference and
+    sphere fit, the scale test). Qrate, Qbad (N, N) as built by `EKF.reset`; o: `_compiled.Settings`.
+    Fills rows 1.. of the outputs `out` (`_compiled.Outputs`); returns (updates skipped,
+    covariance repairs).
+    """
     n = o.n
     N = n + o.nv
-    H, PHt, S, Sinv, K, dx = w.H, w.PHt, w.S, w.Sinv, w.K, w.dx
-    hx, hy, hz = h
-    mx, my, mz = meas
-    accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
-    lagged = o.acc.lag and lowpassed
-    if lagged:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
-        accel.lag_jacobian(H, dist, o.scale)
-    nh = n if lagged else 3  # H's columns nh.. are zero
-    for i in range(N):  # P H^T
-        for j in range(3):
-            acc_ = 0.0
-            for c in range(nh):
-                acc_ += P[i, c] * H[j, c]
-            PHt[i, j] = acc_
-    for i in range(3):  # H P H^T + R
-        for j in range(3):
-            acc_ = 0.0
-            for c in range(nh):
-                acc_ += H[i, c] * PHt[c, j]
-            S[i, j] = acc_
-        S[i, i] += r
-    inv_sym3(S, Sinv)
-    for i in range(N):
-        for j in range(3):
-            K[i, j] = PHt[i, 0] * Sinv[0, j] + PHt[i, 1] * Sinv[1, j] + PHt[i, 2] * Sinv[2, j]
-    if o.heading_free:  # K <- (I - h h^T) K on the attitude and bias rows
-        _project_heading(K, 0, hx, hy, hz)
+    small = o.quat.small_angle
+    # Work arrays, allocated once for the whole recording.
+    F = np.zeros((3, N))  # the first three rows of F; the others are [0, I]
+    T = np.empty((3, N))
+    J = np.empty((3, 3))
+    H = np.zeros((3, N))
+    with_lag = o.acc.lag
+    PHt = np.empty((N, 3))
+    S = np.empty((3, 3))
+    Sinv = np.empty((3, 3))
+    K = np.empty((N, 3))
+    D = np.empty((N, 3))
+    dx = np.empty(N)
+    uw = KalmanUpdateWork(K, dx, S, Sinv, PHt, D)
+    L = np.empty((N, N))
+    q = (qio[0], qio[1], qio[2], qio[3])
+    use_mag = inp.mag.shape[0] > 0
+    hi_fit = np.empty(4)
+    hi_work = np.empty((4, 5))
+    Km = np.empty(N)
+    Gm = np.empty(N)
+    skipped = 0
+    repaired = 0
+    for k in range(inp.dt.shape[0]):
+        h = inp.dt[k]
+        gx, gy, gz, ax, ay, az, ok = _sample(inp.gyr, inp.valid, inp.acc, k)
+        ux, uy, uz = gx, gy, gz
+        sx, sy, sz = 1.0, 1.0, 1.0
+        if ok:
+            if o.bias:
+                ux, uy, uz = gx - b[0], gy - b[1], gz - b[2]
+            if o.scale:
+                sx, sy, sz = 1.0 + s[0], 1.0 + s[1], 1.0 + s[2]
+                tx, ty, tz = ux * sx * h, uy * sy * h, uz * sz * h  # w_true = diag(1 + s) (w_meas - b)
+            else:
+                tx, ty, tz = ux * h, uy * h, uz * h
+        else:  # no rate integration; the attitude noise is inflated below
+            tx, ty, tz = 0.0, 0.0, 0.0
+            accel.lose_frame(st.dist)
+        d = exp_floats(tx, ty, tz, small)
+        q = multiply_floats(q, d)
+        # F[ATTITUDE, ATTITUDE] = R(theta)^T; F[ATTITUDE, BIAS] = -J_r diag(1 + s) dt; F[ATTITUDE, SCALE] = J_r diag(w - b) dt
+        dw, dxx, dyy, dzz = d
+        F[0, 0] = 1 - 2 * (dyy * dyy + dzz * dzz)
+        F[1, 0] = 2 * (dxx * dyy - dw * dzz)
+        F[2, 0] = 2 * (dxx * dzz + dw * dyy)
+        F[0, 1] = 2 * (dxx * dyy + dw * dzz)
+        F[1, 1] = 1 - 2 * (dxx * dxx + dzz * dzz)
+        F[2, 1] = 2 * (dyy * dzz - dw * dxx)
+        F[0, 2] = 2 * (dxx * dzz - dw * dyy)
+        F[1, 2] = 2 * (dyy * dzz + dw * dxx)
+        F[2, 2] = 1 - 2 * (dxx * dxx + dyy * dyy)
         if o.bias:
-            _project_heading(K, BIAS_AT, hx, hy, hz)
-    yx, yy, yz = mx - hx, my - hy, mz - hz
-    nis = _nis(yx, yy, yz, Sinv)
-    guarded = o.bias and nis > o.chi2  # inconsistent innovation: correct the attitude only
-    if guarded or (o.bias and lowpassed and not o.lowpass_calibration):  # ... or the velocity's to correct
-        for i in range(BIAS_AT, n):
-            K[i, 0] = 0.0
-            K[i, 1] = 0.0
-            K[i, 2] = 0.0
-    for i in range(N):
-        dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
-    _correct(x, v, dx, o)
-    joseph(P, K, PHt, S, N, w.D)  # Joseph form
-    return nis, guarded
-
-
-@mirrors("fusion.estimators.filters.ekf.EKF._lag_rate")
-def _lag_rate(x, u, o):
-    """`EKF._lag_rate`: the rate u (3 floats) the prediction integrated and `1 + s` now."""
-    if o.scale:
-        return u, (1.0 + x[X_SCALE_AT], 1.0 + x[X_SCALE_AT + 1], 1.0 + x[X_SCALE_AT + 2])
-    return u, (1.0, 1.0, 1.0)
+            right_jacobian_dt(tx, ty, tz, h, o.quat, J)
+            for i in range(3):
+                for j in range(3):
+                    if not ok:  # the rate was not integrated: no bias or scale enters
+                        F[i, BIAS_AT + j] = 0.0
+                        if o.scale:
+                            F[i, SCALE_AT + j] = 0.0
+                    elif o.scale:
+                        F[i, BIAS_AT + j] = -J[i, j] * (sx if j == 0 else sy if j == 1 else sz)
+                        F[i, SCALE_AT + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
+                    else:
+                        F[i, BIAS_AT + j] = -J[i, j]
+        predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T)  # P <- F P F^T + Q
+        if N > n:  # before the updates: the velocity model (`EKF._before_updates`, `_velocity_step`)
+            _velocity_step(P, n, N, q, v, (ax, ay, az), h, o, uw)
+            q = _correct(q, b, s, v, dx, n, N, small)
+        at_rest = False
+        if o.bias and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
+            # Zero-rate update at rest (VQF, Sec. 3.4; `KalmanFilter._rest_update`): the gyro reads the bias.
+            rest.bias_rest_update((b[0], b[1], b[2]), P, (gx, gy, gz), o.rest_noise / h, N, uw)
+            q = _correct(q, b, s, v, dx, n, N, small)
+            at_rest = True
+        var = math.nan
+        nis = math.nan
+        guarded = False
+        lowpassed = False
+        scale = accel.acc_variance_scale(ax, ay, az, o.acc.gate, o.acc.gate_g) if o.use_acc else math.inf
+        # the lag's inputs (`EKF._lag_rate`): the rate the prediction integrated and 1 + s now
+        gain = (1.0 + s[0], 1.0 + s[1], 1.0 + s[2]) if o.scale else (1.0, 1.0, 1.0)
+        if scale < math.inf:  # the accelerometer (`KalmanFilter._acc_update`, `EKF._acc_correct`)
+            hx, hy, hz = gravity_floats(q)
+            step = accel.AccStep(d, h, scale, o.process_noise, (ux, uy, uz), gain)
+            slow = accel.SlowDisturbance(o.slow_corr, (hx, hy, hz), P[BIAS_AT:n, BIAS_AT:n], o.slow_scale_var)
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, (ax, ay, az), step, slow, o.acc,
+                                                                        H)  # H: scratch until filled below
+            var = r
+            accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
+            if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
+                accel.lag_jacobian(H, st.dist, o.scale)
+            nh = n if with_lag and lowpassed else 3  # H's columns nh.. are zero
+            for i in range(N):  # P H^T
+                for j in range(3):
+                    acc_ = 0.0
+                    for c in range(nh):
+                        acc_ += P[i, c] * H[j, c]
+                    PHt[i, j] = acc_
+            for i in range(3):  # H P H^T + R
+                for j in range(3):
+                    acc_ = 0.0
+                    for c in range(nh):
+                        acc_ += H[i, c] * PHt[c, j]
+                    S[i, j] = acc_
+                S[i, i] += r
+            inv_sym3(S, Sinv)
+            for i in range(N):
+                for j in range(3):
+                    K[i, j] = PHt[i, 0] * Sinv[0, j] + PHt[i, 1] * Sinv[1, j] + PHt[i, 2] * Sinv[2, j]
+            if o.heading_free:  # K <- (I - h h^T) K on the attitude and bias rows
+                _project_heading(K, 0, hx, hy, hz)
+                if o.bias:
+                    _project_heading(K, BIAS_AT, hx, hy, hz)
+            yx, yy, yz = mx - hx, my - hy, mz - hz
+            nis = _nis(yx, yy, yz, Sinv)
+            guarded = o.bias and nis > o.chi2  # inconsistent innovation: correct the attitude only
+            if guarded or (o.bias and lowpassed and not o.lowpass_calibration):  # ... or the velocity's to correct
+                for i in range(BIAS_AT, n):
+                    K[i, 0] = 0.0
+                    K[i, 1] = 0.0
+                    K[i, 2] = 0.0
+            for i in range(N):
+                dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
+            q = _correct(q, b, s, v, dx, n, N, small)
+            joseph(P, K, PHt, S, N, D)  # Joseph form
+        else:
+            skipped += 1
+            if o.acc.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
+                accel.turn(st.dist, d, h, (ux, uy, uz), gain, o.acc)
+        mag_used = False
+        hi_used = False
+        if use_mag and inp.mag_ok[k + 1]:  # 9-D: the gated heading-only update (`KalmanFilter._mag_update`)
+            mx, my, mz = inp.mag[k + 1, 0], inp.mag[k + 1, 1], inp.mag[k + 1, 2]
+            if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
+                if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
+                    st.test[TEST_ON], st.test[TEST_LLR] = 0.0, math.nan
+                usable, east, north, hi_used = magnetometer.magnetometer_input(q, P, mx, my, mz, st.mag, st.hard_iron, o.mag,
+                                                                               h, hi_fit, hi_work)
+                if usable:
+                    r_mag = magnetometer.heading_variance(q, tx, ty, tz, h, o.mag)
+                    magnetometer.heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx)
+                    q = _correct(q, b, s, v, dx, n, N, small)
+                    mag_used = True
+        # Wald's test: a scale error, or a calibrated gyro? (`KalmanFilter._scale_test_update`)
+        if o.test.axes and st.test[TEST_ON] == 1.0 and st.test[TEST_DECISION] == 0.0:
+            if scale_test.step(P, s, st.test, q, o.test, o.heading_free, N, uw):
+                q = _correct(q, b, s, v, dx, n, N, small)
+        if o.bias:  # finish (`EKF._finish`)
+            for i in range(3):
+                b[i] = _clip(b[i], -o.bias_max, o.bias_max)
+        if o.scale:
+            for i in range(3):
+                s[i] = _clip(s[i], -o.scale_max, o.scale_max)
+        q = normalize_floats(q)
+        if repair_covariance(P, N, o.cov, L):
+            repaired += 1
+        out.quat[k + 1, 0], out.quat[k + 1, 1], out.quat[k + 1, 2], out.quat[k + 1, 3] = q
+        out.cov[k + 1, :, :] = P
+        out.gyr_bias_rad_s[k + 1, :] = b
+        out.gyr_scale[k + 1, :] = s
+        out.velocity_m_s[k + 1, :] = v
+        out.acc_var_g2[k + 1] = var
+        out.at_rest[k + 1] = at_rest
+        out.nis[k + 1] = nis
+        out.bias_guarded[k + 1] = guarded
+        out.acc_lowpassed[k + 1] = lowpassed
+        out.mag_used[k + 1] = mag_used
+        out.mag_hard_iron[k + 1] = hi_used
+        out.scale_llr[k + 1] = st.test[TEST_LLR]
+    qio[0], qio[1], qio[2], qio[3] = q
+    return skipped, repaired

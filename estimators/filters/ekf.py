@@ -3,7 +3,7 @@
 Contract: `EKF.step` (the reference, numpy) takes one gyro interval (rate (3,) rad/s, body; dt s;
 its validity), the accelerometer sample at its end ((3,) g, body) and optionally the magnetometer
 sample ((3,) uT, body), and returns `R_world_body` (wxyz) after it; `estimate` runs the same loop
-over a recording, compiled by default (`_compiled_kalman.estimate`, the same numbers to 1e-10:
+over a recording, compiled by default (`_compiled_ekf.estimate`, the same numbers to 1e-10:
 `tests/test_compiled.py`). How well each choice below does on the recordings, with the commands
 that measure it: `docs/results.md`, "`ekf`'s choices, measured".
 
@@ -146,9 +146,9 @@ symmetrised (eigenvalues clipped if needed) every step (`_linalg.repair_covarian
 
 Two implementations (`impl`): `EKF.step` below, in numpy, is the reference and what `reset`/`step`
 (the streaming interface) always run; `"compiled"` (the default) makes `estimate` run the whole
-recording in `_compiled_kalman.estimate` (the loop of `KalmanFilter.step`), whose parts for `ekf`
-carry the names of the methods they mirror (`_compiled_ekf._predict`, `_compiled_ekf._correct`,
-`_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`. Where a newcomer changing
+recording in `_compiled_ekf.estimate` (the loop of `KalmanFilter.step` with `EKF`'s parts, its
+sections the sequence's), whose helpers carry the names of the methods they mirror
+(`_compiled_ekf._correct`, `_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`. Where a newcomer changing
 the filter looks: the step's sequence in `kalman_base.KalmanFilter.step` (shared with the UKFs),
 `EKF`'s parts below, the sensor concerns in `steps/`, and each one's `_compiled_*` twin.
 """
@@ -166,7 +166,7 @@ from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ..kernels._linalg import inv_sym3, repair_covariance
 from ..search import Tunable
-from .steps._error_state import ATTITUDE, BIAS, BIAS_AT, SCALE, X_BIAS, X_QUAT, X_SCALE, ErrorLayout, axes_mask
+from .steps._error_state import ATTITUDE, BIAS, BIAS_AT, SCALE, ErrorLayout, axes_mask
 from .filter_params import BiasFilterParams
 from .kalman_base import KalmanFilter, Motion, error_state_covariances, initial_quaternion
 from .steps._accel import AccDisturbance, SlowDisturbance, models_lag
@@ -201,7 +201,7 @@ class EKFParams(BiasFilterParams):
         component (the model before it); it needs the low-pass's lag (bias states, `tauc` > 0,
         `taulp` > 0). 1-5 s change little (`docs/results.md`, "Slow translation, simulated").
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled_kalman`) | numpy (`estimate` loops the numpy `step`, the reference). The same
+        `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
         numbers either way (to rounding); `reset`/`step` are the numpy code in both.
 
     The defaults are one set for every recording and rate. `acc_lowpass_s` (taulp) is 2 s here
@@ -486,19 +486,16 @@ class EKF(KalmanFilter):
                 "scale_decision": self._scale_test.decision}
 
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
+        from . import _compiled_ekf
+
+        q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
         st = kernels.SensorStates(dist=dist, rest=rest, mag=self._mag.state(), hard_iron=self._hard_iron.state(),
                                   test=self._scale_test.state())
         o = kernels.settings(self.params, self.layout, self._rest, self._scale_test, chi2=_CHI2_3DOF)
-        state = kernels.state(self.q, np.concatenate([self.b, self.s]), self.v, self.P)
-        noise = kernels.Noise(self._Qrate, self._Qbad, _NO_WEIGHTS, _NO_WEIGHTS)
-        self.n_skipped, _, self.n_cov_repaired, _ = kernels.estimate(kernels.inputs(imu, self.magnetometer), state,
-                                                                     noise, st, o, out)
-        x = state.x
-        self.q, self.b, self.s, self.v, self.P = x[X_QUAT].copy(), x[X_BIAS].copy(), x[X_SCALE].copy(), state.v, state.P
+        self.n_skipped, self.n_cov_repaired = _compiled_ekf.estimate(
+            kernels.inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad, st, o, out)
+        self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
         self._q = tuple(self.q.tolist())
         self._mag.set_state(st.mag)
         self._hard_iron.set_state(st.hard_iron)
         self._scale_test.set_state(st.test)
-
-
-_NO_WEIGHTS = np.zeros(1)  # ekf has no sigma points (`_compiled_kalman.Noise`)

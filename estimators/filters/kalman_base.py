@@ -1,7 +1,8 @@
 """What the Kalman filters `ekf`, `ukf` and `ukf-bias` share: the initial error state and its
 noise (`initial_quaternion`, `error_state_covariances`), and `KalmanFilter`, whose `step` is the
 one sequence of every filter's step and whose `estimate` runs either the base class's loop of
-that `step` or the compiled loop (`_compiled_kalman.estimate`) over the whole recording.
+that `step` or the compiled loop of the same sequence (`_compiled_ekf.estimate`,
+`_compiled_ukf.estimate`) over the whole recording.
 
 The step, written once here (`KalmanFilter.step`), for `ekf` and the UKFs alike:
 

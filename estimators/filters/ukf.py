@@ -56,7 +56,7 @@ Three implementations of the same step (`impl` parameter): `"filterpy"` calls th
 per-sigma-point hooks and FilterPy's own `update()` (the reference for the unscented
 transform); `"numpy"` runs predict and update as a handful of vectorised numpy calls over all
 sigma points at once (`tests/test_ukf.py` checks the two agree to 1e-12); `"compiled"` (the
-default) makes `estimate` run the whole recording in one numba kernel, `_compiled_kalman.estimate`,
+default) makes `estimate` run the whole recording in one numba kernel, `_compiled_ukf.estimate`,
 which does the numpy step's arithmetic in explicit loops and records the same diagnostics
 (`tests/test_compiled.py` checks it against numpy to 1e-10). The numpy step stays the
 readable reference and is what `reset`/`step` (the streaming interface) run for compiled and
@@ -146,7 +146,7 @@ class UKFOptions(FilterParams):
         for a scheme that ignores it is an error).
     mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
     impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled_kalman` with `_compiled_ukf`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
+        `_compiled_ukf`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
         reference; "lean", its former name, still works with a warning) | filterpy (per-point
         hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run the numpy step
         for compiled and numpy.
@@ -415,7 +415,10 @@ class UKF(KalmanFilter):
         }
 
     def _run_kernel(self, kernels: Any, imu: ImuSamples, out: Any, dist: np.ndarray, rest: np.ndarray) -> None:
+        from . import _compiled_ukf
+
         p, kf = self.params, self.kf
+        x, P = kf.x.copy(), kf.P.copy()
         unscented = kernels.UnscentedSettings(scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
                                               mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
         o = kernels.settings(p, self.layout, self._rest, self._scale_test, unscented=unscented)
@@ -423,11 +426,9 @@ class UKF(KalmanFilter):
                                   mag=self._mag.state() if self.with_bias else np.zeros(MAG_STATE),
                                   hard_iron=self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE),
                                   test=self._scale_test.state())
-        state = kernels.state(kf.x[X_QUAT], kf.x[X_CALIBRATION], np.zeros(2), kf.P)
-        noise = kernels.Noise(self._Qrate, self._Qbad, kf.Wm, kf.Wc)
-        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = kernels.estimate(
-            kernels.inputs(imu, self.magnetometer), state, noise, st, o, out)
-        kf.x, kf.P, kf.mean_iterations = state.x[:self.layout.n + 1].copy(), state.P, int(out.mean_iterations[-1])
+        (self.n_skipped, self.n_sqrt_recovered, self.n_cov_repaired, self.n_mean_capped) = _compiled_ukf.estimate(
+            kernels.inputs(imu, self.magnetometer), x, P, self._Qrate, self._Qbad, kf.Wm, kf.Wc, st, o, out)
+        kf.x, kf.P, kf.mean_iterations = x, P, int(out.mean_iterations[-1])
         self._scale_test.set_state(st.test)
         if self.with_bias:
             self._mag.set_state(st.mag)

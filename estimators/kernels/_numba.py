@@ -40,7 +40,7 @@ KERNEL_SOURCES = [str(folder / f"{name}.py") for folder, names in (
     (_HERE, ("_numba", "_compiled_quaternion", "_compiled_linalg", "_linalg")),
     (_STEPS, ("_compiled_accel", "_compiled_rest", "_compiled_stuck", "_compiled_magnetometer", "_compiled_scale_test",
               "_accel", "_rest", "_stuck", "_magnetometer", "_scale_test", "_error_state")),
-    (_FILTERS, ("_compiled_kalman", "_compiled_ekf", "_compiled_ukf"))) for name in names] + [quat.__file__]
+    (_FILTERS, ("_compiled_ekf", "_compiled_ukf"))) for name in names] + [quat.__file__]
 
 # The kernels' numpy references: (compiled module, kernel name) -> the reference's dotted name.
 REFERENCES: dict[tuple[str, str], str] = {}
@@ -76,18 +76,6 @@ def _jit(func):
                           "compiled in every process. Set NUMBA_CACHE_DIR to a writable folder to cache them.",
                           RuntimeWarning, stacklevel=2)
     return numba.njit(**_OPTIONS)(func)
-
-
-def _jit_inline(func):
-    """`_jit` for a part of a kernel's loop that numba inlines where it is called (`inline="always"`:
-    into the caller's code before compiling it, so the part costs no call and its arrays no
-    reference counting), written once for the kernels that share it."""
-    if _cache:
-        try:
-            return numba.njit(cache=True, inline="always", **_OPTIONS)(func)
-        except RuntimeError:
-            pass
-    return numba.njit(inline="always", **_OPTIONS)(func)
 
 
 def mirrors(reference: str) -> Callable:

@@ -292,7 +292,7 @@ class CompiledOps:
             following = run_beside(blocks, k + 1) if k + 2 < len(bounds) else None
             try:
                 diag, off, cross, grad = buffers[k % 2]
-                done = kernel.eliminate_blocks(self.arrays, kernel.SmootherGradient(grad, grad_theta),
+                done = kernel.eliminate_blocks(self.arrays, self.consts, point, kernel.SmootherGradient(grad, grad_theta),
                                                kernel.SmootherBlocks(diag, off, cross, theta_block), system, elim,
                                                kernel.SmootherSpan(bounds[k], bounds[k + 1], carries[1]))
                 if len(grad_q):

@@ -34,11 +34,10 @@ arithmetic as a 3 x 3 system. Within the sweep, the blocks live in a few small a
 filled in place, never reassigned (numba counts references on every assignment of an array
 variable, which costs more than the arithmetic here).
 
-Three passes, one per use, each a loop over the samples that shares the per-sample parts
-(`sample_terms`, `eliminate_sample`, inlined by numba where they are called): `linearize` (cost,
-gradient and, if asked, the blocks as the reference lays them out), `linearize_eliminate` (the
-same with the elimination in the pass) and `eliminate_blocks` (the elimination from the blocks a
-`linearize` range left). Their inputs travel as small records (`SmootherPoint`, `SmootherGradient`,
+Three kernels, one per use: `linearize` (cost, gradient and, if asked, the blocks as the
+reference lays them out), `linearize_eliminate` (the same with the elimination in the pass) and
+`eliminate_blocks` (the elimination from the blocks a `linearize` range left), each one call of
+the one loop over the samples (`_pass`), whose per-sample arithmetic the three share. Their inputs travel as small records (`SmootherPoint`, `SmootherGradient`,
 `SmootherBlocks`, `SmootherSystem`, `SmootherElimination`, `SmootherSpan`). On a long recording
 the pass runs in ranges of samples on two threads (`linearize` over one range while
 `eliminate_blocks` eliminates the range before, `smoothers._compiled_ranges`): a range's state is
@@ -57,7 +56,7 @@ import numpy as np
 from fusion import quaternion as quat
 
 from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit, _jit_inline, compiled, mirrors
+from ..kernels._numba import _jit, compiled, mirrors
 from . import _compiled_layout as layout
 from . import _compiled_terms as terms
 from ._compiled_layout import (CARRY_OFF_BLOCK, N_SUMS, SUM_ACC, SUM_MAG, SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL,
@@ -69,21 +68,15 @@ from ._compiled_terms import (exp_floats, fill3, kept_acc, kept_mag, kept_step, 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 
 # Kernels without a numpy reference of their own (`kernels._numba.mirrors`), and why:
-#   scratch: the work arrays of a pass
-#   ldl5: the elimination's pivot block; the reference solves with LAPACK's banded Cholesky
-#   ldl_solve5: the elimination's pivot block; the reference solves with LAPACK's banded Cholesky
-#   sample_terms: one sample of `linearize`'s loop, inlined into each pass
-#   eliminate_sample: one sample of the elimination, inlined into the passes that eliminate
-#   start_elimination: the elimination's start
-#   theta_terms: the last lines of `linearize`'s calibration block
-#   finish_schur: the elimination's end
+#   ldl5, ldl_solve5: the elimination's pivot block; the reference solves with LAPACK's banded Cholesky
+#   _pass: the one loop behind linearize, linearize_eliminate and eliminate_blocks
+#   _no_system, _no_elimination: the empty records of a pass that eliminates nothing
 #   linearize_eliminate: `SmootherProblem.linearize` and the reference's banded solve, fused in one pass
 #   eliminate_blocks: the elimination of `linearize_eliminate`, from stored blocks
-#   carry_block: the hand-over between ranges
-#   carry_state: the hand-over between ranges
+#   carry_block, carry_state: the hand-over between ranges
 #   back_substitute: the back-substitution of the elimination; the reference solves with LAPACK
-HELPERS = ("scratch", "ldl5", "ldl_solve5", "sample_terms", "eliminate_sample", "start_elimination", "theta_terms",
-           "finish_schur", "linearize_eliminate", "eliminate_blocks", "carry_block", "carry_state", "back_substitute")
+HELPERS = ("ldl5", "ldl_solve5", "_pass", "_no_system", "_no_elimination", "linearize_eliminate", "eliminate_blocks",
+           "carry_block", "carry_state", "back_substitute")
 
 # `smoothers._compiled_layout.carry_offsets`, compiled under its name: one definition for the kernels and Python.
 carry_offsets = compiled(layout.carry_offsets, __name__)
@@ -132,7 +125,7 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
     return x0, x1, x2, x3, x4
 
 
-# The records the three passes take (namedtuples of names found nowhere else, bound to their own
+# The records the three kernels take (namedtuples of names found nowhere else, bound to their own
 # names: `smoothers._compiled_layout`'s docstring says why).
 SmootherPoint = namedtuple("SmootherPoint", ["q", "v", "theta"])  # (T, 4), (T, V) m/s, (P,)
 SmootherGradient = namedtuple("SmootherGradient", ["q", "theta"])  # (T or R rows or none, B), (P,)
@@ -140,322 +133,381 @@ SmootherBlocks = namedtuple("SmootherBlocks", ["diag", "off", "cross", "theta"])
 SmootherSystem = namedtuple("SmootherSystem", ["shift", "free", "rhs_q", "rhs_theta"])  # (H + shift diag(H)) x = b
 SmootherElimination = namedtuple("SmootherElimination", ["M", "c", "N", "schur", "schur_rhs", "quad"])
 SmootherSpan = namedtuple("SmootherSpan", ["t0", "t1", "carry"])  # samples t0 <= t < t1, and the hand-over
-# The scratch of one pass (`scratch`), filled in place, never reassigned (module docstring).
-LinearizeScratch = namedtuple("LinearizeScratch", [
-    "R", "Rn", "A", "Ru", "J0", "Jr",  # 3 x 3: R(q_t), R(q_t+1), J_r^-1(r_m), R(u), d r_m / d delta_t, J_r(phi)
-    "D", "Dn", "O", "Op", "C", "Cn", "g", "gn",  # H[t, t] (then S_t), what step t adds to H[t+1, t+1], H[t, t+1],
-    # H[t-1, t], H[t, theta] and H[t+1, theta]'s part, the gradient of sample t and what step t adds to t + 1's
-    "AJ", "J0AJ", "AAJ", "JJ", "used", "dm",  # the calibration's Jacobians (see `sample_terms`)
-    "gth", "G",  # the calibration gradient (P) and block (P x P)
-    "col", "Cf",  # the right-hand side (5) and the free columns of C (5 x F) of a sample's elimination
-    "X0", "X1",  # the velocity increment's Jacobians (2 x 3)
-    "sums",  # the cost's sums (N_SUMS; `smoothers._compiled_layout`'s SUM_*)
-])
-_inline = _jit_inline
+# The modes of `_pass`.
+_GRADIENT, _BLOCKS, _ELIMINATE, _FROM_BLOCKS = 0, 1, 2, 3
 
 
 @_jit
-def scratch(p, P, F):
-    """The `LinearizeScratch` of a pass with P calibration variables, F of them free."""
+def _pass(p, o, point, mode, grad, blocks, system, elim, kept, span):
+    """The one pass over the samples behind `linearize`, `linearize_eliminate` and
+    `eliminate_blocks` (their docstrings): each sample's cost terms, gradient and Gauss-Newton
+    blocks, then, by `mode`, the gradient alone (`_GRADIENT`), the blocks as the reference lays
+    them out (`_BLOCKS`), their elimination in the same pass (`_ELIMINATE`), or the elimination
+    of the blocks a `linearize` range left (`_FROM_BLOCKS`). One loop: the per-sample arithmetic is
+    the same for the three uses, and a loop per use would repeat it; the records are unpacked once
+    per pass (split into parts called per sample, the loop ran at half the speed: numba counts the
+    references of every array a part binds anew)."""
+    q, v, theta = point
+    grad_q, grad_theta = grad
+    diag, off, cross, theta_block = blocks
+    shift, free, rhs_q, rhs_theta = system
+    M, c, N, schur, schur_rhs, quad = elim
+    t0, t1, carry = span
+    T = q.shape[0]
+    V = v.shape[1]
+    B = 3 + V
+    P = len(theta)
+    F = len(free)
+    b, k = split_theta(p, theta)
+    rows = M.shape[0]
+    external = rhs_q.shape[0] > 0
+    ranged = carry.shape[0] > 0
+    cost_acc = cost_motion = cost_vel = cost_vzero = cost_rest = cost_prior = cost_mag = 0.0  # the sums of the terms
+    R = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    A = np.empty((3, 3))
+    Ru = np.empty((3, 3))
+    J0 = np.empty((3, 3))
+    Jr = np.empty((3, 3))
+    D = np.zeros((5, 5))  # H[t, t], then S_t
+    Dn = np.zeros((5, 5))  # what step t adds to H[t+1, t+1]
+    O = np.zeros((5, 5))  # H[t, t+1]
+    Op = np.zeros((5, 5))  # H[t-1, t]
+    C = np.zeros((5, P))  # H[t, theta]
+    Cn = np.zeros((5, P))
+    g = np.zeros(5)
+    gn = np.zeros(5)
+    AJ = np.zeros((3, 3))  # column a: A J_r(phi) e_a, what a calibration variable on gyro axis a moves r_m by (per unit)
+    J0AJ = np.zeros((3, 3))  # J0^T AJ
+    AAJ = np.zeros((3, 3))  # A AJ
+    JJ = np.zeros((3, 3))  # AJ^T AJ
     used = np.zeros(3, np.bool_)  # gyro axes with a calibration variable
     for m in range(P):
         used[p.theta_axis[m]] = True
-    return LinearizeScratch(
-        R=np.empty((3, 3)), Rn=np.empty((3, 3)), A=np.empty((3, 3)), Ru=np.empty((3, 3)), J0=np.empty((3, 3)),
-        Jr=np.empty((3, 3)), D=np.zeros((5, 5)), Dn=np.zeros((5, 5)), O=np.zeros((5, 5)), Op=np.zeros((5, 5)),
-        C=np.zeros((5, P)), Cn=np.zeros((5, P)), g=np.zeros(5), gn=np.zeros(5), AJ=np.zeros((3, 3)),
-        J0AJ=np.zeros((3, 3)), AAJ=np.zeros((3, 3)), JJ=np.zeros((3, 3)), used=used, dm=np.zeros(P), gth=np.zeros(P),
-        G=np.zeros((P, P)), col=np.zeros(5), Cf=np.zeros((5, F)), X0=np.zeros((2, 3)), X1=np.zeros((2, 3)),
-        sums=np.zeros(N_SUMS))
-
-
-@_inline
-def sample_terms(p, o, point, b, k, t, qn, rn, kept, w):
-    """Sample t's part of `SmootherProblem.linearize`, into the scratch w: what step t-1 added to
-    sample t becomes sample t's (w.g, w.D, w.C; w.O zero), then sample t's terms and those of the step
-    to t + 1 (into w.g, w.D, w.O, w.C, and w.gn, w.Dn, w.Cn for sample t + 1), the calibration's
-    (w.gth, w.G) and the cost's sums (w.sums); qn, rn: q_t and R(q_t) as the step before left them.
-    Only lower triangles of the symmetric diagonal blocks are formed. -> q_t+1, R(q_t+1)."""
-    q, v, theta = point
-    T = q.shape[0]
-    V = v.shape[1]
-    P = len(theta)
-    R, Rn, A, Ru, J0, Jr = w.R, w.Rn, w.A, w.Ru, w.J0, w.Jr
-    D, Dn, O, C, Cn, g, gn = w.D, w.Dn, w.O, w.C, w.Cn, w.g, w.gn
-    AJ, J0AJ, AAJ, JJ, used, dm, gth, G = w.AJ, w.J0AJ, w.AAJ, w.JJ, w.used, w.dm, w.gth, w.G
-    X0, X1, sums = w.X0, w.X1, w.sums
-    qt = qn
-    rt = rn
-    fill3(R, rt)
-    for i in range(5):
-        g[i] = gn[i]
-        gn[i] = 0.0
-        for j in range(i + 1):
-            D[i, j] = Dn[i, j]
-            Dn[i, j] = 0.0
-        for j in range(5):
-            O[i, j] = 0.0
-        for j in range(P):
-            C[i, j] = Cn[i, j]
-            Cn[i, j] = 0.0
-    # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
-    h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
-    r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
-    if kept.shape[0]:
-        ca, wa = kept_acc(kept, t)
-    else:
-        ca, wa = robust_terms(p.loss, p.loss_c, p.w_acc[t], r0 * r0 + r1 * r1 + r2 * r2)
-    sums[SUM_ACC] += ca
-    y0, y1, y2 = wa * r0, wa * r1, wa * r2
-    g[0] += h1 * y2 - h2 * y1
-    g[1] += h2 * y0 - h0 * y2
-    g[2] += h0 * y1 - h1 * y0
-    hh = (h0, h1, h2)
-    for i in range(3):
-        for j in range(i + 1):
-            D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
-    if len(p.w_mag) and p.w_mag[t] > 0.0:
-        # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
-        if kept.shape[0]:
-            rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+    dm = np.zeros(P)
+    gth = np.zeros(P)
+    G = np.zeros((P, P))
+    col = np.zeros(5)
+    Cf = np.zeros((5, F))
+    X0 = np.zeros((2, 3))
+    X1 = np.zeros((2, 3))
+    if t0 == 0:
+        quad[0] = 0.0
+        for i in range(F):
+            schur_rhs[i] = 0.0
+            for j in range(F):
+                schur[i, j] = 0.0
+    elif mode == _FROM_BLOCKS:
+        carry_block(carry, CARRY_OFF_BLOCK, Op, False)
+    else:  # BLOCKS, continued from the range before
+        sums = np.empty(N_SUMS)
+        carry_state(carry, False, Dn, gn, Cn, sums, gth, G)
+        cost_acc, cost_motion, cost_vel, cost_vzero = sums[SUM_ACC], sums[SUM_MOTION], sums[SUM_VEL], sums[SUM_VZERO]
+        cost_rest, cost_prior, cost_mag = sums[SUM_REST], sums[SUM_PRIOR], sums[SUM_MAG]
+    qn = load_quat(q, t0)
+    rn = rotation_floats(qn)
+    for t in range(t0, t1):
+        if mode == _FROM_BLOCKS:  # the blocks a BLOCKS pass over this range wrote (row t - t0)
+            tr = t - t0
+            for i in range(5):
+                g[i] = grad_q[tr, i] if i < B else 0.0
+                for j in range(i + 1):
+                    D[i, j] = diag[tr, i, j] if i < B else 0.0
+                for j in range(5):
+                    O[i, j] = off[tr, i, j] if i < B and j < B and t < T - 1 else 0.0
+                for m in range(P):
+                    C[i, m] = cross[tr, i, m] if i < B else 0.0
         else:
-            rh, k0, k1, k2 = mag_residual(p, t, qt)
-            cm, wh = robust_terms(p.mag_loss, p.mag_c, p.w_mag[t], rh * rh)
-        sums[SUM_MAG] += cm
-        jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
-              R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
-        for i in range(3):
-            g[i] += wh * rh * jh[i]
-            for j in range(i + 1):
-                D[i, j] += wh * jh[i] * jh[j]
-    if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
-        r = log_floats(multiply_floats((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
-        sums[SUM_PRIOR] = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-        fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
-        for i in range(3):
-            g[i] += p.w_prior * (A[0, i] * r[0] + A[1, i] * r[1] + A[2, i] * r[2])
-            for j in range(i + 1):
-                D[i, j] += p.w_prior * (A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j])
-    if V:
-        wz = p.w_vzero[t]
-        sums[SUM_VZERO] += wz * (v[t, 0] * v[t, 0] + v[t, 1] * v[t, 1])
-        for i in range(2):
-            g[3 + i] += wz * v[t, i]
-            D[3 + i, 3 + i] += wz
-    if t < T - 1:
-        qn = load_quat(q, t + 1)
-        rn = rotation_floats(qn)
-        fill3(Rn, rn)
-        # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
-        phi = step_rotvec(p, b, k, t)
-        if kept.shape[0]:  # computed by the trial that reached this point
-            u, r = kept_step(kept, t)
-        else:
-            u = exp_floats(phi[0], phi[1], phi[2], o.small_angle)
-            r = motion_residual(qt, qn, u)
-        wm = p.w_motion[t]
-        sums[SUM_MOTION] += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-        fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
-        fill3(Ru, rotation_floats(u))
-        wr = (wm * r[0], wm * r[1], wm * r[2])
-        atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
-               A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
-               A[0, 2] * wr[0] + A[1, 2] * wr[1] + A[2, 2] * wr[2])
-        for i in range(3):
-            g[i] += Ru[i, 0] * atw[0] + Ru[i, 1] * atw[1] + Ru[i, 2] * atw[2]
-            gn[i] -= A[i, 0] * wr[0] + A[i, 1] * wr[1] + A[i, 2] * wr[2]
-            for j in range(3):
-                J0[i, j] = A[i, 0] * Ru[j, 0] + A[i, 1] * Ru[j, 1] + A[i, 2] * Ru[j, 2]
-        for i in range(3):
-            for j in range(3):
-                if j <= i:
-                    D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
-                    Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
-                O[i, j] = -wm * (J0[0, i] * A[j, 0] + J0[1, i] * A[j, 1] + J0[2, i] * A[j, 2])
-        if P:
-            # d r_m / d theta = A J_r(phi) d phi / d theta, d phi / d theta: -dt (bias), g dt (scale):
-            # column a of A J_r(phi) once per gyro axis, times each variable's d phi_a / d theta.
-            fill3(Jr, right_jacobian(phi[0], phi[1], phi[2], o))
-            for a in range(3):
-                if used[a]:
-                    for i in range(3):
-                        AJ[i, a] = A[i, 0] * Jr[0, a] + A[i, 1] * Jr[1, a] + A[i, 2] * Jr[2, a]
-                    for i in range(3):
-                        J0AJ[i, a] = J0[0, i] * AJ[0, a] + J0[1, i] * AJ[1, a] + J0[2, i] * AJ[2, a]
-                        AAJ[i, a] = A[i, 0] * AJ[0, a] + A[i, 1] * AJ[1, a] + A[i, 2] * AJ[2, a]
-                    for e in range(a + 1):
-                        if used[e]:
-                            JJ[a, e] = JJ[e, a] = AJ[0, a] * AJ[0, e] + AJ[1, a] * AJ[1, e] + AJ[2, a] * AJ[2, e]
-            dt = p.dt[t]
-            for m in range(P):
-                ax = p.theta_axis[m]
-                d = 0.0
-                if p.valid[t]:
-                    d = -dt if m < p.n_bias else p.gyr[t, ax] * dt
-                dm[m] = d
-                gth[m] += d * (AJ[0, ax] * wr[0] + AJ[1, ax] * wr[1] + AJ[2, ax] * wr[2])
-                wd = wm * d
-                for i in range(3):
-                    C[i, m] += wd * J0AJ[i, ax]
-                    Cn[i, m] -= wd * AAJ[i, ax]
-            for m in range(P):
-                wd = wm * dm[m]
-                for n in range(P):
-                    G[m, n] += wd * dm[n] * JJ[p.theta_axis[m], p.theta_axis[n]]
-        if V:
-            # Velocity increments: d r_v / d delta_t = X0 = G dt P R_t [a_t]x / 2 (rows: R_t,i x a_t),
-            # / d delta_{t+1} = X1 likewise, / d v_t = -I, / d v_{t+1} = I.
-            dt = p.dt[t]
-            half = 0.5 * o.gravity * dt
-            wv = p.w_vel[t]
-            a0x, a0y, a0z = p.acc[t, 0], p.acc[t, 1], p.acc[t, 2]
-            a1x, a1y, a1z = p.acc[t + 1, 0], p.acc[t + 1, 1], p.acc[t + 1, 2]
-            for i in range(2):
-                f0 = R[i, 0] * a0x + R[i, 1] * a0y + R[i, 2] * a0z
-                f1 = Rn[i, 0] * a1x + Rn[i, 1] * a1y + Rn[i, 2] * a1z
-                rv = v[t + 1, i] - v[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
-                sums[SUM_VEL] += wv * rv * rv
-                X0[i, 0] = half * (R[i, 1] * a0z - R[i, 2] * a0y)
-                X0[i, 1] = half * (R[i, 2] * a0x - R[i, 0] * a0z)
-                X0[i, 2] = half * (R[i, 0] * a0y - R[i, 1] * a0x)
-                X1[i, 0] = half * (Rn[i, 1] * a1z - Rn[i, 2] * a1y)
-                X1[i, 1] = half * (Rn[i, 2] * a1x - Rn[i, 0] * a1z)
-                X1[i, 2] = half * (Rn[i, 0] * a1y - Rn[i, 1] * a1x)
-                wvr = wv * rv
-                for j in range(3):
-                    g[j] += X0[i, j] * wvr
-                    gn[j] += X1[i, j] * wvr
-                g[3 + i] -= wvr
-                gn[3 + i] += wvr
+            qt = qn
+            rt = rn
+            fill3(R, rt)
+            # What step t-1 added to sample t becomes sample t's; only lower triangles of the symmetric
+            # diagonal blocks are formed (mirrored for BLOCKS).
+            for i in range(5):
+                g[i] = gn[i]
+                gn[i] = 0.0
+                for j in range(i + 1):
+                    D[i, j] = Dn[i, j]
+                    Dn[i, j] = 0.0
+                for j in range(5):
+                    O[i, j] = 0.0
+                for j in range(P):
+                    C[i, j] = Cn[i, j]
+                    Cn[i, j] = 0.0
+            # Accelerometer: r_a = a - h, h = R^T e_z (row 2 of R); d r_a / d delta = -[h]x.
+            h0, h1, h2 = R[2, 0], R[2, 1], R[2, 2]
+            r0, r1, r2 = p.acc[t, 0] - h0, p.acc[t, 1] - h1, p.acc[t, 2] - h2
+            if kept.shape[0]:
+                ca, wa = kept_acc(kept, t)
+            else:
+                ca, wa = robust_terms(p.loss, p.loss_c, p.w_acc[t], r0 * r0 + r1 * r1 + r2 * r2)
+            cost_acc += ca
+            y0, y1, y2 = wa * r0, wa * r1, wa * r2
+            g[0] += h1 * y2 - h2 * y1
+            g[1] += h2 * y0 - h0 * y2
+            g[2] += h0 * y1 - h1 * y0
+            hh = (h0, h1, h2)
             for i in range(3):
-                for j in range(3):
-                    if j <= i:
-                        D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
-                        Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
-                    O[i, j] += wv * (X0[0, i] * X1[0, j] + X0[1, i] * X1[1, j])
-                for m in range(2):
-                    D[3 + m, i] -= wv * X0[m, i]
-                    Dn[3 + m, i] += wv * X1[m, i]
-                    O[i, 3 + m] += wv * X0[m, i]
-                    O[3 + m, i] -= wv * X1[m, i]
-            for m in range(2):
-                D[3 + m, 3 + m] += p.w_vel[t]
-                Dn[3 + m, 3 + m] += p.w_vel[t]
-                O[3 + m, 3 + m] -= p.w_vel[t]
-        if len(p.w_rest) and p.w_rest[t] > 0:  # the rest term (`rest_terms`): theta only
-            wrest = p.w_rest[t]
-            for i in range(p.n_bias):
-                rr, ax = rest_residual(p, b, k, t, i)
-                sums[SUM_REST] += wrest * rr * rr
-                for m in range(P):  # d r / d theta_m: -1 (this axis's bias), g_t (its scale)
-                    jm = -1.0 if m == i else (p.gyr[t, ax] if m >= p.n_bias and p.theta_axis[m] == ax else 0.0)
-                    if jm != 0.0:
-                        gth[m] += wrest * rr * jm
+                for j in range(i + 1):
+                    D[i, j] += wa * ((1.0 if i == j else 0.0) - hh[i] * hh[j])
+            if len(p.w_mag) and p.w_mag[t] > 0.0:
+                # Magnetometer (heading only): d r_h / d delta = k^T R, the body-frame row R^T k.
+                if kept.shape[0]:
+                    rh, k0, k1, k2, cm, wh = kept_mag(kept, t)
+                else:
+                    rh, k0, k1, k2 = mag_residual(p, t, qt)
+                    cm, wh = robust_terms(p.mag_loss, p.mag_c, p.w_mag[t], rh * rh)
+                cost_mag += cm
+                jh = (R[0, 0] * k0 + R[1, 0] * k1 + R[2, 0] * k2, R[0, 1] * k0 + R[1, 1] * k1 + R[2, 1] * k2,
+                      R[0, 2] * k0 + R[1, 2] * k1 + R[2, 2] * k2)
+                for i in range(3):
+                    g[i] += wh * rh * jh[i]
+                    for j in range(i + 1):
+                        D[i, j] += wh * jh[i] * jh[j]
+            if t == 0:  # the anchor: d r_0 / d delta_0 = J_r^-1(r_0)
+                r = log_floats(multiply_floats((p.init_quat[0], -p.init_quat[1], -p.init_quat[2], -p.init_quat[3]), qt))
+                cost_prior = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+                fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
+                for i in range(3):
+                    g[i] += p.w_prior * (A[0, i] * r[0] + A[1, i] * r[1] + A[2, i] * r[2])
+                    for j in range(i + 1):
+                        D[i, j] += p.w_prior * (A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j])
+            if V:
+                wz = p.w_vzero[t]
+                cost_vzero += wz * (v[t, 0] * v[t, 0] + v[t, 1] * v[t, 1])
+                for i in range(2):
+                    g[3 + i] += wz * v[t, i]
+                    D[3 + i, 3 + i] += wz
+            if t < T - 1:
+                qn = load_quat(q, t + 1)
+                rn = rotation_floats(qn)
+                fill3(Rn, rn)
+                # Motion: r_m = 2 log(q_{t+1}^-1 q_t u_t); d r / d delta_t = A R(u)^T, d r / d delta_{t+1} = -A^T.
+                phi = step_rotvec(p, b, k, t)
+                if kept.shape[0]:  # computed by the trial that reached this point
+                    u, r = kept_step(kept, t)
+                else:
+                    u = exp_floats(phi[0], phi[1], phi[2], o.small_angle)
+                    r = motion_residual(qt, qn, u)
+                wm = p.w_motion[t]
+                cost_motion += wm * (r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+                fill3(A, right_jacobian_inv(r[0], r[1], r[2], o))
+                fill3(Ru, rotation_floats(u))
+                wr = (wm * r[0], wm * r[1], wm * r[2])
+                atw = (A[0, 0] * wr[0] + A[1, 0] * wr[1] + A[2, 0] * wr[2],
+                       A[0, 1] * wr[0] + A[1, 1] * wr[1] + A[2, 1] * wr[2],
+                       A[0, 2] * wr[0] + A[1, 2] * wr[1] + A[2, 2] * wr[2])
+                for i in range(3):
+                    g[i] += Ru[i, 0] * atw[0] + Ru[i, 1] * atw[1] + Ru[i, 2] * atw[2]
+                    gn[i] -= A[i, 0] * wr[0] + A[i, 1] * wr[1] + A[i, 2] * wr[2]
+                    for j in range(3):
+                        J0[i, j] = A[i, 0] * Ru[j, 0] + A[i, 1] * Ru[j, 1] + A[i, 2] * Ru[j, 2]
+                for i in range(3):
+                    for j in range(3):
+                        if j <= i:
+                            D[i, j] += wm * (J0[0, i] * J0[0, j] + J0[1, i] * J0[1, j] + J0[2, i] * J0[2, j])
+                            Dn[i, j] += wm * (A[i, 0] * A[j, 0] + A[i, 1] * A[j, 1] + A[i, 2] * A[j, 2])
+                        O[i, j] = -wm * (J0[0, i] * A[j, 0] + J0[1, i] * A[j, 1] + J0[2, i] * A[j, 2])
+                if P:
+                    # d r_m / d theta = A J_r(phi) d phi / d theta, d phi / d theta: -dt (bias), g dt (scale):
+                    # column a of A J_r(phi) once per gyro axis, times each variable's d phi_a / d theta.
+                    fill3(Jr, right_jacobian(phi[0], phi[1], phi[2], o))
+                    for a in range(3):
+                        if used[a]:
+                            for i in range(3):
+                                AJ[i, a] = A[i, 0] * Jr[0, a] + A[i, 1] * Jr[1, a] + A[i, 2] * Jr[2, a]
+                            for i in range(3):
+                                J0AJ[i, a] = J0[0, i] * AJ[0, a] + J0[1, i] * AJ[1, a] + J0[2, i] * AJ[2, a]
+                                AAJ[i, a] = A[i, 0] * AJ[0, a] + A[i, 1] * AJ[1, a] + A[i, 2] * AJ[2, a]
+                            for e in range(a + 1):
+                                if used[e]:
+                                    JJ[a, e] = JJ[e, a] = AJ[0, a] * AJ[0, e] + AJ[1, a] * AJ[1, e] + AJ[2, a] * AJ[2, e]
+                    dt = p.dt[t]
+                    for m in range(P):
+                        ax = p.theta_axis[m]
+                        d = 0.0
+                        if p.valid[t]:
+                            d = -dt if m < p.n_bias else p.gyr[t, ax] * dt
+                        dm[m] = d
+                        gth[m] += d * (AJ[0, ax] * wr[0] + AJ[1, ax] * wr[1] + AJ[2, ax] * wr[2])
+                        wd = wm * d
+                        for i in range(3):
+                            C[i, m] += wd * J0AJ[i, ax]
+                            Cn[i, m] -= wd * AAJ[i, ax]
+                    for m in range(P):
+                        wd = wm * dm[m]
                         for n in range(P):
-                            jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
-                            G[m, n] += wrest * jm * jn
-    return qn, rn
-
-
-@_inline
-def eliminate_sample(t, T, B, system, elim, w):
-    """Sample t's step of the elimination (module docstring) from its blocks in the scratch w (w.g,
-    w.D's lower triangle, w.O, w.C) and the previous sample's (w.Op, and M, c, N's previous row):
-    S_t = D_t - O^T M, b'_t = b_t - O^T c, C'_t = C_t - O^T N, then c_t, N_t, M_t, the Schur
-    complement's and quad's parts. -> False if S_t is not positive definite."""
-    shift, free, rhs_q = system.shift, system.free, system.rhs_q
-    M, c, N, schur, schur_rhs, quad = elim
-    D, O, Op, C, g, col, Cf = w.D, w.O, w.Op, w.C, w.g, w.col, w.Cf
-    F = len(free)
-    external = rhs_q.shape[0] > 0
-    row, prev = (t, t - 1) if M.shape[0] == T else (t & 1, (t - 1) & 1)
-    for i in range(5):
-        D[i, i] = D[i, i] * (1.0 + shift) if i < B else 1.0  # the padding variables: identity
-        col[i] = -(rhs_q[t, i] if external else g[i]) if i < B else 0.0
-        for m in range(F):
-            Cf[i, m] = C[i, free[m]]
-    if t > 0:  # S_t = D_t - O^T M, b'_t = b_t - O^T c, C'_t = C_t - O^T N (O = H[t-1, t])
-        for i in range(5):
-            for j in range(i + 1):
-                s = 0.0
-                for m in range(5):
-                    s += Op[m, i] * M[prev, m, j]
-                D[i, j] -= s
-            s = 0.0
-            for m in range(5):
-                s += Op[m, i] * c[prev, m]
-            col[i] -= s
-            for n in range(F):
-                s = 0.0
-                for m in range(5):
-                    s += Op[m, i] * N[prev, m, n]
-                Cf[i, n] -= s
-    ok, Lt, rt = ldl5(D)
-    if not ok:
-        return False
-    x = ldl_solve5(Lt, rt, col[0], col[1], col[2], col[3], col[4])
-    for i in range(5):
-        c[row, i] = x[i]
-        quad[0] += col[i] * x[i]
-    for n in range(F):  # N_t = S^-1 C'_t; the Schur complement and its right-hand side
-        x = ldl_solve5(Lt, rt, Cf[0, n], Cf[1, n], Cf[2, n], Cf[3, n], Cf[4, n])
-        for i in range(5):
-            N[row, i, n] = x[i]
-        s = 0.0
-        for i in range(5):
-            s += Cf[i, n] * c[row, i]
-        schur_rhs[n] += s
-        for m in range(n + 1):
-            s = 0.0
+                            G[m, n] += wd * dm[n] * JJ[p.theta_axis[m], p.theta_axis[n]]
+                if V:
+                    # Velocity increments: d r_v / d delta_t = X0 = G dt P R_t [a_t]x / 2 (rows: R_t,i x a_t),
+                    # / d delta_{t+1} = X1 likewise, / d v_t = -I, / d v_{t+1} = I.
+                    dt = p.dt[t]
+                    half = 0.5 * o.gravity * dt
+                    wv = p.w_vel[t]
+                    a0x, a0y, a0z = p.acc[t, 0], p.acc[t, 1], p.acc[t, 2]
+                    a1x, a1y, a1z = p.acc[t + 1, 0], p.acc[t + 1, 1], p.acc[t + 1, 2]
+                    for i in range(2):
+                        f0 = R[i, 0] * a0x + R[i, 1] * a0y + R[i, 2] * a0z
+                        f1 = Rn[i, 0] * a1x + Rn[i, 1] * a1y + Rn[i, 2] * a1z
+                        rv = v[t + 1, i] - v[t, i] - o.gravity * (0.5 * (f0 + f1)) * dt
+                        cost_vel += wv * rv * rv
+                        X0[i, 0] = half * (R[i, 1] * a0z - R[i, 2] * a0y)
+                        X0[i, 1] = half * (R[i, 2] * a0x - R[i, 0] * a0z)
+                        X0[i, 2] = half * (R[i, 0] * a0y - R[i, 1] * a0x)
+                        X1[i, 0] = half * (Rn[i, 1] * a1z - Rn[i, 2] * a1y)
+                        X1[i, 1] = half * (Rn[i, 2] * a1x - Rn[i, 0] * a1z)
+                        X1[i, 2] = half * (Rn[i, 0] * a1y - Rn[i, 1] * a1x)
+                        w = wv * rv
+                        for j in range(3):
+                            g[j] += X0[i, j] * w
+                            gn[j] += X1[i, j] * w
+                        g[3 + i] -= w
+                        gn[3 + i] += w
+                    for i in range(3):
+                        for j in range(3):
+                            if j <= i:
+                                D[i, j] += wv * (X0[0, i] * X0[0, j] + X0[1, i] * X0[1, j])
+                                Dn[i, j] += wv * (X1[0, i] * X1[0, j] + X1[1, i] * X1[1, j])
+                            O[i, j] += wv * (X0[0, i] * X1[0, j] + X0[1, i] * X1[1, j])
+                        for m in range(2):
+                            D[3 + m, i] -= wv * X0[m, i]
+                            Dn[3 + m, i] += wv * X1[m, i]
+                            O[i, 3 + m] += wv * X0[m, i]
+                            O[3 + m, i] -= wv * X1[m, i]
+                    for m in range(2):
+                        D[3 + m, 3 + m] += p.w_vel[t]
+                        Dn[3 + m, 3 + m] += p.w_vel[t]
+                        O[3 + m, 3 + m] -= p.w_vel[t]
+                if len(p.w_rest) and p.w_rest[t] > 0:  # the rest term (`rest_terms`): theta only
+                    w = p.w_rest[t]
+                    for i in range(p.n_bias):
+                        rr, ax = rest_residual(p, b, k, t, i)
+                        cost_rest += w * rr * rr
+                        for m in range(P):  # d r / d theta_m: -1 (this axis's bias), g_t (its scale)
+                            jm = -1.0 if m == i else (p.gyr[t, ax] if m >= p.n_bias and p.theta_axis[m] == ax else 0.0)
+                            if jm != 0.0:
+                                gth[m] += w * rr * jm
+                                for n in range(P):
+                                    jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
+                                    G[m, n] += w * jm * jn
+        if grad_q.shape[0] and mode != _FROM_BLOCKS:
+            for i in range(B):
+                grad_q[t - t0, i] = g[i]
+        if mode == _BLOCKS:
+            tr = t - t0
+            for i in range(B):
+                if ranged:  # for FROM_BLOCKS, which reads the lower triangle
+                    for j in range(i + 1):
+                        diag[tr, i, j] = D[i, j]
+                else:
+                    for j in range(B):
+                        diag[tr, i, j] = D[i, j] if j <= i else D[j, i]
+                if t < T - 1:
+                    for j in range(B):
+                        off[tr, i, j] = O[i, j]
+                for m in range(P):
+                    cross[tr, i, m] = C[i, m]
+        elif mode == _ELIMINATE or mode == _FROM_BLOCKS:
+            row, prev = (t, t - 1) if rows == T else (t & 1, (t - 1) & 1)
             for i in range(5):
-                s += Cf[i, m] * x[i]
-            schur[m, n] += s
-    if t < T - 1:
-        for j in range(5):  # M_t = S^-1 O_t
-            x = ldl_solve5(Lt, rt, O[0, j], O[1, j], O[2, j], O[3, j], O[4, j])
+                D[i, i] = D[i, i] * (1.0 + shift) if i < B else 1.0  # the padding variables: identity
+                col[i] = -(rhs_q[t, i] if external else g[i]) if i < B else 0.0
+                for m in range(F):
+                    Cf[i, m] = C[i, free[m]]
+            if t > 0:  # S_t = D_t - O^T M, b'_t = b_t - O^T c, C'_t = C_t - O^T N (O = H[t-1, t])
+                for i in range(5):
+                    for j in range(i + 1):
+                        s = 0.0
+                        for m in range(5):
+                            s += Op[m, i] * M[prev, m, j]
+                        D[i, j] -= s
+                    s = 0.0
+                    for m in range(5):
+                        s += Op[m, i] * c[prev, m]
+                    col[i] -= s
+                    for n in range(F):
+                        s = 0.0
+                        for m in range(5):
+                            s += Op[m, i] * N[prev, m, n]
+                        Cf[i, n] -= s
+            ok, Lt, rt = ldl5(D)
+            if not ok:
+                return math.nan
+            x = ldl_solve5(Lt, rt, col[0], col[1], col[2], col[3], col[4])
             for i in range(5):
-                M[row, i, j] = x[i]
-        for i in range(5):
-            for j in range(5):
-                Op[i, j] = O[i, j]
-    return True
+                c[row, i] = x[i]
+                quad[0] += col[i] * x[i]
+            for n in range(F):  # N_t = S^-1 C'_t; the Schur complement and its right-hand side
+                x = ldl_solve5(Lt, rt, Cf[0, n], Cf[1, n], Cf[2, n], Cf[3, n], Cf[4, n])
+                for i in range(5):
+                    N[row, i, n] = x[i]
+                s = 0.0
+                for i in range(5):
+                    s += Cf[i, n] * c[row, i]
+                schur_rhs[n] += s
+                for m in range(n + 1):
+                    s = 0.0
+                    for i in range(5):
+                        s += Cf[i, m] * x[i]
+                    schur[m, n] += s
+            if t < T - 1:
+                for j in range(5):  # M_t = S^-1 O_t
+                    x = ldl_solve5(Lt, rt, O[0, j], O[1, j], O[2, j], O[3, j], O[4, j])
+                    for i in range(5):
+                        M[row, i, j] = x[i]
+                for i in range(5):
+                    for j in range(5):
+                        Op[i, j] = O[i, j]
+    sums = np.empty(N_SUMS)
+    sums[SUM_ACC], sums[SUM_MOTION], sums[SUM_VEL], sums[SUM_VZERO] = cost_acc, cost_motion, cost_vel, cost_vzero
+    sums[SUM_REST], sums[SUM_PRIOR], sums[SUM_MAG] = cost_rest, cost_prior, cost_mag
+    if mode == _FROM_BLOCKS:
+        carry_block(carry, CARRY_OFF_BLOCK, Op, True)
+        if t1 < T:
+            return 0.0
+        for m in range(P):  # the calibration block and gradient of the BLOCKS pass, prior included
+            gth[m] = grad_theta[m]
+            for n in range(P):
+                G[m, n] = theta_block[m, n]
+    elif t1 < T:  # BLOCKS: what the next range continues from
+        carry_state(carry, True, Dn, gn, Cn, sums, gth, G)
+        return 0.0
+    else:
+        for m in range(P):
+            gth[m] += p.w_theta[m] * theta[m]
+            G[m, m] += p.w_theta[m]
+            grad_theta[m] = gth[m]
+            if mode == _BLOCKS:
+                for n in range(P):
+                    theta_block[m, n] = G[m, n]
+    if mode == _ELIMINATE or mode == _FROM_BLOCKS:
+        for n in range(F):
+            for m in range(n):
+                schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
+            schur[n, n] = G[free[n], free[n]] * (1.0 + shift) - schur[n, n]
+            schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
+    if mode == _FROM_BLOCKS:
+        return 0.0
+    return total_cost(p, theta, V, sums)
 
 
-@_inline
-def start_elimination(elim):
-    """The Schur complement, its right-hand side and quad, zero (a pass from sample 0)."""
-    elim.quad[0] = 0.0
-    for i in range(elim.schur_rhs.shape[0]):
-        elim.schur_rhs[i] = 0.0
-        for j in range(elim.schur_rhs.shape[0]):
-            elim.schur[i, j] = 0.0
+@_jit
+def _no_system(B):
+    """The `SmootherSystem` of a pass that eliminates nothing."""
+    return SmootherSystem(0.0, np.zeros(0, np.int64), np.zeros((0, B)), np.zeros(0))
 
 
-@_inline
-def theta_terms(p, theta, w):
-    """The calibration prior's gradient and block added to w.gth and w.G (the end of a pass)."""
-    for m in range(len(theta)):
-        w.gth[m] += p.w_theta[m] * theta[m]
-        w.G[m, m] += p.w_theta[m]
-
-
-@_inline
-def finish_schur(system, elim, gth, G):
-    """The Schur complement of the free calibration variables and its right-hand side, from the
-    sweep's sums and the calibration's gradient gth and block G."""
-    free, schur, schur_rhs = system.free, elim.schur, elim.schur_rhs
-    external = system.rhs_q.shape[0] > 0
-    for n in range(len(free)):
-        for m in range(n):
-            schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
-        schur[n, n] = G[free[n], free[n]] * (1.0 + system.shift) - schur[n, n]
-        schur_rhs[n] = -(system.rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
+@_jit
+def _no_elimination():
+    """The `SmootherElimination` of a pass that eliminates nothing."""
+    return SmootherElimination(np.zeros((0, 5, 5)), np.zeros((0, 5)), np.zeros((0, 5, 0)), np.zeros((0, 0)),
+                               np.zeros(0), np.zeros(1))
 
 
 @mirrors("fusion.estimators.smoothers.cost.SmootherProblem.linearize")
 def linearize(p, o, point, grad, blocks, kept, span):
     """Cost, gradient and Gauss-Newton blocks at the point (q (T, 4), v (T, V), theta (P,))
-    (`SmootherProblem.linearize`): the mode that keeps the blocks (the others: `linearize_eliminate`,
+    (`SmootherProblem.linearize`): the use that keeps the blocks (the others: `linearize_eliminate`,
     `eliminate_blocks`). Returns the cost.
 
     Always grad.theta (P,), and grad.q (T, B) unless it has no rows; if blocks.diag has rows, the
@@ -470,49 +522,8 @@ def linearize(p, o, point, grad, blocks, kept, span):
     next range continues from (what the last step adds to its next sample, the cost's sums, the
     calibration block and gradient); the range that ends at T returns the cost, blocks.theta and
     grad.theta. A whole pass is t0 = 0, t1 = T, carry without rows."""
-    q, v, theta = point
-    T = q.shape[0]
-    V = v.shape[1]
-    B = 3 + V
-    P = len(theta)
-    t0, t1, carry = span
-    b, k = split_theta(p, theta)
-    w = scratch(p, P, 0)
-    with_blocks = blocks.diag.shape[0] > 0
-    ranged = carry.shape[0] > 0
-    if t0 > 0:  # continued from the range before
-        carry_state(carry, False, w.Dn, w.gn, w.Cn, w.sums, w.gth, w.G)
-    qn = load_quat(q, t0)
-    rn = rotation_floats(qn)
-    for t in range(t0, t1):
-        qn, rn = sample_terms(p, o, point, b, k, t, qn, rn, kept, w)
-        tr = t - t0
-        if grad.q.shape[0]:
-            for i in range(B):
-                grad.q[tr, i] = w.g[i]
-        if with_blocks:
-            for i in range(B):
-                if ranged:  # for `eliminate_blocks`, which reads the lower triangle
-                    for j in range(i + 1):
-                        blocks.diag[tr, i, j] = w.D[i, j]
-                else:
-                    for j in range(B):
-                        blocks.diag[tr, i, j] = w.D[i, j] if j <= i else w.D[j, i]
-                if t < T - 1:
-                    for j in range(B):
-                        blocks.off[tr, i, j] = w.O[i, j]
-                for m in range(P):
-                    blocks.cross[tr, i, m] = w.C[i, m]
-    if t1 < T:  # what the next range continues from
-        carry_state(carry, True, w.Dn, w.gn, w.Cn, w.sums, w.gth, w.G)
-        return 0.0
-    theta_terms(p, theta, w)
-    for m in range(P):
-        grad.theta[m] = w.gth[m]
-        if with_blocks:
-            for n in range(P):
-                blocks.theta[m, n] = w.G[m, n]
-    return total_cost(p, theta, V, w.sums)
+    mode = _BLOCKS if blocks.diag.shape[0] > 0 else _GRADIENT
+    return _pass(p, o, point, mode, grad, blocks, _no_system(grad.q.shape[1]), _no_elimination(), kept, span)
 
 
 @_jit
@@ -525,63 +536,18 @@ def linearize_eliminate(p, o, point, grad, system, elim, kept):
     S_t^-1 b'_t (with the Schur complement's part, b^T (H + shift diag(H))^-1 b:
     `CompiledOps.slope`); grad and kept as in `linearize` (kept may be M itself: row t is read
     before M's row t is written). Returns the cost, or nan if the matrix is not positive definite."""
-    q, v, theta = point
-    T = q.shape[0]
-    V = v.shape[1]
-    B = 3 + V
-    P = len(theta)
-    b, k = split_theta(p, theta)
-    w = scratch(p, P, len(system.free))
-    start_elimination(elim)
-    qn = load_quat(q, 0)
-    rn = rotation_floats(qn)
-    for t in range(T):
-        qn, rn = sample_terms(p, o, point, b, k, t, qn, rn, kept, w)
-        if grad.q.shape[0]:
-            for i in range(B):
-                grad.q[t, i] = w.g[i]
-        if not eliminate_sample(t, T, B, system, elim, w):
-            return math.nan
-    theta_terms(p, theta, w)
-    for m in range(P):
-        grad.theta[m] = w.gth[m]
-    finish_schur(system, elim, w.gth, w.G)
-    return total_cost(p, theta, V, w.sums)
+    blocks = SmootherBlocks(np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
+    return _pass(p, o, point, _ELIMINATE, grad, blocks, system, elim, kept,
+                 SmootherSpan(0, point.q.shape[0], np.zeros(0)))
 
 
 @_jit
-def eliminate_blocks(p, grad, blocks, system, elim, span):
-    """The elimination of `linearize_eliminate` from the blocks a `linearize` range left
-    (grad.q, blocks.diag, off, cross: that range's rows; blocks.theta, grad.theta: the last
-    range's), the same arithmetic in the same order, over the samples span.t0 <= t < span.t1, with
-    H[t-1, t] in span.carry (at CARRY_OFF_BLOCK) between ranges. Returns 0 (nan: not positive
-    definite)."""
-    T = p.acc.shape[0]
-    B = blocks.diag.shape[1]
-    P = len(grad.theta)
-    t0, t1, carry = span
-    w = scratch(p, P, len(system.free))
-    if t0 == 0:
-        start_elimination(elim)
-    else:
-        carry_block(carry, CARRY_OFF_BLOCK, w.Op, False)
-    for t in range(t0, t1):
-        tr = t - t0
-        for i in range(5):
-            w.g[i] = grad.q[tr, i] if i < B else 0.0
-            for j in range(i + 1):
-                w.D[i, j] = blocks.diag[tr, i, j] if i < B else 0.0
-            for j in range(5):
-                w.O[i, j] = blocks.off[tr, i, j] if i < B and j < B and t < T - 1 else 0.0
-            for m in range(P):
-                w.C[i, m] = blocks.cross[tr, i, m] if i < B else 0.0
-        if not eliminate_sample(t, T, B, system, elim, w):
-            return math.nan
-    carry_block(carry, CARRY_OFF_BLOCK, w.Op, True)
-    if t1 < T:
-        return 0.0
-    finish_schur(system, elim, grad.theta, blocks.theta)
-    return 0.0
+def eliminate_blocks(p, o, point, grad, blocks, system, elim, span):
+    """The elimination of `linearize_eliminate` from the blocks a `linearize` range left (grad.q,
+    blocks.diag, off, cross: that range's rows; blocks.theta, grad.theta: the last range's), the same
+    arithmetic in the same order, over the samples span.t0 <= t < span.t1, with H[t-1, t] in
+    span.carry (at CARRY_OFF_BLOCK) between ranges. Returns 0 (nan: not positive definite)."""
+    return _pass(p, o, point, _FROM_BLOCKS, grad, blocks, system, elim, np.zeros((0, 5, 5)), span)
 
 
 @_jit
