@@ -139,6 +139,7 @@ def read_repoimu(path: str | Path) -> tuple:
     names = ("gyroscope x", "gyroscope y", "gyroscope z", "acceleration x", "acceleration y", "acceleration z")
     imu, quat = physical_samples(path, t, table[:, 8:11], table[:, 5:8], names, "end", quat,
                                  mag=None if mag is None else (mag, "magnetometer columns"))
+    _warn_held(path, imu)
     quat, problem = truth_quaternions(path, quat, "Vicon orientation rows (w, x, y, z)", 1e-2)
     return imu, None if quat is None else Trajectory(imu.t, quat), n_repeated, problem
 
