@@ -6,7 +6,7 @@ Writes a synthetic camera file of the course's layout (`cam`: 240 x 320 x 3 x fr
 `ts`: 1 x frames) as a MATLAB file and as a pickle into a temporary folder, then times
 `load_camera` on each in `--repeat` fresh processes (so no run reuses another's memory), and
 `scipy.io.loadmat` / `pickle.load` in-process for reference. `load_camera` reads a MATLAB file
-in a forked child (`fusion.loaders.read_isolated`: a corrupt file cannot crash the caller) and
+in a forked child (`fusion.format_checks.read_isolated`: a corrupt file cannot crash the caller) and
 a pickle with the restricted unpickler; the difference to the plain readers is what that
 safety costs. Prints the best and the median of the runs.
 """

@@ -30,16 +30,32 @@ from fusion.selection import note
 _DATA_FIELDS = ("dataset", "data_dir", "init", "progress", "dropouts", "mag", "imu_topic", "truth_topic", "calibration")
 
 
+def _settings_class(command: str | None):
+    """The settings dataclass of `command`: `TuneSettings` for tune, `StressSettings` for stress,
+    else `RunSettings`."""
+    if command == "tune":
+        from fusion.evaluation.sweeps.tune import TuneSettings
+
+        return TuneSettings
+    if command == "stress":
+        from fusion.evaluation.sweeps.stress import StressSettings
+
+        return StressSettings
+    from fusion.evaluation.run.settings import RunSettings
+
+    return RunSettings
+
+
 def _settings_options(names: Sequence[str] | None = None, command: str | None = None) -> list:
-    """(field, `Option`) of each `RunSettings` field in `names` (in that order), or of each that
-    `command` offers (in field order); `stress` offers compare's (but those a stress run has no use
-    for, `fusion.evaluation.sweeps.stress.NOT_OFFERED`) and its own (`StressSettings`')."""
+    """(field, `Option`) of each settings field (`_settings_class`) in `names` (in that order), or of
+    each that `command` offers (in field order); `stress` offers compare's (but those a stress run has
+    no use for, `fusion.evaluation.sweeps.stress.NOT_OFFERED`) and its own (`StressSettings`')."""
     import dataclasses
 
     from fusion.evaluation.run.settings import Option
-    from fusion.evaluation.sweeps.stress import NOT_OFFERED, StressSettings
+    from fusion.evaluation.sweeps.stress import NOT_OFFERED
 
-    fields = {f.name: f for f in dataclasses.fields(StressSettings) if isinstance(f.metadata["cli"], Option)}
+    fields = {f.name: f for f in dataclasses.fields(_settings_class(command)) if isinstance(f.metadata["cli"], Option)}
 
     def offered(name: str) -> bool:
         commands = fields[name].metadata["cli"].commands
@@ -51,7 +67,7 @@ def _settings_options(names: Sequence[str] | None = None, command: str | None = 
 
 def _add_settings_args(parser: argparse.ArgumentParser, names: Sequence[str] | None = None,
                        command: str | None = None) -> None:
-    """One option per `RunSettings` field (`_settings_options`), as its metadata (`Option`) says."""
+    """One option per settings field (`_settings_options`), as its metadata (`Option`) says."""
     from fusion.evaluation.run.settings import AS_FIELD
 
     for f, option in _settings_options(names, command):
@@ -99,12 +115,15 @@ def _command(args: argparse.Namespace) -> str:
 
 
 def _run_options(args: argparse.Namespace) -> dict:
-    """The options of `compare` and `ablate`: every field of `fusion.evaluation.run.settings.RunSettings`
-    the command offers an option for, but the selection (given by position) and `resume`
+    """The options of `compare`, `ablate` and `tune`: every field of the command's settings
+    (`fusion.evaluation.run.settings.RunSettings`, tune's `TuneSettings`) the command offers an
+    option for, and the loading options, but the selection (given by position) and `resume`
     (`_resume`), and the command line itself (`command`); a field the command has no option for
     keeps its default."""
-    return {**{f.name: _setting(args, f, option) for f, option in _settings_options(command=args.command)
-               if f.name not in ("dataset", "resume")}, "command": _command(args)}
+    options = {f.name: _setting(args, f, option) for f, option in _settings_options(command=args.command)}
+    options.update({f.name: _setting(args, f, option) for f, option in _settings_options(_DATA_FIELDS)})
+    return {**{name: value for name, value in options.items() if name not in ("dataset", "resume")},
+            "command": _command(args)}
 
 
 def _print_run(run, verbose: bool = False) -> int:
@@ -127,14 +146,19 @@ _RESUME_OPTIONS = ("jobs", "no_progress", "scheduler", "scatter", "json", "resum
                    "verbose")
 
 
-def _resume(args: argparse.Namespace) -> int:
-    from fusion.evaluation.runs import run_resume
-
+def _check_resume_options(args: argparse.Namespace) -> None:
+    """`--resume DIR` comes with how the run runs only (`_RESUME_OPTIONS`), for every command."""
     defaults = vars(build_parser().parse_args([args.command]))
     given = [name for name, value in vars(args).items() if name not in _RESUME_OPTIONS and value != defaults.get(name)]
     if given:
         raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs, --scheduler, "
                          f"--scatter, --json or --no-progress only (not --{given[0].replace('_', '-')})")
+
+
+def _resume(args: argparse.Namespace) -> int:
+    from fusion.evaluation.runs import run_resume
+
+    _check_resume_options(args)
     from fusion.evaluation.run.settings import HOW, RunSettings
 
     options = _run_options(args)
@@ -175,25 +199,12 @@ def _print_stress(run, verbose: bool = False) -> int:
 def cmd_tune(args: argparse.Namespace) -> int:
     from fusion.evaluation.sweeps.tune import run_tune
 
-    how = dict(jobs=args.jobs, progress=not args.no_progress, scheduler=args.scheduler)
     if args.resume:
-        defaults = vars(build_parser().parse_args(["tune"]))
-        given = [k for k, v in vars(args).items()
-                 if k not in (*_RESUME_OPTIONS, "overwrite") and v != defaults.get(k)]
-        if given:
-            raise ValueError(f"--resume continues the run recorded in {args.resume}: give it with --jobs or "
-                             f"--no-progress only (not --{given[0].replace('_', '-')})")
-        run = run_tune(out=args.resume, resume=True, json_path=args.json, **how)
+        _check_resume_options(args)
+        run = run_tune(out=args.resume, resume=True, json_path=args.json, jobs=args.jobs,
+                       progress=not args.no_progress, scheduler=args.scheduler)
     else:
-        if args.imu_topic or args.truth_topic:
-            raise ValueError("tune: --imu-topic/--truth-topic are not supported here; compare a bag with fusion compare")
-        run = run_tune(args.estimators, args.dataset, train=args.train, test=args.test, by=args.by,
-                       metric=args.metric, search=args.search, budget=args.budget, seed=args.seed,
-                       data_dir=args.data_dir, calibration=args.calibration, init=args.init, protocol=args.protocol,
-                       dropouts=args.dropouts == "on", mag=None if args.mag == "auto" else args.mag == "on",
-                       align=args.align, out=args.out,
-                       json_path=args.json,
-                       overwrite=args.overwrite, command=_command(args), **how)
+        run = run_tune(args.estimators, args.dataset, **_run_options(args))
     print(run.table)
     if run.report is not None:
         print(f"report: {run.report}", file=sys.stderr)
@@ -344,7 +355,8 @@ _TYPES = {"int": int, "float": float, "count": _jobs, "seconds": _seconds}  # co
 def _add_run_args(parser: argparse.ArgumentParser, command: str) -> None:
     """The options of `command` (compare, ablate) besides the loading ones: the other `RunSettings`
     fields it offers, and --verbose."""
-    _add_settings_args(parser, [f.name for f, _ in _settings_options(command=command) if f.name not in _DATA_FIELDS])
+    _add_settings_args(parser, [f.name for f, _ in _settings_options(command=command) if f.name not in _DATA_FIELDS],
+                       command)
     parser.add_argument("--verbose", action="store_true",
                         help="under each failed row's error, the traceback of your estimator's own code (results.json "
                              "keeps it as the row's 'traceback')")
@@ -428,31 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the estimators to tune (`fusion list NAME` shows each one's search space); a parameter "
                         "given in a spec is fixed, not tuned (default: all)")
     _add_data_args(p)
-    p.add_argument("--train", metavar="SEL", default=None,
-                   help="choose the setting on these recordings (with --test: instead of folds over --dataset)")
-    p.add_argument("--test", metavar="SEL", default=None, help="score the chosen setting on these recordings")
-    p.add_argument("--by", choices=("recording", "group"), default="recording",
-                   help="the folds over --dataset: leave one recording out (default), or one group out (BROAD's "
-                        "motion or disturbance group; another dataset's folder)")
-    p.add_argument("--metric", choices=("total", "inclination", "heading"), default="total",
-                   help="the RMSE minimised and reported (default: total)")
-    p.add_argument("--search", choices=("grid", "tpe"), default="grid",
-                   help="grid: the grid preset each estimator declares (default); tpe: Optuna's seeded TPE sampler "
-                        "with --budget trials per study")
-    p.add_argument("--budget", type=int, default=30, metavar="N", help="TPE trials per study (default: 30)")
-    p.add_argument("--seed", type=int, default=0, help="TPE's seed (default: 0)")
-    p.add_argument("--protocol", choices=("full", "broad"), default=None,
-                   help="scoring, as for compare (default: broad for BROAD trials, else full)")
-    p.add_argument("--json", metavar="PATH", help="write the results as JSON")
-    p.add_argument("--out", metavar="DIR", help="write table, results.json, report and tuned.json (for "
-                   "`compare --tuned`) to DIR, journalling every score so that --resume DIR continues a stopped run")
-    p.add_argument("--overwrite", action="store_true", help="with --out: replace the run DIR holds")
-    p.add_argument("--resume", metavar="DIR", default=None, help="continue the stopped tuning in DIR")
-    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                   help="run the jobs on a running dask.distributed scheduler's workers (see docs/dask.md)")
-    p.add_argument("--jobs", type=_jobs, default=0, metavar="N",
-                   help="worker processes; 0 = all cores (default); results do not depend on it")
-    _add_settings_args(p, ("align",))
+    _add_settings_args(p, command="tune")  # `TuneSettings`' fields: its own and the `RunSettings` it offers
     p.set_defaults(func=cmd_tune)
 
     p = sub.add_parser("ablate", help="sweep estimator parameters (or run a preset) over recordings",

@@ -176,6 +176,11 @@ def run_stress(estimators: str | Sequence[str | EstimatorSpec | ResolvedSpec] = 
     return _execute(entries, kind, document, settings)
 
 
+def _settings_class(call: dict[str, Any]) -> type[RunSettings]:
+    """The settings class a journalled call reads back with: a stress run's has its faults."""
+    return stress.StressSettings if call.get("kind") == "stress" else RunSettings
+
+
 def run_resume(out: PathLike, **how: Any) -> Run:
     """`fusion compare --resume DIR` / `fusion ablate --resume DIR`: continue the unfinished run in
     `out` with the call recorded in its journal; `how` may change only how it runs (jobs, progress,
@@ -186,7 +191,7 @@ def run_resume(out: PathLike, **how: Any) -> Run:
     json_path = how.pop("json_path", None)
     recorded = {**call, "data_dir": header["data_dir"], "calibration": header.get("calibration"),
                 "command": header["command"], "out": os.fspath(out), "json_path": json_path}
-    settings = RunSettings.from_json(recorded, resume=True, **how)
+    settings = _settings_class(call).from_json(recorded, resume=True, **how)
     options = {f: getattr(settings, f) for f in RunSettings.__dataclass_fields__ if f not in ("dataset", "data_dir")}
     kind = call.pop("kind")
     if kind == "stress":
@@ -317,7 +322,7 @@ def _job_keys(entries: list[ResolvedSpec], sources: list, load: Any, s: RunSetti
 def _same_call(call: dict[str, Any]) -> dict[str, Any]:
     """A journalled call as compared on resume: its own keys, and the settings with the defaults of
     those an older journal lacks."""
-    settings = RunSettings.from_json(call)
+    settings = _settings_class(call).from_json(call)
     return {**json.loads(json.dumps(call)), **{name: getattr(settings, name) for name in JOURNALLED}}
 
 

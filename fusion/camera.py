@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from .loaders import read_mat, read_pickle
+from .format_checks import read_mat, read_pickle
 
 
 # --------------------------------------------------------------------------- camera model

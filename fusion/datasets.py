@@ -31,7 +31,7 @@ are not raw counts of the course board and would need a full load; each counts a
 
 Loading (`LoadOptions.load`, `load_source`) reads a recording through its format's `read`,
 then, the same for every format: marks the gyro samples standing for time gaps invalid
-(`fusion.loaders.invalidate_gaps`) and, with `dropouts`, those of gyro freezes found in the data
+(`fusion.format_checks.invalidate_gaps`) and, with `dropouts`, those of gyro freezes found in the data
 (`fusion.checks.dropout_mask`; a format in raw counts does that in its calibration, with
 saturation); drops the magnetometer when `mag` is off; and moves the truth by a measured clock
 offset.
@@ -52,7 +52,7 @@ from .formats import FORMATS, Source
 from .formats import course
 from .formats.course import load_imu
 from .formats.sim import SIM_ID
-from .loaders import invalidate_gaps
+from .format_checks import invalidate_gaps
 from .types import ImuSamples, RawImu, Recording, Trajectory
 
 __all__ = ["COURSE_SUBFOLDERS", "DROPOUTS_DEFAULT", "INIT_MODES", "SIM_ID", "LoadOptions", "Source", "calibrated_samples",
@@ -306,7 +306,7 @@ def _load(source: Source, options: "LoadOptions", truth_offset_s: float) -> Reco
     if fmt is None:
         raise ValueError(f"{source.id}: unknown recording kind {source.kind!r} (known: {', '.join(FORMATS)})")
     rec = fmt.read(source, options)
-    # Gyro samples before a time gap are marked invalid (see `fusion.loaders`, time stamps).
+    # Gyro samples before a time gap are marked invalid (see `fusion.format_checks`, time stamps).
     imu = invalidate_gaps(rec.imu)
     if options.dropouts and rec.raw is None:  # recordings in physical units: gyro freezes found from the data
         from .checks import dropout_mask  # (raw counts: the format's calibration does it, with saturation)

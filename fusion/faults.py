@@ -20,7 +20,7 @@ not blurred by a new draw at each point.
 
 After its transform, a faulted recording goes through the checks a loader applies to what it read
 (`fusion.datasets`): the gyro sample standing for a time gap is marked invalid
-(`fusion.loaders.invalidate_gaps`) and, with `dropouts` and data in physical units, detected gyro
+(`fusion.format_checks.invalidate_gaps`) and, with `dropouts` and data in physical units, detected gyro
 freezes too (`fusion.checks.dropout_mask`). Its raw counts are dropped (`Recording.raw = None`):
 they are the clean sensor's.
 
@@ -174,7 +174,7 @@ def loader_checks(recording: Recording, faulted: Recording, dropouts: bool = Tru
     (`fusion.datasets`): the gyro sample across a time gap invalid; with `dropouts` and data in physical
     units (no raw counts), detected gyro freezes too; its raw counts dropped (they are the clean sensor's)."""
     from .checks import dropout_mask
-    from .loaders import invalidate_gaps
+    from .format_checks import invalidate_gaps
 
     imu = invalidate_gaps(faulted.imu)
     if dropouts and recording.raw is None:  # as `fusion.datasets` does for data in physical units
@@ -257,7 +257,7 @@ def drops(recording: Recording, gap_s: float, rng: np.random.Generator) -> Recor
     segments, and in each the samples stamped inside one gap of `gap_s` seconds, at a random
     place within it, are removed (gyro, accelerometer, magnetometer and movement flag; the first
     and the last sample stay). Estimators then integrate across the gap as they would across a
-    lost packet; a gap longer than the loader's limit (`fusion.loaders.GAP_S`) has its gyro sample
+    lost packet; a gap longer than the loader's limit (`fusion.format_checks.GAP_S`) has its gyro sample
     marked invalid by the loader's check (`apply`)."""
     imu = recording.imu
     t0, span = _span(imu)

@@ -10,7 +10,7 @@ what `fusion compare --out` writes for evo.
 
 The orientation is `R_world_body` (body to world), as the TUM format's pose is the body's pose
 in the world. A trajectory read back is checked like a recording's truth (bounded size, numbers,
-unit quaternions, increasing stamps repaired with a warning: `fusion.loaders`).
+unit quaternions, increasing stamps repaired with a warning: `fusion.format_checks`).
 
 A TUM file `fusion compare --out` writes (`write_tum(..., compact=True)`) says in a comment what
 it holds, `# fusion: estimator=ekf recording=broad/10 imu=9-D` (`tum_metadata` reads it back),
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .loaders import parse_rows, repair_time, text_lines, unit_quaternions
+from .format_checks import parse_rows, repair_time, text_lines, unit_quaternions
 from .types import Trajectory
 
 import shlex

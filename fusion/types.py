@@ -262,7 +262,7 @@ class Recording:
         scored with the BROAD protocol by default (`fusion.evaluation.scoring.metrics.score`).
     truth_problem: why a recording whose file holds a truth was read without it, one line starting
         "no truth" (no row holds an orientation) or "truth unusable" (most rows are not
-        orientations, or its span misses the IMU's: `fusion.loaders.usable_truth`); None otherwise.
+        orientations, or its span misses the IMU's: `fusion.format_checks.usable_truth`); None otherwise.
     truth_needs_alignment: the truth is given in frames of its own (a world whose vertical is not z,
         a marker body that is not the IMU's: RepoIMU's Vicon orientations), as its format says; it
         is scored through an alignment fitted per recording (`fusion.evaluation.scoring.align`) whether or

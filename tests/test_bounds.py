@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from fusion import loaders
+from fusion import format_checks as loaders
 from fusion.formats import course, generic_csv
 
 from optional_helpers import optional_module, require_module

@@ -356,60 +356,86 @@ def test_compiled_equals_reference_through_an_unflagged_freeze(data_dir, spec):
     assert np.abs(off.quat_wxyz - a.quat_wxyz).max() > 0.01  # the check changed the estimate
 
 
-KERNEL_MODULES = ("kernels._numba", "kernels._compiled_quaternion", "kernels._compiled_linalg",
-                  "filters.steps._compiled_accel", "filters.steps._compiled_rest", "filters.steps._compiled_stuck",
-                  "filters.steps._compiled_scale_test", "filters.steps._compiled_magnetometer", "filters._compiled_ekf",
-                  "filters._compiled_ukf")  # below fusion.estimators
+# The compiled modules of each room (below fusion.estimators), whose kernels declare their references.
+KERNEL_MODULES = {
+    "filters": ("kernels._numba", "kernels._compiled_quaternion", "kernels._compiled_linalg",
+                "filters.steps._compiled_accel", "filters.steps._compiled_rest", "filters.steps._compiled_stuck",
+                "filters.steps._compiled_scale_test", "filters.steps._compiled_magnetometer", "filters._compiled_ekf",
+                "filters._compiled_ukf"),
+    "smoothers": ("smoothers._compiled_terms", "smoothers._compiled_cost", "smoothers._compiled_linearize",
+                  "smoothers._compiled_start"),
+    "peers": ("peers._compiled_ahrs",),
+}
+# A peer's twin carries the library method's name after its filter's (`madgwick_updateIMU` is
+# `Madgwick.updateIMU`'s), or with a leading underscore (`_product`: `Quaternion.product`).
+PEER_PREFIXES = ("madgwick_", "mahony_", "ekf_", "_")
 
 
 def _resolve(dotted: str):
     """The object a dotted name such as `fusion.estimators.filters.ekf.EKF._correct` names (ImportError or
     AttributeError when there is none)."""
-    import importlib
+    import pkgutil
 
-    parts = dotted.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        for name in parts[i:]:
-            obj = getattr(obj, name)
-        return obj
-    raise ImportError(dotted)
+    return pkgutil.resolve_name(dotted)
 
 
-def test_every_kernel_carries_the_name_of_the_numpy_reference_it_declares():
-    """A reader finds a kernel by its reference's name: every compiled function of the filters
-    declares the numpy function or method it implements (`_numba.mirrors`, `_numba.compiled`),
-    which exists and has the kernel's name, or is listed among its module's HELPERS (no reference
-    of its own); and the layout offsets the kernels read are the numpy side's."""
+@pytest.mark.parametrize("room", sorted(KERNEL_MODULES))
+def test_every_kernel_carries_the_name_of_the_reference_it_declares(room):
+    """A reader finds a kernel by its reference's name, by one convention in every room (STYLE 12):
+    every compiled function of the filters, the smoothers and the peers' twins declares the function
+    or method it implements (`_numba.mirrors`, `_numba.compiled`: the numpy reference, or for the
+    peers the library's), which exists and has the kernel's name, or is listed among its module's
+    HELPERS (no reference of its own); a kernel is bound to its own name, and no two of the
+    smoothers' kernels share one."""
     import importlib
 
     from numba.core.registry import CPUDispatcher
 
-    from fusion.estimators.filters import _compiled
-    from fusion.estimators.kernels import _numba  # noqa: F401  (imports every kernel module)
+    from fusion.estimators.kernels import _numba
 
-    seen = 0
-    for name in KERNEL_MODULES:
+    if room == "peers":
+        require_module("ahrs")
+    seen, names, references = 0, {}, {}
+    for name in KERNEL_MODULES[room]:
         module = importlib.import_module(f"fusion.estimators.{name}")
         helpers = set(module.HELPERS)
         own = {attr for attr, obj in vars(module).items() if isinstance(obj, CPUDispatcher)
                and ((module.__name__, attr) in _numba.REFERENCES or obj.py_func.__module__ == module.__name__)}
         assert helpers <= own, f"{name}.HELPERS names no kernel: {sorted(helpers - own)}"
+        for attr in sorted(own):
+            kernel = vars(module)[attr]
+            if kernel.py_func.__module__ == module.__name__:
+                assert kernel.py_func.__name__ == attr, f"the kernel {kernel.py_func.__name__} is bound to the name {attr}"
+            if room == "smoothers":  # their modules import each other's kernels by name: one kernel a name
+                assert names.setdefault(attr, kernel) is kernel, f"two kernels named {attr} in {room}"
         for attr in sorted(own - helpers):
             reference = _numba.REFERENCES.get((module.__name__, attr))
             assert reference is not None, f"{name}.{attr} declares no reference and is not a helper"
-            assert reference.rsplit(".", 1)[1] == attr, f"{name}.{attr} mirrors {reference}: the names differ"
+            last = reference.rsplit(".", 1)[1]
+            if room == "peers":
+                assert attr == last or any(attr == prefix + last for prefix in PEER_PREFIXES), (attr, reference)
+            else:
+                assert last == attr, f"{name}.{attr} mirrors {reference}: the names differ"
             target = _resolve(reference)
-            assert callable(target), reference
+            assert callable(target) and target.__name__ == last, reference
+            references[attr] = reference
             seen += 1
-    assert seen >= 30
-    # both kernels and the rest detector's names as the brief's examples give them
-    assert _numba.REFERENCES[("fusion.estimators.filters._compiled_ekf", "_correct")] == "fusion.estimators.filters.ekf.EKF._correct"
-    assert _numba.REFERENCES[("fusion.estimators.filters.steps._compiled_rest", "update")] == \
-        "fusion.estimators.filters.steps._rest.RestDetector.update"
+    assert seen >= {"filters": 30, "smoothers": 15, "peers": 8}[room]
+    if room == "filters":  # both kernels and the rest detector's names as the style's examples give them
+        assert references["_correct"] == "fusion.estimators.filters.ekf.EKF._correct"
+        assert _numba.REFERENCES[("fusion.estimators.filters.steps._compiled_rest", "update")] == \
+            "fusion.estimators.filters.steps._rest.RestDetector.update"
+        assert _numba.REFERENCES[("fusion.estimators.filters._compiled_ekf", "estimate")] == \
+            "fusion.estimators.filters.ekf.EKF.estimate"
+    if room == "smoothers":  # what the solvers run, each under its reference's name
+        assert references["cost"] == "fusion.estimators.smoothers.cost.SmootherProblem.cost"
+        assert references["linearize"] == "fusion.estimators.smoothers.cost.SmootherProblem.linearize"
+        assert references["retract"] == "fusion.estimators.smoothers.smoother.retract"
+        assert references["levelled"] == "fusion.estimators.smoothers.smoother.levelled"
+        assert references["robust_terms"] == "fusion.estimators.smoothers.cost.robust_terms"
+        assert references["multiply_floats"] == "fusion.quaternion.multiply_floats"  # compiled from the core
+    if room == "peers":
+        assert references["madgwick_updateIMU"] == "ahrs.filters.madgwick.Madgwick.updateIMU"
 
 
 def test_the_packed_states_match_their_layout():

@@ -12,10 +12,7 @@ summation order of the cost, the elimination order of the solve).
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import inspect
-import pkgutil
-import re
 import tracemalloc
 
 import numpy as np
@@ -267,57 +264,15 @@ def test_start_kernels_equal_dead_reckoning_and_levelled():
 
 
 # ----------------------------------------------------------------------------- names
-def _kernels() -> dict:
-    """Every compiled kernel of the smoothers' kernel modules (`KERNEL_MODULES`), by the name it is
-    bound to (a kernel imported into another module is the same kernel)."""
-    from numba.core.registry import CPUDispatcher
-
-    out = {}
-    for module_name in KERNEL_MODULES:
-        for name, obj in vars(importlib.import_module(f"fusion.estimators.{module_name}")).items():
-            if isinstance(obj, CPUDispatcher):
-                assert out.setdefault(name, obj) is obj, f"two kernels named {name}"
-    return out
-
-
-def test_every_kernel_carries_its_references_name():
-    """A compiled kernel carries the name of the numpy function it mirrors (STYLE 12). A kernel
-    compiled from another module's function (`fusion.quaternion`'s scalar path) is that function,
-    bound to its name; every other kernel names its reference in its docstring, `Reference:
-    <dotted path>`, which must resolve to a function or method of the numpy side with the kernel's
-    name, or says `Reference: none (<why>)` (the elimination's and the storage's own helpers)."""
-    kernels = _kernels()
-    own_modules = {f"fusion.estimators.{name}" for name in KERNEL_MODULES}
-    references = {}
-    for name, kernel in kernels.items():
-        func = kernel.py_func
-        assert func.__name__ == name, f"the kernel {func.__name__} is bound to the name {name}"
-        if func.__module__ not in own_modules:
-            references[name] = f"{func.__module__}.{func.__qualname__}"
-            continue
-        lines = [line.strip() for line in (func.__doc__ or "").splitlines() if line.strip().startswith("Reference:")]
-        assert len(lines) == 1, f"{name}: one 'Reference:' line in its docstring, found {lines}"
-        reference = lines[0].removeprefix("Reference:").strip()
-        if reference.startswith("none"):
-            assert re.fullmatch(r"none \(.+\)", reference), f"{name}: 'Reference: none (why)', not {reference!r}"
-            continue
-        assert reference.startswith(("fusion.quaternion.", "fusion.estimators.smoothers.cost.",
-                                     "fusion.estimators.smoothers.smoother.")), (name, reference)
-        target = pkgutil.resolve_name(reference)
-        assert callable(target) and target.__name__ == name, f"{name}: its reference {reference} is {target!r}"
-        references[name] = reference
-    # what the solvers run, each under its reference's name
-    assert references["cost"] == "fusion.estimators.smoothers.cost.SmootherProblem.cost"
-    assert references["linearize"] == "fusion.estimators.smoothers.cost.SmootherProblem.linearize"
-    assert references["retract"] == "fusion.estimators.smoothers.smoother.retract"
-    assert references["levelled"] == "fusion.estimators.smoothers.smoother.levelled"
-    assert references["robust_terms"] == "fusion.estimators.smoothers.cost.robust_terms"
+# Every kernel's declared reference (`kernels._numba.mirrors`): `tests/test_compiled.py`,
+# `test_every_kernel_carries_the_name_of_the_reference_it_declares`, for the filters, the smoothers
+# and the peers' twins alike.
 
 
 def test_the_packed_layouts_do_not_overlap():
     """What a trial keeps of a sample fits in M's row without overlap (`KEEP_*`), the cost's sums
     are numbered 0 .. N_SUMS - 1, and a carry holds its parts one after another, with room for
-    FROM_BLOCKS's block (`carry_offsets`)."""
+    `eliminate_blocks`'s block (`carry_offsets`)."""
     keep = [(layout.KEEP_STEP, 4), (layout.KEEP_MOTION, 3), (layout.KEEP_ACC, 2), (layout.KEEP_MAG, 6)]
     slots = [i for at, n in keep for i in range(at, at + n)]
     assert len(set(slots)) == len(slots) and max(slots) < layout.B_MAX**2
@@ -444,7 +399,8 @@ def test_memory_is_linear_with_a_small_constant(name):
 KERNEL_MODULES = ("smoothers._compiled_terms", "smoothers._compiled_cost", "smoothers._compiled_linearize",
                   "smoothers._compiled_start")  # below fusion.estimators
 # The kernels `load` runs from Python; the others run inside them.
-LOADED_KERNELS = ("cost", "linearize", "back_substitute", "dead_reckoning", "levelled", "norm_error", "dot")
+LOADED_KERNELS = ("cost", "linearize", "linearize_eliminate", "eliminate_blocks", "back_substitute", "dead_reckoning",
+                  "levelled", "norm_error", "dot")
 
 _CACHE_STATS = r"""
 import importlib, json

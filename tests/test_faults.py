@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion import faults
 from fusion.faults import Fault, apply
-from fusion.loaders import GAP_S
+from fusion.format_checks import GAP_S
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Recording, Trajectory
 
 RATE_HZ = 100.0

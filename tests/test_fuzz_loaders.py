@@ -34,7 +34,8 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fusion import datasets, loaders
+from fusion import datasets
+from fusion import format_checks as loaders
 from fusion.formats import course, generic_csv
 from fusion.cli import main
 from fusion.types import ImuSamples, RawImu, Recording, Trajectory

@@ -8,7 +8,7 @@ import pytest
 
 from fusion import quaternion as quat
 from fusion.estimators import build
-from fusion.estimators.filters._error_state import UNESTIMATED_VAR
+from fusion.estimators.filters.steps._error_state import UNESTIMATED_VAR
 from fusion.estimators.filters.kalman_base import error_state_covariances, initial_quaternion
 
 

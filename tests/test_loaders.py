@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import scipy.io
 
-from fusion import datasets, loaders
+from fusion import datasets
+from fusion import format_checks as loaders
 from fusion.formats import course, generic_csv
 
 NUMBERS = range(1, 10)
@@ -250,3 +251,17 @@ def test_isolated_read_of_empty_arrays_only():
     got = loaders.read_isolated(Path(__file__), lambda p: made, "test")
     for name, array in made.items():
         assert got[name].shape == array.shape and got[name].dtype == array.dtype and got[name].flags.writeable
+
+
+def test_the_former_name_of_the_format_checks_still_imports_with_a_warning():
+    """`fusion.loaders` (which held no loaders) is now `fusion.format_checks`; for one release the old
+    name imports, with a DeprecationWarning, as the same module."""
+    import importlib
+    import sys
+
+    from fusion import format_checks
+
+    sys.modules.pop("fusion.loaders", None)
+    with pytest.warns(DeprecationWarning, match="fusion.loaders is now fusion.format_checks"):
+        module = importlib.import_module("fusion.loaders")
+    assert module is format_checks

@@ -313,7 +313,7 @@ def test_worker_error_is_one_line(tmp_path, capsys):
 
 
 def test_fusion_package_never_imports_matplotlib(tmp_path):
-    code = ("import sys, fusion, fusion.cli, fusion.datasets, fusion.loaders, fusion.calibration, fusion.sim;"
+    code = ("import sys, fusion, fusion.cli, fusion.datasets, fusion.format_checks, fusion.calibration, fusion.sim;"
             "from fusion.cli import main;"
             "main(['compare', '--estimators', 'dr', '--dataset', 'sim', '--no-progress', '--jobs', '1']);"
             "assert 'matplotlib' not in sys.modules, 'matplotlib imported'")

@@ -88,7 +88,7 @@ t = imu.t - imu.t[0]  # seconds since the first sample
 # %% [markdown]
 # ## 1.1 What the file holds
 #
-# The loader (`fusion.loaders`) turns every file layout the courses published into one
+# The loader (`fusion.format_checks`) turns every file layout the courses published into one
 # canonical form, `RawImu`: time stamps `t` (N,) in seconds (unix time) and `counts` (N, 6) in
 # the order ax, ay, az, wx, wy, wz, exactly as the ADC produced them (the different channel
 # orders and sign flips of the two releases are undone here, nowhere else).

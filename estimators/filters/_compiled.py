@@ -25,8 +25,13 @@ streaming user and the tutorial call). Each has a compiled mirror that carries i
     _stuck                                 _compiled_stuck (stuck_gyro_update itself, compiled)
     _scale_test (ScaleTest)                _compiled_scale_test (step)
     _magnetometer                          _compiled_magnetometer (update, magnetometer_input, ...)
-    ekf.EKF                                _compiled_ekf (estimate, _correct, _velocity_step)
-    ukf.UKF, quaternion_ukf                _compiled_ukf (estimate)
+    ekf.EKF (KalmanFilter.step with EKF's parts)   _compiled_ekf (estimate, _correct, _velocity_step)
+    ukf.UKF, quaternion_ukf (the same, UKF's)      _compiled_ukf (estimate)
+
+Each loop is the sequence of `KalmanFilter.step`, section by section (predict, before updates,
+rest, accelerometer, magnetometer, scale test, finish), with its filter's parts written in place:
+one loop per filter, not one loop calling each filter's parts, which ran at half the speed (the
+work arrays of a loop allocated in it are what numba's compiler optimises best).
 
 Every kernel line implements a line of its reference, in the same order where the order matters
 for rounding, and `tests/test_compiled.py` checks that both paths give the same quaternions and
@@ -61,6 +66,7 @@ from .steps._compiled_magnetometer import MagSettings, mag_settings
 from .steps._compiled_rest import RestSettings, rest_settings, rest_steps
 from .steps._compiled_scale_test import ScaleTestSettings, scale_test_settings
 from .steps._compiled_stuck import stuck_intervals
+from .steps._error_state import ErrorLayout
 from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE
 from .steps._rest import RestDetector
 from .steps._scale_test import TEST_STATE
@@ -69,20 +75,22 @@ from .steps._stuck import STUCK_THRESHOLDS, stuck_gyro_state
 # `fusion.quaternion.multiply_floats` compiled, under the name the peers' and the smoothers' kernels import.
 qmul = multiply_floats
 
-__all__ = ["Outputs", "SensorStates", "Settings", "inputs", "load", "outputs", "rest_steps", "settings",
-           "stuck_intervals", "_jit", "qmul"]
+__all__ = ["Outputs", "SensorStates", "Settings", "UnscentedSettings", "inputs", "load", "outputs", "rest_steps",
+           "settings", "stuck_intervals", "_jit", "qmul"]
 
 
 class Settings(NamedTuple):
     """A kernel run's options, one object (one compiled signature serves every parameter set)."""
 
+    unscented: bool  # the UKFs' step (sigma points), else ekf's (Jacobians)
     n: int  # error-state dimension without the velocity: 3, 6 or 9
     nv: int  # ekf: velocity states, 0 or 2
+    bias: bool  # the bias block (`ErrorLayout.bias`)
+    scale: bool  # the scale block (`ErrorLayout.scale`)
     vel_bound: float  # ekf: Rv, m^2/s
     gravity: float  # 1 g in m/s^2
     use_acc: bool  # the accelerometer update is on
     process_noise: float  # Q, rad^2/s
-    lag: bool  # the low-pass's lag is modelled (`_accel.models_lag`)
     heading_free: bool  # no correction about the vertical
     rest_on: bool  # the rest update is on (a bias filter with a rest detector)
     rest_noise: float  # its variance density, rad^2/s
@@ -104,26 +112,39 @@ class Settings(NamedTuple):
     test: ScaleTestSettings  # the scale test
 
 
-def settings(p: Any, n: int, rest: Any = None, chi2: float = math.inf, scale_noise: float = 0.0,
-             sqrt_c: float = 0.0, mean_tol: float = 0.0, mean_max_iter: int = 0, scale_test: Any = None) -> Settings:
-    """The kernel options of a filter's parameters `p` (a `FilterParams`), error dimension `n`,
-    rest detector `rest` (the `RestDetector` its reset built, or None) and scale test (its
-    `ScaleTest`, or None)."""
-    bias = isinstance(p, BiasFilterParams) and n > 3
+class UnscentedSettings(NamedTuple):
+    """The UKFs' own options (`settings`); `ekf` has none."""
+
+    scale_noise: float = 0.0  # ukf: Qs, s
+    sqrt_c: float = 0.0  # the sigma points' scale sqrt(c)
+    mean_tol: float = 0.0  # the iterative mean's stopping rule, rad
+    mean_max_iter: int = 0  # ... and its iteration cap
+
+
+def settings(p: Any, layout: Any, rest: Any = None, scale_test: Any = None, chi2: float = math.inf,
+             unscented: UnscentedSettings | None = None) -> Settings:
+    """The kernel options of a filter's parameters `p` (a `FilterParams`), its error state's
+    `ErrorLayout`, rest detector `rest` (the `RestDetector` its reset built, or None), scale test
+    (its `ScaleTest`, or None), `ekf`'s chi-square guard `chi2` and the UKFs' `UnscentedSettings`
+    (None: `ekf`)."""
+    bias = isinstance(p, BiasFilterParams) and layout.bias
     rest_on = bias and rest is not None
-    nv = int(getattr(p, "velocity_states", 0))
+    nv = int(layout.velocity_states)
+    ut = unscented if unscented is not None else UnscentedSettings()
     return Settings(
-        n=int(n), nv=nv, vel_bound=float(p.velocity_bound_m2_s) if nv else 0.0, gravity=float(STANDARD_GRAVITY_M_S2),
-        use_acc=bool(p.use_acc), process_noise=float(p.process_noise_rad2_s), lag=bool(models_lag(p, n)),
+        unscented=unscented is not None, n=int(layout.n), nv=nv, bias=bool(layout.bias), scale=bool(layout.scale),
+        vel_bound=float(p.velocity_bound_m2_s) if nv else 0.0, gravity=float(STANDARD_GRAVITY_M_S2),
+        use_acc=bool(p.use_acc), process_noise=float(p.process_noise_rad2_s),
         heading_free=bool(p.heading_free), rest_on=bool(rest_on),
         rest_noise=float(p.rest_noise_rad2_s) if bias else 0.0,
         bias_max=float(p.bias_max_rad_s) if bias else math.inf, scale_max=float(p.scale_max) if bias else math.inf,
         chi2=float(chi2), lowpass_calibration=bool(nv == 0 or getattr(p, "lowpass_calibration", True)),
-        slow_corr=float(getattr(p, "slow_disturbance_corr_s", 0.0)) if models_lag(p, n) else 0.0,
-        slow_scale_var=float(p.init_scale_var) if bias and n > 6 else 0.0,
-        scale_noise=float(scale_noise), sqrt_c=float(sqrt_c), mean_tol=float(mean_tol),
-        mean_max_iter=int(mean_max_iter), quat=quat_settings(), cov=cov_settings(), acc=acc_settings(p),
-        rest=rest_settings(rest if rest_on else None), mag=mag_settings(p), test=scale_test_settings(scale_test))
+        slow_corr=float(getattr(p, "slow_disturbance_corr_s", 0.0)) if models_lag(p, layout.bias) else 0.0,
+        slow_scale_var=float(p.init_scale_var) if bias and layout.scale else 0.0,
+        scale_noise=float(ut.scale_noise), sqrt_c=float(ut.sqrt_c), mean_tol=float(ut.mean_tol),
+        mean_max_iter=int(ut.mean_max_iter), quat=quat_settings(), cov=cov_settings(),
+        acc=acc_settings(p, layout.bias), rest=rest_settings(rest if rest_on else None), mag=mag_settings(p),
+        test=scale_test_settings(scale_test))
 
 
 class SensorStates(NamedTuple):
@@ -185,7 +206,7 @@ def load() -> None:
         return
     n = 9
     p = BiasFilterParams()
-    o = settings(p, n, sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20)
+    layout = ErrorLayout.of(n)
     inp = inputs(_OneStep())
     unit = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -196,10 +217,12 @@ def load() -> None:
             hard_iron=np.zeros(HARD_IRON_STATE), test=np.zeros(TEST_STATE))
 
     out = outputs(2, n, unit, {})
+    o = settings(p, layout)
     _compiled_ekf.estimate(inp, unit.copy(), np.zeros(3), np.zeros(3), np.zeros(2), np.eye(n) * 1e-4,
                            np.eye(n) * 1e-4, np.zeros((n, n)), states(), o, out)
     weights = np.full(2 * n + 1, 0.5 / n)
     weights[0] = 0.0
+    o = settings(p, layout, unscented=UnscentedSettings(sqrt_c=math.sqrt(n), mean_tol=1e-9, mean_max_iter=20))
     _compiled_ukf.estimate(inp, np.concatenate([unit, np.zeros(n - 3)]), np.eye(n) * 1e-4, np.eye(n) * 1e-4,
                            np.zeros((n, n)), weights, weights, states(), o, out)
     stuck_intervals(inp.gyr, inp.dt, inp.acc[1:], inp.valid, stuck_gyro_state(), *STUCK_THRESHOLDS)

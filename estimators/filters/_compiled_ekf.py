@@ -1,8 +1,10 @@
-"""`ekf` compiled: the loop of `EKF.step` over a whole recording (`estimate`), and the kernels of
-`EKF`'s own helpers (`_correct`, `_velocity_step`).
+"""`ekf` compiled: the loop of `KalmanFilter.step` with `EKF`'s parts over a whole recording
+(`estimate`), and the kernels of `EKF`'s own helpers (`_correct`, `_velocity_step`).
 
-Every line implements a line of `EKF.step` (`fusion.estimators.filters.ekf`, where the equations and their
-papers are), in the same order where the order matters for rounding; the sensor concerns are the
+Every line implements a line of `KalmanFilter.step` and `EKF`'s parts (`fusion.estimators.filters.kalman_base`,
+`fusion.estimators.filters.ekf`, where the equations and their papers are), in the same order
+where the order matters for rounding, and the sections of the loop are the sequence's (predict,
+before updates, rest, accelerometer, magnetometer, scale test, finish); the sensor concerns are the
 kernels of `_compiled_accel`, `_compiled_rest`, `_compiled_magnetometer` and `_compiled_scale_test`,
 called under their references' names. Organised differently, changing the rounding only (1e-14
 relative on the recordings; `tests/test_compiled.py` checks 1e-10): the covariance prediction
@@ -18,7 +20,7 @@ import math
 
 import numpy as np
 
-from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, joseph2, repair_covariance
+from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, joseph2, repair_covariance
 from ..kernels._compiled_quaternion import (exp_floats, gravity_floats, multiply_floats, normalize_floats, right_jacobian_dt,
                                    rotation_floats)
 from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
@@ -26,17 +28,18 @@ from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
 from .steps import _compiled_scale_test as scale_test
+from .steps._error_state import BIAS_AT, SCALE_AT
 from .steps._scale_test import TEST_DECISION, TEST_LLR, TEST_ON
 
 forget_stale(__file__)
 
-# No numpy reference of their own: `EKF.step` writes it as `F @ P @ F.T + Q`.
+# No numpy reference of their own: `EKF._predict` writes it as `F @ P @ F.T + Q`.
 HELPERS = ("predict_covariance",)
 
 
 @_jit
 def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
-    """P <- F P F^T + Q (`EKF.step`, Sola 2017, Sec. 5.4) for F = [[A, B, 0], [0, I]]: A (3 x 3) and
+    """P <- F P F^T + Q (`EKF._predict`, Sola 2017, Sec. 5.4) for F = [[A, B, 0], [0, I]]: A (3 x 3) and
     B (3 x (n - 3)) in F's first three rows, the velocity columns zero, the identity below (only
     F[:3, :n] is read), and Q = Qrate dt (+ Qbad dt^2 without a usable gyro) with Qrate, Qbad
     symmetric. With T = F[:3] P (3 x N): the block [:3, :3] is T F[:3]^T, the block [:3, 3:]
@@ -73,22 +76,25 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
 def _correct(q, b, s, v, dx, n, N, small):
     """`EKF._correct`: inject an error-state correction dx (N,): q exp(dx_e / 2), b + dx_b, s + dx_s, v + dx_v (in place); -> the new q."""
     for i in range(3):
-        if n > 3:
-            b[i] = b[i] + dx[3 + i]
-        if n > 6:
-            s[i] = s[i] + dx[6 + i]
+        if n > BIAS_AT:  # the bias block
+            b[i] = b[i] + dx[BIAS_AT + i]
+        if n > SCALE_AT:  # the scale block
+            s[i] = s[i] + dx[SCALE_AT + i]
     for i in range(N - n):
         v[i] = v[i] + dx[n + i]
     return multiply_floats(q, exp_floats(dx[0], dx[1], dx[2], small))
 
 
 @mirrors("fusion.estimators.filters.ekf.EKF._velocity_step")
-def _velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D):
+def _velocity_step(P, n, N, q, v, acc, h, o, w):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
-    the attitude q, P <- V P V^T with V = I but V[n:, :3] = -(R [a]x)_xy g dt, then the
+    the attitude q, P <- V P V^T with V = I but V[velocity, ATTITUDE] = -(R [a]x)_xy g dt, then the
     pseudo-measurement v = 0 (variance Rv / dt, H = [0, I], so that P H^T = P[:, n:] and
     H P H^T = P[n:, n:]) in Joseph form (`joseph2`); the correction into dx (N,) (K, PHt, D:
-    N x 3 scratch, two columns used; S: 3 x 3 scratch, its upper-left 2 x 2 used)."""
+    N x 3 scratch, two columns used; S: 3 x 3 scratch, its upper-left 2 x 2 used; w: the
+    `KalmanUpdateWork` holding them); acc: the accelerometer sample, 3 floats, g."""
+    K, dx, PHt, S = w.K, w.dx, w.PHt, w.S
+    ax, ay, az = acc
     r00, r01, r02, r10, r11, r12, _, _, _ = rotation_floats(q)  # the first two rows of R(q)
     if math.isfinite(ax) and math.isfinite(ay) and math.isfinite(az):
         g = o.gravity * h
@@ -113,19 +119,20 @@ def _velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D):
     if o.heading_free:
         hx, hy, hz = gravity_floats(q)
         _project_heading(K, 0, hx, hy, hz)
-        if n > 3:
-            _project_heading(K, 3, hx, hy, hz)
+        if o.bias:
+            _project_heading(K, BIAS_AT, hx, hy, hz)
     for i in range(N):
         dx[i] = -(K[i, 0] * v[0] + K[i, 1] * v[1])
     for i in range(N):  # P H^T
         PHt[i, 0], PHt[i, 1] = P[i, n], P[i, n + 1]
     S[0, 0], S[0, 1], S[1, 0], S[1, 1] = s00, s01, s10, s11  # H P H^T + r I
-    joseph2(P, K, PHt, S, N, D)
+    joseph2(P, K, PHt, S, N, w.D)
 
 
 @mirrors("fusion.estimators.filters.ekf.EKF.estimate")
 def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
-    """`EKF.estimate`: the loop of `EKF.step` over a recording (see `ekf` for the equations).
+    """`EKF.estimate`: the loop of `KalmanFilter.step` with `EKF`'s parts over a recording (see `ekf`
+    for the equations).
 
     inp: the recording (`_numba.Inputs`: the interval rates and steps, the accelerometer, the
     magnetometer or none). State in and out: qio (4,), b (3,), s (3,), v (2,), P (N, N)
@@ -143,14 +150,14 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
     T = np.empty((3, N))
     J = np.empty((3, 3))
     H = np.zeros((3, N))
-    with_lag = o.lag
-    rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`AccDisturbance.update`)
+    with_lag = o.acc.lag
     PHt = np.empty((N, 3))
     S = np.empty((3, 3))
     Sinv = np.empty((3, 3))
     K = np.empty((N, 3))
     D = np.empty((N, 3))
     dx = np.empty(N)
+    uw = KalmanUpdateWork(K, dx, S, Sinv, PHt, D)
     L = np.empty((N, N))
     q = (qio[0], qio[1], qio[2], qio[3])
     use_mag = inp.mag.shape[0] > 0
@@ -166,9 +173,9 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         ux, uy, uz = gx, gy, gz
         sx, sy, sz = 1.0, 1.0, 1.0
         if ok:
-            if n > 3:
+            if o.bias:
                 ux, uy, uz = gx - b[0], gy - b[1], gz - b[2]
-            if n > 6:
+            if o.scale:
                 sx, sy, sz = 1.0 + s[0], 1.0 + s[1], 1.0 + s[2]
                 tx, ty, tz = ux * sx * h, uy * sy * h, uz * sz * h  # w_true = diag(1 + s) (w_meas - b)
             else:
@@ -178,7 +185,7 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
             accel.lose_frame(st.dist)
         d = exp_floats(tx, ty, tz, small)
         q = multiply_floats(q, d)
-        # F[:3, :3] = R(theta)^T; F[:3, 3:6] = -J_r diag(1 + s) dt; F[:3, 6:] = J_r diag(w - b) dt
+        # F[ATTITUDE, ATTITUDE] = R(theta)^T; F[ATTITUDE, BIAS] = -J_r diag(1 + s) dt; F[ATTITUDE, SCALE] = J_r diag(w - b) dt
         dw, dxx, dyy, dzz = d
         F[0, 0] = 1 - 2 * (dyy * dyy + dzz * dzz)
         F[1, 0] = 2 * (dxx * dyy - dw * dzz)
@@ -189,27 +196,27 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         F[0, 2] = 2 * (dxx * dzz - dw * dyy)
         F[1, 2] = 2 * (dyy * dzz + dw * dxx)
         F[2, 2] = 1 - 2 * (dxx * dxx + dyy * dyy)
-        if n > 3:
+        if o.bias:
             right_jacobian_dt(tx, ty, tz, h, o.quat, J)
             for i in range(3):
                 for j in range(3):
                     if not ok:  # the rate was not integrated: no bias or scale enters
-                        F[i, 3 + j] = 0.0
-                        if n > 6:
-                            F[i, 6 + j] = 0.0
-                    elif n > 6:
-                        F[i, 3 + j] = -J[i, j] * (sx if j == 0 else sy if j == 1 else sz)
-                        F[i, 6 + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
+                        F[i, BIAS_AT + j] = 0.0
+                        if o.scale:
+                            F[i, SCALE_AT + j] = 0.0
+                    elif o.scale:
+                        F[i, BIAS_AT + j] = -J[i, j] * (sx if j == 0 else sy if j == 1 else sz)
+                        F[i, SCALE_AT + j] = J[i, j] * (ux if j == 0 else uy if j == 1 else uz)
                     else:
-                        F[i, 3 + j] = -J[i, j]
+                        F[i, BIAS_AT + j] = -J[i, j]
         predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T)  # P <- F P F^T + Q
-        if N > n:  # the velocity model (`EKF._velocity_step`)
-            _velocity_step(P, n, N, q, v, ax, ay, az, h, o, K, dx, PHt, S, D)
+        if N > n:  # before the updates: the velocity model (`EKF._before_updates`, `_velocity_step`)
+            _velocity_step(P, n, N, q, v, (ax, ay, az), h, o, uw)
             q = _correct(q, b, s, v, dx, n, N, small)
         at_rest = False
-        if n > 3 and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
-            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
-            rest.bias_rest_update(P, N, b[0], b[1], b[2], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, PHt, D)
+        if o.bias and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
+            # Zero-rate update at rest (VQF, Sec. 3.4; `KalmanFilter._rest_update`): the gyro reads the bias.
+            rest.bias_rest_update((b[0], b[1], b[2]), P, (gx, gy, gz), o.rest_noise / h, N, uw)
             q = _correct(q, b, s, v, dx, n, N, small)
             at_rest = True
         var = math.nan
@@ -217,20 +224,18 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         guarded = False
         lowpassed = False
         scale = accel.acc_variance_scale(ax, ay, az, o.acc.gate, o.acc.gate_g) if o.use_acc else math.inf
-        if with_lag:
-            rate[0, 0], rate[0, 1], rate[0, 2] = ux, uy, uz
-            for i in range(3):
-                rate[1, i] = 1.0 + s[i] if n > 6 else 1.0
-        if scale < math.inf:
+        # the lag's inputs (`EKF._lag_rate`): the rate the prediction integrated and 1 + s now
+        gain = (1.0 + s[0], 1.0 + s[1], 1.0 + s[2]) if o.scale else (1.0, 1.0, 1.0)
+        if scale < math.inf:  # the accelerometer (`KalmanFilter._acc_update`, `EKF._acc_correct`)
             hx, hy, hz = gravity_floats(q)
-            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, d, ax, ay, az, h, scale,
-                                                                        o.process_noise, o.acc, with_lag, rate,
-                                                                        o.slow_corr, hx, hy, hz, P, n, o.slow_scale_var,
+            step = accel.AccStep(d, h, scale, o.process_noise, (ux, uy, uz), gain)
+            slow = accel.SlowDisturbance(o.slow_corr, (hx, hy, hz), P[BIAS_AT:n, BIAS_AT:n], o.slow_scale_var)
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, (ax, ay, az), step, slow, o.acc,
                                                                         H)  # H: scratch until filled below
             var = r
             accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
-                accel.lag_jacobian(H, st.dist, n)
+                accel.lag_jacobian(H, st.dist, o.scale)
             nh = n if with_lag and lowpassed else 3  # H's columns nh.. are zero
             for i in range(N):  # P H^T
                 for j in range(3):
@@ -251,13 +256,13 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
                     K[i, j] = PHt[i, 0] * Sinv[0, j] + PHt[i, 1] * Sinv[1, j] + PHt[i, 2] * Sinv[2, j]
             if o.heading_free:  # K <- (I - h h^T) K on the attitude and bias rows
                 _project_heading(K, 0, hx, hy, hz)
-                if n > 3:
-                    _project_heading(K, 3, hx, hy, hz)
+                if o.bias:
+                    _project_heading(K, BIAS_AT, hx, hy, hz)
             yx, yy, yz = mx - hx, my - hy, mz - hz
             nis = _nis(yx, yy, yz, Sinv)
-            guarded = n > 3 and nis > o.chi2  # inconsistent innovation: correct the attitude only
-            if guarded or (n > 3 and lowpassed and not o.lowpass_calibration):  # ... or the velocity's to correct
-                for i in range(3, n):
+            guarded = o.bias and nis > o.chi2  # inconsistent innovation: correct the attitude only
+            if guarded or (o.bias and lowpassed and not o.lowpass_calibration):  # ... or the velocity's to correct
+                for i in range(BIAS_AT, n):
                     K[i, 0] = 0.0
                     K[i, 1] = 0.0
                     K[i, 2] = 0.0
@@ -268,10 +273,10 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         else:
             skipped += 1
             if o.acc.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
-                accel.turn(st.dist, d, h, o.acc, with_lag, rate)
+                accel.turn(st.dist, d, h, (ux, uy, uz), gain, o.acc)
         mag_used = False
         hi_used = False
-        if use_mag and inp.mag_ok[k + 1]:  # 9-D: the gated heading-only update (`EKF.step`)
+        if use_mag and inp.mag_ok[k + 1]:  # 9-D: the gated heading-only update (`KalmanFilter._mag_update`)
             mx, my, mz = inp.mag[k + 1, 0], inp.mag[k + 1, 1], inp.mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
                 if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
@@ -283,14 +288,14 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
                     magnetometer.heading_update(P, n, N, q, east, north, r_mag, Km, Gm, dx)
                     q = _correct(q, b, s, v, dx, n, N, small)
                     mag_used = True
-        # Wald's test: a scale error, or a calibrated gyro? (`_scale_test.ScaleTest`)
+        # Wald's test: a scale error, or a calibrated gyro? (`KalmanFilter._scale_test_update`)
         if o.test.axes and st.test[TEST_ON] == 1.0 and st.test[TEST_DECISION] == 0.0:
-            if scale_test.step(P, s, st.test, q, o.test, o.heading_free, N, K, PHt, S, Sinv, D, dx):
+            if scale_test.step(P, s, st.test, q, o.test, o.heading_free, N, uw):
                 q = _correct(q, b, s, v, dx, n, N, small)
-        if n > 3:
+        if o.bias:  # finish (`EKF._finish`)
             for i in range(3):
                 b[i] = _clip(b[i], -o.bias_max, o.bias_max)
-        if n > 6:
+        if o.scale:
             for i in range(3):
                 s[i] = _clip(s[i], -o.scale_max, o.scale_max)
         q = normalize_floats(q)

@@ -1,8 +1,11 @@
-"""`ukf` and `ukf-bias` compiled: the loop of `UKF.step` over a whole recording (`estimate`).
+"""`ukf` and `ukf-bias` compiled: the loop of `KalmanFilter.step` with `UKF`'s parts over a whole
+recording (`estimate`).
 
-Every line implements a line of `UKF.step` and `QuaternionUKF.predict_kraft` / `update_kraft`
-(`fusion.estimators.filters.ukf`, `fusion.estimators.filters.quaternion_ukf`, where the numbered steps and Kraft
-2003 are), in the same order where the order matters for rounding; the sensor concerns are the
+Every line implements a line of `KalmanFilter.step`, `UKF`'s parts and `QuaternionUKF.predict_kraft`
+/ `update_kraft` (`fusion.estimators.filters.kalman_base`, `fusion.estimators.filters.ukf`,
+`fusion.estimators.filters.quaternion_ukf`, where the numbered steps and Kraft 2003 are), in the same
+order where the order matters for rounding, and the sections of the loop are the sequence's;
+the sensor concerns are the
 kernels of `_compiled_accel`, `_compiled_rest`, `_compiled_magnetometer` and
 `_compiled_scale_test`, called under their references' names. Organised differently, changing the
 rounding only (`tests/test_compiled.py` checks 1e-10): the covariances are computed on their upper
@@ -17,13 +20,14 @@ import math
 
 import numpy as np
 
-from ..kernels._compiled_linalg import _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
+from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
 from ..kernels._compiled_quaternion import exp_floats, gravity_floats, log_floats, multiply_floats, normalize_floats
 from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
 from .steps import _compiled_scale_test as scale_test
+from .steps._error_state import BIAS_AT, CALIBRATION_AT, SCALE_AT, X_BIAS_AT, X_SCALE_AT
 from .steps._scale_test import TEST_DECISION, TEST_LLR, TEST_ON
 
 forget_stale(__file__)
@@ -75,7 +79,7 @@ def weighted_cross3(E, WZ, out, n, m):
 
 @mirrors("fusion.estimators.filters.ukf.UKF.estimate")
 def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
-    """`UKF.estimate` with impl=numpy: the loop of `UKF.step` (`QuaternionUKF.predict_kraft`,
+    """`UKF.estimate` with impl=numpy: the loop of `KalmanFilter.step` (`QuaternionUKF.predict_kraft`,
     `update_kraft`; steps 1-9 of the `ukf` module docstring) over a recording.
 
     inp: the recording (`_numba.Inputs`; the magnetometer for ukf-bias only, as in
@@ -104,9 +108,9 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
     K = np.empty((n, 3))
     KS = np.empty((n, 3))
     dx = np.empty(n)
+    uw = KalmanUpdateWork(K, dx, S, Sinv, Pxz, KS)
     H = np.zeros((3, n))
-    with_lag = o.lag
-    rate = np.zeros((2, 3))  # the lag's inputs: u and 1 + s (`UKF._lag_rate`)
+    with_lag = o.acc.lag
     use_mag = inp.mag.shape[0] > 0
     hi_fit = np.empty(4)
     hi_work = np.empty((4, 5))
@@ -134,10 +138,10 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         if ok:
             # The mean rate increment, for the disturbance estimator's strapdown frame.
             wx, wy, wz = gx, gy, gz
-            if n > 3:
-                wx, wy, wz = gx - x[4], gy - x[5], gz - x[6]
-            if n > 6:
-                wx, wy, wz = wx * (1.0 + x[7]), wy * (1.0 + x[8]), wz * (1.0 + x[9])
+            if o.bias:
+                wx, wy, wz = gx - x[X_BIAS_AT], gy - x[X_BIAS_AT + 1], gz - x[X_BIAS_AT + 2]
+            if o.scale:
+                wx, wy, wz = wx * (1.0 + x[X_SCALE_AT]), wy * (1.0 + x[X_SCALE_AT + 1]), wz * (1.0 + x[X_SCALE_AT + 2])
             dq = exp_floats(wx * h, wy * h, wz * h, small)
         else:
             wx, wy, wz = 0.0, 0.0, 0.0
@@ -169,18 +173,20 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                 X = (Ep[i - 1, 0], Ep[i - 1, 1], Ep[i - 1, 2], Ep[i - 1, 3])
             if not ok:
                 sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = X
-                for j in range(3, n):
+                for j in range(CALIBRATION_AT, n):
                     sig[i, j + 1] = x[j + 1] + off[i, j]
-            elif n > 3:
-                bx, by, bz = x[4] + off[i, 3], x[5] + off[i, 4], x[6] + off[i, 5]
+            elif o.bias:
+                bx, by, bz = (x[X_BIAS_AT] + off[i, BIAS_AT], x[X_BIAS_AT + 1] + off[i, BIAS_AT + 1],
+                              x[X_BIAS_AT + 2] + off[i, BIAS_AT + 2])
                 rx, ry, rz = gx - bx, gy - by, gz - bz
-                if n > 6:
-                    s0, s1, s2 = x[7] + off[i, 6], x[8] + off[i, 7], x[9] + off[i, 8]
+                if o.scale:
+                    s0, s1, s2 = (x[X_SCALE_AT] + off[i, SCALE_AT], x[X_SCALE_AT + 1] + off[i, SCALE_AT + 1],
+                                  x[X_SCALE_AT + 2] + off[i, SCALE_AT + 2])
                     rx, ry, rz = rx * (1.0 + s0), ry * (1.0 + s1), rz * (1.0 + s2)
-                    sig[i, 7], sig[i, 8], sig[i, 9] = s0, s1, s2
+                    sig[i, X_SCALE_AT], sig[i, X_SCALE_AT + 1], sig[i, X_SCALE_AT + 2] = s0, s1, s2
                 Y = multiply_floats(X, exp_floats(rx * h, ry * h, rz * h, small))  # steps 1, 4, per point
                 sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = Y
-                sig[i, 4], sig[i, 5], sig[i, 6] = bx, by, bz
+                sig[i, X_BIAS_AT], sig[i, X_BIAS_AT + 1], sig[i, X_BIAS_AT + 2] = bx, by, bz
             else:
                 sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3] = multiply_floats(X, dq)  # steps 1, 4 (dq: exp(w dt / 2))
         # step 5: iterative quaternion mean (`ukf.quaternion_mean`)
@@ -204,7 +210,7 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         x[0], x[1], x[2], x[3] = qt
         for i in range(m):
             res[i, 0], res[i, 1], res[i, 2] = err[i, 0] - ex, err[i, 1] - ey, err[i, 2] - ez
-        for j in range(3, n):
+        for j in range(CALIBRATION_AT, n):
             v = 0.0
             for i in range(m):
                 v += Wm[i] * sig[i, j + 1]
@@ -218,11 +224,12 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         weighted_outer_sum(res, Wres, P, m, n)
         # ---- rest update (ukf-bias)
         at_rest = False
-        if n > 3 and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
-            rest.bias_rest_update(P, n, x[4], x[5], x[6], gx, gy, gz, o.rest_noise / h, K, dx, S, Sinv, Pxz, KS)
+        if o.bias and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
+            rest.bias_rest_update((x[X_BIAS_AT], x[X_BIAS_AT + 1], x[X_BIAS_AT + 2]), P, (gx, gy, gz), o.rest_noise / h,
+                                  n, uw)
             qn4 = normalize_floats(multiply_floats((x[0], x[1], x[2], x[3]), exp_floats(dx[0], dx[1], dx[2], small)))
             x[0], x[1], x[2], x[3] = qn4
-            for j in range(3, n):
+            for j in range(CALIBRATION_AT, n):
                 x[j + 1] = x[j + 1] + dx[j]
             at_rest = True
         # ---- accelerometer update (steps 6-9)
@@ -230,28 +237,29 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         nis = math.nan
         lowpassed = False
         scale = accel.acc_variance_scale(ax, ay, az, o.acc.gate, o.acc.gate_g) if o.use_acc else math.inf
+        u, gain = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)  # the lag's inputs (`UKF._lag_rate`)
         if with_lag:
-            rate[0, 0], rate[0, 1], rate[0, 2] = gx - x[4], gy - x[5], gz - x[6]
-            for i in range(3):
-                rate[1, i] = 1.0 + x[7 + i] if n > 6 else 1.0
+            u = (gx - x[X_BIAS_AT], gy - x[X_BIAS_AT + 1], gz - x[X_BIAS_AT + 2])
+            if o.scale:
+                gain = (1.0 + x[X_SCALE_AT], 1.0 + x[X_SCALE_AT + 1], 1.0 + x[X_SCALE_AT + 2])
         if scale < math.inf:
             q_rate = o.process_noise  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
-            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, dq, ax, ay, az, h, scale, q_rate,
-                                                                        o.acc, with_lag, rate, 0.0, 0.0, 0.0, 0.0, P,
-                                                                        n, 0.0, H)  # no slow component
+            step = accel.AccStep(dq, h, scale, q_rate, u, gain)
+            slow = accel.SlowDisturbance(0.0, (0.0, 0.0, 0.0), P[BIAS_AT:n, BIAS_AT:n], 0.0)  # no slow component
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, (ax, ay, az), step, slow, o.acc, H)
             var = r
             lagged = with_lag and lowpassed
             if lagged:  # the low-passed sample's lag (`AccDisturbance.lag_jacobian`)
                 hx, hy, hz = gravity_floats((x[0], x[1], x[2], x[3]))
                 accel.gravity_jacobian(H, hx, hy, hz, n)
-                accel.lag_jacobian(H, st.dist, n)
+                accel.lag_jacobian(H, st.dist, o.scale)
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
                 g0, g1, g2 = gravity_floats((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
                 if lagged:
-                    for c in range(3, n):
+                    for c in range(CALIBRATION_AT, n):
                         g0 += H[0, c] * res[i, c]
                         g1 += H[1, c] * res[i, c]
                         g2 += H[2, c] * res[i, c]
@@ -277,8 +285,8 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                 nz = math.sqrt(zx * zx + zy * zy + zz * zz)
                 hx, hy, hz = zx / nz, zy / nz, zz / nz
                 _project_heading(K, 0, hx, hy, hz)
-                if n > 3:
-                    _project_heading(K, 3, hx, hy, hz)
+                if o.bias:
+                    _project_heading(K, BIAS_AT, hx, hy, hz)
                 # P - K Pxz^T - Pxz K^T + K S K^T (the covariance of a general gain: `joseph`)
                 joseph(P, K, Pxz, S, n, KS)
             else:
@@ -292,13 +300,13 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                 dx[a] = K[a, 0] * yx + K[a, 1] * yy + K[a, 2] * yz
             qn4 = normalize_floats(multiply_floats((x[0], x[1], x[2], x[3]), exp_floats(dx[0], dx[1], dx[2], small)))  # step 9
             x[0], x[1], x[2], x[3] = qn4
-            for j in range(3, n):
+            for j in range(CALIBRATION_AT, n):
                 x[j + 1] = x[j + 1] + dx[j]
             nis = _nis(yx, yy, yz, Sinv)
         else:
             skipped += 1
             if o.acc.corr_s > 0.0:
-                accel.turn(st.dist, dq, h, o.acc, with_lag, rate)
+                accel.turn(st.dist, dq, h, u, gain, o.acc)
         mag_used = False
         hi_used = False
         if use_mag and inp.mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
@@ -314,30 +322,30 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                     magnetometer.heading_update(P, n, n, q4, east, north, r_mag, Km, Gm, dx)
                     qn4 = normalize_floats(multiply_floats(q4, exp_floats(dx[0], dx[1], dx[2], small)))
                     x[0], x[1], x[2], x[3] = qn4
-                    for j in range(3, n):
+                    for j in range(CALIBRATION_AT, n):
                         x[j + 1] = x[j + 1] + dx[j]
                     mag_used = True
         # Wald's test on the scale (`_scale_test.ScaleTest`, as in `_compiled_ekf.estimate`)
         if o.test.axes and st.test[TEST_ON] == 1.0 and st.test[TEST_DECISION] == 0.0:
             q4 = (x[0], x[1], x[2], x[3])
-            if scale_test.step(P, x[7:10], st.test, q4, o.test, o.heading_free, n, K, Pxz, S, Sinv, KS, dx):
+            if scale_test.step(P, x[X_SCALE_AT:X_SCALE_AT + 3], st.test, q4, o.test, o.heading_free, n, uw):
                 x[0], x[1], x[2], x[3] = normalize_floats(multiply_floats(q4, exp_floats(dx[0], dx[1], dx[2], small)))
-                for j in range(3, n):
+                for j in range(CALIBRATION_AT, n):
                     x[j + 1] = x[j + 1] + dx[j]
-        if n > 3:
-            for i in range(4, 7):
+        if o.bias:
+            for i in range(X_BIAS_AT, X_BIAS_AT + 3):
                 x[i] = _clip(x[i], -o.bias_max, o.bias_max)
-        if n > 6:
-            for i in range(7, 10):
+        if o.scale:
+            for i in range(X_SCALE_AT, X_SCALE_AT + 3):
                 x[i] = _clip(x[i], -o.scale_max, o.scale_max)
         if repair_covariance(P, n, o.cov, L):
             repaired += 1
         out.quat[k + 1, :] = x[:4]
         out.cov[k + 1, :, :] = P
-        if n > 3:
-            out.gyr_bias_rad_s[k + 1, :] = x[4:7]
-        if n > 6:
-            out.gyr_scale[k + 1, :] = x[7:10]
+        if o.bias:
+            out.gyr_bias_rad_s[k + 1, :] = x[X_BIAS_AT:X_BIAS_AT + 3]
+        if o.scale:
+            out.gyr_scale[k + 1, :] = x[X_SCALE_AT:X_SCALE_AT + 3]
         out.mean_iterations[k + 1] = iters
         out.acc_var_g2[k + 1] = var
         out.at_rest[k + 1] = at_rest

@@ -146,8 +146,11 @@ symmetrised (eigenvalues clipped if needed) every step (`_linalg.repair_covarian
 
 Two implementations (`impl`): `EKF.step` below, in numpy, is the reference and what `reset`/`step`
 (the streaming interface) always run; `"compiled"` (the default) makes `estimate` run the whole
-recording in `_compiled_ekf.estimate`, whose helpers carry the names of the methods they mirror
-(`_compiled_ekf._correct`, `_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`.
+recording in `_compiled_ekf.estimate` (the loop of `KalmanFilter.step` with `EKF`'s parts, its
+sections the sequence's), whose helpers carry the names of the methods they mirror
+(`_compiled_ekf._correct`, `_compiled_ekf._velocity_step`); `"numpy"` makes `estimate` loop `step`. Where a newcomer changing
+the filter looks: the step's sequence in `kalman_base.KalmanFilter.step` (shared with the UKFs),
+`EKF`'s parts below, the sensor concerns in `steps/`, and each one's `_compiled_*` twin.
 """
 from __future__ import annotations
 
@@ -163,12 +166,12 @@ from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ..kernels._linalg import inv_sym3, repair_covariance
 from ..search import Tunable
-from ._error_state import axes_mask
+from .steps._error_state import ATTITUDE, BIAS, BIAS_AT, SCALE, ErrorLayout, axes_mask
 from .filter_params import BiasFilterParams
-from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
-from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
-from .steps._magnetometer import HardIron, MagReference, heading_update, heading_variance, magnetometer_input
-from .steps._rest import RestDetector, bias_rest_update
+from .kalman_base import KalmanFilter, Motion, error_state_covariances, initial_quaternion
+from .steps._accel import AccDisturbance, SlowDisturbance, models_lag
+from .steps._magnetometer import HardIron, MagReference
+from .steps._rest import RestDetector
 from .steps._scale_test import ScaleTest
 from .steps._stuck import stuck_gyro_state
 
@@ -262,7 +265,9 @@ VELOCITY_INIT_STD_M_S = 0.1
 
 
 class EKF(KalmanFilter):
-    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring)."""
+    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring). Its
+    step is `KalmanFilter.step`; this class supplies the prediction, the velocity model, the
+    accelerometer correction and the injection."""
 
     Params = EKFParams
     LAST_ROW = {**KalmanFilter.LAST_ROW, "bias_guarded": "guarded", "mag_used": "mag_used",
@@ -271,27 +276,28 @@ class EKF(KalmanFilter):
 
     def reset(self, init_quat_wxyz: np.ndarray) -> None:
         p = self.params
-        n = 3 + 3 * p.estimate_bias + 3 * p.estimate_scale
-        self.n = n
+        self.layout = L = ErrorLayout(bias=p.estimate_bias, scale=p.estimate_scale,
+                                      velocity_states=p.velocity_states)
+        self.n, self.N = n, N = L.n, L.N  # with the horizontal velocity after [attitude, bias, scale]
         self.q = initial_quaternion("ekf", init_quat_wxyz)
+        self._q = tuple(self.q.tolist())  # the attitude within a step, 4 floats, normalised at its end
         self.b = np.zeros(3)
         self.s = np.zeros(3)
         P0, Qrate, Qbad = error_state_covariances(p, n)
-        self.N = N = n + p.velocity_states  # with the horizontal velocity after [attitude, bias, scale]
         self.P, self._Qrate, self._Qbad = np.zeros((N, N)), np.zeros((N, N)), np.zeros((N, N))
         self.P[:n, :n], self._Qrate[:n, :n], self._Qbad[:n, :n] = P0, Qrate, Qbad
         self.v = np.zeros(2)
-        if N > n:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density Qv g^2
-            self.P[n:, n:] = np.eye(2) * VELOCITY_INIT_STD_M_S**2
-            self._Qrate[n:, n:] = np.eye(2) * STANDARD_GRAVITY_M_S2**2 * p.velocity_acc_noise_g2_s
+        if L.velocity_states:  # at rest at the start, to VELOCITY_INIT_STD_M_S; white acceleration of density Qv g^2
+            self.P[L.velocity, L.velocity] = np.eye(2) * VELOCITY_INIT_STD_M_S**2
+            self._Qrate[L.velocity, L.velocity] = np.eye(2) * STANDARD_GRAVITY_M_S2**2 * p.velocity_acc_noise_g2_s
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
-        self._with_lag = models_lag(p, n)
+        self._with_lag = models_lag(p, L.bias)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
         self._stuck = stuck_gyro_state()
         self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
                                        axes_mask(p.scale_axes))
-                            if n > 6 else ScaleTest.off())
+                            if L.scale else ScaleTest.off())
         self._mag = MagReference.of(p)
         self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
         self._F = np.eye(N)
@@ -306,132 +312,141 @@ class EKF(KalmanFilter):
         self.hard_iron_used = False  # ... with the sphere fit's offset removed
         self.n_skipped = self.n_cov_repaired = 0
 
-    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
-             mag_ut: np.ndarray | None = None) -> np.ndarray:
-        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
-        uT, body frame, or None (no magnetometer, or no valid sample): the heading update."""
-        p = self.params
-        n = self.n
-        gyr_valid = self._usable(gyr_rad_s, dt_s, acc_g, gyr_valid)
-        self.acc_var, self.at_rest, self.nis, self.guarded, self.lowpassed = math.nan, False, math.nan, False, False
-        self.mag_used = self.hard_iron_used = False
+    # ------------------------------------------------------------------ the parts of `KalmanFilter.step`
+    def _predict(self, gyr_rad_s: np.ndarray, dt_s: float, gyr_valid: bool) -> Motion:
+        """Predict (module docstring): q <- q exp(theta / 2), P <- F P F^T + Q."""
+        L = self.layout
         Q = self._Qrate * dt_s
         F = self._F
-        q = self.q.tolist()
         valid = gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])
+        u = None
         if valid:
-            u = gyr_rad_s - self.b if n > 3 else gyr_rad_s
-            g = 1.0 + self.s if n > 6 else None
-            tx, ty, tz = (u * g * dt_s) if n > 6 else u * dt_s  # w_true = diag(1 + s) (w_meas - b)
+            u = gyr_rad_s - self.b if L.bias else gyr_rad_s
+            g = 1.0 + self.s if L.scale else None
+            tx, ty, tz = (u * g * dt_s) if L.scale else u * dt_s  # w_true = diag(1 + s) (w_meas - b)
         else:  # no rate integration; inflate the attitude noise instead
             tx = ty = tz = 0.0
             Q = Q + self._Qbad * (dt_s * dt_s)
             self._dist.lose_frame()
         d = exp_floats(tx, ty, tz)
-        q = multiply_floats(q, d)  # q exp(theta / 2), as 4 floats
-        F[:3, :3] = rotation_matrix_floats(*d).T  # error transition R(theta)^T
-        if n > 3:
+        self._q = multiply_floats(self.q.tolist(), d)  # q exp(theta / 2), as 4 floats
+        F[ATTITUDE, ATTITUDE] = rotation_matrix_floats(*d).T  # error transition R(theta)^T
+        if L.bias:
             Jdt = right_jacobian_floats(tx, ty, tz) * dt_s
-            if n > 6:
+            if L.scale:
                 if valid:
-                    F[:3, 3:6] = -Jdt * g  # d theta / d b = -J_r diag(1 + s) dt
-                    F[:3, 6:n] = Jdt * u  # d theta / d s = J_r diag(w - b) dt
+                    F[ATTITUDE, BIAS] = -Jdt * g  # d theta / d b = -J_r diag(1 + s) dt
+                    F[ATTITUDE, SCALE] = Jdt * u  # d theta / d s = J_r diag(w - b) dt
                 else:
-                    F[:3, 3:6] = 0.0  # the rate was not integrated: no bias or scale enters
-                    F[:3, 6:n] = 0.0
+                    F[ATTITUDE, BIAS] = 0.0  # the rate was not integrated: no bias or scale enters
+                    F[ATTITUDE, SCALE] = 0.0
             else:
-                F[:3, 3:6] = -Jdt if valid else 0.0
-        P = F @ self.P @ F.T + Q
-        if self.N > n:
-            q, P = self._velocity_step(q, P, acc_g, dt_s)
-        if n > 3 and valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
-            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias.
-            dx, P = bias_rest_update(self.b, P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
-            q = self._correct(q, dx)
-            self.at_rest = True
-        scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
-        rate = u if valid else None  # the lag's inputs (`AccDisturbance.update`)
-        if scale < math.inf:
-            w, x, y, z = q
-            h = gravity_in_body_floats(w, x, y, z)
-            H = self._H
-            H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
-            H[1, 0], H[1, 2] = h[2], -h[0]
-            H[2, 0], H[2, 1] = -h[1], h[0]
-            H[:, 3:] = 0.0
-            slow = p.slow_disturbance_corr_s if self._with_lag else 0.0  # the slow external acceleration
-            prior = p.init_scale_var if n > 6 else 0.0  # the rate error the calibration states lack
-            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, d, dt_s, scale,
-                                                                 p.process_noise_rad2_s, rate, 1.0 + self.s, slow,
-                                                                 H[:, :3], P[3:n, 3:n], prior)
-            self.acc_var = r
-            if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
-                H_b, H_s = self._dist.lag_jacobian(H[:, :3])
-                H[:, 3:6] = H_b
-                if n > 6:
-                    H[:, 6:n] = H_s
-            PHt = P @ H.T
-            S = H @ PHt
-            S[0, 0] += r
-            S[1, 1] += r
-            S[2, 2] += r
-            Sinv = inv_sym3(S)
-            K = PHt @ Sinv
-            if p.heading_free:
-                # Remove the correction about the predicted vertical h (|h| = 1) from the
-                # attitude and bias rows: K <- (I - h h^T) K; the Joseph form stays exact.
-                K[:3] -= np.outer(h, h @ K[:3])
-                if n > 3:
-                    K[3:6] -= np.outer(h, h @ K[3:6])
-            y = meas - h
-            self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
-            # The attitude only, not the bias and scale, is corrected when the innovation is
-            # inconsistent with the predicted covariance (a gyro freeze or a large error: not
-            # through their linearised correlations), and for the low-passed sample when the
-            # velocity states, which measure the frame's drift from the same accelerometer
-            # samples, correct the calibration (module docstring). Any gain is exact in the Joseph form.
-            self.guarded = n > 3 and self.nis > _CHI2_3DOF
-            if self.guarded or (n > 3 and self.lowpassed and self.N > n and not p.lowpass_calibration):
-                K[3:n] = 0.0
-            q = self._correct(q, K @ y)
-            IKH = self._I - K @ H
-            P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
-        else:
-            self.n_skipped += 1
-            if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
-                self._dist.turn(d, dt_s, rate, 1.0 + self.s)
-        if mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1]) and math.isfinite(mag_ut[2]):
-            # 9-D: the heading-only magnetometer update, gated (`_magnetometer.MagReference`, `heading_update`)
-            self._scale_test.stop()  # 9-D: no scale test (module docstring)
-            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, P, mag_ut,
-                                                                          dt_s)
-            if usable:
-                r = heading_variance(p, q, tx, ty, tz, dt_s)  # grown with the rate about the vertical
-                dx, P = heading_update(q, P, n, east, north, r)
-                q = self._correct(q, dx)
-                self.mag_used = True
-        # Wald's test: a scale error, or a calibrated gyro? (`_scale_test.ScaleTest`)
-        dx, P = self._scale_test.step(self.s, P, gravity_in_body_floats(*q) if p.heading_free else None)
-        if dx is not None:
-            q = self._correct(q, dx)
-        if n > 3:
+                F[ATTITUDE, BIAS] = -Jdt if valid else 0.0
+        self.P = F @ self.P @ F.T + Q
+        return Motion(valid=valid, dq=d, theta=(tx, ty, tz), u=u)
+
+    def _before_updates(self, acc_g: np.ndarray, dt_s: float) -> None:
+        if self.layout.velocity_states:
+            self._q, self.P = self._velocity_step(self._q, self.P, acc_g, dt_s)
+
+    def _acc_correct(self, meas: np.ndarray, r: float, h: np.ndarray) -> None:
+        """The accelerometer update (module docstring): H = [[h]x, H_b, H_s, 0], the heading-free
+        gain, the chi-square guard, the Joseph form."""
+        p, L, P = self.params, self.layout, self.P
+        H = self._H
+        H[0, 1], H[0, 2] = -h[2], h[1]  # [h]x
+        H[1, 0], H[1, 2] = h[2], -h[0]
+        H[2, 0], H[2, 1] = -h[1], h[0]
+        H[:, BIAS_AT:] = 0.0
+        if self._with_lag and self.lowpassed:  # the low-pass lags by the frame's drift: H = [[h]x, H_b, H_s]
+            H_b, H_s = self._dist.lag_jacobian(H[:, ATTITUDE])
+            H[:, BIAS] = H_b
+            if L.scale:
+                H[:, SCALE] = H_s
+        PHt = P @ H.T
+        S = H @ PHt
+        S[0, 0] += r
+        S[1, 1] += r
+        S[2, 2] += r
+        Sinv = inv_sym3(S)
+        K = PHt @ Sinv
+        if p.heading_free:
+            # Remove the correction about the predicted vertical h (|h| = 1) from the
+            # attitude and bias rows: K <- (I - h h^T) K; the Joseph form stays exact.
+            K[ATTITUDE] -= np.outer(h, h @ K[ATTITUDE])
+            if L.bias:
+                K[BIAS] -= np.outer(h, h @ K[BIAS])
+        y = meas - h
+        self.nis = float(y @ Sinv @ y)  # normalised innovation squared, chi-square(3) if consistent
+        # The attitude only, not the bias and scale, is corrected when the innovation is
+        # inconsistent with the predicted covariance (a gyro freeze or a large error: not
+        # through their linearised correlations), and for the low-passed sample when the
+        # velocity states, which measure the frame's drift from the same accelerometer
+        # samples, correct the calibration (module docstring). Any gain is exact in the Joseph form.
+        self.guarded = L.bias and self.nis > _CHI2_3DOF
+        if self.guarded or (L.bias and self.lowpassed and L.velocity_states and not p.lowpass_calibration):
+            K[L.calibration] = 0.0
+        self._q = self._correct(self._q, K @ y)
+        IKH = self._I - K @ H
+        self.P = IKH @ P @ IKH.T + r * (K @ K.T)  # Joseph form
+
+    def _finish(self) -> np.ndarray:
+        p, L = self.params, self.layout
+        if L.bias:
             self.b = np.clip(self.b, -p.bias_max_rad_s, p.bias_max_rad_s)
-        if n > 6:
+        if L.scale:
             self.s = np.clip(self.s, -p.scale_max, p.scale_max)
-        self.q = unit_array(q)
-        self.P, repaired = repair_covariance(P)
+        self.q = unit_array(self._q)
+        self._q = tuple(self.q.tolist())
+        self.P, repaired = repair_covariance(self.P)
         self.n_cov_repaired += repaired
         return self.q
 
+    @property
+    def _cov(self) -> np.ndarray:
+        return self.P
+
+    @_cov.setter
+    def _cov(self, P: np.ndarray) -> None:
+        self.P = P
+
+    def _attitude(self) -> tuple:
+        return self._q
+
+    def _bias(self) -> np.ndarray:
+        return self.b
+
+    def _scale(self) -> np.ndarray:
+        return self.s
+
+    def _vertical(self) -> np.ndarray:
+        return gravity_in_body_floats(*self._q)
+
+    def _inject(self, dx: np.ndarray) -> None:
+        self._q = self._correct(self._q, dx)
+
+    def _lag_rate(self, gyr_rad_s: np.ndarray, motion: Motion) -> tuple[Any, Any]:
+        """The rate the prediction integrated (None: not integrated) and `1 + s` now."""
+        return motion.u, 1.0 + self.s
+
+    def _slow(self, h: np.ndarray) -> SlowDisturbance:
+        """With the lag, the slow external acceleration (`slow_disturbance_corr_s`), whose power the
+        calibration's uncertainty explains in part, with the scale prior as the rate error the
+        calibration states lack."""
+        p, L = self.params, self.layout
+        return SlowDisturbance(corr_s=p.slow_disturbance_corr_s if self._with_lag else 0.0, h=h,
+                               P_cal=self.P[L.calibration, L.calibration],
+                               scale_prior_var=p.init_scale_var if L.scale else 0.0)
+
     def _correct(self, q: tuple, dx: np.ndarray) -> tuple:
         """Inject an error-state correction dx (N,): `q exp(dx_e / 2)`, `b + dx_b`, `s + dx_s`, `v + dx_v`."""
-        n = self.n
-        if n > 3:
-            self.b = self.b + dx[3:6]
-        if n > 6:
-            self.s = self.s + dx[6:n]
-        if self.N > n:
-            self.v = self.v + dx[n:]
+        L = self.layout
+        if L.bias:
+            self.b = self.b + dx[BIAS]
+        if L.scale:
+            self.s = self.s + dx[SCALE]
+        if L.velocity_states:
+            self.v = self.v + dx[L.velocity]
         return multiply_floats(q, exp_floats(dx[0], dx[1], dx[2]))
 
     def _velocity_step(self, q: tuple, P: np.ndarray, acc_g: np.ndarray, dt_s: float) -> tuple[tuple, np.ndarray]:
@@ -439,25 +454,26 @@ class EKF(KalmanFilter):
         horizontal world velocity integrates the specific force at the step's end attitude,
         then the bounded-velocity pseudo-measurement `v = 0` corrects it (and, through the
         covariance, the attitude, bias and scale). Returns the corrected (q, P)."""
-        p, n = self.params, self.n
+        p, L = self.params, self.layout
+        vel = L.velocity
         R = rotation_matrix_floats(*q)
         if math.isfinite(acc_g[0]) and math.isfinite(acc_g[1]) and math.isfinite(acc_g[2]):
             self.v = self.v + (R[:2] @ acc_g) * (STANDARD_GRAVITY_M_S2 * dt_s)
             # dv/de = -(R [a]x)_xy g dt for the body-frame attitude error at the step's end
-            V = np.eye(self.N)
-            V[n:, :3] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (STANDARD_GRAVITY_M_S2 * dt_s)
+            V = np.eye(L.N)
+            V[vel, ATTITUDE] = -(R[:2] @ skew_floats(acc_g[0], acc_g[1], acc_g[2])) * (STANDARD_GRAVITY_M_S2 * dt_s)
             P = V @ P @ V.T
         r = p.velocity_bound_m2_s / dt_s
-        S = P[n:, n:] + r * np.eye(2)
-        K = P[:, n:] @ np.linalg.inv(S)
+        S = P[vel, vel] + r * np.eye(2)
+        K = P[:, vel] @ np.linalg.inv(S)
         if p.heading_free:  # as the accelerometer update: no turn about the vertical h
             h = gravity_in_body_floats(*q)
-            K[:3] -= np.outer(h, h @ K[:3])
-            if n > 3:
-                K[3:6] -= np.outer(h, h @ K[3:6])
+            K[ATTITUDE] -= np.outer(h, h @ K[ATTITUDE])
+            if L.bias:
+                K[BIAS] -= np.outer(h, h @ K[BIAS])
         q = self._correct(q, K @ -self.v)
         IKH = self._I.copy()
-        IKH[:, n:] -= K
+        IKH[:, vel] -= K
         return q, IKH @ P @ IKH.T + r * (K @ K.T)
 
     def current(self) -> dict[str, Any]:
@@ -475,10 +491,11 @@ class EKF(KalmanFilter):
         q, b, s, v, P = self.q.copy(), self.b.copy(), self.s.copy(), self.v.copy(), self.P.copy()
         st = kernels.SensorStates(dist=dist, rest=rest, mag=self._mag.state(), hard_iron=self._hard_iron.state(),
                                   test=self._scale_test.state())
-        o = kernels.settings(self.params, self.n, self._rest, chi2=_CHI2_3DOF, scale_test=self._scale_test)
+        o = kernels.settings(self.params, self.layout, self._rest, self._scale_test, chi2=_CHI2_3DOF)
         self.n_skipped, self.n_cov_repaired = _compiled_ekf.estimate(
             kernels.inputs(imu, self.magnetometer), q, b, s, v, P, self._Qrate, self._Qbad, st, o, out)
         self.q, self.b, self.s, self.v, self.P = q, b, s, v, P
+        self._q = tuple(self.q.tolist())
         self._mag.set_state(st.mag)
         self._hard_iron.set_state(st.hard_iron)
         self._scale_test.set_state(st.test)

@@ -23,7 +23,7 @@ from typing import Any, ClassVar, Literal
 
 from ..params import FormerSpellings
 from ..search import Tunable
-from ._error_state import axes_mask
+from .steps._error_state import axes_mask
 from .steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
 
 Gate = Literal["off", "skip", "inflate"]

@@ -43,6 +43,8 @@ from fusion import quaternion as quat
 from fusion.quaternion import exp_floats, left_matrix, multiply_floats, right_matrix, unit_array
 
 from ..kernels._linalg import inv_sym3, sqrt_psd
+from .steps._error_state import (ATTITUDE, BIAS, CALIBRATION_AT, SCALE, X_BIAS, X_CALIBRATION, X_QUAT, X_SCALE,
+                                 ErrorLayout)
 
 
 # --------------------------------------------------------------------------- sigma points
@@ -118,8 +120,8 @@ class QuaternionSigmaPoints:
             raise ValueError(f"sigma points: expected x ({self.n + 1},) and P ({self.n}, {self.n}), got {x.shape} and {P.shape}")
         off = self.offsets(P)
         out = np.empty((len(off), self.n + 1))
-        out[:, :4] = quat.from_rotvec(off[:, :3]) @ left_matrix(*x[:4]).T  # step 3: q * exp(W_i)
-        out[:, 4:] = x[4:] + off[:, 3:]
+        out[:, X_QUAT] = quat.from_rotvec(off[:, ATTITUDE]) @ left_matrix(*x[X_QUAT]).T  # step 3: q * exp(W_i)
+        out[:, X_CALIBRATION] = x[X_CALIBRATION] + off[:, CALIBRATION_AT:]
         return out
 
 
@@ -150,13 +152,13 @@ def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """FilterPy `residual_x`: error-state difference a - b, `[log(b_q^-1 a_q), a_b - b_b]`."""
     dq = left_matrix(b[0], -b[1], -b[2], -b[3]) @ a[:4]
     rot = quat.to_rotvec(dq)
-    return np.concatenate([rot, a[4:] - b[4:]])
+    return np.concatenate([rot, a[X_CALIBRATION] - b[X_CALIBRATION]])
 
 
 def state_add(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """FilterPy `state_add`: `[q exp(dx_rot / 2), b + dx_b]` (step 9), renormalised."""
-    q = left_matrix(*x[:4]) @ np.array(exp_floats(dx[0], dx[1], dx[2]))
-    return np.concatenate([q / np.linalg.norm(q), x[4:] + dx[3:]])
+    q = left_matrix(*x[X_QUAT]) @ np.array(exp_floats(dx[0], dx[1], dx[2]))
+    return np.concatenate([q / np.linalg.norm(q), x[X_CALIBRATION] + dx[CALIBRATION_AT:]])
 
 
 def unscented_transform_state(sigmas, Wm, Wc, noise_cov=None, mean_fn=None, residual_fn=None):
@@ -195,8 +197,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
     def __init__(self, points: QuaternionSigmaPoints, mean_tol_rad: float = 1e-9, mean_max_iter: int = 20) -> None:
         n = points.n
         self.n_err = n
-        self.has_bias = n >= 6
-        self.has_scale = n == 9
+        self.layout = ErrorLayout.of(n)
         self.mean_tol, self.mean_max_iter = mean_tol_rad, int(mean_max_iter)
         super().__init__(
             dim_x=n + 1,
@@ -230,21 +231,21 @@ class QuaternionUKF(UnscentedKalmanFilter):
         """
         if gyr_rad_s is None:
             return x.copy()
-        w = gyr_rad_s - x[4:7] if self.has_bias else gyr_rad_s
-        if self.has_scale:
-            w = w * (1.0 + x[7:10])
-        q = right_matrix(*exp_floats(*(w * dt))) @ x[:4]
-        return np.concatenate([q, x[4:]])
+        w = gyr_rad_s - x[X_BIAS] if self.layout.bias else gyr_rad_s
+        if self.layout.scale:
+            w = w * (1.0 + x[X_SCALE])
+        q = right_matrix(*exp_floats(*(w * dt))) @ x[X_QUAT]
+        return np.concatenate([q, x[X_CALIBRATION]])
 
     @staticmethod
     def hx_gravity(x: np.ndarray) -> np.ndarray:
         """Measurement model: gravity in the body frame, g (step 6)."""
-        return quat.gravity_in_body(x[:4])
+        return quat.gravity_in_body(x[X_QUAT])
 
     def state_mean(self, sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
         """FilterPy `x_mean_fn`: iterative quaternion mean, weighted bias mean (step 5)."""
-        q, _, self.mean_iterations = quaternion_mean(sigmas[:, :4], Wm, sigmas[0, :4], self.mean_tol, self.mean_max_iter)
-        return np.concatenate([q, Wm @ sigmas[:, 4:]])
+        q, _, self.mean_iterations = quaternion_mean(sigmas[:, X_QUAT], Wm, sigmas[0, X_QUAT], self.mean_tol, self.mean_max_iter)
+        return np.concatenate([q, Wm @ sigmas[:, X_CALIBRATION]])
 
     def cross_variance(self, x, z, sigmas_f, sigmas_h):
         """P_xz sized (n, dim_z) from the residuals (FilterPy sizes it from x). Step 8."""
@@ -261,32 +262,32 @@ class QuaternionUKF(UnscentedKalmanFilter):
         x = self.x
         off = pts.offsets(self.P + Q, self._offsets)  # step 2
         self.sqrt_recovered = pts.last_sqrt_recovered
-        X = quat.from_rotvec(off[:, :3]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
+        X = quat.from_rotvec(off[:, ATTITUDE]) @ left_matrix(x[0], x[1], x[2], x[3]).T  # step 3
         sig = self.sigmas_f
         if gyr_rad_s is None:
-            sig[:, :4] = X
-            sig[:, 4:] = x[4:] + off[:, 3:]
-        elif self.has_bias:
-            b = x[4:7] + off[:, 3:6]
+            sig[:, X_QUAT] = X
+            sig[:, X_CALIBRATION] = x[X_CALIBRATION] + off[:, CALIBRATION_AT:]
+        elif self.layout.bias:
+            b = x[X_BIAS] + off[:, BIAS]
             rv = gyr_rad_s - b
-            if self.has_scale:
-                s = x[7:10] + off[:, 6:9]
+            if self.layout.scale:
+                s = x[X_SCALE] + off[:, SCALE]
                 rv *= 1.0 + s
-                sig[:, 7:10] = s
+                sig[:, X_SCALE] = s
             rv *= dt  # step 1, per point
             d = quat.from_rotvec(rv)
-            sig[:, :4] = quat.multiply(X, d)  # step 4: Y_i = X_i * q_delta_i, row-wise
-            sig[:, 4:7] = b
+            sig[:, X_QUAT] = quat.multiply(X, d)  # step 4: Y_i = X_i * q_delta_i, row-wise
+            sig[:, X_BIAS] = b
         else:
             w = gyr_rad_s * dt
-            sig[:, :4] = X @ right_matrix(*exp_floats(w[0], w[1], w[2])).T  # steps 1, 4
-        Y = sig[:, :4]
+            sig[:, X_QUAT] = X @ right_matrix(*exp_floats(w[0], w[1], w[2])).T  # steps 1, 4
+        Y = sig[:, X_QUAT]
         q, err, self.mean_iterations = quaternion_mean(Y, self.Wm, Y[0], self.mean_tol, self.mean_max_iter)  # step 5
         res = self._residuals
-        res[:, :3] = err
-        if self.has_bias:
-            bm = self.Wm @ sig[:, 4:]
-            res[:, 3:] = sig[:, 4:] - bm
+        res[:, ATTITUDE] = err
+        if self.layout.bias:
+            bm = self.Wm @ sig[:, X_CALIBRATION]
+            res[:, CALIBRATION_AT:] = sig[:, X_CALIBRATION] - bm
             self.x = np.concatenate([q, bm])
         else:
             self.x = q
@@ -298,12 +299,12 @@ class QuaternionUKF(UnscentedKalmanFilter):
         """Steps 6-9 with the propagated points. z: (3,) accelerometer, g; R: (3, 3) g^2;
         lag: the low-passed sample's calibration Jacobians `(H_b, H_s)` (`_accel.LowpassLag`),
         None for the raw sample."""
-        Z = quat.gravity_in_body(self.sigmas_f[:, :4])  # step 6
+        Z = quat.gravity_in_body(self.sigmas_f[:, X_QUAT])  # step 6
         if lag is not None:  # the low-pass's lag behind the frame drift of each point's calibration
             res = self._residuals
-            Z = Z + res[:, 3:6] @ lag[0].T
-            if res.shape[1] > 6:
-                Z = Z + res[:, 6:9] @ lag[1].T
+            Z = Z + res[:, BIAS] @ lag[0].T
+            if self.layout.scale:
+                Z = Z + res[:, SCALE] @ lag[1].T
         zp = self.Wm @ Z  # step 7
         dZ = Z - zp
         WdZ = self._Wc_col * dZ
@@ -313,9 +314,9 @@ class QuaternionUKF(UnscentedKalmanFilter):
         if self.heading_free:
             # Not in Kraft 2003: drop the correction about the predicted vertical (see UKFBiasParams).
             h = zp / math.sqrt(zp @ zp)
-            K[:3] -= np.outer(h, h @ K[:3])
-            if self.has_bias:
-                K[3:6] -= np.outer(h, h @ K[3:6])
+            K[ATTITUDE] -= np.outer(h, h @ K[ATTITUDE])
+            if self.layout.bias:
+                K[BIAS] -= np.outer(h, h @ K[BIAS])
             # Covariance for a general gain: P - K Pxz^T - Pxz K^T + K S K^T.
             KPxz = K @ Pxz.T
             self.P = self.P - KPxz - KPxz.T + K @ S @ K.T
@@ -324,9 +325,9 @@ class QuaternionUKF(UnscentedKalmanFilter):
         y = z - zp
         dx = (K @ y).tolist()
         x = self.x
-        q = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
-        if self.has_bias:
-            self.x = np.concatenate([q, x[4:] + dx[3:]])
+        q = unit_array(multiply_floats(x[X_QUAT].tolist(), exp_floats(dx[0], dx[1], dx[2])))  # step 9: q exp(K y / 2)
+        if self.layout.bias:
+            self.x = np.concatenate([q, x[X_CALIBRATION] + dx[CALIBRATION_AT:]])
         else:
             self.x = q
         self.K, self.S, self.y = K, S, y
@@ -350,7 +351,7 @@ class QuaternionUKF(UnscentedKalmanFilter):
         mean = self.x.copy()
 
         def hx_lagged(x: np.ndarray) -> np.ndarray:
-            z_x = quat.gravity_in_body(x[:4]) + lag[0] @ (x[4:7] - mean[4:7])
-            return z_x + lag[1] @ (x[7:10] - mean[7:10]) if len(x) > 7 else z_x
+            z_x = quat.gravity_in_body(x[X_QUAT]) + lag[0] @ (x[X_BIAS] - mean[X_BIAS])
+            return z_x + lag[1] @ (x[X_SCALE] - mean[X_SCALE]) if self.layout.scale else z_x
 
         UnscentedKalmanFilter.update(self, z, R=R, hx=hx_lagged)

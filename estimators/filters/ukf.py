@@ -116,12 +116,12 @@ from fusion.types import ImuSamples
 
 from ..kernels._linalg import inv_sym3, repair_covariance
 from ..search import Tunable
-from ._error_state import axes_mask
+from .steps._error_state import X_BIAS, X_CALIBRATION, X_QUAT, X_SCALE, ErrorLayout, axes_mask
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
-from .kalman_base import KalmanFilter, error_state_covariances, initial_quaternion
-from .steps._accel import AccDisturbance, acc_variance_scale, accelerometer_update_input, models_lag
-from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE, HardIron, MagReference, heading_update, heading_variance, magnetometer_input
-from .steps._rest import RestDetector, bias_rest_update
+from .kalman_base import KalmanFilter, Motion, error_state_covariances, initial_quaternion
+from .steps._accel import AccDisturbance, models_lag
+from .steps._magnetometer import HARD_IRON_STATE, MAG_STATE, HardIron, MagReference
+from .steps._rest import RestDetector
 from .steps._scale_test import ScaleTest
 from .steps._stuck import stuck_gyro_state
 
@@ -265,6 +265,7 @@ class UKF(KalmanFilter):
 
         p = self.params
         n = error_dim(p)
+        self.layout = L = ErrorLayout.of(n)
         points = QuaternionSigmaPoints(n, p.sigma, p.kappa, p.alpha, p.beta)
         kf = QuaternionUKF(points, p.mean_tol_rad, p.mean_max_iter)
         kf.heading_free = p.heading_free
@@ -272,17 +273,17 @@ class UKF(KalmanFilter):
         kf.P, self._Qrate, self._Qbad = error_state_covariances(p, n)
         self.kf = kf
         self.n = n
-        self._scale_noise = 0.0 if n > 3 else p.scale_noise_s
+        self._scale_noise = 0.0 if L.bias else p.scale_noise_s
         self._eye3 = np.eye(3)
         # ukf-bias: the low-passed sample's lag in the measurement model, as in `ekf`
-        self._with_lag = models_lag(p, n)
+        self._with_lag = models_lag(p, L.bias)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
         self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
         self._stuck = stuck_gyro_state()
         # ukf-bias with scale states: the scale test of `ekf` (6-D)
         self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
                                        axes_mask(p.scale_axes))
-                            if n > 6 and self.with_bias else ScaleTest.off())
+                            if L.scale and self.with_bias else ScaleTest.off())
         if self.with_bias:  # ukf-bias in 9-D: the magnetometer's gates and hard-iron fit, as in `ekf`
             self._mag = MagReference.of(p)
             self._hard_iron = HardIron(p.mag_hard_iron_window_s, p.mag_hard_iron_residual_ut, p.mag_hard_iron_coverage)
@@ -292,33 +293,29 @@ class UKF(KalmanFilter):
         self.at_rest = False  # whether the last step made the rest bias update
         self.nis = math.nan  # normalised innovation squared of the last update (nan: none)
         self.lowpassed = False  # whether the last update used the low-passed accelerometer
-        self._predict = kf.predict_reference if p.impl == "filterpy" else kf.predict_kraft
-        self._update = kf.update_reference if p.impl == "filterpy" else kf.update_kraft
+        self._kf_predict = kf.predict_reference if p.impl == "filterpy" else kf.predict_kraft
+        self._kf_update = kf.update_reference if p.impl == "filterpy" else kf.update_kraft
         self.n_skipped = self.n_sqrt_recovered = self.n_cov_repaired = self.n_mean_capped = 0
 
-    def step(self, gyr_rad_s: np.ndarray, dt_s: float, acc_g: np.ndarray, gyr_valid: bool,
-             mag_ut: np.ndarray | None = None) -> np.ndarray:
-        """`RecursiveEstimator.step`, plus mag_ut: (3,) the magnetometer sample at the step's end,
-        uT, body frame, or None: the heading update of `ukf-bias` in 9-D (`ukf` ignores it)."""
-        p, kf, n = self.params, self.kf, self.n
-        gyr_valid = self._usable(gyr_rad_s, dt_s, acc_g, gyr_valid)
-        self.acc_var, self.at_rest, self.nis, self.lowpassed = math.nan, False, math.nan, False
-        self.mag_used = self.hard_iron_used = False
+    # ------------------------------------------------------------------ the parts of `KalmanFilter.step`
+    def _predict(self, gyr_rad_s: np.ndarray, dt_s: float, gyr_valid: bool) -> Motion:
+        """Steps 1-5 (`QuaternionUKF.predict_kraft`, or `predict_reference` with impl=filterpy)."""
+        p, kf, L = self.params, self.kf, self.layout
         Q = self._Qrate * dt_s
         x = kf.x
         w = np.zeros(3)  # the step's corrected rate (rad/s; zero when not integrated)
-        if not gyr_valid or not (math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])):
+        valid = gyr_valid and math.isfinite(gyr_rad_s[0]) and math.isfinite(gyr_rad_s[1]) and math.isfinite(gyr_rad_s[2])
+        if not valid:
             gyr = None  # no rate integration; inflate the attitude noise instead
             Q = Q + self._Qbad * (dt_s * dt_s)
-            gyr_valid = False
             dq = (1.0, 0.0, 0.0, 0.0)
             self._dist.lose_frame()
         else:
             gyr = gyr_rad_s
             # The mean rate increment, for the disturbance estimator's strapdown frame.
-            w = gyr_rad_s - x[4:7] if n > 3 else gyr_rad_s
-            if n > 6:
-                w = w * (1.0 + x[7:10])
+            w = gyr_rad_s - x[X_BIAS] if L.bias else gyr_rad_s
+            if L.scale:
+                w = w * (1.0 + x[X_SCALE])
             dq = exp_floats(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s)
             if self._scale_noise > 0.0:
                 # ukf only: gyro scale-factor uncertainty as rate noise density Qs w_i^2 per axis.
@@ -326,85 +323,85 @@ class UKF(KalmanFilter):
                 Q[0, 0] += self._scale_noise * gyr_rad_s[0] * gyr_rad_s[0] * dt_s
                 Q[1, 1] += self._scale_noise * gyr_rad_s[1] * gyr_rad_s[1] * dt_s
                 Q[2, 2] += self._scale_noise * gyr_rad_s[2] * gyr_rad_s[2] * dt_s
-        self._predict(dt_s, gyr, Q)
+        self._kf_predict(dt_s, gyr, Q)
         self.n_sqrt_recovered += kf.sqrt_recovered
         self.n_mean_capped += kf.mean_iterations >= p.mean_max_iter
-        if self._rest is not None and gyr_valid and self._rest.update(gyr_rad_s, acc_g, dt_s):
-            # Zero-rate update at rest (VQF, Sec. 3.4): the gyro reads the bias; H = [0, I, 0] is
-            # linear, so this is the exact Kalman update, the same for both implementations.
-            x = kf.x
-            dx, kf.P = bias_rest_update(x[4:7], kf.P, gyr_rad_s, p.rest_noise_rad2_s / dt_s)
-            qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
-            kf.x = np.concatenate([qn, x[4:] + dx[3:]])
-            self.at_rest = True
-        scale = acc_variance_scale(acc_g, p.gate, p.gate_g) if p.use_acc else math.inf
-        rate, gain = self._lag_rate(gyr_rad_s if gyr_valid else None)
-        if scale < math.inf:
-            q_rate = p.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
-            if gyr_valid and self._scale_noise > 0.0:
-                q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
-            meas, r, self.lowpassed = accelerometer_update_input(p, self._dist, acc_g, dq, dt_s, scale, q_rate, rate,
-                                                                 gain)
-            self.acc_var = r
-            lag = None
-            if self._with_lag and self.lowpassed:
-                lag = self._dist.lag_jacobian(quat.skew(quat.gravity_in_body(kf.x[:4])))
-            self._update(meas, self._eye3 * r, lag)
-            y = kf.y
-            self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
-        else:
-            self.n_skipped += 1
-            if p.disturbance_corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
-                self._dist.turn(dq, dt_s, rate, gain)
-        if (self.with_bias and mag_ut is not None and math.isfinite(mag_ut[0]) and math.isfinite(mag_ut[1])
-                and math.isfinite(mag_ut[2])):
-            # 9-D: the heading-only magnetometer update of `ekf` (`_magnetometer.heading_update`); H is
-            # linear in the error state, so it is the same Kalman update for every implementation
-            x = kf.x
-            q = tuple(x[:4].tolist())
-            self._scale_test.stop()  # 9-D: no scale test (as `ekf`)
-            usable, east, north, self.hard_iron_used = magnetometer_input(p, self._mag, self._hard_iron, q, kf.P, mag_ut,
-                                                                          dt_s)
-            if usable:
-                r = heading_variance(p, q, w[0] * dt_s, w[1] * dt_s, w[2] * dt_s, dt_s)
-                dx, kf.P = heading_update(q, kf.P, n, east, north, r)
-                qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
-                kf.x = np.concatenate([qn, x[4:] + dx[3:]])
-                self.mag_used = True
+        return Motion(valid=valid, dq=dq, theta=(w[0] * dt_s, w[1] * dt_s, w[2] * dt_s), u=None)
+
+    def _acc_correct(self, meas: np.ndarray, r: float, h: np.ndarray) -> None:
+        """Steps 6-9 (`QuaternionUKF.update_kraft`, or `update_reference`), with the low-passed
+        sample's lag in the measurement model where it is modelled (`_accel.LowpassLag`)."""
+        kf = self.kf
+        lag = None
+        if self._with_lag and self.lowpassed:
+            lag = self._dist.lag_jacobian(quat.skew(h))
+        self._kf_update(meas, self._eye3 * r, lag)
+        y = kf.y
+        self.nis = float(y @ inv_sym3(kf.S) @ y)  # normalised innovation squared, chi-square(3) if consistent
+
+    def _finish(self) -> np.ndarray:
+        p, kf, L = self.params, self.kf, self.layout
         x = kf.x
-        # Wald's test on the scale (`_scale_test.ScaleTest`, "Scale test" in `fusion.estimators.filters.ekf`)
-        dx, kf.P = self._scale_test.step(x[7:10], kf.P, quat.gravity_in_body(x[:4]) if p.heading_free else None)
-        if dx is not None:
-            qn = unit_array(multiply_floats(x[:4].tolist(), exp_floats(dx[0], dx[1], dx[2])))
-            kf.x = x = np.concatenate([qn, x[4:] + dx[3:]])
-        if n > 3:
-            np.clip(x[4:7], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[4:7])
-        if n > 6:
-            np.clip(x[7:10], -p.scale_max, p.scale_max, out=x[7:10])
+        if L.bias:
+            np.clip(x[X_BIAS], -p.bias_max_rad_s, p.bias_max_rad_s, out=x[X_BIAS])
+        if L.scale:
+            np.clip(x[X_SCALE], -p.scale_max, p.scale_max, out=x[X_SCALE])
         kf.P, repaired = repair_covariance(kf.P)
         self.n_cov_repaired += repaired
-        return x[:4]
+        return x[X_QUAT]
 
-    def _lag_rate(self, gyr_rad_s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    @property
+    def _cov(self) -> np.ndarray:
+        return self.kf.P
+
+    @_cov.setter
+    def _cov(self, P: np.ndarray) -> None:
+        self.kf.P = P
+
+    def _attitude(self) -> tuple:
+        return tuple(self.kf.x[X_QUAT].tolist())
+
+    def _bias(self) -> np.ndarray:
+        return self.kf.x[X_BIAS]
+
+    def _scale(self) -> np.ndarray:
+        return self.kf.x[X_SCALE]
+
+    def _vertical(self) -> np.ndarray:
+        return quat.gravity_in_body(self.kf.x[X_QUAT])
+
+    def _inject(self, dx: np.ndarray) -> None:
+        """The correction through the exponential map on the right, renormalised (step 9)."""
+        x = self.kf.x
+        qn = unit_array(multiply_floats(x[X_QUAT].tolist(), exp_floats(dx[0], dx[1], dx[2])))
+        self.kf.x = np.concatenate([qn, x[X_CALIBRATION] + dx[self.layout.calibration]])
+
+    def _lag_rate(self, gyr_rad_s: np.ndarray, motion: Motion) -> tuple[Any, Any]:
         """The lag's inputs (`AccDisturbance.update`) from the current mean's calibration: the
         bias-corrected rate (None: not integrated) and `1 + s`; (None, None) without the lag."""
         if not self._with_lag:
             return None, None
         x = self.kf.x
-        gain = 1.0 + x[7:10] if self.n > 6 else np.ones(3)
-        return (None if gyr_rad_s is None else gyr_rad_s - x[4:7]), gain
+        gain = 1.0 + x[X_SCALE] if self.layout.scale else np.ones(3)
+        return (gyr_rad_s - x[X_BIAS] if motion.valid else None), gain
+
+    def _rate_noise(self, gyr_rad_s: np.ndarray, motion: Motion) -> float:
+        q_rate = self.params.process_noise_rad2_s  # ukf: plus the scale noise Qs w_i^2, a rate noise density too
+        if motion.valid and self._scale_noise > 0.0:
+            q_rate += self._scale_noise * float(np.max(gyr_rad_s * gyr_rad_s))
+        return q_rate
 
     def current(self) -> dict[str, Any]:
         kf = self.kf
         out = {"cov": kf.P, "mean_iterations": kf.mean_iterations, "acc_var_g2": self.acc_var, "nis": self.nis,
                "acc_lowpassed": self.lowpassed}
         if self.with_bias:
-            out["gyr_bias_rad_s"] = kf.x[4:7]
+            out["gyr_bias_rad_s"] = kf.x[X_BIAS]
             out["at_rest"] = self.at_rest
             out["mag_used"] = self.mag_used
             out["mag_hard_iron"] = self.hard_iron_used
-            if self.n > 6:
-                out["gyr_scale"] = kf.x[7:10]
+            if self.layout.scale:
+                out["gyr_scale"] = kf.x[X_SCALE]
             out["scale_llr"] = self._scale_test.llr
         return out
 
@@ -422,8 +419,9 @@ class UKF(KalmanFilter):
 
         p, kf = self.params, self.kf
         x, P = kf.x.copy(), kf.P.copy()
-        o = kernels.settings(p, self.n, self._rest, scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
-                             mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter, scale_test=self._scale_test)
+        unscented = kernels.UnscentedSettings(scale_noise=self._scale_noise, sqrt_c=kf.points_fn.sqrt_c,
+                                              mean_tol=p.mean_tol_rad, mean_max_iter=p.mean_max_iter)
+        o = kernels.settings(p, self.layout, self._rest, self._scale_test, unscented=unscented)
         st = kernels.SensorStates(dist=dist, rest=rest,
                                   mag=self._mag.state() if self.with_bias else np.zeros(MAG_STATE),
                                   hard_iron=self._hard_iron.state() if self.with_bias else np.zeros(HARD_IRON_STATE),

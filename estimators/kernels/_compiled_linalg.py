@@ -23,6 +23,18 @@ forget_stale(__file__)
 HELPERS = ("cholesky", "joseph", "joseph2", "_nis", "_project_heading")
 
 
+class KalmanUpdateWork(NamedTuple):
+    """The work arrays of a Kalman update in the kernels (the rest update, the scale test, `ekf`'s
+    velocity model), allocated once per run by the filter's loop: N rows of the error state."""
+
+    K: np.ndarray  # (N, 3) the gain
+    dx: np.ndarray  # (N,) the correction
+    S: np.ndarray  # (3, 3) the innovation covariance
+    Sinv: np.ndarray  # (3, 3) its inverse
+    PHt: np.ndarray  # (N, 3) P H^T
+    D: np.ndarray  # (N, 3) the Joseph form's scratch
+
+
 class CovSettings(NamedTuple):
     """`_linalg`'s recovery constants, read at run time."""
 

@@ -39,7 +39,7 @@ _FILTERS, _STEPS = _HERE.parent / "filters", _HERE.parent / "filters" / "steps"
 KERNEL_SOURCES = [str(folder / f"{name}.py") for folder, names in (
     (_HERE, ("_numba", "_compiled_quaternion", "_compiled_linalg", "_linalg")),
     (_STEPS, ("_compiled_accel", "_compiled_rest", "_compiled_stuck", "_compiled_magnetometer", "_compiled_scale_test",
-              "_accel", "_rest", "_stuck", "_magnetometer", "_scale_test")),
+              "_accel", "_rest", "_stuck", "_magnetometer", "_scale_test", "_error_state")),
     (_FILTERS, ("_compiled_ekf", "_compiled_ukf"))) for name in names] + [quat.__file__]
 
 # The kernels' numpy references: (compiled module, kernel name) -> the reference's dotted name.

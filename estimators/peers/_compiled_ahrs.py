@@ -12,8 +12,11 @@ product of the 9-D output turn (NWU -> ENU) is `fusion.quaternion`'s own scalar 
 (`kernels._compiled_quaternion.multiply_floats`), as `peers` applies it with `quaternion.multiply`;
 `_kernel_cache.forget_stale_kernels` drops this module's cache when `fusion/quaternion.py` changes.
 
-The library is the reference. Every function below names the library method it mirrors and
-follows its arithmetic line by line, in the same order where the order decides the rounding:
+The library is the reference. Every function below that implements a library method is declared
+with it (`kernels._numba.mirrors`, as the filters' and the smoothers' kernels are: the twin of
+`Madgwick.updateIMU` is `madgwick_updateIMU`, its name prefixed by the filter's, since one module
+holds the three), the others are listed in `HELPERS`; each follows the library's arithmetic line
+by line, in the same order where the order decides the rounding:
 its normalisations (`ahrs.Quaternion(q)` divides by the norm on construction, so an update
 normalises its input, and Madgwick's result is normalised twice: `Quaternion(q + qDot dt)` and
 then `q_new /= norm(q_new)`), its branches (a zero gyro sample returns the normalised input
@@ -68,10 +71,17 @@ from numba.extending import intrinsic
 from fusion import quaternion as quat
 
 from ..kernels._compiled_quaternion import multiply_floats as qmul
-from ..kernels._numba import _jit
+from ..kernels._numba import _jit, mirrors
 from ..kernels._kernel_cache import forget_stale_kernels
 
 forget_stale_kernels(__file__, [quat.__file__])  # the 9-D output turn compiles fusion.quaternion's product
+
+# Kernels without a library method of their own (`kernels._numba.mirrors`): BLAS's rounding (`_norm3`,
+# `_norm4`, `_gemv3`, `_gemv6`), `ahrs.Quaternion(q)`'s normalisation (`_versor`), what Mahony's two
+# updates share (`_mahony_step`), rows of `EKF.dhdq` (`_dhdq_rows`), `np.linalg.inv` (`_inv`), the
+# output's frame (`_write`) and the adapters' loops (`*_kernel`).
+HELPERS = ("_norm3", "_norm4", "_gemv3", "_gemv6", "_versor", "_mahony_step", "_dhdq_rows", "_inv", "_write",
+           "madgwick_kernel", "mahony_kernel", "ekf_kernel")
 
 _SQRT_HALF = math.sqrt(0.5)  # Rz(90 deg) = [sqrt(1/2), 0, 0, sqrt(1/2)]: NWU -> ENU, as `peers._RZ90`
 
@@ -144,7 +154,7 @@ def _versor(w, x, y, z):
     return w / n, x / n, y / n, z / n
 
 
-@_jit
+@mirrors("ahrs.common.quaternion.Quaternion.product")
 def _product(w, x, y, z, qw, qx, qy, qz):
     """`ahrs.Quaternion.product`: the Hamilton product p q (p = [w, x, y, z]), its terms in the
     library's order."""
@@ -154,7 +164,7 @@ def _product(w, x, y, z, qw, qx, qy, qz):
             w * qz + x * qy - y * qx + z * qw)
 
 
-@_jit
+@mirrors("ahrs.common.quaternion.Quaternion.to_DCM")
 def _to_DCM(w, x, y, z):
     """`ahrs.Quaternion.to_DCM`: the rotation matrix of a unit quaternion, row-major 9-tuple."""
     x2, y2, z2 = _square(x), _square(y), _square(z)
@@ -164,7 +174,7 @@ def _to_DCM(w, x, y, z):
 
 
 # ================================================================= ahrs.filters.Madgwick
-@_jit
+@mirrors("ahrs.filters.madgwick.Madgwick.updateIMU")
 def madgwick_updateIMU(qw, qx, qy, qz, gx, gy, gz, ax, ay, az, dt, gain):
     """`ahrs.filters.Madgwick.updateIMU`: one gyro + accelerometer step.
 
@@ -203,7 +213,7 @@ def madgwick_updateIMU(qw, qx, qy, qz, gx, gy, gz, ax, ay, az, dt, gain):
     return _versor(w, x, y, z)  # q_new /= norm(q_new)
 
 
-@_jit
+@mirrors("ahrs.filters.madgwick.Madgwick.updateMARG")
 def madgwick_updateMARG(qw, qx, qy, qz, gx, gy, gz, ax, ay, az, mx, my, mz, dt, gain):
     """`ahrs.filters.Madgwick.updateMARG`: one gyro + accelerometer + magnetometer step, in the
     library's NWU world (x north, z up).
@@ -300,7 +310,7 @@ def _mahony_step(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ex, ey, ez, corrected, 
     return w, x, y, z, bx, by, bz
 
 
-@_jit
+@mirrors("ahrs.filters.mahony.Mahony.updateIMU")
 def mahony_updateIMU(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, dt, k_p, k_i):
     """`ahrs.filters.Mahony.updateIMU`: one gyro + accelerometer step of the explicit
     complementary filter with bias estimation.
@@ -328,7 +338,7 @@ def mahony_updateIMU(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, dt, k_p
     return _mahony_step(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ex, ey, ez, a_norm > 0.0, dt, k_p, k_i)
 
 
-@_jit
+@mirrors("ahrs.filters.mahony.Mahony.updateMARG")
 def mahony_updateMARG(qw, qx, qy, qz, bx, by, bz, gx, gy, gz, ax, ay, az, mx, my, mz, dt, k_p, k_i):
     """`ahrs.filters.Mahony.updateMARG`: as `mahony_updateIMU` with the magnetometer's error term,
     in the library's ENU world (y north).
@@ -389,7 +399,7 @@ def mahony_kernel(gyr, acc, mag, dt, q0, bias, k_p, k_i, out):
 
 
 # ================================================================= ahrs.filters.EKF
-@_jit
+@mirrors("ahrs.filters.ekf.EKF.f")
 def ekf_f(q, g, dt, F, out):
     """`ahrs.filters.EKF.f` and `EKF.dfdq`: the process model q_t = (I_4 + dt/2 Omega(w)) q, the
     first-order integration of q_dot = 1/2 Omega(w) q, and its Jacobian F = I_4 + Omega(dt/2 w),
@@ -461,7 +471,7 @@ def _inv(S, m, L, piv, out):
             out[i, c] = s / L[i, i]
 
 
-@_jit
+@mirrors("ahrs.filters.ekf.EKF.update")
 def ekf_update(q, g, a, mag, use_mag, dt, P, var_gyr, var_acc, var_mag, m_ref, w, out):
     """`ahrs.filters.EKF.update` (frame "NED", the adapter's; mode "normal"): one prediction with
     the gyro as control input and one correction with the accelerometer (and magnetometer).

@@ -14,9 +14,10 @@ numpy code is the reference; `CompiledOps` is the same interface by the numba ke
 
 The numpy code is the reference: every kernel line implements a line of `smoothers.cost` (or of
 `fusion.quaternion`, `smoother`), each kernel carries the name of the function it mirrors and
-names it in its docstring (`Reference: fusion.estimators.smoothers.cost.SmootherProblem.cost`;
-`Reference: none (...)` for the elimination's and the storage's own helpers), and
-`tests/test_compiled_smoother.py` resolves those names and checks the kernels against them
+declares it (`kernels._numba.mirrors("fusion.estimators.smoothers.cost.SmootherProblem.cost")`,
+as the filters' kernels do; each module lists its kernels without a reference of their own in
+`HELPERS`, with why), `tests/test_compiled.py` resolves those names, and
+`tests/test_compiled_smoother.py` checks the kernels against them
 (cost, gradient, blocks, solves) and both solvers' iterations and final costs against their
 `impl=numpy` runs on simulated and real recordings. The two paths differ only in rounding: the
 summation order of the cost and the elimination order of the solve.
@@ -37,8 +38,7 @@ from fusion import quaternion as quat
 
 from . import _compiled_linearize as kernel
 from ._compiled_cost import range_cost
-from ._compiled_layout import (B_MAX, BLOCKS, ELIMINATE, FROM_BLOCKS, GRADIENT, POINT, RETRACTIONS, carry_size,
-                                        constants, problem_arrays, range_blocks)
+from ._compiled_layout import B_MAX, POINT, RETRACTIONS, carry_size, constants, problem_arrays, range_blocks
 from ._compiled_linearize import back_substitute
 from ._compiled_ranges import linearize_ranges, run_beside
 from ._compiled_start import dead_reckoning, dot, levelled, norm_error
@@ -68,6 +68,8 @@ def load() -> None:
     lin = ops.linearize(q, theta, v, shift=0.0)
     d_q, d_theta = ops.solve(lin, 0.0)
     ops.trial(q, v, theta, d_q, d_theta, 1.0)
+    # the elimination from stored blocks, which a long recording's ranges run (`_eliminate_in_ranges`)
+    ops._eliminate_in_ranges(q, v, theta, 0.0, np.arange(2, dtype=np.int64), None, np.empty((2, 5)), np.empty(2))
     ops.theta_std(q, theta, v)
     ops.cost(q, theta, v)
     start = np.empty((2, 4))
@@ -93,7 +95,7 @@ class CompiledOps:
     """What `gn` and `gd` do with the cost, by the kernels: the interface of
     `smoother.ReferenceOps`, whose numpy code is the reference.
 
-    The elimination's per-sample storage (M, c, N: the kernel `linearize`) is allocated once and
+    The elimination's per-sample storage (M, c, N: the kernel `linearize_eliminate`) is allocated once and
     holds one system at a time: `linearize` with a `shift` eliminates the system at its point
     in the same pass (what the next `solve` needs), and `solve` eliminates again if asked for
     another shift, another set of free calibration variables or another right-hand side. The
@@ -170,13 +172,17 @@ class CompiledOps:
         grad_q, grad_theta = np.empty((T if gradient or (hessian and self.blocks) else 0, B)), np.empty(P)
         if hessian and self.blocks:
             blocks = (np.zeros((T, B, B)), np.zeros((max(T - 1, 0), B, B)), np.zeros((T, B, P)), np.zeros((P, P)))
-            cost = self._kernel(q, v, theta, BLOCKS, grad_q, grad_theta, blocks=blocks)
+            cost = kernel.linearize(self.arrays, self.consts, kernel.SmootherPoint(q, v, theta),
+                                    kernel.SmootherGradient(grad_q, grad_theta), kernel.SmootherBlocks(*blocks),
+                                    self._kept_at(q, theta), _WHOLE(self.T))
             return CompiledLinearization(cost, grad_q, grad_theta, *blocks, point=(q, theta, v))
         if hessian and shift is not None:
             index = self._free_index(free)
             cost = self._eliminate(q, v, theta, float(shift), index, None, grad_q, grad_theta)
         else:
-            cost = self._kernel(q, v, theta, GRADIENT, grad_q, grad_theta)
+            cost = kernel.linearize(self.arrays, self.consts, kernel.SmootherPoint(q, v, theta),
+                                    kernel.SmootherGradient(grad_q, grad_theta), _NO_BLOCKS, self._kept_at(q, theta),
+                                    _WHOLE(self.T))
         lin = CompiledLinearization(cost, grad_q, grad_theta, *_NO_BLOCKS, point=(q, theta, v))
         if hessian and shift is not None:
             self._held = (lin, float(shift), index.tobytes())
@@ -214,24 +220,28 @@ class CompiledOps:
                 and held[2] == self._free_index(None).tobytes():
             return np.sqrt(np.diag(np.linalg.inv(self._schur[0])))
         theta = np.asarray(theta, float)
-        storage = np.empty((2, B_MAX, B_MAX)), np.empty((2, B_MAX)), np.empty((2, B_MAX, P))  # the running rows only
-        schur = np.empty((P, P)), np.empty(P), np.empty(1)
-        cost = self._kernel(q, v, theta, ELIMINATE, np.empty((0, self.B)), np.empty(P),
-                            index=np.arange(P, dtype=np.int64), storage=storage, schur=schur)
+        elim = kernel.SmootherElimination(np.empty((2, B_MAX, B_MAX)), np.empty((2, B_MAX)), np.empty((2, B_MAX, P)),
+                                          np.empty((P, P)), np.empty(P), np.empty(1))  # the running rows only
+        cost = kernel.linearize_eliminate(self.arrays, self.consts, kernel.SmootherPoint(q, v, theta),
+                                          kernel.SmootherGradient(np.empty((0, self.B)), np.empty(P)),
+                                          self._system(0.0, np.arange(P, dtype=np.int64), None), elim,
+                                          self._kept_at(q, theta))
         self._check(cost)
-        return np.sqrt(np.diag(np.linalg.inv(schur[0])))
+        return np.sqrt(np.diag(np.linalg.inv(elim.schur)))
 
     # ---------------------------------------------------------------- internals
     def _free_index(self, free) -> np.ndarray:
         return np.arange(self.P, dtype=np.int64) if free is None else np.flatnonzero(free).astype(np.int64)
 
-    def _kernel(self, q, v, theta, mode, grad_q, grad_theta, shift=0.0, index=None, rhs=None, blocks=None,
-                storage=None, schur=None, kept=None, span=None, carry=None) -> float:
-        return kernel.linearize(
-            self.arrays, self.consts, q, v, theta, mode, shift, _NO_INDEX if index is None else index,
-            *(_NO_RHS if rhs is None else rhs), grad_q, grad_theta, *(blocks or _NO_BLOCKS), *(storage or _NO_STORAGE),
-            *(schur or _NO_SCHUR), self._kept_at(q, theta) if kept is None else kept, *(span or (0, self.T)),
-            _NO_CARRY if carry is None else carry)
+    @staticmethod
+    def _system(shift, index, rhs):
+        """The `SmootherSystem` (H + shift diag(H)) x = b for the free variables `index`, b = -g or
+        -rhs ((T, B), (P,))."""
+        return kernel.SmootherSystem(float(shift), index, *(_NO_RHS if rhs is None else rhs))
+
+    def _elimination(self):
+        """The `SmootherElimination` of the held storage and Schur complement."""
+        return kernel.SmootherElimination(*self._storage, *self._schur)
 
     def _kept_at(self, q, theta) -> np.ndarray:
         """M, if it holds the per-sample terms of a trial at exactly (q, theta) (`trial`), else no rows."""
@@ -252,35 +262,39 @@ class CompiledOps:
         if len(linearize_ranges(self.T)) > 2:
             cost = self._eliminate_in_ranges(q, v, theta, shift, index, rhs, grad_q, grad_theta)
         else:
-            cost = self._kernel(q, v, theta, ELIMINATE, grad_q, grad_theta, shift=shift, index=index, rhs=rhs,
-                                storage=self._storage, schur=self._schur)
+            cost = kernel.linearize_eliminate(self.arrays, self.consts, kernel.SmootherPoint(q, v, theta),
+                                              kernel.SmootherGradient(grad_q, grad_theta),
+                                              self._system(shift, index, rhs), self._elimination(),
+                                              self._kept_at(q, theta))
         self._kept = None  # M now holds the elimination
         self._check(cost)
         return cost
 
     def _eliminate_in_ranges(self, q, v, theta, shift, index, rhs, grad_q, grad_theta) -> float:
         """`_eliminate` on two threads: the blocks of one range of samples (`linearize_ranges`) are
-        computed (mode BLOCKS) while those of the range before are eliminated (FROM_BLOCKS), in two
-        buffers taken in turn. The same numbers as one ELIMINATE pass, bit for bit."""
+        computed (`linearize`) while those of the range before are eliminated (`eliminate_blocks`),
+        in two buffers taken in turn. The same numbers as one `linearize_eliminate` pass, bit for bit."""
         P = self.P
         bounds = linearize_ranges(self.T)
         buffers = self._range_buffers(max(b - a for a, b in zip(bounds, bounds[1:])))
-        kept = self._kept_at(q, theta)  # read by the BLOCKS ranges only, before FROM_BLOCKS writes the same rows
+        kept = self._kept_at(q, theta)  # read by `linearize`'s ranges only, before `eliminate_blocks` writes those rows
         theta_block, carries = np.empty((P, P)), (np.zeros(carry_size(P)), np.zeros(carry_size(P)))
 
-        def blocks(k):  # mode BLOCKS over range k, into buffer k % 2
-            return self._kernel(q, v, theta, BLOCKS, buffers[k % 2][3], grad_theta,
-                                blocks=(*buffers[k % 2][:3], theta_block), kept=kept,
-                                span=(bounds[k], bounds[k + 1]), carry=carries[0])
+        point, system, elim = kernel.SmootherPoint(q, v, theta), self._system(shift, index, rhs), self._elimination()
+
+        def blocks(k):  # the blocks of range k, into buffer k % 2
+            return kernel.linearize(self.arrays, self.consts, point, kernel.SmootherGradient(buffers[k % 2][3], grad_theta),
+                                    kernel.SmootherBlocks(*buffers[k % 2][:3], theta_block), kept,
+                                    kernel.SmootherSpan(bounds[k], bounds[k + 1], carries[0]))
 
         cost = blocks(0)
         for k in range(len(bounds) - 1):
             following = run_beside(blocks, k + 1) if k + 2 < len(bounds) else None
             try:
                 diag, off, cross, grad = buffers[k % 2]
-                done = self._kernel(q, v, theta, FROM_BLOCKS, grad, grad_theta, shift=shift, index=index, rhs=rhs,
-                                    blocks=(diag, off, cross, theta_block), storage=self._storage, schur=self._schur,
-                                    kept=_NO_STORAGE[0], span=(bounds[k], bounds[k + 1]), carry=carries[1])
+                done = kernel.eliminate_blocks(self.arrays, self.consts, point, kernel.SmootherGradient(grad, grad_theta),
+                                               kernel.SmootherBlocks(diag, off, cross, theta_block), system, elim,
+                                               kernel.SmootherSpan(bounds[k], bounds[k + 1], carries[1]))
                 if len(grad_q):
                     grad_q[bounds[k]:bounds[k + 1]] = grad[:bounds[k + 1] - bounds[k]]
             finally:
@@ -301,9 +315,12 @@ class CompiledOps:
             raise np.linalg.LinAlgError("smoother: the Gauss-Newton matrix is not positive definite")
 
 
-_NO_INDEX = np.zeros(0, np.int64)
 _NO_CARRY = np.zeros(0)
 _NO_RHS = (np.zeros((0, B_MAX)), np.zeros(0))
-_NO_BLOCKS = (np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
+_NO_BLOCKS = kernel.SmootherBlocks(np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
 _NO_STORAGE = (np.zeros((0, B_MAX, B_MAX)), np.zeros((0, B_MAX)), np.zeros((0, B_MAX, 0)))
-_NO_SCHUR = (np.zeros((0, 0)), np.zeros(0), np.zeros(1))
+
+
+def _WHOLE(T: int):
+    """The `SmootherSpan` of a whole pass over T samples."""
+    return kernel.SmootherSpan(0, T, _NO_CARRY)

@@ -19,7 +19,7 @@ import numpy as np
 from fusion import quaternion as quat
 
 from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
+from ..kernels._numba import _jit, mirrors
 from . import _compiled_layout as layout
 from . import _compiled_terms as terms
 from ._compiled_layout import (GEODESIC, KEEP_ACC, KEEP_MAG, KEEP_MOTION, KEEP_STEP, N_SUMS, POINT, SUM_ACC,
@@ -31,14 +31,16 @@ from ._compiled_terms import (exp_floats, fill3, keep_floats, load_quat, log_flo
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 
+# Kernels without a numpy reference of their own (`kernels._numba.mirrors`), and why:
+#   cost_of_sums: the ranges' sums added, then `total_cost`
+HELPERS = ("cost_of_sums",)
 
-@_jit
+
+@mirrors("fusion.estimators.smoothers.smoother.retract")
 def retract(q, x, alpha, kind, t, o, q_out, write):
     """q_t (kind POINT), or q_t retracted by alpha x_t[:3] (GEODESIC: q exp([0, alpha x / 2]);
     NORMALISE: normalise(q + q * [0, alpha x / 2]); Absil et al. 2008, sec. 4.1), then written to
-    q_out[t] if `write`.
-
-    Reference: fusion.estimators.smoothers.smoother.retract"""
+    q_out[t] if `write`."""
     qt = load_quat(q, t)
     if kind == POINT:
         return qt
@@ -54,7 +56,7 @@ def retract(q, x, alpha, kind, t, o, q_out, write):
     return m
 
 
-@_jit
+@mirrors("fusion.estimators.smoothers.cost.SmootherProblem.cost")
 def cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
     """The cost's terms (`SmootherProblem.cost`) over the samples t0 <= t < t1 and their steps to
     t + 1, at q (T, 4), v (T, V) m/s, theta (P,); or, with kind GEODESIC or NORMALISE (not POINT), at
@@ -65,9 +67,7 @@ def cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
     unless t0 = 0): `total_cost` of them is the cost (`range_cost`). If keep (T, 5, 5) has rows,
     each step's u_t = exp(phi_t / 2) and motion residual r_m,t, each sample's accelerometer cost
     term and IRLS weight and magnetometer residual are written to it (`keep_floats`, at the
-    layout's KEEP_* offsets), for the linearisation at this point (`linearize`'s `kept`).
-
-    Reference: fusion.estimators.smoothers.cost.SmootherProblem.cost"""
+    layout's KEEP_* offsets), for the linearisation at this point (`linearize`'s `kept`)."""
     T = q.shape[0]
     V = v.shape[1]
     b, k = split_theta(p, theta)
@@ -149,9 +149,7 @@ def cost(p, o, q, v, theta, x, alpha, kind, q_out, v_out, keep, t0, t1, sums):
 
 @_jit
 def cost_of_sums(p, theta, V, sums):
-    """The cost from `cost`'s sums of its ranges (R, N_SUMS), added in the ranges' order.
-
-    Reference: none (the ranges' sums added, then `total_cost`)"""
+    """The cost from `cost`'s sums of its ranges (R, N_SUMS), added in the ranges' order."""
     total = np.zeros(N_SUMS)
     for i in range(sums.shape[0]):
         for j in range(N_SUMS):

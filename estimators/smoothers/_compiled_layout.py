@@ -13,12 +13,12 @@ module lists this file among those whose change drops its disk cache (`_kernel_c
   `smoothers.cost.LOSSES`);
 - the per-sample variables: x_t = [delta_t (3), v_t (V)] as in `smoothers.cost.Linearization`,
   padded to `B_MAX` = 5 in the elimination's storage (M (T, 5, 5), c (T, 5), N (T, 5, F));
-- the modes of `smoothers._compiled_linearize.linearize` and the retractions of
-  `smoothers._compiled_cost.cost` (`POINT`, or the `RETRACTIONS` of `smoother.retract`);
+- the retractions of `smoothers._compiled_cost.cost` (`POINT`, or the `RETRACTIONS` of
+  `smoother.retract`);
 - the cost's partial sums (`SUM_*`, `N_SUMS`), from a range of samples to `total_cost`;
 - what a trial keeps of each sample for the linearisation at its point (`KEEP_*`, in M's rows);
-- what a BLOCKS range hands the next one (`carry_offsets`, `carry_size`), and the blocks it
-  leaves for FROM_BLOCKS (`range_blocks`).
+- what a range of `linearize` hands the next one (`carry_offsets`, `carry_size`), and the blocks
+  it leaves for `eliminate_blocks` (`range_blocks`).
 
 The namedtuples have names found nowhere else (with a namedtuple of the same name in another
 compiled module, the kernels of whichever module was loaded second ran markedly slower), and each
@@ -40,10 +40,6 @@ from .cost import LOSSES, SmootherProblem
 # the velocity model (an identity block: the padding variables get an exact zero step).
 B_MAX = 5
 
-# Modes of `smoothers._compiled_linearize.linearize`: the gradient only; the blocks of H as the
-# reference lays them out (`Linearization`); the elimination in the same pass; the elimination
-# from the blocks a BLOCKS range left (`range_blocks`).
-GRADIENT, BLOCKS, ELIMINATE, FROM_BLOCKS = 0, 1, 2, 3
 
 # The retraction of `smoothers._compiled_cost.cost`'s trial point: none (the cost at q), or one of
 # `smoother.retract`'s, by its `update` name.
@@ -68,15 +64,15 @@ KEEP_ACC = 8  # the accelerometer's (cost term, IRLS weight), 2
 KEEP_MAG = 10  # the magnetometer's (r_h, k0, k1, k2, cost term, IRLS weight), 6: 16 numbers in all
 
 
-# FROM_BLOCKS hands the next range H[t1 - 1, t1] (B_MAX x B_MAX) in a carry of its own, from here.
+# `eliminate_blocks` hands the next range H[t1 - 1, t1] (B_MAX x B_MAX) in a carry of its own, from here.
 CARRY_OFF_BLOCK = 0
 
 
 def carry_offsets(P):
-    """Where each part of a BLOCKS range's carry starts, for P calibration variables: what its last
+    """Where each part of a `linearize` range's carry starts, for P calibration variables: what its last
     step adds to the next sample's diagonal block (B_MAX x B_MAX), gradient (B_MAX) and cross block
     (B_MAX x P), the cost's sums (N_SUMS), the calibration gradient (P) and block (P x P), and the
-    end (at least CARRY_OFF_BLOCK + B_MAX * B_MAX: a carry serves FROM_BLOCKS too)."""
+    end (at least CARRY_OFF_BLOCK + B_MAX * B_MAX: a carry serves `eliminate_blocks` too)."""
     next_diag = 0
     next_grad = next_diag + B_MAX * B_MAX
     next_cross = next_grad + B_MAX
@@ -92,9 +88,9 @@ def carry_size(P: int) -> int:
 
 
 def range_blocks(R: int, B: int, P: int) -> tuple:
-    """The blocks a BLOCKS range of at most R samples leaves for FROM_BLOCKS, row t - t0 for sample
+    """The blocks a `linearize` range of at most R samples leaves for `eliminate_blocks`, row t - t0 for sample
     t, with B variables per sample and P calibration variables: diag (R, B, B) (its lower triangle),
-    off (R, B, B), cross (R, B, P), grad_q (R, B); every entry FROM_BLOCKS reads is written first."""
+    off (R, B, B), cross (R, B, P), grad_q (R, B); every entry `eliminate_blocks` reads is written first."""
     return np.empty((R, B, B)), np.empty((R, B, B)), np.empty((R, B, P)), np.empty((R, B))
 
 # The problem as the kernels read it (`problem_arrays`), and the constants of the maths.

@@ -34,9 +34,14 @@ arithmetic as a 3 x 3 system. Within the sweep, the blocks live in a few small a
 filled in place, never reassigned (numba counts references on every assignment of an array
 variable, which costs more than the arithmetic here).
 
-On a long recording the pass runs in ranges of samples on two threads (modes BLOCKS and
-FROM_BLOCKS, `smoothers._compiled_ranges`): a range's state is handed to the next in its carry
-(`carry_state`).
+Three kernels, one per use: `linearize` (cost, gradient and, if asked, the blocks as the
+reference lays them out), `linearize_eliminate` (the same with the elimination in the pass) and
+`eliminate_blocks` (the elimination from the blocks a `linearize` range left), each one call of
+the one loop over the samples (`_pass`), whose per-sample arithmetic the three share. Their inputs travel as small records (`SmootherPoint`, `SmootherGradient`,
+`SmootherBlocks`, `SmootherSystem`, `SmootherElimination`, `SmootherSpan`). On a long recording
+the pass runs in ranges of samples on two threads (`linearize` over one range while
+`eliminate_blocks` eliminates the range before, `smoothers._compiled_ranges`): a range's state is
+handed to the next in its carry (`carry_state`).
 
 numba keys a cached kernel on its own file only: `_kernel_cache.forget_stale_kernels` drops this
 module's cache when a file whose kernels it compiles changes.
@@ -44,34 +49,44 @@ module's cache when a file whose kernels it compiles changes.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 
 from fusion import quaternion as quat
 
 from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
+from ..kernels._numba import _jit, compiled, mirrors
 from . import _compiled_layout as layout
 from . import _compiled_terms as terms
-from ._compiled_layout import (BLOCKS, CARRY_OFF_BLOCK, ELIMINATE, FROM_BLOCKS, N_SUMS, SUM_ACC, SUM_MAG,
-                                        SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL, SUM_VZERO)
+from ._compiled_layout import (CARRY_OFF_BLOCK, N_SUMS, SUM_ACC, SUM_MAG, SUM_MOTION, SUM_PRIOR, SUM_REST, SUM_VEL,
+                               SUM_VZERO)
 from ._compiled_terms import (exp_floats, fill3, kept_acc, kept_mag, kept_step, load_quat, log_floats, mag_residual,
                                        motion_residual, multiply_floats, rest_residual, right_jacobian, right_jacobian_inv,
                                        robust_terms, rotation_floats, split_theta, step_rotvec, total_cost)
 
 forget_stale_kernels(__file__, [quat.__file__, layout.__file__, terms.__file__])
 
+# Kernels without a numpy reference of their own (`kernels._numba.mirrors`), and why:
+#   ldl5, ldl_solve5: the elimination's pivot block; the reference solves with LAPACK's banded Cholesky
+#   _pass: the one loop behind linearize, linearize_eliminate and eliminate_blocks
+#   _no_system, _no_elimination: the empty records of a pass that eliminates nothing
+#   linearize_eliminate: `SmootherProblem.linearize` and the reference's banded solve, fused in one pass
+#   eliminate_blocks: the elimination of `linearize_eliminate`, from stored blocks
+#   carry_block, carry_state: the hand-over between ranges
+#   back_substitute: the back-substitution of the elimination; the reference solves with LAPACK
+HELPERS = ("ldl5", "ldl_solve5", "_pass", "_no_system", "_no_elimination", "linearize_eliminate", "eliminate_blocks",
+           "carry_block", "carry_state", "back_substitute")
+
 # `smoothers._compiled_layout.carry_offsets`, compiled under its name: one definition for the kernels and Python.
-carry_offsets = _jit(layout.carry_offsets)
+carry_offsets = compiled(layout.carry_offsets, __name__)
 
 
 @_jit
 def ldl5(S):
     """S = L diag(d) L^T for the lower triangle of the 5 x 5 S, L unit lower triangular (no
     square roots: Golub & Van Loan 2013, sec. 4.1.2): (positive definite, L below the diagonal
-    row by row (10 scalars), 1 / d (5 scalars)).
-
-    Reference: none (the elimination's pivot block; the reference solves with LAPACK's banded Cholesky)"""
+    row by row (10 scalars), 1 / d (5 scalars))."""
     d0 = S[0, 0]
     r0 = 1.0 / d0
     e10, e20, e30, e40 = S[1, 0], S[2, 0], S[3, 0], S[4, 0]  # E = L diag(d), column 0
@@ -96,9 +111,7 @@ def ldl5(S):
 
 @_jit
 def ldl_solve5(L, r, b0, b1, b2, b3, b4):
-    """S^-1 b for S = L diag(1 / r) L^T (`ldl5`), five scalars in and out.
-
-    Reference: none (the elimination's pivot block; the reference solves with LAPACK's banded Cholesky)"""
+    """S^-1 b for S = L diag(1 / r) L^T (`ldl5`), five scalars in and out."""
     l10, l20, l21, l30, l31, l32, l40, l41, l42, l43 = L
     y1 = b1 - l10 * b0
     y2 = b2 - l20 * b0 - l21 * y1
@@ -112,40 +125,34 @@ def ldl_solve5(L, r, b0, b1, b2, b3, b4):
     return x0, x1, x2, x3, x4
 
 
+# The records the three kernels take (namedtuples of names found nowhere else, bound to their own
+# names: `smoothers._compiled_layout`'s docstring says why).
+SmootherPoint = namedtuple("SmootherPoint", ["q", "v", "theta"])  # (T, 4), (T, V) m/s, (P,)
+SmootherGradient = namedtuple("SmootherGradient", ["q", "theta"])  # (T or R rows or none, B), (P,)
+SmootherBlocks = namedtuple("SmootherBlocks", ["diag", "off", "cross", "theta"])  # as `Linearization`'s (theta: theta_block)
+SmootherSystem = namedtuple("SmootherSystem", ["shift", "free", "rhs_q", "rhs_theta"])  # (H + shift diag(H)) x = b
+SmootherElimination = namedtuple("SmootherElimination", ["M", "c", "N", "schur", "schur_rhs", "quad"])
+SmootherSpan = namedtuple("SmootherSpan", ["t0", "t1", "carry"])  # samples t0 <= t < t1, and the hand-over
+# The modes of `_pass`.
+_GRADIENT, _BLOCKS, _ELIMINATE, _FROM_BLOCKS = 0, 1, 2, 3
+
+
 @_jit
-def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
-              grad_q, grad_theta, diag, off, cross, theta_block, M, c, N, schur, schur_rhs, quad, kept,
-              t0, t1, carry):
-    """Cost, gradient and Gauss-Newton blocks at (q (T, 4), v (T, V), theta (P,))
-    (`SmootherProblem.linearize`). Returns the cost, or nan if the matrix is not positive
-    definite (mode ELIMINATE).
-
-    Always: grad_theta (P,), and grad_q (T, B) unless it has no rows. mode BLOCKS: also the blocks diag (T, B, B),
-    off (T-1, B, B), cross (T, B, P), theta_block (P, P) as the reference lays them out.
-    mode ELIMINATE: eliminate (H + shift diag(H)) x = b on the fly (module docstring) for the
-    calibration variables `free` (F,) (their indices; the others are held), with b = -grad or,
-    if rhs_q has rows, b = -[rhs_q; rhs_theta]; writes M (R, 5, 5), c (R, 5), N (R, 5, F) (R = T
-    rows, or 2 to keep only the running ones) and the Schur complement schur (F, F) with its
-    right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T S_t^-1 b'_t (with the Schur
-    complement's part, b^T (H + shift diag(H))^-1 b: `CompiledOps.slope`).
-
-    kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
-    accelerometer term and magnetometer residual at this very point (q, theta), as `cost`
-    computed them for a trial step here (`keep_floats`, the layout's KEEP_*): read, not computed again (the
-    same numbers). It may be M itself: row t is read before M's row t is written.
-
-    Ranges (`CompiledOps._eliminate_in_ranges`): the samples t0 <= t < t1 only. Mode BLOCKS over a
-    range writes its blocks and gradient at rows t - t0 (`smoothers._compiled_layout.range_blocks`)
-    and, before T, returns 0 and leaves in carry (`carry_state`) what the next range continues
-    from (what the last step adds to its next sample, the cost's sums, the calibration block and
-    gradient); the range that ends at T returns the cost, theta_block and grad_theta. Mode
-    FROM_BLOCKS eliminates those blocks (grad_q, diag, off, cross: the BLOCKS range's rows;
-    theta_block, grad_theta: the last range's) as ELIMINATE would have, the same arithmetic in the
-    same order, with H[t-1, t] in a carry of its own (at CARRY_OFF_BLOCK) between ranges; returns
-    0 (nan: not positive definite). A whole pass is t0 = 0, t1 = T, carry without rows.
-
-    Reference: fusion.estimators.smoothers.cost.SmootherProblem.linearize
-    """
+def _pass(p, o, point, mode, grad, blocks, system, elim, kept, span):
+    """The one pass over the samples behind `linearize`, `linearize_eliminate` and
+    `eliminate_blocks` (their docstrings): each sample's cost terms, gradient and Gauss-Newton
+    blocks, then, by `mode`, the gradient alone (`_GRADIENT`), the blocks as the reference lays
+    them out (`_BLOCKS`), their elimination in the same pass (`_ELIMINATE`), or the elimination
+    of the blocks a `linearize` range left (`_FROM_BLOCKS`). One loop: the per-sample arithmetic is
+    the same for the three uses, and a loop per use would repeat it; the records are unpacked once
+    per pass (split into parts called per sample, the loop ran at half the speed: numba counts the
+    references of every array a part binds anew)."""
+    q, v, theta = point
+    grad_q, grad_theta = grad
+    diag, off, cross, theta_block = blocks
+    shift, free, rhs_q, rhs_theta = system
+    M, c, N, schur, schur_rhs, quad = elim
+    t0, t1, carry = span
     T = q.shape[0]
     V = v.shape[1]
     B = 3 + V
@@ -190,7 +197,7 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             schur_rhs[i] = 0.0
             for j in range(F):
                 schur[i, j] = 0.0
-    elif mode == FROM_BLOCKS:
+    elif mode == _FROM_BLOCKS:
         carry_block(carry, CARRY_OFF_BLOCK, Op, False)
     else:  # BLOCKS, continued from the range before
         sums = np.empty(N_SUMS)
@@ -200,7 +207,7 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     qn = load_quat(q, t0)
     rn = rotation_floats(qn)
     for t in range(t0, t1):
-        if mode == FROM_BLOCKS:  # the blocks a BLOCKS pass over this range wrote (row t - t0)
+        if mode == _FROM_BLOCKS:  # the blocks a BLOCKS pass over this range wrote (row t - t0)
             tr = t - t0
             for i in range(5):
                 g[i] = grad_q[tr, i] if i < B else 0.0
@@ -383,10 +390,10 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                                 for n in range(P):
                                     jn = -1.0 if n == i else (p.gyr[t, ax] if n >= p.n_bias and p.theta_axis[n] == ax else 0.0)
                                     G[m, n] += w * jm * jn
-        if grad_q.shape[0] and mode != FROM_BLOCKS:
+        if grad_q.shape[0] and mode != _FROM_BLOCKS:
             for i in range(B):
                 grad_q[t - t0, i] = g[i]
-        if mode == BLOCKS:
+        if mode == _BLOCKS:
             tr = t - t0
             for i in range(B):
                 if ranged:  # for FROM_BLOCKS, which reads the lower triangle
@@ -400,7 +407,7 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
                         off[tr, i, j] = O[i, j]
                 for m in range(P):
                     cross[tr, i, m] = C[i, m]
-        elif mode == ELIMINATE or mode == FROM_BLOCKS:
+        elif mode == _ELIMINATE or mode == _FROM_BLOCKS:
             row, prev = (t, t - 1) if rows == T else (t & 1, (t - 1) & 1)
             for i in range(5):
                 D[i, i] = D[i, i] * (1.0 + shift) if i < B else 1.0  # the padding variables: identity
@@ -454,7 +461,7 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
     sums = np.empty(N_SUMS)
     sums[SUM_ACC], sums[SUM_MOTION], sums[SUM_VEL], sums[SUM_VZERO] = cost_acc, cost_motion, cost_vel, cost_vzero
     sums[SUM_REST], sums[SUM_PRIOR], sums[SUM_MAG] = cost_rest, cost_prior, cost_mag
-    if mode == FROM_BLOCKS:
+    if mode == _FROM_BLOCKS:
         carry_block(carry, CARRY_OFF_BLOCK, Op, True)
         if t1 < T:
             return 0.0
@@ -470,25 +477,82 @@ def linearize(p, o, q, v, theta, mode, shift, free, rhs_q, rhs_theta,
             gth[m] += p.w_theta[m] * theta[m]
             G[m, m] += p.w_theta[m]
             grad_theta[m] = gth[m]
-            if mode == BLOCKS:
+            if mode == _BLOCKS:
                 for n in range(P):
                     theta_block[m, n] = G[m, n]
-    if mode == ELIMINATE or mode == FROM_BLOCKS:
+    if mode == _ELIMINATE or mode == _FROM_BLOCKS:
         for n in range(F):
             for m in range(n):
                 schur[n, m] = schur[m, n] = G[free[m], free[n]] - schur[m, n]
             schur[n, n] = G[free[n], free[n]] * (1.0 + shift) - schur[n, n]
             schur_rhs[n] = -(rhs_theta[free[n]] if external else gth[free[n]]) - schur_rhs[n]
-    if mode == FROM_BLOCKS:
+    if mode == _FROM_BLOCKS:
         return 0.0
     return total_cost(p, theta, V, sums)
 
 
 @_jit
-def carry_block(carry, at, block, store):
-    """Copy the C-contiguous array `block` to carry[at:] (store) or from there.
+def _no_system(B):
+    """The `SmootherSystem` of a pass that eliminates nothing."""
+    return SmootherSystem(0.0, np.zeros(0, np.int64), np.zeros((0, B)), np.zeros(0))
 
-    Reference: none (the hand-over between ranges)"""
+
+@_jit
+def _no_elimination():
+    """The `SmootherElimination` of a pass that eliminates nothing."""
+    return SmootherElimination(np.zeros((0, 5, 5)), np.zeros((0, 5)), np.zeros((0, 5, 0)), np.zeros((0, 0)),
+                               np.zeros(0), np.zeros(1))
+
+
+@mirrors("fusion.estimators.smoothers.cost.SmootherProblem.linearize")
+def linearize(p, o, point, grad, blocks, kept, span):
+    """Cost, gradient and Gauss-Newton blocks at the point (q (T, 4), v (T, V), theta (P,))
+    (`SmootherProblem.linearize`): the use that keeps the blocks (the others: `linearize_eliminate`,
+    `eliminate_blocks`). Returns the cost.
+
+    Always grad.theta (P,), and grad.q (T, B) unless it has no rows; if blocks.diag has rows, the
+    blocks diag (T, B, B), off (T-1, B, B), cross (T, B, P), theta (P, P) as the reference lays them
+    out. kept (T, 5, 5), if it has rows: each step's u_t and motion residual r_m,t, each sample's
+    accelerometer term and magnetometer residual at this very point, as `cost` computed them for a
+    trial step here (`keep_floats`, the layout's KEEP_*): read, not computed again (the same numbers).
+
+    Ranges (`CompiledOps._eliminate_in_ranges`): the samples span.t0 <= t < span.t1 only, their
+    blocks and gradient at rows t - t0 (`smoothers._compiled_layout.range_blocks`, the diagonal
+    blocks' lower triangles); before T, returns 0 and leaves in span.carry (`carry_state`) what the
+    next range continues from (what the last step adds to its next sample, the cost's sums, the
+    calibration block and gradient); the range that ends at T returns the cost, blocks.theta and
+    grad.theta. A whole pass is t0 = 0, t1 = T, carry without rows."""
+    mode = _BLOCKS if blocks.diag.shape[0] > 0 else _GRADIENT
+    return _pass(p, o, point, mode, grad, blocks, _no_system(grad.q.shape[1]), _no_elimination(), kept, span)
+
+
+@_jit
+def linearize_eliminate(p, o, point, grad, system, elim, kept):
+    """`linearize` with the system (H + shift diag(H)) x = b eliminated in the same pass (module
+    docstring): for the calibration variables system.free (F,) (their indices; the others are
+    held), with b = -grad or, if system.rhs_q has rows, b = -[rhs_q; rhs_theta]. Writes elim's M
+    (R, 5, 5), c (R, 5), N (R, 5, F) (R = T rows, or 2 to keep only the running ones), the Schur
+    complement schur (F, F) with its right-hand side schur_rhs (F,), and quad[0] = sum_t b'_t^T
+    S_t^-1 b'_t (with the Schur complement's part, b^T (H + shift diag(H))^-1 b:
+    `CompiledOps.slope`); grad and kept as in `linearize` (kept may be M itself: row t is read
+    before M's row t is written). Returns the cost, or nan if the matrix is not positive definite."""
+    blocks = SmootherBlocks(np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0, 0)), np.zeros((0, 0)))
+    return _pass(p, o, point, _ELIMINATE, grad, blocks, system, elim, kept,
+                 SmootherSpan(0, point.q.shape[0], np.zeros(0)))
+
+
+@_jit
+def eliminate_blocks(p, o, point, grad, blocks, system, elim, span):
+    """The elimination of `linearize_eliminate` from the blocks a `linearize` range left (grad.q,
+    blocks.diag, off, cross: that range's rows; blocks.theta, grad.theta: the last range's), the same
+    arithmetic in the same order, over the samples span.t0 <= t < span.t1, with H[t-1, t] in
+    span.carry (at CARRY_OFF_BLOCK) between ranges. Returns 0 (nan: not positive definite)."""
+    return _pass(p, o, point, _FROM_BLOCKS, grad, blocks, system, elim, np.zeros((0, 5, 5)), span)
+
+
+@_jit
+def carry_block(carry, at, block, store):
+    """Copy the C-contiguous array `block` to carry[at:] (store) or from there."""
     flat = block.reshape(-1)
     for i in range(flat.size):
         if store:
@@ -499,11 +563,9 @@ def carry_block(carry, at, block, store):
 
 @_jit
 def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
-    """A BLOCKS range's state to its carry (store) or from it, at `carry_offsets`: what the last
+    """A `linearize` range's state to its carry (store) or from it, at `carry_offsets`: what the last
     step adds to the next sample (Dn 5 x 5, gn 5, Cn 5 x P), the cost's sums (N_SUMS), the
-    calibration gradient gth (P) and block G (P x P).
-
-    Reference: none (the hand-over between ranges)"""
+    calibration gradient gth (P) and block G (P x P)."""
     next_diag, next_grad, next_cross, at_sums, grad_theta, theta_block, _ = carry_offsets(len(gth))
     carry_block(carry, next_diag, Dn, store)
     carry_block(carry, next_grad, gn, store)
@@ -515,9 +577,7 @@ def carry_state(carry, store, Dn, gn, Cn, sums, gth, G):
 
 @_jit
 def back_substitute(M, c, N, x_theta):
-    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring), into c (T, 5).
-
-    Reference: none (the back-substitution of the elimination; the reference solves with LAPACK)"""
+    """x_t = c_t - M_t x_{t+1} - N_t x_theta, backwards (module docstring), into c (T, 5)."""
     T = c.shape[0]
     F = len(x_theta)
     nxt = np.zeros(5)

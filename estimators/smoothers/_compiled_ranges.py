@@ -6,8 +6,8 @@ of samples on two threads (`smoothers._compiled_cost.range_cost`; the kernels re
 each writing its own rows, and their sums are added in a fixed order. The split depends on the
 number of samples alone, so every result is the same on any machine; it changes the wall time,
 not the CPU time. The linearisation's elimination is a recursion; on a long recording
-(`linearize_ranges`) the Jacobian blocks of one range of samples are computed (mode BLOCKS) while
-those of the range before are eliminated from them (mode FROM_BLOCKS): the same arithmetic in
+(`linearize_ranges`) the Jacobian blocks of one range of samples are computed (`linearize`) while
+those of the range before are eliminated from them (`eliminate_blocks`): the same arithmetic in
 the same order as the one fused pass, bit for bit (`smoothers._compiled.CompiledOps._eliminate_in_ranges`).
 On an hour at 100 Hz the two take a quarter off the smoothers' wall time, for a sixth more CPU time.
 """

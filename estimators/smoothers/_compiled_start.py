@@ -19,20 +19,23 @@ import numpy as np
 from fusion import quaternion as quat
 
 from ..kernels._kernel_cache import forget_stale_kernels
-from ..kernels._numba import _jit
+from ..kernels._numba import _jit, mirrors
 from . import _compiled_terms as terms
 from ._compiled_terms import fill3, load_quat, exp_floats, multiply_floats, normalize_floats, rotation_floats
 
 forget_stale_kernels(__file__, [quat.__file__, terms.__file__])
+
+# Kernels without a numpy reference of their own (`kernels._numba.mirrors`), and why:
+#   dead_reckoning: `fusion.estimators.dr.DeadReckoning`'s scan, as a sequential product
+#   dot: `ReferenceOps.slope`'s np.sum(grad_q * d_q
+HELPERS = ("dead_reckoning", "dot")
 
 
 @_jit
 def dead_reckoning(gyr, valid, dt, q0, small, out):
     """out (T, 4): q_0 = q0, q_{k+1} = q_k exp([0, w_k dt_k / 2]) (0 where invalid), each row
     normalised (`dr.DeadReckoning`, whose parallel scan gives the same products in another
-    order, and `smoother.initial_trajectory`, which normalises).
-
-    Reference: none (`fusion.estimators.dr.DeadReckoning`'s scan, as a sequential product)"""
+    order, and `smoother.initial_trajectory`, which normalises)."""
     q = normalize_floats((q0[0], q0[1], q0[2], q0[3]))
     for i in range(4):
         out[0, i] = q[i]
@@ -46,12 +49,10 @@ def dead_reckoning(gyr, valid, dt, q0, small, out):
             out[k + 1, i] = q[i]
 
 
-@_jit
+@mirrors("fusion.estimators.smoothers.smoother.levelled")
 def levelled(t, acc, q, window_s, small, out):
     """out (T, 4): q (T, 4) turned window by window so that the mean world-frame specific force
-    of each window points up (line by line; the first window is q). t (T,) s, acc (T, 3) g.
-
-    Reference: fusion.estimators.smoothers.smoother.levelled"""
+    of each window points up (line by line; the first window is q). t (T,) s, acc (T, 3) g."""
     T = len(t)
     n = int(math.floor((t[T - 1] - t[0]) / window_s)) + 1
     mean = np.zeros((n, 3))
@@ -89,9 +90,7 @@ def levelled(t, acc, q, window_s, small, out):
 
 @_jit
 def dot(a, b):
-    """sum of a * b over (T, B) arrays, without a temporary.
-
-    Reference: none (`ReferenceOps.slope`'s np.sum(grad_q * d_q))"""
+    """sum of a * b over (T, B) arrays, without a temporary."""
     s = 0.0
     for t in range(a.shape[0]):
         for i in range(a.shape[1]):
@@ -99,11 +98,9 @@ def dot(a, b):
     return s
 
 
-@_jit
+@mirrors("fusion.estimators.smoothers.smoother.norm_error")
 def norm_error(q):
-    """max |(|q_t|) - 1| over q (T, 4) (`smoother.SolverLog`).
-
-    Reference: fusion.estimators.smoothers.smoother.norm_error"""
+    """max |(|q_t|) - 1| over q (T, 4) (`smoother.SolverLog`)."""
     worst = 0.0
     for t in range(q.shape[0]):
         e = abs(math.sqrt(q[t, 0] ** 2 + q[t, 1] ** 2 + q[t, 2] ** 2 + q[t, 3] ** 2) - 1.0)

@@ -31,7 +31,7 @@ from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
 from ..dr import DeadReckoning
-from ..filters._error_state import axes_mask
+from ..filters.steps._error_state import axes_mask
 from ..filters.ekf import EKF
 from ..filters.steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
 from ..filters.ukf import UKF, UKFBias

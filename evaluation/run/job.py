@@ -176,7 +176,7 @@ def default_protocol(recording: Recording) -> str:
 # about the data, not failures: such a recording costs only itself.
 UNREADABLE = "cannot be read"  # its files: the loader's one line (no estimator ran)
 NO_TRUTH = "no truth"  # the file holds none (a course test recording, a static RepoIMU file)
-TRUTH_UNUSABLE = "truth unusable"  # `fusion.loaders.usable_truth`, `overlap_problem`
+TRUTH_UNUSABLE = "truth unusable"  # `fusion.format_checks.usable_truth`, `overlap_problem`
 ALIGNMENT_UNDETERMINED = "alignment undetermined"  # `fusion.evaluation.scoring.align.fit_alignment` raised
 ALIGNMENT_POOR = "alignment poor"  # `fusion.evaluation.scoring.align.Alignment.problem`
 NOT_SCORED = (UNREADABLE, NO_TRUTH, TRUTH_UNUSABLE, ALIGNMENT_UNDETERMINED, ALIGNMENT_POOR)

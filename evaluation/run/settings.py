@@ -49,9 +49,9 @@ class Option:
             none is given).
     metavar: the value's name in `--help`; default: the option's default where it is not the
         field's (`AS_FIELD`: the field's; `--jobs` 0, all cores, where `run_compare`'s default is 1).
-    commands: which of compare and ablate offer it (`fusion.cli` offers the loading options, dataset
-        to calibration, on every command that reads recordings; `fusion stress` offers compare's, but
-        those `fusion.evaluation.sweeps.stress.NOT_OFFERED` names, and its own fields').
+    commands: which of compare, ablate and tune offer it (`fusion.cli` offers the loading options,
+        dataset to calibration, on every command that reads recordings; `fusion stress` offers
+        compare's, but those `fusion.evaluation.sweeps.stress.NOT_OFFERED` names, and its own fields').
     """
 
     flag: str
@@ -88,8 +88,13 @@ class RunSettings:
     `run_compare`), primary, command, rerun (a `.rrd` file). How: jobs (None or 0: all cores), progress, scheduler,
     scatter (a Dask cluster: `fusion.evaluation.run.runner.run`), overwrite, resume.
     One field has no option (`API_ONLY`): `command`, the command line recorded in the results
-    document, which the command line sets to itself.
+    document, which the command line sets to itself. `fusion tune`'s settings are these and its own
+    (`fusion.evaluation.sweeps.tune.TuneSettings`).
     """
+
+    # The keys a run's journalled call holds besides the settings (what kind of run: its estimators,
+    # or its grid); any other key that is not a field is an error (`from_json`).
+    CALL_KEYS = ("kind", "estimators", "trajectories", "estimator", "params", "preset")
 
     dataset: str = _part(COMPUTED, "all", Option(
         "--dataset", "'all', comma-separated ids (ece276a/3), folder names (ece276a), bare numbers (3, when "
@@ -106,12 +111,12 @@ class RunSettings:
     protocol: str | None = _part(COMPUTED, None, Option(
         "--protocol", "scoring: full (every sample with truth) or broad (movement phases only, mean heading offset "
         "removed); default: broad for recordings with a movement mask (BROAD trials), else full",
-        kind="choices", choices=PROTOCOLS))
+        kind="choices", choices=PROTOCOLS, commands=("compare", "ablate", "tune")))
     align: bool = _part(COMPUTED, False, Option(
         "--align", "for ground truth given in other frames: fit a constant world tilt and a constant body rotation "
         "once per recording from its gyro, accelerometer and truth (never from an estimate), print them, and score "
         "every estimator against the same aligned truth; --init truth then starts from the aligned truth (see "
-        "README)", kind="switch"))
+        "README)", kind="switch", commands=("compare", "ablate", "tune")))
     dropouts: bool = _part(COMPUTED, datasets.DROPOUTS_DEFAULT, Option(
         "--dropouts", "mark detected gyro freezes and ADC-saturated samples invalid so that no estimator integrates "
         "them (default: on; off for ablations)", kind="on_off"))
@@ -140,9 +145,11 @@ class RunSettings:
         "estimator's the same as one run's (default: 1)", type="int", metavar="N"))
     out: str | None = _part(WRITTEN, None, Option(
         "--out", "write results.json, table, figures, report.html and report.md to DIR (re-render later with "
-        "`fusion report DIR`)", metavar="DIR"))
+        "`fusion report DIR`); tune: also tuned.json, for `compare --tuned`", metavar="DIR",
+        commands=("compare", "ablate", "tune")))
     json_path: str | None = _part(WRITTEN, None, Option(
-        "--json", "write the results as JSON (format: docs/json-format.md)", metavar="PATH"))
+        "--json", "write the results as JSON (format: docs/json-format.md)", metavar="PATH",
+        commands=("compare", "ablate", "tune")))
     tum: bool = _part(WRITTEN, True, Option(
         "--no-tum", "with --out, do not write every estimate and its truth as TUM files under DIR/trajectories (a "
         "few MB per recording and estimator: a BROAD trial's file is about 3 MB)", kind="negated"))
@@ -159,22 +166,23 @@ class RunSettings:
         "`rerun FILE.rrd` (needs pip install 'fusion[viz]')", metavar="FILE.rrd"))
     jobs: int | None = _part(HOW, 1, Option(
         "--jobs", "worker processes; 0 = all cores (default); results do not depend on it", type="count",
-        metavar="N", default=0))
+        metavar="N", default=0, commands=("compare", "ablate", "tune")))
     progress: bool = _part(HOW, False, Option("--no-progress", "no progress bar", kind="negated"))
     scheduler: str | None = _part(HOW, None, Option(
         "--scheduler", "run the jobs on a running dask.distributed scheduler's workers instead of local processes, "
-        "e.g. tcp://10.0.0.5:8786 (see docs/dask.md)", metavar="ADDRESS"))
+        "e.g. tcp://10.0.0.5:8786 (see docs/dask.md)", metavar="ADDRESS", commands=("compare", "ablate", "tune")))
     scatter: bool | None = _part(HOW, None, Option(
         "--scatter", "with --scheduler: load the recordings here and send them to the workers (no shared file "
         "system needed); default: workers read the files themselves when every worker sees them at the same path, "
         "else scatter", kind="switch"))
     overwrite: bool = _part(HOW, False, Option(
         "--overwrite", "with --out: replace the earlier run (or discard the unfinished one) that DIR holds; without "
-        "it a folder holding a run is refused (files you put there are kept either way)", kind="switch"))
+        "it a folder holding a run is refused (files you put there are kept either way)", kind="switch",
+        commands=("compare", "ablate", "tune")))
     resume: bool = _part(HOW, False, Option(  # the command line's value is the folder (`fusion.cli` resumes it)
         "--resume", "continue the unfinished run in the --out folder DIR (stopped by Ctrl-C, SIGTERM, a kill or a "
         "crash): its jobs already done are read back from DIR/.fusion-run/journal.jsonl, the others computed; the "
-        "run's other options come from the journal", metavar="DIR", default=None))
+        "run's other options come from the journal", metavar="DIR", default=None, commands=("compare", "ablate", "tune")))
 
     def __post_init__(self) -> None:
         if self.primary not in KINDS:
@@ -197,12 +205,17 @@ class RunSettings:
 
     @classmethod
     def from_json(cls, doc: dict[str, Any], **how: Any) -> "RunSettings":
-        """Read back from `to_json`'s document (or an older journal's call, which lacks some keys:
-        their defaults), with `how` (fields of the `how` part only) replacing the recorded ones."""
+        """Read back from `to_json`'s document or a journalled call (an older journal's lacks some
+        keys: their defaults), with `how` (fields of the `how` part only) replacing the recorded
+        ones. A key that is neither a field nor one of `CALL_KEYS` is an error (written by a newer
+        fusion, whose option would change the results)."""
         wrong = sorted(set(how) - set(cls.part(HOW)))
         if wrong:
             raise ValueError(f"--resume changes only how a run runs, not {wrong[0]!r}")
         known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(doc) - known - set(cls.CALL_KEYS))
+        if unknown:
+            raise ValueError(f"{cls.__name__}: unknown key {unknown[0]!r} (written by a newer fusion?)")
         return cls(**{k: v for k, v in doc.items() if k in known}, **how)
 
     def load_options(self) -> datasets.LoadOptions:

@@ -46,8 +46,9 @@ from fusion.estimators.search import Tunable, alias_of, search_space
 from fusion.selection import note, select_sources
 
 from ..run.job import Result
-from ..run.settings import RunSettings
+from ..run.settings import API_ONLY, COMPUTED, HOW, Option, RunSettings
 from ..scoring.metrics import KINDS, MIN_COVERAGE
+from .loo import Fold
 
 PathLike = str | os.PathLike
 
@@ -56,46 +57,57 @@ SEARCHES = ("grid", "tpe")
 FOLDS = ("recording", "group")
 
 
-@dataclass(frozen=True)
-class TuneSettings:
-    """Everything a `fusion tune` run depends on (journalled as itself; `--resume` may change only
-    how it runs: `jobs`, `progress`, `scheduler`, a dask.distributed scheduler's address to run the
-    jobs on, as `fusion compare --scheduler`).
+def _own(default: Any, cli: Option | str) -> Any:
+    return field(default=default, metadata={"part": COMPUTED, "cli": cli})
 
-    estimators: spec text (`"madgwick,mahony"`, `"all"`); a parameter fixed in a spec is not tuned.
-    dataset: the recordings; train, test: instead of folds over `dataset`, choose on `train` and
-        score on `test` (selections as `dataset`).
-    metric: the RMSE minimised and reported (`total`, `inclination`, `heading`).
-    by: the folds over `dataset`: leave one `recording` out, or one `group` out.
-    search: `grid` (the grid preset) or `tpe` (Optuna, `budget` trials per study, `seed`).
-    Loading and scoring (`data_dir`, `calibration`, `init`, `protocol`, `dropouts`, `mag`, `align`)
-    as `fusion compare`: with `align`, every candidate is scored against the truth mapped into our
-    frames by the rotations fitted once per recording (`fusion.evaluation.scoring.align`), for a dataset
-    whose truth is given in other frames.
+
+_TUNE = ("tune",)
+
+
+@dataclass(frozen=True)
+class TuneSettings(RunSettings):
+    """Everything a `fusion tune` run depends on: the `RunSettings` it reads (the recordings, how
+    they are loaded and scored, how the run runs) and its own fields below, each with its
+    command-line option in its metadata (`fusion.cli` adds tune's options from them, as compare's).
+    Journalled as itself (`JOURNALLED`); `--resume` may change only how it runs (`jobs`, `progress`,
+    `scheduler`, a dask.distributed scheduler's address to run the jobs on, as `fusion compare
+    --scheduler`).
+
+    Loading and scoring (`dataset`, `data_dir`, `calibration`, `init`, `protocol`, `dropouts`, `mag`,
+    `align`) as `fusion compare`: with `align`, every candidate is scored against the truth mapped
+    into our frames by the rotations fitted once per recording (`fusion.evaluation.scoring.align`),
+    for a dataset whose truth is given in other frames. A `RunSettings` field tuning does not read
+    (a ROS bag's topics, panoramas, ...) is an error away from its default. Where the results go
+    (`out`, `json_path`, `overwrite`, `resume`, `command`) is `run_tune`'s to say.
     """
 
-    estimators: str = "all"
-    dataset: str = "all"
-    train: str | None = None
-    test: str | None = None
-    metric: str = "total"
-    by: str = "recording"
-    search: str = "grid"
-    budget: int = 30
-    seed: int = 0
-    data_dir: str | None = None
-    calibration: str | None = None
-    init: str | None = None
-    protocol: str | None = None
-    dropouts: bool = datasets.DROPOUTS_DEFAULT
-    mag: bool | None = None  # None: auto, as `fusion compare` (`fusion.evaluation.run.settings.resolve_mag`)
-    align: bool = False
-    # how it runs: not journalled
-    jobs: int | None = field(default=1, metadata={"how": True})
-    progress: bool = field(default=False, metadata={"how": True})
-    scheduler: str | None = field(default=None, metadata={"how": True})  # a Dask scheduler's address
+    CALL_KEYS = ()  # the journal records the settings alone (`run_tune`)
+    # What the journal and the results document record, in this order: tune's own fields and the
+    # `RunSettings` fields it reads.
+    JOURNALLED = ("estimators", "dataset", "train", "test", "metric", "by", "search", "budget", "seed", "data_dir",
+                  "calibration", "init", "protocol", "dropouts", "mag", "align")
+
+    estimators: str = _own("all", API_ONLY)  # spec text (`"madgwick,mahony"`, `"all"`); a parameter fixed in a spec is not tuned
+    train: str | None = _own(None, Option(
+        "--train", "choose the setting on these recordings (with --test: instead of folds over --dataset)",
+        metavar="SEL", commands=_TUNE))
+    test: str | None = _own(None, Option(
+        "--test", "score the chosen setting on these recordings", metavar="SEL", commands=_TUNE))
+    metric: str = _own("total", Option(
+        "--metric", "the RMSE minimised and reported (default: total)", kind="choices", choices=KINDS,
+        commands=_TUNE))
+    by: str = _own("recording", Option(
+        "--by", "the folds over --dataset: leave one recording out (default), or one group out (BROAD's motion or "
+        "disturbance group; another dataset's folder)", kind="choices", choices=FOLDS, commands=_TUNE))
+    search: str = _own("grid", Option(
+        "--search", "grid: the grid preset each estimator declares (default); tpe: Optuna's seeded TPE sampler "
+        "with --budget trials per study", kind="choices", choices=SEARCHES, commands=_TUNE))
+    budget: int = _own(30, Option("--budget", "TPE trials per study (default: 30)", type="int", metavar="N",
+                                  commands=_TUNE))
+    seed: int = _own(0, Option("--seed", "TPE's seed (default: 0)", type="int", metavar="N", commands=_TUNE))
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.metric not in KINDS:
             raise ValueError(f"tune: --metric must be one of {', '.join(KINDS)}, got {self.metric!r}")
         if self.by not in FOLDS:
@@ -106,27 +118,20 @@ class TuneSettings:
             raise ValueError(f"tune: --budget must be a whole number from 1 to 10000, got {self.budget!r}")
         if (self.train is None) != (self.test is None):
             raise ValueError("tune: --train and --test go together (choose on one selection, score on the other)")
+        for f in dataclasses.fields(RunSettings):  # what tuning does not read must stay as it is
+            if f.name not in self.JOURNALLED and f.metadata["part"] != HOW and f.name not in _WHERE \
+                    and getattr(self, f.name) != f.default:
+                option = f.metadata["cli"]
+                flag = option.flag if isinstance(option, Option) else f.name
+                raise ValueError(f"tune: {flag} is not supported here; use it with fusion compare")
 
     def to_json(self) -> dict[str, Any]:
-        """The fields that decide the results (not how the run runs)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if not f.metadata.get("how")}
-
-    @classmethod
-    def from_json(cls, doc: dict[str, Any], **how: Any) -> "TuneSettings":
-        """Read back, with defaults for keys an older journal lacks (unknown keys are an error)."""
-        unknown = sorted(set(doc) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise ValueError(f"tune settings: unknown key {unknown[0]!r} (written by a newer fusion?)")
-        return cls(**doc, **how)
+        """The fields that decide the results (`JOURNALLED`; not how the run runs)."""
+        return {name: getattr(self, name) for name in self.JOURNALLED}
 
 
-@dataclass(frozen=True)
-class Fold:
-    """One fold: choose on `train`, score on `test` (recording ids)."""
-
-    name: str
-    train: tuple[str, ...]
-    test: tuple[str, ...]
+# Where the results go: `run_tune`'s own arguments, not settings of the tuning.
+_WHERE = ("out", "json_path", "command")
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ magnetometer, gyro timing, raw counts or physical units). A new format is one mo
 line here, as a new estimator is one line in `fusion.estimators.ESTIMATORS`.
 
 The checks every format shares (bounded sizes before allocation, physical plausibility,
-time-stamp repairs) are in `fusion.loaders`; `fusion.datasets` finds, selects and loads
+time-stamp repairs) are in `fusion.format_checks`; `fusion.datasets` finds, selects and loads
 recordings through this registry.
 
 Order matters only for a path a user names: the first format whose `find` takes it reads it

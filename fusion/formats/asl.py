@@ -16,7 +16,7 @@ inside belong to it (they are not generic CSV recordings).
 one row per sample: integer nanoseconds, the angular rate (rad/s) and the specific force (m/s^2)
 of the IMU S, in its own frame. Gyro timing "end" (`ImuSamples.gyr_timing`, the common
 convention: the sample stamped t is the rate up to t). The stamps (IMU and truth alike) become
-float64 seconds since the first IMU stamp, subtracted as integers (`fusion.loaders.seconds_since`:
+float64 seconds since the first IMU stamp, subtracted as integers (`fusion.format_checks.seconds_since`:
 unix times in ns would lose 0.24 us to float64 otherwise).
 
 Truth (the first present of `state_groundtruth_estimate0`, `mocap0`, `vicon0`): `#timestamp`
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..loaders import (check_file, matrices_to_quat, one_line, overlap_problem, parse_rows, physical_samples,
+from ..format_checks import (check_file, matrices_to_quat, one_line, overlap_problem, parse_rows, physical_samples,
                        repair_time, seconds_since, text_lines, truth_quaternions)
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
@@ -117,7 +117,7 @@ def sensor_rotation(path: Path) -> Rotation | None:
 
 def read_imu(mav0: Path):
     """`(imu, path, origin_ns)`: the IMU samples of an ASL folder's `imu0/data.csv` (physical
-    units, through `fusion.loaders.physical_samples`), their time in s since `origin_ns`, the
+    units, through `fusion.format_checks.physical_samples`), their time in s since `origin_ns`, the
     first stamp."""
     path = mav0 / "imu0" / "data.csv"
     stamps, cols = _table(path, IMU_COLUMNS)
@@ -136,7 +136,7 @@ def read_truth(mav0: Path, origin_ns: int) -> tuple[Trajectory | None, str | Non
     """`(truth, problem)`: the IMU's orientation `R_world_imu` from the truth's data.csv and the two
     T_BS (see the module docstring), its time in s since `origin_ns`, rows far from unit norm made
     gaps; `(None, None)` without a truth folder; `(None, why)` when its rows are unusable
-    (`fusion.loaders.truth_quaternions`)."""
+    (`fusion.format_checks.truth_quaternions`)."""
     folder = truth_folder(mav0)
     if folder is None:
         return None, None

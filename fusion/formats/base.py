@@ -64,7 +64,7 @@ class Format(ABC):
     """One file format: how its recordings are found, read and described.
 
     A new format is a module with a subclass of this and one line in `fusion.formats.FORMATS`.
-    `read` checks what it reads with the shared checks of `fusion.loaders` (bounded sizes
+    `read` checks what it reads with the shared checks of `fusion.format_checks` (bounded sizes
     before allocation, physical plausibility, time-stamp repairs) and raises `ValueError` or
     `FileNotFoundError` naming the file, in one line, for anything it cannot read.
     """

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..loaders import MAX_STEP_S, MIN_STEP_S, check_declared, physical_samples, read_isolated, read_mat, truth_quaternions
+from ..format_checks import MAX_STEP_S, MIN_STEP_S, check_declared, physical_samples, read_isolated, read_mat, truth_quaternions
 from ..types import ImuSamples, Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 from .course import is_course_file
@@ -128,7 +128,7 @@ def read_broad(path: str | Path) -> tuple[ImuSamples, Trajectory | None, np.ndar
         IMU frame; `gyr_timing` "end" (gyro sample k is the rate over (t[k-1], t[k]], as VQF,
         which BROAD's authors wrote, integrates it).
     truth: `Trajectory` of `opt_quat` (wxyz, `R_world_imu`, z up) on the same stamps, NaN
-        rows kept (tracking lost), rows far from unit norm made gaps (`fusion.loaders.truth_quaternions`);
+        rows kept (tracking lost), rows far from unit norm made gaps (`fusion.format_checks.truth_quaternions`);
         None when no row is usable, and truth_problem (one line) says why (None otherwise).
     movement: (N,) bool, the samples BROAD scores (all True if the file has no mask).
     """
@@ -156,7 +156,7 @@ def read_broad(path: str | Path) -> tuple[ImuSamples, Trajectory | None, np.ndar
     mag = _columns(data, "imu_mag", 3, n, path) if "imu_mag" in data else None
     # BROAD: gyro k covers (t[k-1], t[k]]
     imu, quat, movement = physical_samples(path, np.arange(n) / rate[0], gyr, acc, names, "end", quat, movement,
-                                           mag_ut=mag, mag_name="'imu_mag'")
+                                           mag=None if mag is None else (mag, "'imu_mag'"))
     quat, problem = truth_quaternions(path, quat, "'opt_quat' rows (w, x, y, z)", 1e-2)
     return imu, None if quat is None else Trajectory(imu.t, quat), movement, problem
 

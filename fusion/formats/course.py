@@ -15,20 +15,18 @@ The IMU files become `RawImu` (native ADC counts, order ax ay az wx wy wz, no si
 `fusion.calibration` turns into `ImuSamples`; VICON files become a `Trajectory`.
 
 Gyro timing (`ImuSamples.gyr_timing`): "start", gyro sample k is the rate over [t[k], t[k+1])
-(gyro k, then accelerometer k + 1). Evidence on ece276a 1-9
-(`python benchmarks/timing_evidence.py`), ambiguous at the level of the scores:
+(gyro k, then accelerometer k + 1). The evidence on ece276a 1-9 is
+`python benchmarks/timing_evidence.py`, whose figures are in `docs/results.md` ("The course
+board's gyro timing"):
 - Gyro against accelerometer on the IMU's own clock (gravity in the body frame turns as
-  `-w x a`): gyro sample k matches the accelerometer's turn rate at t[k] + 9.2 ms (pooled;
-  +2 to +14 ms, all nine positive). A mean over [t[k], t[k+1]] predicts +5 ms, over
-  (t[k-1], t[k]] -5 ms (the method gives +5.6 / -4.4 ms on `fusion.sim`): "start" fits.
+  `-w x a`): gyro sample k matches the accelerometer's turn rate a few milliseconds after t[k],
+  as a mean over [t[k], t[k+1]] would ("start"; the method is checked on `fusion.sim`).
 - Against VICON the pairing is not identifiable by itself: a one-sample gyro shift equals a
-  VICON clock shift. With each pairing's own measured clock offset (VICON lags by -5..+21 ms
-  with "start", +5..+31 ms with "end"), mean RMSEs differ by at most 0.16 deg: dr 11.68 vs
-  11.67 total, gn inclination 1.47 vs 1.49, ekf 1.91 vs 1.86, vqf 4.41 vs 4.34 ("start" vs
-  "end"). The filters lean slightly to "end", by less than their recording-to-recording spread.
+  VICON clock shift. With each pairing's own measured clock offset, the estimators' scores
+  differ by less than their recording-to-recording spread: ambiguous at the level of the scores.
 
 Pickles can run code when loaded: only open pickle files you trust. As a guard, pickles are
-read with a restricted unpickler (`fusion.loaders.read_pickle`) that only builds numpy arrays
+read with a restricted unpickler (`fusion.format_checks.read_pickle`) that only builds numpy arrays
 and plain containers and refuses any other class.
 """
 from __future__ import annotations
@@ -41,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import BoardModel, Calibration, calibrate
-from ..loaders import (ADC_LIMIT_COUNTS, field_array, numeric_array, overlap_problem, read_mat, truth_matrices,
+from ..format_checks import (ADC_LIMIT_COUNTS, field_array, numeric_array, overlap_problem, read_mat, truth_matrices,
                        read_pickle, repair_time, time_row)
 from ..types import ImuSamples, RawImu, Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source
@@ -111,7 +109,7 @@ def load_vicon(path: str | Path) -> Trajectory:
     """VICON `viconRotN.p` or `.mat`: `rots` 3 x 3 x K (world <- body), `ts` 1 x K.
 
     Rows with NaN matrices (tracking gaps) stay NaN in the trajectory; scoring skips them; so do
-    matrices that are not rotations (counted in a warning, `fusion.loaders.truth_matrices`). Raises
+    matrices that are not rotations (counted in a warning, `fusion.format_checks.truth_matrices`). Raises
     ValueError naming the file when it cannot be read or holds no usable rotation.
     """
     path = Path(path)

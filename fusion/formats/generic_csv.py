@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..loaders import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
+from ..format_checks import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -43,7 +43,7 @@ def load_csv(path: str | Path, with_movement: bool = False):
     the optional `movement` column (0/1) marks the samples a BROAD-style score uses.
     Returns `(imu, truth)`, or `(imu, truth, movement)` with `with_movement` (movement None
     without the column); truth None without truth columns, or with a warning saying why they are
-    unusable (`fusion.loaders.truth_quaternions`).
+    unusable (`fusion.format_checks.truth_quaternions`).
     """
     imu, truth, movement, problem = read_csv(path)
     if problem is not None:
@@ -74,7 +74,7 @@ def read_csv(path: str | Path) -> tuple:
     movement = col["movement"] != 0 if "movement" in col else np.ones(len(gyr), bool)
     mag = np.column_stack([col[c] for c in CSV_MAG]) if all(c in header for c in CSV_MAG) else None
     imu, quat, movement = physical_samples(path, col["t"], gyr, acc, CSV_COLUMNS[1:], "end", quat, movement,
-                                           mag_ut=mag, mag_name="columns mx,my,mz")
+                                           mag=None if mag is None else (mag, "columns mx,my,mz"))
     movement = movement if "movement" in col else None
     if not has_truth:
         return imu, None, movement, None

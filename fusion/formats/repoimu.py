@@ -25,7 +25,7 @@ is its decimal mark. Its traps, handled here:
 - rows where the markers were not seen hold an all-zero quaternion: truth gaps (NaN rows), not a
   rotation; the static files hold nothing else and are read without truth (`Recording.truth_problem`);
 - a few rows hold a quaternion far from unit norm (|q| 0.006-0.95 in seven pendulum files): truth
-  gaps too, counted in a warning (`fusion.loaders.truth_quaternions`);
+  gaps too, counted in a warning (`fusion.format_checks.truth_quaternions`);
 - some rows repeat the previous row's time stamp (in some files with other data on the second
   row): dropped (the first row of each stamp kept), and their count said in a warning, which
   `fusion inspect` prints with the recording;
@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..loaders import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
+from ..format_checks import check_file, parse_rows, physical_samples, text_lines, truth_quaternions
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
 
@@ -137,8 +137,8 @@ def read_repoimu(path: str | Path) -> tuple:
     if NORMALISED_FIELD[0] <= norm <= NORMALISED_FIELD[1]:
         mag = mag * FIELD_UT
     names = ("gyroscope x", "gyroscope y", "gyroscope z", "acceleration x", "acceleration y", "acceleration z")
-    imu, quat = physical_samples(path, t, table[:, 8:11], table[:, 5:8], names, "end", quat, mag_ut=mag,
-                                 mag_name="magnetometer columns")
+    imu, quat = physical_samples(path, t, table[:, 8:11], table[:, 5:8], names, "end", quat,
+                                 mag=None if mag is None else (mag, "magnetometer columns"))
     _warn_held(path, imu)
     quat, problem = truth_quaternions(path, quat, "Vicon orientation rows (w, x, y, z)", 1e-2)
     return imu, None if quat is None else Trajectory(imu.t, quat), n_repeated, problem

@@ -11,7 +11,7 @@ m/s^2, body frame, REP 145); the truth, if any, a `geometry_msgs/msg/PoseStamped
 of the child frame (the IMU) in the header's frame (the world). A truth that tracks another
 body (a marker frame) must be turned into the IMU's before. Time stamps are the messages'
 header stamps (the time of measurement), not the times the recorder received them, as float64
-seconds since the first IMU stamp (subtracted as integers, `fusion.loaders.seconds_since`).
+seconds since the first IMU stamp (subtracted as integers, `fusion.format_checks.seconds_since`).
 
 Topics: `LoadOptions.imu_topic` / `truth_topic` (`--imu-topic` / `--truth-topic`), or the one
 topic of the type when there is one; several topics of a type with none chosen is an error
@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..loaders import (MAX_SAMPLES, one_line, overlap_problem, physical_samples, repair_time, seconds_since,
+from ..format_checks import (MAX_SAMPLES, one_line, overlap_problem, physical_samples, repair_time, seconds_since,
                        truth_quaternions)
 from ..types import Recording, Trajectory
 from .base import Format, Holds, ReadOptions, Source, recording_id
@@ -234,7 +234,7 @@ def _seconds(stamps_ns: np.ndarray, origin_ns: int) -> np.ndarray:
 
 
 def read_bag(path: Path, imu_topic: str | None = None, truth_topic: str | None = None):
-    """`(imu, truth, truth_problem)` of a bag: `ImuSamples` (through `fusion.loaders.physical_samples`),
+    """`(imu, truth, truth_problem)` of a bag: `ImuSamples` (through `fusion.format_checks.physical_samples`),
     the truth `Trajectory` (rows far from unit norm made gaps) or None (see the module docstring for
     the topics), and why a truth topic's messages were unusable (one line) or None."""
     with _reader(path) as reader:

@@ -20,6 +20,7 @@ which both sides import.
 from __future__ import annotations
 
 import math
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -322,10 +323,11 @@ class LowpassLag:
         return A @ self.N[0], -(A @ self.N[1])
 
 
-def models_lag(p, n: int) -> bool:
-    """Whether a filter with parameters `p` (`FilterParams`) and error dimension n models the
-    low-pass's lag (`LowpassLag`): it has calibration states and uses the low-passed sample."""
-    return n > 3 and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
+def models_lag(p, bias: bool) -> bool:
+    """Whether a filter with parameters `p` (`FilterParams`) models the low-pass's lag
+    (`LowpassLag`): it has calibration states (`bias`: the bias block, `ErrorLayout.bias`) and uses
+    the low-passed sample."""
+    return bias and p.disturbance_corr_s > 0.0 and p.acc_lowpass_s > 0.0
 
 
 def lowpass_drift_density(lowpass_s: float, rate_noise_rad2_s: float) -> float:
@@ -390,31 +392,56 @@ def acc_measurement(acc_g: np.ndarray, dist: AccDisturbance, density_g2_s: float
     return acc_g, raw, False
 
 
-def accelerometer_update_input(p, dist: AccDisturbance, acc_g: np.ndarray, dq: tuple, dt_s: float, scale: float,
-                               rate_noise_rad2_s: float, u: np.ndarray | None = None,
-                               gain: np.ndarray | None = None, slow_corr_s: float = 0.0, hx: np.ndarray | None = None,
-                               P_cal: np.ndarray | None = None,
-                               scale_prior_var: float = 0.0) -> tuple[np.ndarray, float, bool]:
+class AccStep(NamedTuple):
+    """What one accelerometer update takes of its step (`accelerometer_update_input`; the kernels'
+    `_compiled_accel.AccStep` has the same fields in the same order)."""
+
+    dq: tuple  # the step's rate increment exp(theta / 2), 4 floats, body frame
+    dt: float  # the step, s
+    scale: float  # the gate's factor on the variance (`acc_variance_scale`)
+    rate_noise: float  # the filter's rate noise density, rad^2/s: the frame's drift, the residual's weight
+    u: Any  # the lag's input (`AccDisturbance.update`): the bias-corrected rate (3,), rad/s, or None
+    gain: Any  # ... and the scale gain `1 + s` (3,), or None
+
+
+class SlowDisturbance(NamedTuple):
+    """The slow external acceleration's inputs (`AccDisturbance.slow_power`; the kernels'
+    `_compiled_accel.SlowDisturbance` has the same fields in the same order)."""
+
+    corr_s: float  # its correlation time, s (`ekf`'s `slow_disturbance_corr_s`); 0: none
+    h: Any  # (3,) gravity's direction in the body frame at the estimate
+    P_cal: Any  # the error covariance's calibration block, (3, 3) bias or (6, 6) bias and scale
+    scale_prior_var: float  # the scale prior's variance (`init_scale_var`; 0 without scale states)
+
+    @classmethod
+    def none(cls) -> "SlowDisturbance":
+        return cls(corr_s=0.0, h=None, P_cal=None, scale_prior_var=0.0)
+
+
+def accelerometer_update_input(dist: AccDisturbance, acc_g: np.ndarray, step: AccStep, slow: SlowDisturbance,
+                               p) -> tuple[np.ndarray, float, bool]:
     """What one accelerometer update of `ekf`, `ukf` or `ukf-bias` uses: `(z (3,) g, its variance
     per axis g^2, low-passed)`.
 
-    p: the filter's `FilterParams`; dist: its disturbance estimator, advanced here by the step's
-    rate increment `dq` with the sample `acc_g` (3,) g; scale: the gate's factor
-    (`acc_variance_scale`); rate_noise_rad2_s: the filter's rate noise density, for the frame
-    drift and the residual's weight; u, gain: the step's rate for the lag (`AccDisturbance.update`).
-    slow_corr_s > 0 (`ekf`'s `slow_disturbance_corr_s`, with the lag): the external acceleration
-    has a second, slow component, of power `AccDisturbance.slow_power(hx, P_cal, scale_prior_var)`
-    and correlation time slow_corr_s, whose density `2 slow_corr_s d_slow` the raw sample's
-    noise takes where it exceeds the fast one's `2 disturbance_corr_s d` (the larger of the two).
-    Without the disturbance model: the raw sample and R / dt.
+    dist: the filter's disturbance estimator, advanced here by the step's rate increment
+    `step.dq` with the sample `acc_g` (3,) g; step.scale: the gate's factor
+    (`acc_variance_scale`); step.rate_noise: the filter's rate noise density, for the frame
+    drift and the residual's weight; step.u, step.gain: the step's rate for the lag
+    (`AccDisturbance.update`). slow.corr_s > 0 (`ekf`'s `slow_disturbance_corr_s`, with the lag):
+    the external acceleration has a second, slow component, of power
+    `AccDisturbance.slow_power([h]x, P_cal, scale_prior_var)` and correlation time slow.corr_s,
+    whose density `2 corr_s d_slow` the raw sample's noise takes where it exceeds the fast one's
+    `2 disturbance_corr_s d` (the larger of the two). p: the filter's `FilterParams`. Without the
+    disturbance model: the raw sample and R / dt.
     (`_compiled_accel.accelerometer_update_input` is the same in the kernels.)
     """
     if p.disturbance_corr_s <= 0.0:
-        return acc_g, p.acc_noise_g2_s / dt_s * scale, False
-    d = dist.update(dq, acc_g, dt_s, u, gain)
-    if slow_corr_s > 0.0:  # as the power of the fast process with the same density
-        d = max(d, dist.slow_power(hx, P_cal, scale_prior_var) * (slow_corr_s / p.disturbance_corr_s))
-    drift = lowpass_drift_density(p.acc_lowpass_s, rate_noise_rad2_s)
+        return acc_g, p.acc_noise_g2_s / step.dt * step.scale, False
+    d = dist.update(step.dq, acc_g, step.dt, step.u, step.gain)
+    if slow.corr_s > 0.0:  # as the power of the fast process with the same density
+        d = max(d, dist.slow_power(quat.skew(slow.h), slow.P_cal, slow.scale_prior_var)
+                * (slow.corr_s / p.disturbance_corr_s))
+    drift = lowpass_drift_density(p.acc_lowpass_s, step.rate_noise)
     meas, density, lowpassed = acc_measurement(acc_g, dist, p.acc_noise_g2_s, p.disturbance_corr_s, d, drift,
-                                               rate_noise_rad2_s)
-    return meas, density / dt_s * scale, lowpassed
+                                               step.rate_noise)
+    return meas, density / step.dt * step.scale, lowpassed

@@ -13,6 +13,8 @@ from typing import NamedTuple
 
 from ...kernels._compiled_quaternion import multiply_floats, normalize_floats, rotate_floats, rotation_floats
 from ...kernels._numba import forget_stale, mirrors, _jit
+from ._accel import models_lag
+from ._error_state import BIAS_AT
 from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BODY, DIST_HAS_LOWPASS, DIST_HAS_MEAN,
                      DIST_LAG_B, DIST_LAG_S, DIST_LOWPASS, DIST_LOWPASS_MEAN, DIST_LOWPASS_NORM, DIST_LOWPASS_VAR,
                      DIST_MEAN, DIST_STATE, DIST_VAR)
@@ -21,6 +23,26 @@ forget_stale(__file__)
 
 HELPERS = ("gravity_jacobian",)
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
+
+
+class AccStep(NamedTuple):
+    """`_accel.AccStep` as the kernels take it: the same fields in the same order."""
+
+    dq: tuple  # the step's rate increment, 4 floats
+    dt: float  # s
+    scale: float  # the gate's factor
+    rate_noise: float  # rad^2/s
+    u: tuple  # the lag's bias-corrected rate, 3 floats, rad/s
+    gain: tuple  # ... and 1 + s, 3 floats
+
+
+class SlowDisturbance(NamedTuple):
+    """`_accel.SlowDisturbance` as the kernels take it: the same fields in the same order."""
+
+    corr_s: float  # s; 0: none
+    h: tuple  # gravity's direction in the body frame, 3 floats
+    P_cal: object  # (k, k) the covariance's calibration block (a view of P)
+    scale_prior_var: float
 
 
 class AccSettings(NamedTuple):
@@ -33,13 +55,15 @@ class AccSettings(NamedTuple):
     window: float  # the disturbance's variance window, s
     lowpass_s: float  # the low-pass's time constant, s (0: none)
     lowpass_window: float  # its variance window, s
+    lag: bool  # the low-pass's lag is modelled (`_accel.models_lag`; `AccDisturbance.lag`)
 
 
-def acc_settings(p) -> AccSettings:
-    """The `AccSettings` of a filter's parameters `p` (a `FilterParams`)."""
+def acc_settings(p, bias: bool) -> AccSettings:
+    """The `AccSettings` of a filter's parameters `p` (a `FilterParams`), with bias states or not."""
     return AccSettings(gate=_GATES[p.gate], gate_g=float(p.gate_g), noise=float(p.acc_noise_g2_s),
                        corr_s=float(p.disturbance_corr_s), window=float(p.disturbance_window_s),
-                       lowpass_s=float(p.acc_lowpass_s), lowpass_window=float(p.acc_lowpass_window_s))
+                       lowpass_s=float(p.acc_lowpass_s), lowpass_window=float(p.acc_lowpass_window_s),
+                       lag=bool(models_lag(p, bias)))
 
 
 @mirrors("fusion.estimators.filters.steps._accel.acc_variance_scale")
@@ -80,19 +104,20 @@ def _turn(st, dq):
 
 
 @mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.turn")
-def turn(st, dq, dt, o, lag, rate):
+def turn(st, dq, dt, u, gain, o):
     """`AccDisturbance.turn` on its state array: the frame follows the rate increment dq; with
-    lag, N_b and N_s follow it (`step`, rate as there)."""
+    the lag (o.lag), N_b and N_s follow it (`step`, u and gain as there)."""
     fresh = st[DIST_HAS_LOWPASS] == 0.0
     _turn(st, dq)
-    if lag:
-        step(st, rate, fresh, dt, False, o.lowpass_s)
+    if o.lag:
+        step(st, u, gain, dt, fresh, False, o.lowpass_s)
 
 
 @mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.update")
-def update(st, dq, ax, ay, az, dt, o, lag, rate):
-    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0, the lag with `lag`) on its
-    state array; -> d, g^2."""
+def update(st, dq, acc, dt, u, gain, o):
+    """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0, the lag with o.lag) on its
+    state array, acc the sample (3 floats, g); -> d, g^2."""
+    ax, ay, az = acc
     fresh = st[DIST_HAS_LOWPASS] == 0.0  # the low-pass (re)starts with this sample: no lag yet
     qi = _turn(st, dq)
     wx, wy, wz = rotate_floats(qi, ax, ay, az)
@@ -110,8 +135,8 @@ def update(st, dq, ax, ay, az, dt, o, lag, rate):
     seen = -math.expm1(-st[DIST_AGE] / o.window)
     if o.lowpass_s > 0.0:
         _lowpass(st, qi, wx, wy, wz, abs(norm_dev), dt, o)
-    if lag:
-        step(st, rate, fresh, dt, True, o.lowpass_s)
+    if o.lag:
+        step(st, u, gain, dt, fresh, True, o.lowpass_s)
     d = st[DIST_VAR] / seen  # max(v / seen, inst, nd2) with Python's max semantics
     if inst > d:
         d = inst
@@ -150,10 +175,10 @@ def _lowpass(st, qi, wx, wy, wz, norm_dev, dt, o):
 
 
 @mirrors("fusion.estimators.filters.steps._accel.LowpassLag.step")
-def step(st, rate, fresh, h, updated, lowpass_s):
+def step(st, u, gain, h, fresh, updated, lowpass_s):
     """`_accel.LowpassLag.step` on the disturbance state `st`: N_b and N_s advanced with its
-    strapdown frame (q_I at DIST_FRAME); rate (2, 3): the bias-corrected rate u and the gain 1 + s
-    (a step that was not integrated restarts the low-pass: fresh)."""
+    strapdown frame (q_I at DIST_FRAME); u, gain (3 floats each): the bias-corrected rate and the
+    gain 1 + s (a step that was not integrated restarts the low-pass: fresh); h: the step, s."""
     if fresh:
         for c in range(DIST_LAG_B, DIST_STATE):
             st[c] = 0.0
@@ -162,8 +187,8 @@ def step(st, rate, fresh, h, updated, lowpass_s):
     R = rotation_floats((st[f], st[f + 1], st[f + 2], st[f + 3]))  # R_I, row by row
     for j in range(3):  # column j of R_I, times diag(1 + s) dt and diag(u) dt
         cx, cy, cz = R[j], R[3 + j], R[6 + j]
-        gj = rate[1, j] * h
-        uj = rate[0, j] * h
+        gj = gain[j] * h
+        uj = u[j] * h
         st[DIST_LAG_B + j] += cx * gj
         st[DIST_LAG_B + 3 + j] += cy * gj
         st[DIST_LAG_B + 6 + j] += cz * gj
@@ -183,30 +208,32 @@ def gravity_jacobian(H, hx, hy, hz, n):
     H[1, 0], H[1, 1], H[1, 2] = hz, 0.0, -hx
     H[2, 0], H[2, 1], H[2, 2] = -hy, hx, 0.0
     for i in range(3):
-        for j in range(3, n):
+        for j in range(BIAS_AT, n):
             H[i, j] = 0.0
 
 
 @mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.lag_jacobian")
-def lag_jacobian(H, st, n):
+def lag_jacobian(H, st, scale):
     """`AccDisturbance.lag_jacobian` into H (3 x n) holding `[h]x` in its first three columns:
-    H[:, 3:6] = A N_b, H[:, 6:9] = -A N_s with A = [h]x R_I^T (N_b, N_s in the state `st`)."""
+    H[:, BIAS] = A N_b, and with scale states H[:, SCALE] = -A N_s, with A = [h]x R_I^T (N_b, N_s
+    in the state `st`)."""
     f = DIST_FRAME
     qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
-    for m in range(2 if n > 6 else 1):
+    for m in range(2 if scale else 1):
         sign = 1.0 if m == 0 else -1.0
         for j in range(3):
             c = (DIST_LAG_B if m == 0 else DIST_LAG_S) + j
             vx, vy, vz = rotate_floats(qi, st[c], st[c + 3], st[c + 6])
             for i in range(3):
-                H[i, 3 + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
+                H[i, BIAS_AT + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
 
 @mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.slow_power")
-def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s, Hc):
+def slow_power(st, h, P_cal, scale_prior_var, lowpass_s, Hc):
     """`AccDisturbance.slow_power` on the disturbance state `st`, for the gravity direction h
-    (body) and the filter's covariance P (its calibration block P[3:n, 3:n]); -> g^2. Hc: (3, >= 6)
-    scratch, [H_b, H_s] in its first six columns."""
+    (3 floats, body) and the filter's calibration covariance P_cal ((3, 3) bias or (6, 6) bias and
+    scale); -> g^2. Hc: (3, >= 6) scratch, [H_b, H_s] in its first six columns."""
+    hx, hy, hz = h
     if st[DIST_HAS_LOWPASS] == 0.0 or st[DIST_HAS_MEAN] == 0.0 or st[DIST_AGE] < lowpass_s:
         return 0.0
     m, lp = DIST_MEAN, DIST_LOWPASS
@@ -221,11 +248,11 @@ def slow_power(st, hx, hy, hz, P, n, scale_prior_var, lowpass_s, Hc):
         Hc[0, c] = sign * (-hz * vy + hy * vz)  # [h]x v
         Hc[1, c] = sign * (hz * vx - hx * vz)
         Hc[2, c] = sign * (-hy * vx + hx * vy)
-    k = n - 3  # 3 (bias) or 6 (bias and scale)
+    k = P_cal.shape[0]  # 3 (bias) or 6 (bias and scale)
     explained = 0.0
     for i in range(k):  # trace(H_c P_cal H_c^T)
         for j in range(k):
-            explained += (Hc[0, i] * Hc[0, j] + Hc[1, i] * Hc[1, j] + Hc[2, i] * Hc[2, j]) * P[3 + i, 3 + j]
+            explained += (Hc[0, i] * Hc[0, j] + Hc[1, i] * Hc[1, j] + Hc[2, i] * Hc[2, j]) * P_cal[i, j]
     hs2 = 0.0
     for i in range(3):
         for j in range(3, 6):
@@ -262,21 +289,18 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
 
 
 @mirrors("fusion.estimators.filters.steps._accel.accelerometer_update_input")
-def accelerometer_update_input(dist, dq, ax, ay, az, dt, scale, rate_noise, o, lag, rate, slow_corr, hx, hy, hz, P, n,
-                               scale_prior_var, W):
-    """The measurement and variance of one accelerometer update, as the filters' steps choose
-    them: the disturbance estimate (`AccDisturbance.update` with the step's rate increment dq,
-    and with `lag` the low-pass's lag, `step` with rate (2, 3) as there), with slow_corr > 0 its
-    slow component (`slow_power` for the gravity direction h and the covariance P of error
-    dimension n; W: its (3, >= 6) scratch), the low-pass frame drift (rate_noise: the filter's
-    rate noise density), the raw or the low-passed sample (`_accel.acc_measurement`), its variance
-    times the gate's scale; without the disturbance model the raw sample and R / dt.
+def accelerometer_update_input(dist, acc, step, slow, o, work):
+    """`_accel.accelerometer_update_input`: the measurement and variance of one accelerometer
+    update, as the filters' steps choose them, for the sample acc (3 floats, g) with the step's
+    `AccStep` and the `SlowDisturbance` (work: `slow_power`'s (3, >= 6) scratch); o: `AccSettings`.
     -> (z (3 floats), r g^2, low-passed)."""
+    ax, ay, az = acc
     if o.corr_s > 0.0:
-        d = update(dist, dq, ax, ay, az, dt, o, lag, rate)
-        if slow_corr > 0.0:  # as the power of the fast process with the same density
-            d = max(d, slow_power(dist, hx, hy, hz, P, n, scale_prior_var, o.lowpass_s, W) * (slow_corr / o.corr_s))
-        drift = lowpass_drift_density(o.lowpass_s, rate_noise)
-        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, rate_noise)
-        return mx, my, mz, density / dt * scale, lowpassed
-    return ax, ay, az, o.noise / dt * scale, False
+        d = update(dist, step.dq, acc, step.dt, step.u, step.gain, o)
+        if slow.corr_s > 0.0:  # as the power of the fast process with the same density
+            d = max(d, slow_power(dist, slow.h, slow.P_cal, slow.scale_prior_var, o.lowpass_s, work)
+                    * (slow.corr_s / o.corr_s))
+        drift = lowpass_drift_density(o.lowpass_s, step.rate_noise)
+        mx, my, mz, density, lowpassed = acc_measurement(dist, ax, ay, az, o, d, drift, step.rate_noise)
+        return mx, my, mz, density / step.dt * step.scale, lowpassed
+    return ax, ay, az, o.noise / step.dt * step.scale, False

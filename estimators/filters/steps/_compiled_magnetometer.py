@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 
 from ...kernels._compiled_quaternion import gravity_floats, rotate_floats
 from ...kernels._numba import forget_stale, mirrors
+from ._error_state import BIAS_AT
 from ._magnetometer import (HARD_IRON_A, HARD_IRON_B, HARD_IRON_W, HARD_IRON_YY, HEADING_GATE_CHI2, MAG_DIP,
                             MAG_HAS_REF, MAG_LEARNED, MAG_NORM, MAG_PSI, MAG_REJECTED, MAG_TIME_OK)
 
@@ -236,9 +237,10 @@ def heading_update(P, n, N, q, east, north, r, K, G, dx):
         K[i] = G[i] / S
     vk = vx * K[0] + vy * K[1] + vz * K[2]
     K[0], K[1], K[2] = vx * vk, vy * vk, vz * vk
-    if n > 3:
-        vk = vx * K[3] + vy * K[4] + vz * K[5]
-        K[3], K[4], K[5] = vx * vk, vy * vk, vz * vk
+    if n > BIAS_AT:  # the bias rows
+        c = BIAS_AT
+        vk = vx * K[c] + vy * K[c + 1] + vz * K[c + 2]
+        K[c], K[c + 1], K[c + 2] = vx * vk, vy * vk, vz * vk
     for i in range(n, N):
         K[i] = 0.0
     for i in range(N):

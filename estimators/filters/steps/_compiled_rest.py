@@ -15,6 +15,7 @@ import numpy as np
 
 from ...kernels._compiled_linalg import inv_sym3, joseph
 from ...kernels._numba import _jit, _sample, forget_stale, inputs, mirrors
+from ._error_state import BIAS_AT
 from ._rest import REST_HAS_LOWPASS, REST_LOWPASS, REST_STATE, REST_TIME_STILL, REST_WINDOW_S
 
 forget_stale(__file__)
@@ -84,19 +85,22 @@ def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float
 
 
 @mirrors("fusion.estimators.filters.steps._rest.bias_rest_update")
-def bias_rest_update(P, n, bx, by, bz, gx, gy, gz, r, K, dx, S, Sinv, PHt, D):
-    """`_rest.bias_rest_update`: the zero-rate update gyr = b + noise, H = [0, I, 0] (3 x n),
-    so that P H^T = P[:, 3:6] and H P H^T = P[3:6, 3:6]; P updated in place (Joseph form,
-    `joseph`), the correction into dx (n,) (PHt, D: n x 3 scratch)."""
+def bias_rest_update(b, P, gyr, r, n, w):
+    """`_rest.bias_rest_update`: the zero-rate update gyr = b + noise (b, gyr: 3 floats, rad/s),
+    H = [0, I, 0] (3 x n), so that P H^T = P[:, BIAS] and H P H^T = P[BIAS, BIAS]; P updated in
+    place (Joseph form, `joseph`), the correction into w.dx (n,) (w: the filter's work arrays, K,
+    PHt, D: n x 3, S, Sinv: 3 x 3)."""
+    K, dx, S, Sinv, PHt = w.K, w.dx, w.S, w.Sinv, w.PHt
+    c = BIAS_AT
     for i in range(n):
-        PHt[i, 0], PHt[i, 1], PHt[i, 2] = P[i, 3], P[i, 4], P[i, 5]
+        PHt[i, 0], PHt[i, 1], PHt[i, 2] = P[i, c], P[i, c + 1], P[i, c + 2]
     for i in range(3):
         for j in range(3):
-            S[i, j] = P[3 + i, 3 + j] + (r if i == j else 0.0)
+            S[i, j] = P[c + i, c + j] + (r if i == j else 0.0)
     inv_sym3(S, Sinv)
-    yx, yy, yz = gx - bx, gy - by, gz - bz
+    yx, yy, yz = gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2]
     for i in range(n):
         for j in range(3):
-            K[i, j] = P[i, 3] * Sinv[0, j] + P[i, 4] * Sinv[1, j] + P[i, 5] * Sinv[2, j]
+            K[i, j] = P[i, c] * Sinv[0, j] + P[i, c + 1] * Sinv[1, j] + P[i, c + 2] * Sinv[2, j]
         dx[i] = K[i, 0] * yx + K[i, 1] * yy + K[i, 2] * yz
-    joseph(P, K, PHt, S, n, D)
+    joseph(P, K, PHt, S, n, w.D)

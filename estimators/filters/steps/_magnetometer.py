@@ -25,6 +25,8 @@ import numpy as np
 
 from fusion import quaternion as quat
 
+from ._error_state import ATTITUDE, BIAS, ErrorLayout
+
 # The layout of `MagReference.state()`: offsets into the (MAG_STATE,) float64 array.
 MAG_HAS_REF = 0  # flag: the reference has been started
 MAG_NORM = 1  # the reference norm, uT
@@ -164,7 +166,7 @@ def heading_innovation(q: tuple, P: np.ndarray, east_ut: float, north_ut: float)
     north (rad; `heading_update`), and the filter's heading variance (rad^2), for the heading gate
     (`MagReference.heading_gate_update`)."""
     v = quat.gravity_in_body_floats(*q)
-    return math.atan2(-east_ut, north_ut), float(v @ P[:3, :3] @ v)
+    return math.atan2(-east_ut, north_ut), float(v @ P[ATTITUDE, ATTITUDE] @ v)
 
 
 def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: float,
@@ -189,17 +191,18 @@ def heading_update(q: tuple, P: np.ndarray, n: int, east_ut: float, north_ut: fl
     Returns `(dx (N,), P)`.
     """
     N = len(P)
+    layout = ErrorLayout.of(n, N - n)
     v = quat.gravity_in_body_floats(*q)
     psi = math.atan2(-east_ut, north_ut)
     H = np.zeros(N)
-    H[:3] = v
+    H[ATTITUDE] = v
     PHt = P @ H
     S = float(H @ PHt) + r_rad2
     K = PHt / S
-    K[:3] = v * float(v @ K[:3])
-    if n > 3:
-        K[3:6] = v * float(v @ K[3:6])
-    K[n:] = 0.0
+    K[ATTITUDE] = v * float(v @ K[ATTITUDE])
+    if layout.bias:
+        K[BIAS] = v * float(v @ K[BIAS])
+    K[layout.velocity] = 0.0
     IKH = np.eye(N) - np.outer(K, H)
     P = IKH @ P @ IKH.T + r_rad2 * np.outer(K, K)
     return K * -psi, P

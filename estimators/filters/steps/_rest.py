@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from ...kernels._linalg import inv_sym3
+from ._error_state import BIAS
 
 # The layout of `RestDetector.state()`: offsets into the (REST_STATE,) float64 array.
 REST_HAS_LOWPASS = 0  # flag: the accelerometer low-pass has started
@@ -92,16 +93,16 @@ def bias_rest_update(x_bias: np.ndarray, P: np.ndarray, gyr_rad_s: np.ndarray, r
     """Kalman update with the rest pseudo-measurement `gyr = b + noise` (true rate zero).
 
     x_bias: (3,) bias estimate, rad/s; P: (n, n) error covariance `[attitude, bias, ...]`
-    (the bias in rows 3-5); gyr_rad_s: (3,) the reading at rest; r_rad2_s2: its variance per
+    (the bias in the rows `BIAS`); gyr_rad_s: (3,) the reading at rest; r_rad2_s2: its variance per
     axis, (rad/s)^2. At zero rate the scale factor does not enter the model, so
     H = [0, I, 0] is linear and the standard update is exact for the EKF and the UKF alike
     (the attitude and scale rows move through the cross-covariances). Returns
     `(dx (n,), P)`, with P in Joseph form.
     """
     n = len(P)
-    S = P[3:6, 3:6] + np.eye(3) * r_rad2_s2
-    K = P[:, 3:6] @ inv_sym3(S)
+    S = P[BIAS, BIAS] + np.eye(3) * r_rad2_s2
+    K = P[:, BIAS] @ inv_sym3(S)
     dx = K @ (gyr_rad_s - x_bias)
     IKH = np.eye(n)
-    IKH[:, 3:6] -= K
+    IKH[:, BIAS] -= K
     return dx, IKH @ P @ IKH.T + (K * r_rad2_s2) @ K.T

@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from ._error_state import ATTITUDE, BIAS, SCALE_AT
+
 # The layout of `ScaleTest.state()`: offsets into the (TEST_STATE,) float64 array.
 TEST_ON = 0  # flag: the test runs
 TEST_DECISION = 1  # 0 undecided, 1 a scale error (H1), -1 calibrated (H0)
@@ -53,7 +55,8 @@ class ScaleTest:
     (`_compiled_scale_test.step` is the same in the kernels.)
     """
 
-    def __init__(self, prior_var: float, calibrated_var: float, error: float, axes: np.ndarray, first: int = 6):
+    def __init__(self, prior_var: float, calibrated_var: float, error: float, axes: np.ndarray,
+                 first: int = SCALE_AT):
         self.axes = np.flatnonzero(axes)
         self.rows = first + self.axes  # the scale states' rows in the error state
         self.on = bool(error > 0.0 and len(self.axes) and calibrated_var < prior_var)  # else nothing to test
@@ -113,8 +116,8 @@ class ScaleTest:
         S = P[np.ix_(rows, rows)] + self.r * np.eye(len(rows))
         K = np.linalg.solve(S, P[rows]).T  # P H^T S^-1, H selecting the rows
         if vertical is not None:
-            K[:3] -= np.outer(vertical, vertical @ K[:3])
-            K[3:6] -= np.outer(vertical, vertical @ K[3:6])
+            K[ATTITUDE] -= np.outer(vertical, vertical @ K[ATTITUDE])
+            K[BIAS] -= np.outer(vertical, vertical @ K[BIAS])
         dx = K @ -s[self.axes]
         IKH = np.eye(len(P))
         IKH[:, rows] -= K
