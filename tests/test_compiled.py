@@ -31,6 +31,8 @@ SPECS = (
     "ekf", "ekf:bias=false,scale=false", "ekf:scale=false", "ekf:saxes=xyz", "ekf:gate=skip,gate_g=0.05",
     "ekf:gate=inflate,gate_g=0.1", "ekf:hf=false", "ekf:acc=false", "ekf:tauc=0", "ekf:rest_time_s=0.3",
     "ekf:rest_time_s=inf", "ekf:taulp=0", "ekf:taulp=0.3,taulpw=1",
+    # the rest detector's tilt test off, and so tight that it ends still stretches on the recordings
+    "ekf:rtilt=inf", "ekf:rtilt=0.0003,rest_time_s=0.3",
     # ekf's velocity model off, tighter, with a looser acceleration density, without calibration states
     "ekf:Rv=inf", "ekf:Rv=0.09,Qv=2.5e-3", "ekf:bias=false,scale=false,Rv=0.25", "ekf:lpcal=true",
     # ekf without the slow external acceleration, and with a longer one
@@ -50,6 +52,7 @@ SPECS = (
     "ukf-bias:acc=false", "ukf-bias:rest_time_s=0.3", "ukf-bias:iters=2", "ukf-bias:tauc=0", "ukf-bias:taulp=0",
     # ukf-bias's scale test off, and deciding within the windows
     "ukf-bias:sprt=0", "ukf-bias:sprt=0.3", "ukf-bias:sprt=0.45,saxes=xyz,hf=false",
+    "ukf-bias:rtilt=inf", "ukf-bias:rtilt=0.0003,rest_time_s=0.3",
 )
 
 
@@ -457,9 +460,14 @@ def test_the_packed_states_match_their_layout():
     again = _accel.AccDisturbance(1.0, 2.0, 3.0, lag=True)
     again.set_state(st)
     assert np.array_equal(again.state(), st)
-    rest = _rest.RestDetector(0.1, 0.1, 0.5)
+    rest = _rest.RestDetector(0.1, 0.1, 0.5, tilt_rad=0.01)
     rest.update(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.01)
+    rest.update(np.zeros(3), np.array([0.0, 0.01, 1.0]), 0.01)
     assert rest.state().shape == (_rest.REST_STATE,) and rest.state()[_rest.REST_TIME_STILL] == rest.time_still
+    assert np.array_equal(rest.state()[_rest.REST_START:_rest.REST_START + 3], rest.lp0) and rest.lp0[2] == 1.0
+    again = _rest.RestDetector(0.1, 0.1, 0.5, tilt_rad=0.01)
+    again.set_state(rest.state())
+    assert np.array_equal(again.state(), rest.state())
     mag = _magnetometer.MagReference(0.1, 0.1, 1.0, 10.0)
     mag.update(50.0, 0.9, 0.01)
     assert mag.state().shape == (_magnetometer.MAG_STATE,) and mag.state()[_magnetometer.MAG_DIP] == 0.9

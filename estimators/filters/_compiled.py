@@ -213,7 +213,7 @@ def load() -> None:
     def states() -> SensorStates:
         return SensorStates(
             dist=AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, lag=True).state(),
-            rest=RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s).state(), mag=np.zeros(MAG_STATE),
+            rest=RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s, tilt_rad=p.rest_tilt_rad).state(), mag=np.zeros(MAG_STATE),
             hard_iron=np.zeros(HARD_IRON_STATE), test=np.zeros(TEST_STATE))
 
     out = outputs(2, n, unit, {})

@@ -246,7 +246,7 @@ class EKFParams(BiasFilterParams):
     def _only_with(self) -> dict[str, tuple[str, tuple[Any, ...]]]:
         bias = ("estimate_bias", (True,))
         names = ("bias_walk_rad2_s3", "init_bias_var_rad2_s2", "bias_max_rad_s", "rest_gyr_rad_s", "rest_acc_g",
-                 "rest_time_s", "rest_noise_rad2_s", "slow_disturbance_corr_s")
+                 "rest_time_s", "rest_tilt_rad", "rest_noise_rad2_s", "slow_disturbance_corr_s")
         return {**super()._only_with(), **{name: bias for name in names}}
 
     @property
@@ -293,7 +293,7 @@ class EKF(KalmanFilter):
         # the low-pass's lag is modelled where there are calibration states (`LowpassLag`)
         self._with_lag = models_lag(p, L.bias)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
-        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s)
+        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s, tilt_rad=p.rest_tilt_rad)
         self._stuck = stuck_gyro_state()
         self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,
                                        axes_mask(p.scale_axes))

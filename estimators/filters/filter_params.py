@@ -24,7 +24,7 @@ from typing import Any, ClassVar, Literal
 from ..params import FormerSpellings
 from ..search import Tunable
 from .steps._error_state import axes_mask
-from .steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
+from .steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TILT_RAD, REST_TIME_S
 
 Gate = Literal["off", "skip", "inflate"]
 
@@ -183,6 +183,9 @@ class BiasFilterParams(FilterParams):
     rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (gyro norm, accelerometer
         deviation, minimum duration) for the zero-rate bias update; rest_time_s = inf
         turns it off.
+    rest_tilt_rad (rtilt): the rest detector's tilt test (`_rest.RestDetector`): a still stretch
+        ends where the low-passed accelerometer has turned by more than this since it began, rad,
+        so that a turn slower than the gyro threshold is not read as bias; inf: no test.
     rest_noise_rad2_s (Rrest): density of the gyro reading at rest, rad^2/s (step variance
         Rrest / dt).
     mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
@@ -237,6 +240,7 @@ class BiasFilterParams(FilterParams):
     rest_gyr_rad_s: float = REST_GYR_RAD_S
     rest_acc_g: float = REST_ACC_G
     rest_time_s: float = REST_TIME_S
+    rest_tilt_rad: float = field(default=REST_TILT_RAD, metadata={"alias": "rtilt"})
     rest_noise_rad2_s: float = field(default=1e-6, metadata={"alias": "Rrest"})
     # two decades either side of the default (benchmarks/broad_9d.py --leave-one-out tries 0.03-1);
     # the unit is rad^2 s, not the rad^2/s its suffix reads as elsewhere (a measurement's density)
@@ -261,6 +265,9 @@ class BiasFilterParams(FilterParams):
         super()._check()
         check_nonneg(owner, rest_gyr_rad_s=self.rest_gyr_rad_s, rest_acc_g=self.rest_acc_g,
                      rest_noise_rad2_s=self.rest_noise_rad2_s)
+        if not 0.0 < self.rest_tilt_rad < math.pi / 2 and self.rest_tilt_rad != math.inf:
+            raise ValueError(f"{owner}: rest_tilt_rad must be in (0, pi/2) rad (inf: no tilt test), "
+                             f"got {self.rest_tilt_rad!r}")
         if not (self.bias_max_rad_s > 0.0):
             raise ValueError(f"{owner}: bias_max_rad_s must be > 0 rad/s, got {self.bias_max_rad_s!r}")
         if not (self.rest_time_s > 0.0):

@@ -278,7 +278,7 @@ class UKF(KalmanFilter):
         # ukf-bias: the low-passed sample's lag in the measurement model, as in `ekf`
         self._with_lag = models_lag(p, L.bias)
         self._dist = AccDisturbance(p.disturbance_window_s, p.acc_lowpass_s, p.acc_lowpass_window_s, self._with_lag)
-        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s) if self.with_bias else None
+        self._rest = RestDetector(p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s, tilt_rad=p.rest_tilt_rad) if self.with_bias else None
         self._stuck = stuck_gyro_state()
         # ukf-bias with scale states: the scale test of `ekf` (6-D)
         self._scale_test = (ScaleTest(p.init_scale_var, p.calibrated_scale_var, p.scale_test_error,

@@ -16,7 +16,7 @@ import numpy as np
 from ...kernels._compiled_linalg import inv_sym3, joseph
 from ...kernels._numba import _jit, _sample, forget_stale, inputs, mirrors
 from ._error_state import BIAS_AT
-from ._rest import REST_HAS_LOWPASS, REST_LOWPASS, REST_STATE, REST_TIME_STILL, REST_WINDOW_S
+from ._rest import REST_HAS_LOWPASS, REST_LOWPASS, REST_START, REST_STATE, REST_TIME_STILL, REST_WINDOW_S
 
 forget_stale(__file__)
 
@@ -30,14 +30,15 @@ class RestSettings(NamedTuple):
     acc: float  # accelerometer deviation, g
     time: float  # minimum duration, s (inf: never at rest)
     window: float  # the accelerometer low-pass's time constant, s
+    tilt: float  # the tilt test's angle, rad (inf: none)
 
 
 def rest_settings(rest: Any) -> RestSettings:
     """The `RestSettings` of a `RestDetector`, or of none (never at rest)."""
     if rest is None:
-        return RestSettings(gyr=0.0, acc=0.0, time=math.inf, window=1.0)
+        return RestSettings(gyr=0.0, acc=0.0, time=math.inf, window=1.0, tilt=math.inf)
     return RestSettings(gyr=float(rest.gyr_th), acc=float(rest.acc_th), time=float(rest.min_time),
-                        window=float(rest.window_s))
+                        window=float(rest.window_s), tilt=float(rest.tilt))
 
 
 @mirrors("fusion.estimators.filters.steps._rest.RestDetector.update")
@@ -56,8 +57,24 @@ def update(st, gx, gy, gz, ax, ay, az, dt, o):
     a = ax * ax + ay * ay + az * az
     still = (g < o.gyr * o.gyr and dx * dx + dy * dy + dz * dz < o.acc * o.acc
              and abs(math.sqrt(a) - 1.0) < o.acc)
+    if still and o.tilt < math.inf:  # the tilt test: has the low-pass turned within the stretch?
+        s0 = REST_START
+        if st[REST_TIME_STILL] == 0.0:
+            st[s0], st[s0 + 1], st[s0 + 2] = st[lp], st[lp + 1], st[lp + 2]
+        elif _turned(st[s0], st[s0 + 1], st[s0 + 2], st[lp], st[lp + 1], st[lp + 2], o.tilt):
+            st[REST_TIME_STILL] = 0.0  # a turn, not a rest: a new stretch begins next
+            return False
     st[REST_TIME_STILL] = st[REST_TIME_STILL] + dt if still else 0.0
     return st[REST_TIME_STILL] >= o.time
+
+
+@mirrors("fusion.estimators.filters.steps._rest._turned")
+def _turned(ax, ay, az, bx, by, bz, angle):
+    """`_rest._turned` on two directions of 3 floats each."""
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    s = math.sin(angle)
+    return (ax * bx + ay * by + az * bz <= 0.0
+            or cx * cx + cy * cy + cz * cz > s * s * (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
 
 
 @_jit
@@ -72,14 +89,16 @@ def rest_kernel(gyr, valid, dt, acc, o, out):
 
 
 def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float,
-               window_s: float = REST_WINDOW_S) -> np.ndarray:
+               window_s: float = REST_WINDOW_S, tilt_rad: float = math.inf) -> np.ndarray:
     """(N-1,) bool: the steps of `imu` (`ImuSamples`) that end at rest by `_rest.RestDetector`
     with these thresholds, run causally over the recording (the samples the `ekf` and `ukf-bias`
-    rest updates use). A batch smoother reads its gyro bias there."""
+    rest updates use, with their `tilt_rad`). A batch smoother reads its gyro bias there (without
+    the tilt test: inf)."""
     inp = inputs(imu)
     out = np.zeros(len(inp.dt), dtype=bool)
     if math.isfinite(min_time_s):
-        o = RestSettings(gyr=float(gyr_th_rad_s), acc=float(acc_th_g), time=float(min_time_s), window=float(window_s))
+        o = RestSettings(gyr=float(gyr_th_rad_s), acc=float(acc_th_g), time=float(min_time_s), window=float(window_s),
+                         tilt=float(tilt_rad))
         rest_kernel(inp.gyr, inp.valid, inp.dt, inp.acc, o, out)
     return out
 
