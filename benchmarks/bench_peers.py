@@ -2,6 +2,13 @@
 
     python benchmarks/bench_peers.py [--data-dir DIR] [--broad ID] [--course ID] [--repeat 5]
                                      [--library-samples N] [--no-compile-times]
+    python benchmarks/bench_peers.py --more [--data-dir DIR] [--broad ID] [--library-samples 3000]
+
+`--more`: the rest of `ahrs` and `qmt` on the BROAD trial instead (6-D and 9-D): every peer with a
+twin (`peers._compiled_ahrs_recursive`, `peers._compiled_ahrs_single`) with `impl=library` on the
+first `--library-samples` samples (one run) and with its twin on the whole trial (best of `--repeat`),
+and the peers without one (the complementary filter, SAAM and Tilt, whose library calls are
+vectorised, and qmt's three, C++) on the whole trial.
 
 For `madgwick`, `mahony` and `ahrs-ekf`, on a BROAD trial (286 Hz; 6-D with the magnetometer
 dropped, and 9-D) and a course recording (100 Hz, 6-D): the whole-recording `estimate` with
@@ -30,6 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_filters import compile_times, time_estimate  # noqa: E402
 
 PEERS = ("madgwick", "mahony", "ahrs-ekf")
+MORE_TWINS = ("aqua", "fkf", "fourati", "roleq", "ahrs-ukf", "ahrs-angular", "davenport", "quest", "oleq", "flae", "fqa",
+              "triad", "famc")
+MORE_WITHOUT = ("complementary", "saam", "tilt", "qmt-oriestimu", "qmt-madgwick", "qmt-mahony")
 
 _FIRST_CALL = r"""
 import json, time
@@ -66,7 +76,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--library-samples", type=int, default=None, metavar="N",
                     help="time the library on the first N samples only (default: the whole recording)")
     ap.add_argument("--no-compile-times", action="store_true", help="skip the compile-time measurement")
+    ap.add_argument("--more", action="store_true", help="the rest of ahrs and qmt (module docstring)")
     args = ap.parse_args(argv)
+    if args.more:
+        more(args)
+        return
     runs = []
     for dataset in (args.broad, args.course):
         rec = load(dataset, args.data_dir)
@@ -91,6 +105,31 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{'':40s} {'empty cache':>12s} {'cached':>8s}")
         print(f"{'import fusion.estimators.peers._compiled_ahrs':40s} {cold['import']:12.2f} {cached['import']:8.2f}")
         print(f"{'compile / load the three kernels':40s} {cold['kernels']:12.2f} {cached['kernels']:8.2f}")
+
+
+def more(args: argparse.Namespace) -> None:
+    """`--more`: us/sample of the rest of ahrs (library and twin) and of the peers without a twin."""
+    import warnings
+
+    warnings.simplefilter("ignore")
+    rec = load(args.broad, args.data_dir)
+    q0 = datasets.initial_orientation(rec)
+    n_lib = args.library_samples or 3000
+    print(f"us/sample on {rec.id} ({len(rec.imu)} samples): the library on its first {n_lib} samples (one run), "
+          "the twin on all (best of several runs)")
+    print(f"{'estimator':14s} {'':4s} {'library':>9s} {'twin':>7s} {'speed-up':>9s}")
+    for label, imu in (("6-D", rec.imu.replace(mag_ut=None)), ("9-D", rec.imu)):
+        for peer in MORE_TWINS:
+            library = time_once(f"{peer}:impl=library", imu.window(0, n_lib), q0) / n_lib * 1e6
+            twin = time_estimate(peer, imu, q0, args.repeat) / len(imu) * 1e6
+            print(f"{peer:14s} {label:4s} {library:9.1f} {twin:7.2f} {library / twin:9.0f}", flush=True)
+        for peer in MORE_WITHOUT:
+            try:
+                alone = time_estimate(peer, imu, q0, args.repeat) / len(imu) * 1e6
+            except ImportError as exc:  # qmt not installed (PeerUnavailable)
+                print(f"{peer:14s} {label:4s} not installed: {exc}")
+                continue
+            print(f"{peer:14s} {label:4s} {alone:9.2f} {'-':>7s} {'-':>9s}", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""The compiled twins of the `ahrs` filters (`peers._compiled_ahrs`) against the library itself.
+"""The compiled twins of the `ahrs` estimators (`peers._compiled_ahrs`, `peers._compiled_ahrs_recursive`,
+`peers._compiled_ahrs_single`) against the library itself.
 
 Each of `madgwick`, `mahony` and `ahrs-ekf` runs twice on the same samples, with `impl=compiled`
 (the numba twin, the default) and `impl=library` (the library's update per sample, the
@@ -22,6 +23,13 @@ On a short simulated recording (`fusion.sim`, no data needed): a gyro freeze mar
 (the library's "skip the update" branch), accelerometer samples that are NaN or exactly zero,
 and, in 9-D, a field along the truth with invalid (NaN) magnetometer rows; with the libraries'
 defaults and with other parameters.
+
+The twins of the rest of `ahrs` (`MORE`: AQUA, FKF, Fourati, ROLEQ, the UKF, AngularRate and the
+single-sample methods with a twin) likewise, on shorter samples, as the library takes 40-1000 us a
+sample: a 6 s simulated recording with the same branches and three magnetometer samples along
+gravity (a degenerate geometry for the single-sample methods), with the defaults and other
+parameters (every FLAE method, AngularRate's series, AQUA's adaptive gain), and `MORE_WINDOW` samples
+of one recording of each shared dataset (and BROAD's trial with a magnet 1 cm from the sensor).
 """
 from __future__ import annotations
 
@@ -33,7 +41,7 @@ from fusion.calibration import calibrate
 from fusion.sim import SimSettings, simulate
 from fusion.types import ImuSamples
 
-from optional_helpers import build_estimator
+from optional_helpers import build_estimator, require_module
 
 PEERS = ("madgwick", "mahony", "ahrs-ekf")
 TOL = 1e-9
@@ -41,6 +49,14 @@ ROUNDING_FACTOR = 10.0  # a few last-place differences per step, against the one
 WINDOW = 1500  # samples per recording compared against the library (see the module docstring)
 OTHER_PARAMS = {"madgwick": "beta=0.12", "mahony": "kp=0.74,ki=0.0012",
                 "ahrs-ekf": "var_gyr=0.001,var_acc=0.01,var_mag=0.1,P0=0.01"}
+# the rest of ahrs with a twin, and the other parameters each is compared with (besides its defaults)
+MORE = {"aqua": ("alpha=0.03,beta=0.001,adaptive=true",), "fkf": ("sigma_g=0.001,sigma_a=0.1,sigma_m=0.05,Pk=1",),
+        "fourati": ("gain=0.3",), "roleq": ("mag_weight=10",), "ahrs-ukf": ("Q=1e-3,R=1e-3",),
+        "ahrs-angular": ("method=series,order=3",), "davenport": ("mag_weight=100",), "quest": ("mag_weight=5",),
+        "oleq": ("mag_weight=0.1,seed=3",), "flae": ("method=newton,mag_weight=5", "method=eig"), "fqa": (),
+        "triad": (), "famc": ()}
+MORE_WINDOW = 300
+MORE_RECORDINGS = ("ece276a/1", "ese650/1", "broad/06*", "broad/32*", "repoimu/TStick/*", "repoimu/Pendulum/*")
 
 
 def largest_difference(a: np.ndarray, b: np.ndarray) -> float:
@@ -49,12 +65,12 @@ def largest_difference(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a - sign[:, None] * b)))
 
 
-def rounding_sensitivity(peer: str, imu: ImuSamples, seed: np.ndarray) -> dict[str, float]:
+def rounding_sensitivity(peer: str, imu: ImuSamples, seed: np.ndarray, params: str = "") -> dict[str, float]:
     """How far the library's own quaternions and diagnostics move when every accelerometer value
     moves by one unit in the last place: the scale of a rounding difference on these samples."""
-    lib = build_estimator(f"{peer}:impl=library").estimate(imu, seed)
-    nudged = build_estimator(f"{peer}:impl=library").estimate(
-        imu.replace(acc_g=np.nextafter(np.asarray(imu.acc_g), np.inf)), seed)
+    spec = f"{peer}:{params + ',' if params else ''}impl=library"
+    lib = build_estimator(spec).estimate(imu, seed)
+    nudged = build_estimator(spec).estimate(imu.replace(acc_g=np.nextafter(np.asarray(imu.acc_g), np.inf)), seed)
     out = {"quat": largest_difference(lib.quat_wxyz, nudged.quat_wxyz)}
     for key in lib.diagnostics:
         out[key] = float(np.max(np.abs(np.asarray(lib.diagnostics[key]) - np.asarray(nudged.diagnostics[key]))))
@@ -76,12 +92,12 @@ def twin_and_library(peer: str, params: str, imu: ImuSamples, seed: np.ndarray) 
     return out
 
 
-def window(imu: ImuSamples) -> ImuSamples:
-    """`WINDOW` samples holding the first invalid gyro samples, else the middle of the recording."""
+def window(imu: ImuSamples, length: int = WINDOW) -> ImuSamples:
+    """`length` samples holding the first invalid gyro samples, else the middle of the recording."""
     bad = np.flatnonzero(~imu.gyr_valid)
     centre = int(bad[0]) if len(bad) else len(imu) // 2
-    start = max(0, min(centre - WINDOW // 2, len(imu) - WINDOW))
-    return imu.window(start, start + WINDOW)
+    start = max(0, min(centre - length // 2, len(imu) - length))
+    return imu.window(start, start + length)
 
 
 @pytest.fixture(scope="module")
@@ -212,3 +228,156 @@ def test_streaming_steps_are_the_library_in_either_impl(sim_recording):
 def test_an_unknown_impl_is_refused():
     with pytest.raises(ValueError, match="impl"):
         build_estimator("madgwick:impl=numpy")
+
+
+# --- the rest of ahrs ------------------------------------------------------------------------------
+
+def short_simulated(degenerate: bool = False) -> tuple[ImuSamples, np.ndarray]:
+    """6 s of `fusion.sim` at 100 Hz with `simulated`'s branches (a gyro freeze marked invalid, exactly
+    zero gyro samples, NaN and zero accelerometer samples, NaN magnetometer rows) and, where
+    `degenerate`, three magnetometer samples along the accelerometer's (a degenerate geometry for a
+    single-sample method: a recursive filter may not recover from it, in the library as in its twin)."""
+    from scipy.spatial.transform import Rotation
+
+    raw, truth = simulate(SimSettings(duration_s=6.0, imu_rate_hz=100.0, seed=4))
+    imu = datasets.calibrated_samples(raw, calibrate(raw), dropouts=False)
+    rot, inside = truth.interpolate(imu.t)
+    assert np.all(inside)
+    rng = np.random.default_rng(7)
+    mag = rot.inv().apply([0.0, 19.0, -45.0]) + rng.normal(0.0, 0.3, (len(imu), 3))
+    gyr, acc, valid = np.array(imu.gyr_rad_s), np.array(imu.acc_g), np.ones(len(imu), dtype=bool)
+    gyr[200:260], valid[200:260] = gyr[200], False  # a gyro freeze, marked invalid
+    mag[[60, 61, 420]] = np.nan
+    if degenerate:
+        mag[[90, 91, 300]] = 40.0 * acc[[90, 91, 300]]  # along the accelerometer
+    gyr[[100, 101, 350]] = 0.0  # exactly zero and valid
+    acc[[150, 151, 400]] = np.nan
+    acc[[250, 450]] = 0.0
+    imu = imu.replace(gyr_rad_s=gyr, gyr_valid=valid, acc_g=acc, mag_ut=mag)
+    seed = (Rotation.from_euler("zx", [20.0, 5.0], degrees=True) * rot[0]).as_quat(scalar_first=True)
+    return imu, seed
+
+
+@pytest.fixture(scope="module")
+def short_sim() -> tuple[ImuSamples, np.ndarray]:
+    return short_simulated()
+
+
+@pytest.fixture(scope="module")
+def short_sim_degenerate() -> tuple[ImuSamples, np.ndarray]:
+    return short_simulated(degenerate=True)
+
+
+SINGLE_SAMPLE = ("davenport", "quest", "oleq", "flae", "fqa", "triad", "famc")
+
+
+def assert_within_rounding(peer: str, params: str, diffs: dict[str, dict[str, float]],
+                           inputs: dict[str, tuple[ImuSamples, np.ndarray]]) -> None:
+    """Every difference (run -> name -> value) within TOL, or within ROUNDING_FACTOR times the
+    library's own rounding sensitivity on that run (`rounding_sensitivity`)."""
+    beyond = {}
+    for run, values in diffs.items():
+        over = {k: v for k, v in values.items() if not v <= TOL}
+        if over:
+            bound = rounding_sensitivity(peer, *inputs[run], params=params)
+            beyond.update({f"{run} {k}": (v, ROUNDING_FACTOR * bound[k]) for k, v in over.items()
+                           if not v <= ROUNDING_FACTOR * bound[k]})
+    assert not beyond, f"{peer}: twin and library differ by more than {TOL} and their rounding allows: {beyond}"
+
+
+def _more_cases():
+    for peer, others in MORE.items():
+        for params in ("",) + others:
+            yield pytest.param(peer, params, id=f"{peer}-{params or 'defaults'}")
+
+
+@pytest.mark.parametrize("peer, params", list(_more_cases()))
+def test_more_twins_equal_the_library_on_a_simulated_recording(peer, params, short_sim, short_sim_degenerate):
+    imu, seed = short_sim_degenerate if peer in SINGLE_SAMPLE else short_sim
+    inputs = {"6-D": (imu.replace(mag_ut=None), seed), "9-D": (imu, seed)}
+    diffs = {run: twin_and_library(peer, params, *args) for run, args in inputs.items()}
+    assert_within_rounding(peer, params, diffs, inputs)
+
+
+@pytest.fixture(scope="module")
+def some_recordings(data_dir) -> dict[str, tuple[ImuSamples, np.ndarray]]:
+    """`MORE_WINDOW` samples of the first recording each pattern of `MORE_RECORDINGS` selects."""
+    out = {}
+    for pattern in MORE_RECORDINGS:
+        source = datasets.select(pattern, data_dir, dedupe=False)[0]
+        rec = datasets.LoadOptions().load(source)
+        imu, seed = window(rec.imu, MORE_WINDOW), datasets.initial_orientation(rec)
+        out[f"{source.id} 6-D"] = (imu.replace(mag_ut=None), seed)
+        if imu.has_mag:
+            out[f"{source.id} 9-D"] = (imu, seed)
+    return out
+
+
+@pytest.mark.parametrize("peer", list(MORE))
+def test_more_twins_equal_the_library_on_real_windows(peer, some_recordings):
+    assert sum(run.endswith("9-D") for run in some_recordings) >= 3, list(some_recordings)
+    diffs = {run: twin_and_library(peer, "", *args) for run, args in some_recordings.items()}
+    assert_within_rounding(peer, "", diffs, some_recordings)
+
+
+def test_the_short_simulated_recording_reaches_the_librarys_branches(short_sim):
+    """The branches `short_simulated` is built for change the estimates (else comparing them would
+    not test them): a zero gyro sample holds AQUA's orientation (its "skip" branch), an invalid one
+    does not; a missing accelerometer or magnetometer sample is held by a single-sample method."""
+    imu, seed = short_sim
+    est = build_estimator("aqua").estimate(imu, seed).quat_wxyz
+    np.testing.assert_array_equal(est[101], est[100])  # step 100 (gyro sample 100, "start" timing): held
+    frozen = np.flatnonzero(~imu.interval_rates()[1])
+    assert np.max(np.abs(est[frozen[10] + 1] - est[frozen[10]])) > 1e-9
+    triad = build_estimator("triad").estimate(imu, seed).quat_wxyz
+    np.testing.assert_array_equal(triad[150], triad[149])  # NaN accelerometer
+    np.testing.assert_array_equal(triad[60:62], triad[[59, 59]])  # NaN magnetometer samples
+    assert not np.array_equal(triad[59], triad[58])
+
+
+def test_where_the_library_ukf_fails_its_twin_fails(short_sim):
+    """With Q = 1e-5 (a grid value) the library's UKF loses its covariance's positive definiteness
+    on the simulated recording and raises numpy's LinAlgError; its twin raises it too, naming the sample."""
+    imu, seed = short_sim
+    for samples in (imu.replace(mag_ut=None), imu):
+        with pytest.raises(np.linalg.LinAlgError):
+            build_estimator("ahrs-ukf:Q=1e-5,impl=library").estimate(samples, seed)
+        with pytest.raises(np.linalg.LinAlgError, match="ahrs-ukf: sim: .* fails at sample"):
+            build_estimator("ahrs-ukf:Q=1e-5").estimate(samples, seed)
+
+
+def test_every_twin_names_the_library_function_it_mirrors():
+    """A reader finds a twin by its library function's name (as `filters`' kernels carry their
+    numpy reference's, `kernels._numba.mirrors`): every public function of the peers' twin modules
+    but their loops (`*_kernel`) and `load` names, first in its docstring, the `ahrs` function or
+    method it mirrors, which exists and whose name ends the twin's."""
+    import importlib
+    import inspect
+
+    require_module("ahrs")
+    from numba.core.registry import CPUDispatcher
+
+    seen = 0
+    for name in ("_compiled_ahrs", "_compiled_ahrs_recursive", "_compiled_ahrs_single"):
+        module = importlib.import_module(f"fusion.estimators.peers.{name}")
+        for attr, obj in vars(module).items():
+            func = obj.py_func if isinstance(obj, CPUDispatcher) else obj
+            if (attr.startswith("_") or attr.endswith("_kernel") or attr == "load" or not inspect.isfunction(func)
+                    or func.__module__ != module.__name__):
+                continue
+            doc = inspect.getdoc(func) or ""
+            assert doc.startswith("`ahrs."), f"{name}.{attr}: its docstring does not start with its reference"
+            reference = doc.split("`")[1].split(" ")[0]
+            parts = reference.split(".")
+            for i in range(len(parts), 0, -1):  # the longest prefix that is a module, then its attributes
+                try:
+                    target = importlib.import_module(".".join(parts[:i]))
+                except ImportError:
+                    continue
+                for part in parts[i:]:
+                    target = getattr(target, part)
+                break
+            assert callable(target), reference
+            assert attr.endswith(parts[-1]), f"{name}.{attr} mirrors {reference}: the names differ"
+            seen += 1
+    assert seen >= 25

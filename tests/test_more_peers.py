@@ -7,11 +7,15 @@ Equal to the library: every adapter of `peers.ahrs_recursive`, `peers.ahrs_singl
 test calls the library itself on the same samples: its batch call, or its update in a plain loop
 (the step's gyro reading of the interval, the accelerometer and magnetometer samples at its end,
 the real dt), with the frames converted here by SciPy, independently of the adapters' own
-conversions. They must agree to 1e-9 (largest quaternion component, q and -q the same).
+conversions. They must agree to 1e-9 (largest quaternion component, q and -q the same). The
+adapters run their compiled twins here (`impl=compiled`, the default; `tests/test_compiled_peers.py`
+checks them against the adapters' library path): the `ahrs` UKF's twin agrees to within ten times the
+library's own rounding sensitivity instead, as there (its sigma-point weights of -1e6 and 1.25e5 turn
+a last-bit difference into some 1e-9).
 
-qmt: its published wheel does not import under NumPy 2 (`peers.qmt_filters`), and CI installs the
-test extra, which therefore does not hold qmt: its tests are skipped where qmt cannot be imported,
-under CI too (`qmt_or_skip`), and run where it was built from source (`PIP_NO_BINARY=qmt pip install qmt`).
+qmt: its published wheel does not import under NumPy 2 (`peers.qmt_filters`); the test extra holds
+qmt, built from source (`PIP_NO_BINARY=qmt pip install -e '.[test]'`, as `.ci/run` installs it). Where
+qmt cannot be imported its tests are skipped, and fail under CI (`qmt_or_skip`).
 """
 from __future__ import annotations
 
@@ -30,8 +34,8 @@ from fusion.estimators import build
 from fusion.sim import SimSettings, simulate
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
-from optional_helpers import require_module
-from test_compiled_peers import largest_difference
+from optional_helpers import require_module, unavailable
+from test_compiled_peers import ROUNDING_FACTOR, largest_difference
 
 TOL = 1e-9
 RECURSIVE = ("aqua", "complementary", "fkf", "fourati", "roleq", "ahrs-ukf", "ahrs-angular")
@@ -42,13 +46,13 @@ NED = Rotation.from_matrix([[0, 1, 0], [1, 0, 0], [0, 0, -1]])  # NED -> ENU
 
 
 def qmt_or_skip():
-    """qmt, or a skip (under CI too: the test extra cannot hold qmt, see the module docstring)."""
+    """qmt, or a skip where it cannot be imported (a failure under CI, which installs it)."""
     try:
         with contextlib.redirect_stderr(io.StringIO()):
             import qmt
             import qmt.cpp.madgwick  # noqa: F401  (the compiled part: fails with qmt's NumPy 1.x wheel)
     except ImportError as exc:
-        pytest.skip(f"qmt is not importable ({exc}); PIP_NO_BINARY=qmt pip install qmt")
+        unavailable(f"qmt is not importable ({exc}); PIP_NO_BINARY=qmt pip install -e '.[test]'")
     return qmt
 
 
@@ -268,8 +272,15 @@ def test_each_peer_equals_its_library(name, recordings):
         finite = np.all(np.isfinite(ref), axis=1)  # a single-sample method fails on degenerate samples: held
         worst[label] = largest_difference(ours[finite], ref[finite])
         assert finite.mean() > 0.99, (label, finite.mean())
+        if name == "ahrs-ukf" and not worst[label] <= TOL:  # within its rounding (module docstring): how far the
+            # library itself moves when its accelerometer input moves by one unit in the last place, times ten
+            nudged = library_recursive(name, imu.replace(acc_g=np.nextafter(np.asarray(imu.acc_g), np.inf)), seed)
+            bound = ROUNDING_FACTOR * largest_difference(ref, nudged)
+            worst[label] = (worst[label], bound) if not worst[label] <= bound else 0.0
     assert any(k.endswith("9-D") for k in worst) and any(k.endswith("6-D") for k in worst) or name in SINGLE
-    assert all(v <= TOL for v in worst.values()), f"{name}: adapter and library differ: {worst}"
+    assert all(v <= TOL for v in worst.values() if not isinstance(v, tuple)), \
+        f"{name}: adapter and library differ: {worst}"
+    assert not any(isinstance(v, tuple) for v in worst.values()), f"{name}: beyond the library's rounding: {worst}"
 
 
 @pytest.mark.parametrize("name", SINGLE)

@@ -48,6 +48,21 @@ def test_ci_script_declares_ci_before_running_the_tests():
     assert any(line.startswith("export FUSION_DATA=") for line in lines)
 
 
+def test_ci_installs_qmt_from_source_with_the_test_extra():
+    """qmt's only wheel does not import under NumPy 2: the test extra holds qmt, and `.ci/run`
+    installs that extra with `PIP_NO_BINARY=qmt` (its source distribution, built against NumPy 2),
+    so that the qmt peers' tests run under CI (where a missing qmt fails them)."""
+    import configparser
+
+    config = configparser.ConfigParser()
+    config.read(CI_SCRIPT.parents[1] / "setup.cfg")
+    test_extra = [line.strip() for line in config["options.extras_require"]["test"].splitlines()]
+    assert any(line.startswith("qmt") for line in test_extra), test_extra
+    installs = [line for line in CI_SCRIPT.read_text().splitlines()
+                if "pip install" in line and "[test]" in line and not line.lstrip().startswith("#")]
+    assert installs and all(line.strip().startswith("PIP_NO_BINARY=qmt ") for line in installs), installs
+
+
 def test_unset_data_variable_skips_locally_and_fails_under_ci(ci, monkeypatch):
     monkeypatch.delenv("FUSION_DATA", raising=False)
     with pytest.raises(outcome(ci), match="FUSION_DATA is not set"):

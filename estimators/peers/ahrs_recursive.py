@@ -53,7 +53,8 @@ the library's (alpha 1e-3: a centre weight near -1e6).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from types import ModuleType
+from typing import Any, Callable, ClassVar, Literal
 
 import numpy as np
 
@@ -62,6 +63,7 @@ from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
 from ..search import Tunable
+from .ahrs_filters import _check_impl
 from .ahrs_single import MT_PER_UT, measured_dip_deg
 from .vqf_fusion import (
     _RZ90, _TINY_RATE_RAD_S, _acc_m_s2, _check_length, _non_negative, _positive, _rate_for_constant_ts, _require,
@@ -99,18 +101,26 @@ def _inputs(imu: ImuSamples, invalid_rate: np.ndarray) -> tuple[np.ndarray, ...]
     return rates, dt, acc, acc_ok, mag, mag_ok
 
 
-def _loop(imu: ImuSamples, init_quat_wxyz: np.ndarray, step: Callable, lib_from_enu: Callable,
-          enu_from_lib: Callable, invalid_rate: np.ndarray = _ZERO) -> Trajectory:
+def _loop(imu: ImuSamples, init_quat_wxyz: np.ndarray, step: Callable | None, lib_from_enu: Callable,
+          enu_from_lib: Callable, invalid_rate: np.ndarray = _ZERO, kernel: Callable | None = None) -> Trajectory:
     """The library's update over the recording: `step(q, rate, acc, acc_ok, mag, mag_ok, dt)` in the
     library's own convention, seeded with `lib_from_enu(seed)`; rows 1.. are `enu_from_lib` of its
-    outputs (vectorised over the rows), row 0 the seed as given."""
+    outputs (vectorised over the rows), row 0 the seed as given. With `kernel` (a compiled twin's
+    loop, `peers._compiled_ahrs_recursive`), `kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out)`
+    writes the outputs (N-1, 4) instead, from the same inputs."""
     _check_length(imu, "ahrs")
     rates, dt, acc, acc_ok, mag, mag_ok = _inputs(imu, invalid_rate)
     q = lib_from_enu(np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz))
     lib = np.empty((len(imu) - 1, 4))
-    for k in range(len(imu) - 1):
-        q = np.asarray(step(q, rates[k], acc[k], acc_ok[k], mag[k], mag_ok[k], dt[k]), dtype=float)
-        lib[k] = q
+    if kernel is not None:
+        # writable C-ordered float64 (and bool) arrays: the types the kernels were compiled for (`load`)
+        args = [np.array(a, dtype=bool if a.dtype == bool else np.float64, order="C")
+                for a in (rates, dt, acc, acc_ok, mag, mag_ok, q)]
+        kernel(*args, lib)
+    else:
+        for k in range(len(imu) - 1):
+            q = np.asarray(step(q, rates[k], acc[k], acc_ok[k], mag[k], mag_ok[k], dt[k]), dtype=float)
+            lib[k] = q
     out = np.empty((len(imu), 4))
     out[0] = init_quat_wxyz
     out[1:] = enu_from_lib(lib)
@@ -130,7 +140,9 @@ def _same(q: np.ndarray) -> np.ndarray:
 
 
 class _AhrsRecursive(Estimator):
-    """A recursive `ahrs` filter (module docstring); subclasses write `estimate`."""
+    """A recursive `ahrs` filter (module docstring); subclasses write `estimate`. With
+    `impl=compiled` (the default) `_twins` is `peers._compiled_ahrs_recursive` (compiled, or loaded
+    from numba's cache, now), with `impl=library` None."""
 
     magnetometer = True
     _name: ClassVar[str] = ""
@@ -138,7 +150,21 @@ class _AhrsRecursive(Estimator):
     def __init__(self, params: Any = None) -> None:
         super().__init__(params)
         self._filters = _require("ahrs.filters", "ahrs", self._name)
+        impl = getattr(self.params, "impl", "library")  # (the complementary filter has no twin)
+        _check_impl(self._name, impl)
+        self._twins: ModuleType | None = None
+        if impl == "compiled":
+            from . import _compiled_ahrs_recursive  # numba is imported when a compiled peer is built
 
+            _compiled_ahrs_recursive.load()
+            self._twins = _compiled_ahrs_recursive
+
+
+# Two implementations each (`impl`), as for Madgwick, Mahony and the EKF (`peers.ahrs_filters`), but for
+# the complementary filter (the library's batch call is vectorised already): "compiled" (the default)
+# runs the adapter's loop in a numba twin of the library's update (`peers._compiled_ahrs_recursive`;
+# the same numbers to 1e-9, `tests/test_compiled_peers.py`), "library" calls the library per sample
+# and is the reference.
 
 # ------------------------------------------------------------------------------ AQUA
 
@@ -153,6 +179,8 @@ class AQUAParams:
     threshold: the correction's scalar part above which LERP replaces SLERP (eq. 50).
     adaptive: the accelerometer gain from the acceleration's magnitude error (eqs. 60-61; the
         library's `adaptive_gain`, with its own alpha_bar 0.1).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     # Range: a correction from 1e-4 to 1 per sample (log scale). Grids: the library's 0.01, and a
@@ -163,6 +191,7 @@ class AQUAParams:
                                                                   magnetometer=True)})
     threshold: float = 0.9
     adaptive: bool = False
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _positive("aqua", alpha=self.alpha, beta=self.beta, threshold=self.threshold)
@@ -181,6 +210,16 @@ class AQUAPeer(_AhrsRecursive):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         p = self.params
         filt = self._filters.AQUA(alpha=p.alpha, beta=p.beta, threshold=p.threshold, adaptive=p.adaptive)
+        to_lib, from_lib = (lambda q: quat.conjugate(_to_nwu(q))), (lambda q: _from_nwu(quat.conjugate(q)))
+        if self._twins is not None:
+            gravity = float(self._filters.aqua.GRAVITY)  # `adaptive_gain`'s g
+            twin = self._twins.aqua_kernel
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                twin(rates, acc, mag, dt, q0, float(p.alpha), float(p.beta), float(p.threshold), bool(p.adaptive),
+                     gravity, imu.has_mag, out)
+
+            return _loop(imu, init_quat_wxyz, None, to_lib, from_lib, invalid_rate=_TINY_RATE_RAD_S, kernel=kernel)
 
         def step(q, rate, acc, acc_ok, mag, mag_ok, dt):  # Valenti et al. 2015, eqs. 42-59; zeros: its "no sample"
             if imu.has_mag:
@@ -188,8 +227,7 @@ class AQUAPeer(_AhrsRecursive):
             return filt.updateIMU(q, rate, acc, dt=dt)
 
         # the library's q is the inverse of R_world_body (module docstring), in NWU
-        return _loop(imu, init_quat_wxyz, step, lambda q: quat.conjugate(_to_nwu(q)),
-                     lambda q: _from_nwu(quat.conjugate(q)), invalid_rate=_TINY_RATE_RAD_S)
+        return _loop(imu, init_quat_wxyz, step, to_lib, from_lib, invalid_rate=_TINY_RATE_RAD_S)
 
 
 # ------------------------------------------------------------------------------ complementary filter
@@ -269,6 +307,8 @@ class FKFParams:
     acc_var, mag_var: the normalised accelerometer's and magnetometer's noise variances (`sigma_a`,
         `sigma_m`).
     init_cov: the initial covariance, `init_cov * I_4` (`Pk`).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     # Ranges: several decades around the library's 0.01, log scale. Grid: 3 x 2 = 6 settings.
@@ -278,6 +318,7 @@ class FKFParams:
         1e-4, 10.0, log=True, grid=(0.01, 0.1))})
     mag_var: float = field(default=0.01, metadata={"alias": "sigma_m"})
     init_cov: float = field(default=0.01, metadata={"alias": "Pk"})
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _positive("fkf", gyr_var=self.gyr_var, acc_var=self.acc_var, mag_var=self.mag_var)
@@ -297,6 +338,15 @@ class FKFPeer(_AhrsRecursive):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         p = self.params
         filt = self._filters.FKF(sigma_g=p.gyr_var, sigma_a=p.acc_var, sigma_m=p.mag_var, Pk=p.init_cov)
+        from_lib = lambda q: _from_nwu(quat.normalize(q))  # noqa: E731
+        if self._twins is not None:
+            twin = self._twins.fkf_kernel
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                twin(rates, acc, acc_ok, mag, mag_ok, dt, q0, np.array(filt.Pk, dtype=float), float(p.gyr_var),
+                     float(p.acc_var), float(p.mag_var), out)
+
+            return _loop(imu, init_quat_wxyz, None, _to_nwu, from_lib, kernel=kernel)
         sigma_g = p.gyr_var * np.identity(3)  # the lines of `FKF._compute_all`, with the step's dt
         sigma_am = np.diag([p.acc_var] * 3 + [p.mag_var] * 3)
         north = np.array([1.0, 0.0, 0.0])
@@ -315,7 +365,7 @@ class FKFPeer(_AhrsRecursive):
             q_new, filt.Pk = filt.kalman_update(q, q_am, filt.Pk, phi, sigma_eps, sigma_v)
             return q_new
 
-        return _loop(imu, init_quat_wxyz, step, _to_nwu, lambda q: _from_nwu(quat.normalize(q)))
+        return _loop(imu, init_quat_wxyz, step, _to_nwu, from_lib)
 
 
 # ------------------------------------------------------------------------------ Fourati
@@ -326,11 +376,14 @@ class FouratiParams:
     """`ahrs.filters.Fourati` parameters (its default).
 
     gain: the gain of the Levenberg-Marquardt correction (Fourati et al. 2011, eq. 31: k).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     # Range: from nearly the gyro alone to a correction dominating it, log scale. Grid: the
     # library's 0.1 and a factor 3 either side: 3 settings.
     gain: float = field(default=0.1, metadata={"search": Tunable(1e-3, 10.0, log=True, grid=(0.03, 0.1, 0.3))})
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _positive("fourati", gain=self.gain)
@@ -347,6 +400,14 @@ class FouratiPeer(_AhrsRecursive):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         m_ref = _enu_field(measured_dip_deg(imu)) if imu.has_mag else np.array([0.0, 1.0, 0.0])
         filt = self._filters.Fourati(gain=self.params.gain, magnetic_dip=np.array([0.0, *m_ref]))
+        if self._twins is not None:
+            twin = self._twins.fourati_kernel
+            g_q, m_q = np.array(filt.g_q, dtype=float), np.array(filt.m_q, dtype=float)  # the library's references
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                twin(rates, acc, acc_ok, mag, mag_ok, dt, q0, float(self.params.gain), g_q, m_q, m_ref, out)
+
+            return _loop(imu, init_quat_wxyz, None, _same, _same, invalid_rate=_TINY_RATE_RAD_S, kernel=kernel)
 
         def step(q, rate, acc, acc_ok, mag, mag_ok, dt):  # Fourati et al. 2011, eqs. 25-31
             if not acc_ok:
@@ -367,11 +428,14 @@ class ROLEQParams:
 
     acc_weight, mag_weight: the weights of the normalised accelerometer and magnetometer in OLEQ's
         matrix (`weights`; Zhou et al. 2018).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     acc_weight: float = 1.0
     mag_weight: float = field(default=1.0, metadata={"search": Tunable(
         1e-3, 1e3, log=True, grid=(0.1, 1.0, 10.0), magnetometer=True)})
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _non_negative("roleq", acc_weight=self.acc_weight, mag_weight=self.mag_weight)
@@ -394,6 +458,15 @@ class ROLEQPeer(_AhrsRecursive):
         filt = self._filters.ROLEQ(weights=np.array([p.acc_weight, p.mag_weight]), magnetic_ref=float(dip),
                                    frame="ENU")
         m_ref = _enu_field(dip)
+        if self._twins is not None:
+            twin = self._twins.roleq_kernel
+            a_ref, lib_m_ref = np.array(filt.a_ref, dtype=float), np.array(filt.m_ref, dtype=float)
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                twin(rates, acc, acc_ok, mag, mag_ok, dt, q0, float(filt.a[0]), float(filt.a[1]), a_ref, lib_m_ref,
+                     m_ref, out)
+
+            return _loop(imu, init_quat_wxyz, None, _same, _same, kernel=kernel)
 
         def step(q, rate, acc, acc_ok, mag, mag_ok, dt):  # `ROLEQ.update`: Zhou et al. 2018
             q_g = filt.attitude_propagation(q, rate, dt)
@@ -416,6 +489,8 @@ class AhrsUKFParams:
         (`measurement_noise_covariance`).
     init_cov: the initial covariance, `init_cov * I_4` (`P`).
     alpha, beta, kappa: the unscented transform's spread, prior and scaling (Wan & van der Merwe 2000).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     # Grids: the library's defaults and a decade below (the UKF costs some 0.5 ms a sample in the
@@ -428,6 +503,7 @@ class AhrsUKFParams:
     alpha: float = 1e-3
     beta: float = 2.0
     kappa: float = 0.0
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _positive("ahrs-ukf", process_var=self.process_var, meas_var=self.meas_var, alpha=self.alpha)
@@ -450,6 +526,21 @@ class AhrsUKFPeer(_AhrsRecursive):
                                  measurement_noise_covariance=p.meas_var * np.identity(3))
         if imu.has_mag:
             filt.m_ref = _enu_field(measured_dip_deg(imu))  # (no keyword for it: module docstring)
+        if self._twins is not None:
+            twin = self._twins.ukf_kernel
+            wm, wc = np.array(filt.weight_mean, dtype=float), np.array(filt.weight_covariance, dtype=float)
+            refs = np.array(filt.a_ref, dtype=float), np.array(filt.m_ref, dtype=float)
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                k = twin(rates, acc, acc_ok, mag, mag_ok, dt, q0, np.array(filt.P, dtype=float), wm, wc,
+                         float(filt.state_dimension + filt.lambda_param), float(p.process_var), float(p.meas_var),
+                         *refs, imu.has_mag, out)
+                if k >= 0:  # where the library's `np.linalg.cholesky` raises
+                    raise np.linalg.LinAlgError(
+                        f"ahrs-ukf: {imu.source or 'input'}: the library's UKF fails at sample {k + 1}: its "
+                        "covariance is not positive definite (Matrix is not positive definite), even regularised")
+
+            return _loop(imu, init_quat_wxyz, None, _same, _same, kernel=kernel)
 
         def step(q, rate, acc, acc_ok, mag, mag_ok, dt):
             acc = acc / np.linalg.norm(acc) if acc_ok else _in_body(q, filt.a_ref)  # normalised, as its batch does
@@ -470,10 +561,13 @@ class AngularRateParams:
 
     method: closed (the exponential of the rate over dt) | series (its truncated series).
     order: the series' order (method series only).
+    impl: compiled (the default: the numba twin of the library's update,
+        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
     """
 
     method: str = "closed"
     order: int = 1
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         if self.method not in ("closed", "series"):
@@ -494,6 +588,13 @@ class AngularRatePeer(_AhrsRecursive):
     def estimate(self, imu: ImuSamples, init_quat_wxyz: np.ndarray) -> Trajectory:
         filt = self._filters.AngularRate()
         p = self.params
+        if self._twins is not None:
+            twin = self._twins.angular_kernel
+
+            def kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out):
+                twin(rates, dt, q0, p.method == "closed", int(p.order), out)
+
+            return _loop(imu, init_quat_wxyz, None, _same, _same, kernel=kernel)
 
         def step(q, rate, acc, acc_ok, mag, mag_ok, dt):
             return filt.update(q, rate, method=p.method, order=p.order, dt=dt)

@@ -58,6 +58,7 @@ rounding; Davenport's method keeps the eigenvector's sign from `np.linalg.eig`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -67,6 +68,7 @@ from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
 from ..search import Tunable
+from .ahrs_filters import _check_impl
 from .vqf_fusion import _RZ90, _acc_m_s2, _check_length, _non_negative, _require, align_heading
 
 MT_PER_UT = 1e-3
@@ -110,7 +112,11 @@ def _hold(init_quat_wxyz: np.ndarray, est: np.ndarray, usable: np.ndarray) -> np
 
 class SingleSampleEstimator(Estimator):
     """A method that determines each sample's orientation from that sample's accelerometer (and
-    magnetometer) alone (module docstring). Subclasses write `_solve`."""
+    magnetometer) alone (module docstring). Subclasses write `_solve`. Where the parameters have
+    `impl` (every method here but SAAM and Tilt, whose library calls are vectorised already), `impl=compiled`
+    (the default) runs the library's `estimate` on all samples at once in its twin
+    (`peers._compiled_ahrs_single`: `_twins`; the same numbers to 1e-9, `tests/test_compiled_peers.py`),
+    `impl=library` calls the library (the reference)."""
 
     single_sample: ClassVar[bool] = True  # `fusion list` groups these apart from the filters
     magnetometer = True
@@ -120,6 +126,14 @@ class SingleSampleEstimator(Estimator):
     def __init__(self, params: Any = None) -> None:
         super().__init__(params)
         self._filters = _require("ahrs.filters", "ahrs", self._name)
+        impl = getattr(self.params, "impl", "library")
+        _check_impl(self._name, impl)
+        self._twins: ModuleType | None = None
+        if impl == "compiled":
+            from . import _compiled_ahrs_single  # numba is imported when a compiled peer is built
+
+            _compiled_ahrs_single.load()
+            self._twins = _compiled_ahrs_single
 
     def _solve(self, acc_m_s2: np.ndarray, mag_mt: np.ndarray | None, dip_deg: float) -> np.ndarray:
         """(M, 4) `R_world_body` in ENU for M samples (acc (M, 3) m/s^2, non-zero; mag (M, 3) mT,
@@ -195,12 +209,15 @@ class DavenportParams:
         vectors: see the module docstring).
     gravity_m_s2: the gravity reference's length (`gravity`; the library's default: the normal
         gravity at Munich).
+    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
+        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
     """
 
     acc_weight: float = 1.0
     mag_weight: float = field(default=1.0, metadata={"search": Tunable(
         1e-2, 1e6, log=True, grid=(1.0, 100.0, 1e4), magnetometer=True)})
     gravity_m_s2: float | None = field(default=None, metadata={"alias": "gravity"})
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _weights("davenport", self.acc_weight, self.mag_weight)
@@ -217,6 +234,9 @@ class DavenportPeer(SingleSampleEstimator):
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
         p = self.params
         kw = {} if p.gravity_m_s2 is None else {"gravity": p.gravity_m_s2}
+        if self._twins is not None:  # the library's constants, its estimate batched
+            filt = self._filters.Davenport(weights=np.array([p.acc_weight, p.mag_weight]), magnetic_dip=-dip_deg, **kw)
+            return _nwu(self._twins.davenport_estimate(filt, acc_m_s2, mag_mt))
         filt = self._filters.Davenport(acc=acc_m_s2, mag=mag_mt, weights=np.array([p.acc_weight, p.mag_weight]),
                                        magnetic_dip=-dip_deg, **kw)
         return _nwu(filt.Q)
@@ -230,10 +250,13 @@ class QUESTParams:
     """`ahrs.filters.QUEST` parameters (its defaults).
 
     acc_weight, mag_weight: the weights of the two normalised vectors (`weights`; Shuster & Oh 1981).
+    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
+        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
     """
 
     acc_weight: float = 0.5
     mag_weight: float = field(default=0.5, metadata={"search": _mag_weight_search(0.5)})
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _weights("quest", self.acc_weight, self.mag_weight)
@@ -250,6 +273,9 @@ class QUESTPeer(SingleSampleEstimator):
 
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
         p = self.params
+        if self._twins is not None:
+            filt = self._filters.QUEST(weights=np.array([p.acc_weight, p.mag_weight]), magnetic_dip=-dip_deg)
+            return _nwu(self._twins.quest_estimate(filt, acc_m_s2, mag_mt))
         filt = self._filters.QUEST(acc=acc_m_s2, mag=mag_mt, weights=np.array([p.acc_weight, p.mag_weight]),
                                    magnetic_dip=-dip_deg)
         return _nwu(filt.Q)
@@ -264,11 +290,14 @@ class OLEQParams:
 
     acc_weight, mag_weight: the weights of the two normalised vectors (`weights`; Zhou et al. 2018).
     seed: NumPy's global random seed for the call (the library starts its iteration at random).
+    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
+        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
     """
 
     acc_weight: float = 1.0
     mag_weight: float = field(default=1.0, metadata={"search": _mag_weight_search(1.0)})
     seed: int = 0
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _weights("oleq", self.acc_weight, self.mag_weight)
@@ -287,11 +316,23 @@ class OLEQPeer(SingleSampleEstimator):
         state = np.random.get_state()
         try:
             np.random.seed(p.seed)
-            filt = self._filters.OLEQ(acc=acc_m_s2, mag=mag_mt, weights=np.array([p.acc_weight, p.mag_weight]),
-                                      magnetic_ref=float(dip_deg), frame="ENU")
+            if self._twins is None:
+                filt = self._filters.OLEQ(acc=acc_m_s2, mag=mag_mt, weights=np.array([p.acc_weight, p.mag_weight]),
+                                          magnetic_ref=float(dip_deg), frame="ENU")
+                return np.asarray(filt.Q, dtype=float)
+            # the library draws np.random.random(4) per sample, in order: the same stream drawn at once
+            starts = np.random.random((len(acc_m_s2), 4))
         finally:
             np.random.set_state(state)
-        return np.asarray(filt.Q, dtype=float)
+        if len(acc_m_s2) < 2:  # the library's batch call passes a single sample on as (1, 3), which its estimate
+            return np.full((len(acc_m_s2), 4), np.nan)  # cannot unpack (a ValueError: `solve`'s NaN row)
+        filt = self._filters.OLEQ(weights=np.array([p.acc_weight, p.mag_weight]), magnetic_ref=float(dip_deg),
+                                  frame="ENU")
+        out = np.empty((len(acc_m_s2), 4))
+        self._twins.oleq_kernel(np.ascontiguousarray(acc_m_s2, dtype=float), np.ascontiguousarray(mag_mt, dtype=float),
+                                float(filt.a[0]), float(filt.a[1]), np.array(filt.a_ref, dtype=float),
+                                np.array(filt.m_ref, dtype=float), starts, out)
+        return out
 
 
 # ------------------------------------------------------------------------------ FLAE
@@ -304,11 +345,14 @@ class FLAEParams:
     acc_weight, mag_weight: the weights of the two normalised vectors (`weights`, normalised to sum
         1 by the library; Wu et al. 2018).
     method: symbolic (the library's default: the eigenvalue in closed form) | eig | newton.
+    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
+        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
     """
 
     acc_weight: float = 0.5
     mag_weight: float = field(default=0.5, metadata={"search": _mag_weight_search(0.5)})
     method: Literal["symbolic", "eig", "newton"] = "symbolic"
+    impl: Literal["compiled", "library"] = "compiled"
 
     def __post_init__(self) -> None:
         _weights("flae", self.acc_weight, self.mag_weight)
@@ -326,6 +370,10 @@ class FLAEPeer(SingleSampleEstimator):
 
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
         p = self.params
+        if self._twins is not None:
+            filt = self._filters.FLAE(method=p.method, weights=np.array([p.acc_weight, p.mag_weight]),
+                                      magnetic_dip=float(dip_deg))
+            return _nwu(self._twins.flae_estimate(filt, acc_m_s2, mag_mt, p.method))
         filt = self._filters.FLAE(acc=acc_m_s2, mag=mag_mt, method=p.method,
                                   weights=np.array([p.acc_weight, p.mag_weight]), magnetic_dip=float(dip_deg))
         return _nwu(filt.Q)
@@ -339,19 +387,41 @@ class NoTunedParams:
     """No parameters: the method has none (its reference field is the recording's, module docstring)."""
 
 
+@dataclass(frozen=True)
+class TwinParams:
+    """No parameters of the method's own (its reference field is the recording's, module docstring).
+
+    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
+        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
+    """
+
+    impl: Literal["compiled", "library"] = "compiled"
+
+    def __post_init__(self) -> None:
+        _check_impl("ahrs", self.impl)
+
+
 class FQAPeer(SingleSampleEstimator):
     """FQA, the factored quaternion algorithm (Yun et al. 2008), from the `ahrs` package.
 
     Elevation, roll and azimuth quaternions, per sample, `ahrs.filters.FQA` (its accelerometer-only
     mode in 6-D)."""
 
-    Params = NoTunedParams
+    Params = TwinParams
     _name = "fqa"
     _native_6d = True
 
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
         mag = np.zeros_like(acc_m_s2) if mag_mt is None else mag_mt  # a zero sample: the library's "no field"
         d = np.radians(dip_deg)
+        if self._twins is not None:
+            filt = self._filters.FQA(mag_ref=np.array([np.cos(d), 0.0, np.sin(d)]))
+            nx, ny, _ = filt.m_ref
+            north = np.array([nx, ny]) / np.linalg.norm([nx, ny])  # the library's N
+            out = np.empty((len(acc_m_s2), 4))
+            self._twins.fqa_kernel(np.ascontiguousarray(acc_m_s2, dtype=float), np.ascontiguousarray(mag, dtype=float),
+                                   float(north[0]), float(north[1]), out)
+            return quat.multiply(_NED_TO_ENU, out)
         filt = self._filters.FQA(acc=acc_m_s2, mag=mag, mag_ref=np.array([np.cos(d), 0.0, np.sin(d)]))
         return quat.multiply(_NED_TO_ENU, np.asarray(filt.Q, dtype=float))
 
@@ -373,10 +443,15 @@ class FAMCPeer(SingleSampleEstimator):
 
     Closed form, per sample, `ahrs.filters.FAMC`."""
 
-    Params = NoTunedParams
+    Params = TwinParams
     _name = "famc"
 
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
+        if self._twins is not None:
+            out = np.empty((len(acc_m_s2), 4))
+            self._twins.famc_kernel(np.ascontiguousarray(acc_m_s2, dtype=float),
+                                    np.ascontiguousarray(mag_mt, dtype=float), out)
+            return _nwu(out)
         return _nwu(self._filters.FAMC(acc=acc_m_s2, mag=mag_mt).Q)
 
 
@@ -385,13 +460,23 @@ class TRIADPeer(SingleSampleEstimator):
 
     Two orthonormal triads, the accelerometer's direction exact, per sample, `ahrs.filters.TRIAD`."""
 
-    Params = NoTunedParams
+    Params = TwinParams
     _name = "triad"
 
     def _solve(self, acc_m_s2, mag_mt, dip_deg):
         d = np.radians(dip_deg)
-        filt = self._filters.TRIAD(w1=acc_m_s2, w2=mag_mt, v1=np.array([0.0, 0.0, 1.0]),
-                                   v2=np.array([0.0, np.cos(d), -np.sin(d)]), representation="quaternion")
+        refs = dict(v1=np.array([0.0, 0.0, 1.0]), v2=np.array([0.0, np.cos(d), -np.sin(d)]),
+                    representation="quaternion")
+        if self._twins is not None:
+            filt = self._filters.TRIAD(**refs)
+            v1xv2 = np.cross(filt.v1, filt.v2)  # the library's reference triad, as its estimate builds it
+            r2 = v1xv2 / np.linalg.norm(v1xv2)
+            r3 = np.cross(filt.v1, v1xv2) / np.linalg.norm(v1xv2)
+            out = np.empty((len(acc_m_s2), 4))
+            acc, mag = np.ascontiguousarray(acc_m_s2, dtype=float), np.ascontiguousarray(mag_mt, dtype=float)
+            self._twins.triad_kernel(acc, mag, np.ascontiguousarray(np.c_[filt.v1, r2, r3]), out)
+            return quat.conjugate(out)
+        filt = self._filters.TRIAD(w1=acc_m_s2, w2=mag_mt, **refs)
         return quat.conjugate(np.asarray(filt.A, dtype=float))
 
 
