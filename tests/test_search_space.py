@@ -156,11 +156,11 @@ def test_fusion_list_ekf_shows_every_parameter_and_the_former_spellings_apart(ca
     assert main(["list", "ekf"]) == 0
     out, err = capsys.readouterr()
     assert err == ""
-    assert out.splitlines()[0].startswith("ekf: 46 parameters")
+    assert out.splitlines()[0].startswith("ekf: 47 parameters")
     assert out.splitlines()[1].split()[:5] == ["alias", "field", "default", "unit", "meaning"]
     rows, former = _rows(out)
     hints = typing.get_type_hints(EKFParams)
-    assert len(rows) == len(dataclasses.fields(EKFParams)) == 46
+    assert len(rows) == len(dataclasses.fields(EKFParams)) == 47
     for f in dataclasses.fields(EKFParams):
         alias = f.metadata.get("alias", f.name)
         cells = rows[alias].split()

@@ -23,15 +23,16 @@ def sim():
 
 
 def test_rest_steps_are_the_filters_rest_updates(sim):
-    """`rest_steps` flags exactly the steps on which `ekf` makes its zero-rate update (with its tilt
-    test, and without it: the smoothers' detector). The simulator's rests are short, and its quantised
-    accelerometer (0.55 deg a count) ends the default test's stretches there: 1 deg reaches a rest."""
-    for spec in ("ekf", "ekf:rtilt=0.0175", "ekf:rtilt=inf"):
+    """`rest_steps` flags exactly the steps on which `ekf` makes its zero-rate update (with a tilt
+    test, and without it, the default: the smoothers' detector). The simulator's rests are short, and
+    its quantised accelerometer (0.55 deg a count) ends a 0.3-deg test's stretches there: 1 deg reaches
+    a rest."""
+    for spec in ("ekf:rtilt=0.0052", "ekf:rtilt=0.0175", "ekf"):
         est = estimators.build(spec)
         p = est.params
         at_rest = est.estimate(sim.imu, initial_orientation(sim, "truth")).diagnostics["at_rest"]
         flags = rest_steps(sim.imu, p.rest_gyr_rad_s, p.rest_acc_g, p.rest_time_s, tilt_rad=p.rest_tilt_rad)
-        assert spec == "ekf" or (flags.any() and not flags.all())
+        assert spec == "ekf:rtilt=0.0052" or (flags.any() and not flags.all())
         np.testing.assert_array_equal(flags, at_rest[1:])
     assert not rest_steps(sim.imu, p.rest_gyr_rad_s, p.rest_acc_g, np.inf).any()
 

@@ -38,8 +38,12 @@ REST_WINDOW_S = 0.5  # time constant of the rest detector's accelerometer low-pa
 # accelerometer deviation, g; minimum duration, s.
 REST_GYR_RAD_S, REST_ACC_G, REST_TIME_S = 0.035, 0.05, 1.5
 # The filters' tilt test (`RestDetector`, tilt_rad): the low-passed accelerometer may turn by at most
-# this within a still stretch, rad (inf: no test, the detector of the smoothers).
-REST_TILT_RAD = math.radians(0.3)
+# this within a still stretch, rad (inf: no test, the detector of the smoothers). Off by default: at
+# 0.3 deg it keeps a slow turn out of the bias on the slow-translation simulation (ekf 0.85 -> 0.75
+# deg) and changes nothing on BROAD, but an accelerometer quantised coarser than the angle (the
+# built-in simulation's, 0.55 deg a count) ends every still stretch before it counts, the bias goes
+# unread and the heading drifts (ekf 6.9 -> 10.3 deg total there); docs/results.md.
+REST_TILT_RAD = math.inf
 
 
 class RestDetector:
