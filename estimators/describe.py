@@ -281,8 +281,7 @@ def format_parameters(params_cls: type, name: str) -> str:
         return f"{name}: no parameters"
     head = Row("alias", "field", "default", "unit", "", "search range" if any(r.search for r in rows) else "")
     widths = [max(len(getattr(r, col)) for r in (head, *rows)) for col in ("alias", "name", "default", "unit")]
-    lines = [f"{name}: {len(rows)} parameters, set as {name}:ALIAS=VALUE,ALIAS=VALUE (or FIELD=VALUE, the field "
-             "name that carries the unit)"]
+    lines = [f"{name}: {len(rows)} parameters, set as {name}:ALIAS=VALUE,ALIAS=VALUE (or FIELD=VALUE)"]
     for r in (head, *rows):
         cells = (r.alias, r.name, r.default, r.unit)
         lines.append(("  ".join(f"{c:<{w}}" for c, w in zip(cells, widths)) + "  " + r.search).rstrip())
