@@ -17,6 +17,9 @@ former aliases of its fields are listed apart.
 
     from fusion.estimators.describe import describe
     print(describe("ekf"))
+
+`docs/parameters.md` is `reference()`, every registered estimator's parameters as Markdown tables,
+written by `python -m fusion.estimators.describe > docs/parameters.md` (a test checks it is current).
 """
 from __future__ import annotations
 
@@ -319,3 +322,47 @@ def describe(name: str) -> str:
     """`format_parameters` of the estimator `name` (`estimator_class`)."""
     cls = estimator_class(name)
     return format_parameters(cls.Params, parse_specs(name)[0].name)
+
+
+def _cell(text: str) -> str:
+    """`text` in a Markdown table cell (a `|` escaped)."""
+    return text.replace("|", "\\|")
+
+
+def markdown(params_cls: type, name: str) -> str:
+    """The parameters of the estimator `name` as a Markdown section: a table with each one's alias,
+    field, default, unit, meaning, valid range, reference and search range."""
+    rows = parameter_table(params_cls)
+    if not rows:
+        return f"## {name}\n\nNo parameters."
+    lines = [f"## {name}", "", f"{len(rows)} parameters, set as `{name}:ALIAS=VALUE` (or `FIELD=VALUE`).", "",
+             "| alias | field | default | unit | meaning | valid | reference | search range |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        cells = (f"`{r.alias}`", f"`{r.name}`", f"`{r.default}`", r.unit, r.meaning, r.valid, r.reference, r.search)
+        lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    renamed = former_aliases(params_cls)
+    if renamed:
+        lines += ["", "Former aliases, taken with a warning for one release: "
+                  + ", ".join(f"`{old}` (now `{alias}`)" for old, alias, _ in renamed) + "."]
+    return "\n".join(lines)
+
+
+def reference() -> str:
+    """`docs/parameters.md`: every registered estimator's parameters (`markdown`), in the registry's
+    order."""
+    from . import ESTIMATORS
+
+    parts = ["# Parameters", "",
+             "Generated from the parameter dataclasses' field metadata by `python -m fusion.estimators.describe > "
+             "docs/parameters.md`; `fusion list NAME` prints the same for one estimator. A parameter is set by its "
+             "alias or by its field name (ours end in their unit: `disturbance_corr_s`)."]
+    for name, cls in ESTIMATORS.items():
+        params = getattr(cls, "Params", None)
+        if dataclasses.is_dataclass(params) and dataclasses.fields(params):
+            parts += ["", markdown(params, name)]
+    return "\n".join(parts) + "\n"
+
+
+if __name__ == "__main__":
+    print(reference(), end="")

@@ -160,3 +160,17 @@ def test_fusion_list_gn_lists_the_former_aliases(capsys):
 def test_the_peers_with_parameters_are_all_there():
     assert {"vqf", "vqf-basic", "fusion-ahrs", "madgwick", "mahony", "ahrs-ekf", "aqua", "fkf", "quest",
             "qmt-oriestimu"} <= set(PEERS)
+
+
+def test_the_parameters_document_is_generated_from_the_fields():
+    """docs/parameters.md is `reference()` as it is now: regenerate it with
+    `python -m fusion.estimators.describe > docs/parameters.md`."""
+    from pathlib import Path
+
+    from fusion.estimators.describe import reference
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "parameters.md").read_text()
+    assert doc == reference()
+    for name in OURS:
+        for f in _fields(name):
+            assert f.metadata["meaning"] in doc
