@@ -65,6 +65,7 @@ def param_as(base: type, name: str, default: Any, **changes: Any) -> Any:
     metadata = {**source.metadata, **changes}
     return dataclasses.field(default=default, metadata={k: v for k, v in metadata.items() if v is not None})
 
+
 # Noise and prior parameters are variances (variance densities for continuous-time noise), in
 # the filters and the smoothers alike: the Q and R of the Kalman literature. Those that used to
 # be standard deviations, by their former name and alias -> (their name and alias now); a former

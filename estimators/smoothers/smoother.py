@@ -131,7 +131,7 @@ class SmootherParams(FormerSpellings):
                 "loss was always Huber's).",
         search=Tunable(0.01, 1.0, grid=(0.03, 0.1, 0.3)))
     init_var_rad2: float = param(1e-4, alias="P0", unit="rad^2", valid="> 0, finite",
-                                 meaning="Variance of the anchor of the first orientation at the initial estimate's.")
+                                 meaning="Variance of the anchor that holds the first orientation at the initial one.")
     dropout_noise_rad2_s: float = param(
         0.09, alias="Qdrop", unit="rad^2/s", valid="> 0, finite",
         meaning="Angle random-walk density of the motion term on the steps whose gyro sample is invalid.")
@@ -171,13 +171,13 @@ class SmootherParams(FormerSpellings):
     # two decades either side of the defaults, no grid
     velocity_acc_noise_g2_s: float = param(
         1e-4, alias="Qv", unit="g^2 s", valid="> 0; inf: no velocity model", reference=VQF + ", Sec. 3.2",
-        meaning="Density of the world-frame linear acceleration integrated into the horizontal velocity in the "
-                "velocity model (`fusion.estimators.smoothers.cost`).",
+        meaning="Density of the white acceleration noise in the velocity model's integration of the world-frame "
+                "acceleration into the horizontal velocity (`fusion.estimators.smoothers.cost`).",
         search=Tunable(1e-6, 1e-2))
     velocity_bound_m2_s: float = param(
         0.25, alias="Rv", unit="m^2/s", valid="> 0; inf: no velocity model", reference=VQF + ", Sec. 3.2",
-        meaning="Density of the velocity model's pull of the horizontal velocity towards zero, which keeps the "
-                "integral of the linear acceleration bounded.",
+        meaning="Density of the pseudo-measurement v = 0 on the horizontal velocity in the velocity model, which "
+                "keeps the integral of the linear acceleration bounded.",
         search=Tunable(2.5e-3, 25.0))
     rest_gyr_rad_s: float = param_as(BiasFilterParams, "rest_gyr_rad_s", REST_GYR_RAD_S,
                                      valid="> 0, finite")
