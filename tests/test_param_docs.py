@@ -174,3 +174,26 @@ def test_the_parameters_document_is_generated_from_the_fields():
     for name in OURS:
         for f in _fields(name):
             assert f.metadata["meaning"] in doc
+
+
+def test_a_users_params_documented_with_param_are_listed_whole():
+    from dataclasses import dataclass
+
+    from fusion.estimators.describe import format_parameters
+    from fusion.estimators.params import param
+
+    long = "The correction gain, " + "which is said at length so that it wraps, " * 4 + "never cut."
+
+    @dataclass(frozen=True)
+    class Params:
+        """Parameters (their documentation is at the fields)."""
+
+        gain_rad_s: float = param(0.1, alias="k", unit="rad/s", valid="> 0", meaning=long,
+                                  reference="Someone 2020, eq. 3")
+
+    out = format_parameters(Params, "mine")
+    assert out.splitlines()[2].split() == ["k", "gain_rad_s", "0.1", "rad/s"]
+    below = " ".join(line.strip() for line in out.splitlines()[3:])
+    assert below == f"{long} valid: > 0 reference: Someone 2020, eq. 3"
+    assert all(len(line) <= 100 for line in out.splitlines()[3:]) and len(out.splitlines()) > 5
+    assert make_params(Params, {"gain_rad_s": "0.2"}) == make_params(Params, {"k": "0.2"}) == Params(0.2)
