@@ -257,7 +257,7 @@ def cmd_list(args: argparse.Namespace) -> int:
     print("6-D/9-D: fuses the magnetometer where a recording has one; 6-D: gyro and accelerometer only")
     print("\nyour own: FILE.py:NAME or package.module:NAME, with parameters as for ours, e.g. "
           "./my_ukf.py:MyUKF:R=1e-3 (README, 'Your estimator in the table')")
-    print("an estimator's parameters, with their units, defaults and search ranges: fusion list NAME")
+    print("an estimator's parameters, with their units, defaults, meanings, valid and search ranges: fusion list NAME")
     return 0
 
 

@@ -1,28 +1,32 @@
 """An estimator's parameters as a table: what `fusion list NAME` prints.
 
-One row per field of the estimator's `Params` dataclass: the short name a spec uses (the field's
-alias, else its name), the field name, whose suffix gives the unit (`process_noise_rad2_s`:
-rad^2/s, `UNIT_SUFFIXES`), the default, the unit spelled out, a one-line meaning and the search
-range the field declares (`fusion.estimators.search.Tunable`). A field's `"unit"` metadata
-overrides its suffix where the two differ (`mag_heading_noise_rad2_s`, a measurement's density,
-is in rad^2 s).
+One entry per field of the estimator's `Params` dataclass: the short name a spec uses (the field's
+alias, else its name), the field name, the default, the unit, the search range the field declares
+(`fusion.estimators.search.Tunable`), and below them, wrapped, never cut, the field's meaning, its
+valid range and its reference.
 
-The meaning has one source per field: the Params class's docstring (or a base's) where it
-documents the field, as an entry `name (alias): meaning ...` on a line of its own or after a
-full stop or a semicolon (several names may share one entry); else the field's `"doc"` metadata
-(for a field no docstring documents); else the clause of an entry that names the field
-(`sigma: ...; kappa, alpha, beta their parameters`). The row shows the first clause, cut to
-`MEANING_WIDTH` characters. The former standard-deviation spellings a class still takes
-(`fusion.estimators.params.FORMERLY_STD`) are listed apart.
+Our estimators document each parameter at its field (`fusion.estimators.params.param`: `"unit"`,
+`"meaning"`, `"valid"`, `"reference"` metadata); those are printed as they are. A class without them
+(a peer's adapter, a user's estimator) falls back to its docstring: an entry `name (alias): meaning
+...` on a line of its own or after a full stop or a semicolon (several names may share one entry),
+else the field's `"doc"` metadata, else the clause of an entry that names the field (`sigma: ...;
+kappa, alpha, beta their parameters`), of which the first clause is shown; its unit then comes from
+the field name's suffix (`process_noise_rad2_s`: rad^2/s, `UNIT_SUFFIXES`). The former
+standard-deviation spellings a class still takes (`fusion.estimators.params.FORMERLY_STD`) and the
+former aliases of its fields are listed apart.
 
     from fusion.estimators.describe import describe
     print(describe("ekf"))
+
+`docs/parameters.md` is `reference()`, every registered estimator's parameters as Markdown tables,
+written by `python -m fusion.estimators.describe > docs/parameters.md` (a test checks it is current).
 """
 from __future__ import annotations
 
 import dataclasses
 import inspect
 import re
+import textwrap
 import typing
 from dataclasses import dataclass
 from typing import Any
@@ -54,7 +58,8 @@ UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
     ("_frac", "fraction"),
 )
 
-MEANING_WIDTH = 72  # characters of the meaning shown; a longer first clause ends in "..."
+WIDTH = 100  # the text below a parameter's row is wrapped at this many characters
+INDENT = "    "  # ... and indented by this
 FORMER_TITLE = "former spellings (taken with a warning)"
 
 _NAME = r"[a-z_][a-z0-9_]*"
@@ -66,9 +71,10 @@ _ABBREVIATION = re.compile(r"(?:^|[\s(])(?:e\.g|i\.e|etc|al|Secs?|[Ee]q|vs|cf|ap
 @dataclass(frozen=True)
 class Row:
     """One parameter. alias: the key a spec uses (the field name where there is no alias); name:
-    the field name; default: the default as a spec would write it; unit: spelled out ("" where the
-    suffix is not in `UNIT_SUFFIXES` or the field is not a number); meaning: one line; search:
-    `Tunable.describe()`, "" where the field declares no search range."""
+    the field name; default: the default as a spec would write it; unit: spelled out ("" where it
+    has none); meaning: the field's full meaning (its docstring's first clause for a class that does
+    not document its fields); search: `Tunable.describe()`, "" where the field declares no search
+    range; valid, reference: the field's valid range and reference ("" where not documented)."""
 
     alias: str
     name: str
@@ -76,6 +82,8 @@ class Row:
     unit: str
     meaning: str
     search: str
+    valid: str = ""
+    reference: str = ""
 
 
 def unit_of(name: str, metadata: Any = None, annotation: Any = float) -> str:
@@ -130,42 +138,9 @@ def _clauses(text: str) -> list[str]:
     return [c.rstrip(";.").strip() for c in _split(text, ";.")]
 
 
-_GRAMMAR = {"a", "an", "and", "as", "at", "by", "for", "in", "is", "of", "or", "the", "to", "with"}
-
-
-def _without_remarks(text: str) -> str:
-    """`text` without its top-level parenthetical remarks: a bracket after a space, unless a unit
-    (`(rad/s)^2`), a formula (`Rm / dt (1 + ...)`) or the object of the word before it."""
-    out, i = [], 0
-    while i < len(text):
-        if text[i] == "(" and i > 0 and text[i - 1] == " ":
-            depth, j = 0, i
-            while j < len(text):
-                depth += (text[j] == "(") - (text[j] == ")")
-                if depth == 0:
-                    break
-                j += 1
-            before = text[:i].split()
-            unit = text[j + 1:j + 2] == "^"
-            formula = re.search(r"\^| \+ | = ", text[i:j + 1])
-            if depth == 0 and not unit and not formula and not (before and before[-1].lower() in _GRAMMAR):
-                i = j + 1
-                continue
-        out.append(text[i])
-        i += 1
-    return re.sub(r"\s+([,;:])", r"\1", re.sub(r"\s{2,}", " ", "".join(out))).strip()
-
-
 def _one_line(text: str) -> str:
-    """The first clause of `text` (to the first top-level ";" or full stop), at most
-    `MEANING_WIDTH` characters: without its parenthetical remarks if it is longer, then cut."""
-    clause = (_clauses(text) or [""])[0].rstrip(":,")
-    if len(clause) > MEANING_WIDTH:
-        clause = _without_remarks(clause)
-    if len(clause) <= MEANING_WIDTH:
-        return clause
-    cut = clause[:MEANING_WIDTH - 3].rsplit(" ", 1)[0]
-    return cut.rstrip(",;:") + "..."
+    """The first clause of `text` (to the first top-level ";" or full stop), whole."""
+    return (_clauses(text) or [""])[0].rstrip(":,")
 
 
 def _head_names(head: str, fields: set[str]) -> list[str] | None:
@@ -208,15 +183,19 @@ def _entries(doc: str, fields: set[str]) -> list[tuple[list[str], str]]:
 
 
 def meanings(params_cls: type) -> dict[str, str]:
-    """Field name -> its one-line meaning (module docstring: the entries of the class's and its
-    bases' docstrings, then the fields' `"doc"` metadata); "" where neither says anything."""
+    """Field name -> its meaning: the field's `"meaning"` metadata where it has one, else (a class
+    that does not document its fields) the first clause of its docstring entry (module docstring:
+    the class's and its bases' docstrings, then the field's `"doc"` metadata); "" where nothing
+    says anything."""
     if not dataclasses.is_dataclass(params_cls):
         return {}
     fields = {f.name: f for f in dataclasses.fields(params_cls)}
+    out = {name: str(f.metadata["meaning"]) for name, f in fields.items() if "meaning" in f.metadata}
+    if len(out) == len(fields):
+        return out
     docs = [c.__doc__ for c in params_cls.__mro__ if c.__dict__.get("__doc__") and c is not object
             and not c.__doc__.startswith(c.__name__ + "(")]  # not the signature `dataclass` writes
     entries = [e for doc in docs for e in _entries(doc, set(fields))]
-    out: dict[str, str] = {}
     for names, text in entries:  # the class's own entries first, then its bases'
         for name in names:
             out.setdefault(name, _one_line(text))
@@ -229,7 +208,7 @@ def meanings(params_cls: type) -> dict[str, str]:
         mention = re.compile(rf"(?<![\w.`]){re.escape(name)}(?![\w])")
         clause = next((c for _, text in entries for c in _clauses(text) if mention.search(c)), "")
         out[name] = _one_line(clause)
-    return out
+    return {name: out[name] for name in fields}
 
 
 def parameter_table(params_cls: type) -> list[Row]:
@@ -252,7 +231,8 @@ def parameter_table(params_cls: type) -> list[Row]:
         search = f.metadata.get("search")
         rows.append(Row(alias=f.metadata.get("alias", f.name), name=f.name, default=default,
                         unit=unit_of(f.name, f.metadata, hints.get(f.name)), meaning=meaning.get(f.name, ""),
-                        search=_search_text(search)))
+                        search=_search_text(search), valid=str(f.metadata.get("valid", "")),
+                        reference=str(f.metadata.get("reference", ""))))
     return rows
 
 
@@ -275,22 +255,50 @@ def former_spellings(params_cls: type) -> list[tuple[tuple[str, ...], str, str]]
     return [(tuple(sorted(olds, key=len)), alias[new], new) for new, olds in grouped.items()]
 
 
+def former_aliases(params_cls: type) -> list[tuple[str, str, str]]:
+    """The former aliases of `params_cls`'s fields (their `"formerly"` metadata), as (the former
+    alias, the alias now, the field), in field order."""
+    if not dataclasses.is_dataclass(params_cls):
+        return []
+    return [(old, f.metadata.get("alias", f.name), f.name)
+            for f in dataclasses.fields(params_cls) for old in f.metadata.get("formerly", ())]
+
+
+def _details(row: Row) -> list[str]:
+    """The lines below a row: its meaning, valid range and reference, wrapped, never cut."""
+    lines = []
+    for text in (row.meaning, f"valid: {row.valid}" if row.valid else "",
+                 f"reference: {row.reference}" if row.reference else ""):
+        if text:
+            lines += textwrap.wrap(text, WIDTH, initial_indent=INDENT, subsequent_indent=INDENT,
+                                   break_long_words=False, break_on_hyphens=False)
+    return lines
+
+
 def format_parameters(params_cls: type, name: str) -> str:
-    """The table `fusion list NAME` prints for the estimator `name` with parameters `params_cls`."""
+    """The table `fusion list NAME` prints for the estimator `name` with parameters `params_cls`:
+    a row per parameter (alias, field, default, unit, search range), its meaning, valid range and
+    reference wrapped below it, then the former spellings."""
     rows = parameter_table(params_cls)
     if not rows:
         return f"{name}: no parameters"
-    head = Row("alias", "field", "default", "unit", "meaning", "search range" if any(r.search for r in rows) else "")
-    table = [head, *rows]
-    widths = [max(len(getattr(r, col)) for r in table) for col in ("alias", "name", "default", "unit", "meaning")]
-    lines = [f"{name}: {len(rows)} parameters, set as {name}:ALIAS=VALUE,ALIAS=VALUE (the unit is the field "
-             "name's suffix)"]
-    for r in table:
-        cells = (r.alias, r.name, r.default, r.unit, r.meaning)
+    head = Row("alias", "field", "default", "unit", "", "search range" if any(r.search for r in rows) else "")
+    widths = [max(len(getattr(r, col)) for r in (head, *rows)) for col in ("alias", "name", "default", "unit")]
+    lines = [f"{name}: {len(rows)} parameters, set as {name}:ALIAS=VALUE,ALIAS=VALUE (or FIELD=VALUE)"]
+    for r in (head, *rows):
+        cells = (r.alias, r.name, r.default, r.unit)
         lines.append(("  ".join(f"{c:<{w}}" for c, w in zip(cells, widths)) + "  " + r.search).rstrip())
+        if r is not head:
+            lines += _details(r)
     former = former_spellings(params_cls)
+    renamed = former_aliases(params_cls)
+    if former or renamed:
+        lines += ["", f"{FORMER_TITLE}; they will be removed in the next release"]
+    if renamed:
+        width = max(len(old) for old, _, _ in renamed)
+        lines += [f"  {old:<{width}}  ->  {alias} ({field})" for old, alias, field in renamed]
     if former:
-        lines += ["", f"{FORMER_TITLE}: standard deviations, squared into the variance that replaced them"]
+        lines.append("  standard deviations, squared into the variance that replaced them:")
         width = max(len(", ".join(olds)) for olds, _, _ in former)
         lines += [f"  {', '.join(olds):<{width}}  ->  {alias} ({new})" for olds, alias, new in former]
     return "\n".join(lines)
@@ -314,3 +322,47 @@ def describe(name: str) -> str:
     """`format_parameters` of the estimator `name` (`estimator_class`)."""
     cls = estimator_class(name)
     return format_parameters(cls.Params, parse_specs(name)[0].name)
+
+
+def _cell(text: str) -> str:
+    """`text` in a Markdown table cell (a `|` escaped)."""
+    return text.replace("|", "\\|")
+
+
+def markdown(params_cls: type, name: str) -> str:
+    """The parameters of the estimator `name` as a Markdown section: a table with each one's alias,
+    field, default, unit, meaning, valid range, reference and search range."""
+    rows = parameter_table(params_cls)
+    if not rows:
+        return f"## {name}\n\nNo parameters."
+    lines = [f"## {name}", "", f"{len(rows)} parameters, set as `{name}:ALIAS=VALUE` (or `FIELD=VALUE`).", "",
+             "| alias | field | default | unit | meaning | valid | reference | search range |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        cells = (f"`{r.alias}`", f"`{r.name}`", f"`{r.default}`", r.unit, r.meaning, r.valid, r.reference, r.search)
+        lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    renamed = former_aliases(params_cls)
+    if renamed:
+        lines += ["", "Former aliases, taken with a warning for one release: "
+                  + ", ".join(f"`{old}` (now `{alias}`)" for old, alias, _ in renamed) + "."]
+    return "\n".join(lines)
+
+
+def reference() -> str:
+    """`docs/parameters.md`: every registered estimator's parameters (`markdown`), in the registry's
+    order."""
+    from . import ESTIMATORS
+
+    parts = ["# Parameters", "",
+             "Generated from the parameter dataclasses' field metadata by `python -m fusion.estimators.describe > "
+             "docs/parameters.md`; `fusion list NAME` prints the same for one estimator. A parameter is set by its "
+             "alias or by its field name (ours end in their unit: `disturbance_corr_s`)."]
+    for name, cls in ESTIMATORS.items():
+        params = getattr(cls, "Params", None)
+        if dataclasses.is_dataclass(params) and dataclasses.fields(params):
+            parts += ["", markdown(params, name)]
+    return "\n".join(parts) + "\n"
+
+
+if __name__ == "__main__":
+    print(reference(), end="")

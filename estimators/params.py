@@ -7,6 +7,13 @@ before them. Keys are the parameter dataclass's field names or their short alias
 valid ones; values are converted to the field's type and validated by the dataclass. A number
 that overflows a float (`1e400`) is an error, never taken for infinity: `inf` is written as such,
 where a parameter takes it to switch a term off; a count must fit in 64 bits.
+
+Each parameter of our estimators is documented at its field (`param`): its unit, a one-sentence
+meaning, the published reference it implements where there is one, and its valid range, as VQF's
+params struct documents each field; `fusion list NAME` (`fusion.estimators.describe`) prints them.
+A spec names a parameter by its short alias (`tauc`, the spelling the tables, journals and search
+spaces use) or by its field name (`disturbance_corr_s`, readable, with its unit); a field's former
+aliases (`"formerly"`) are taken for one release with a `FormerSpellingWarning`.
 """
 from __future__ import annotations
 
@@ -17,6 +24,47 @@ import typing
 import warnings
 from dataclasses import dataclass
 from typing import Any
+
+# The metadata keys a documented parameter (`param`) carries.
+DOC_KEYS = ("unit", "meaning", "valid", "reference")
+
+
+class FormerSpellingWarning(DeprecationWarning):
+    """A parameter given by a former alias, taken for one release; the message names the new one."""
+
+
+# Shown (once per place), not hidden as Python hides a library's DeprecationWarning by default: the
+# spelling is typed by the user, on the command line as often as in Python.
+warnings.filterwarnings("default", category=FormerSpellingWarning)
+
+
+def param(default: Any, *, unit: str, meaning: str, valid: str, reference: str = "", alias: str | None = None,
+          formerly: tuple[str, ...] = (), search: Any = None) -> Any:
+    """A parameter's dataclass field, documented where it lives.
+
+    unit: spelled out (`rad^2/s`; "1" for a dimensionless number, "" for a switch or a choice);
+    meaning: one full sentence (never cut where it is shown); valid: the values it takes (`> 0,
+    finite; inf: off`); reference: the paper and equation it implements, where there is one;
+    alias: the short key a spec uses; formerly: former aliases, taken with a warning for one
+    release; search: its `fusion.estimators.search.Tunable` range, where it is tuned.
+    """
+    metadata: dict[str, Any] = {"unit": unit, "meaning": meaning, "valid": valid, "reference": reference}
+    if alias is not None:
+        metadata["alias"] = alias
+    if formerly:
+        metadata["formerly"] = tuple(formerly)
+    if search is not None:
+        metadata["search"] = search
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def param_as(base: type, name: str, default: Any, **changes: Any) -> Any:
+    """Field `name` of the dataclass `base` with another default (and `changes` to its metadata:
+    `search=...`), for a subclass whose default differs: one text per parameter."""
+    source = next(f for f in dataclasses.fields(base) if f.name == name)
+    metadata = {**source.metadata, **changes}
+    return dataclasses.field(default=default, metadata={k: v for k, v in metadata.items() if v is not None})
+
 
 # Noise and prior parameters are variances (variance densities for continuous-time noise), in
 # the filters and the smoothers alike: the Q and R of the Kalman literature. Those that used to
@@ -171,11 +219,19 @@ def make_params(params_cls: type, overrides: tuple[tuple[str, str], ...] | dict[
     items = overrides.items() if isinstance(overrides, dict) else overrides
     fields = {f.name: f for f in dataclasses.fields(params_cls)}
     aliases = {f.metadata["alias"]: f.name for f in fields.values() if "alias" in f.metadata}
+    former = {old: f.name for f in fields.values() for old in f.metadata.get("formerly", ())}
     hints = typing.get_type_hints(params_cls)
     values: dict[str, Any] = {}
     typed: dict[str, str] = {}  # field name -> the key as typed (a field name or its alias)
     for key, text in items:
         name = aliases.get(key, key)
+        if name not in fields and key in former:  # a former alias, taken for one release
+            name = former[key]
+            new = fields[name].metadata.get("alias", name)
+            warnings.warn(f"estimator {owner!r}: parameter {key!r} is now {new!r} ({name}); {key!r} will be "
+                          "removed in the next release", FormerSpellingWarning, stacklevel=2)
+        if name in typed and (key in former or typed[name] in former):
+            raise ValueError(f"estimator {owner!r}: {typed[name]!r} and {key!r} are one parameter ({name})")
         if key in getattr(params_cls, "former_std", ()):  # a former spelling, converted by the class
             values[key] = _convert(text, float, f"estimator {owner!r} parameter {key!r}")
             typed[FORMERLY_STD[key][0]] = key

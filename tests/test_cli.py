@@ -214,7 +214,8 @@ def test_list_names_the_estimators_and_points_at_list_name(capsys):
     names = [line.split()[0] for line in out.splitlines() if line.startswith("  ")]  # grouped, indented
     assert names[:4] == ["dr", "ukf", "ukf-bias", "ekf"]
     assert names.index("gd") + 1 == names.index("gn") and names.index("gd") > names.index("ekf")
-    assert out.splitlines()[-1] == "an estimator's parameters, with their units, defaults and search ranges: fusion list NAME"
+    assert out.splitlines()[-1] == ("an estimator's parameters, with their units, defaults, meanings, valid and search "
+                                    "ranges: fusion list NAME")
 
 
 @pytest.mark.parametrize("spec, message", [

@@ -329,7 +329,7 @@ def assert_same_solve(spec: str, imu, q0) -> tuple[dict, dict]:
 
 
 @pytest.mark.parametrize("spec", ["gn", "gd", "gn:weighting=scalar", "gd:update=normalise,every=3", "gd:precond=block,iters=20",
-                                  "gd:precond=none,iters=10", "gn:loss=cauchy,bias=xyz,scale=z", "gn:Rv=inf,level=0",
+                                  "gd:precond=none,iters=10", "gn:loss=cauchy,baxes=xyz,saxes=z", "gn:Rv=inf,level=0",
                                   "gn:release=0.01,iters=4"])
 def test_compiled_solves_equal_the_reference_on_the_simulator(spec):
     imu, _, q0 = _sim(60.0)

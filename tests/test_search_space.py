@@ -134,47 +134,71 @@ def test_meanings_come_from_the_docstring_or_the_fields_doc():
 
 @pytest.mark.parametrize("name", [n for n in OURS if n != "dr"])
 def test_every_parameter_of_ours_has_one_meaning(name):
+    """Our estimators' meanings come from their fields, whole: no docstring parsing, nothing cut."""
     params = ESTIMATORS[name].Params
     rows = parameter_table(params)
     assert rows and all(r.meaning for r in rows), [r.name for r in rows if not r.meaning]
-    documented = {n for n, m in meanings(params).items() if m}
-    # one source per field: a "doc" string only where no docstring entry says what the field is
-    with_doc = {f.name for f in dataclasses.fields(params) if "doc" in f.metadata}
-    assert with_doc <= documented
-    assert all(len(r.meaning) <= 72 for r in rows)
+    by_field = {f.name: f.metadata for f in dataclasses.fields(params)}
+    assert all(r.meaning == by_field[r.name]["meaning"] for r in rows)
+    assert all(r.valid == by_field[r.name]["valid"] and r.valid for r in rows)
+    assert not any(r.meaning.endswith("...") for r in rows)
+    assert meanings(params) == {f: m["meaning"] for f, m in by_field.items()}
 
 
 def _rows(out: str) -> tuple[dict[str, str], list[str]]:
-    """The `fusion list NAME` parameter rows by their first token, and the lines of the former spellings."""
+    """The `fusion list NAME` parameter rows by their first token (the indented lines below a row, its
+    meaning, valid range and reference, left out), and the lines of the former spellings."""
     lines = out.splitlines()
     end = next((i for i, line in enumerate(lines) if line.startswith(FORMER_TITLE)), len(lines))
-    rows = {line.split()[0]: line for line in lines[2:end] if line.strip()}
+    rows = {line.split()[0]: line for line in lines[2:end] if line.strip() and not line.startswith(" ")}
     return rows, lines[end + 1:]
+
+
+def _details(out: str) -> dict[str, str]:
+    """The text below each `fusion list NAME` parameter row (its indented lines joined), by the row's
+    first token."""
+    lines = out.splitlines()
+    end = next((i for i, line in enumerate(lines) if line.startswith(FORMER_TITLE)), len(lines))
+    details: dict[str, list[str]] = {}
+    for line in lines[2:end]:
+        if line.startswith(" "):
+            details[key].append(line.strip())
+        elif line.strip():
+            key = line.split()[0]
+            details[key] = []
+    return {key: " ".join(parts) for key, parts in details.items()}
 
 
 def test_fusion_list_ekf_shows_every_parameter_and_the_former_spellings_apart(capsys):
     assert main(["list", "ekf"]) == 0
     out, err = capsys.readouterr()
     assert err == ""
-    assert out.splitlines()[0].startswith("ekf: 47 parameters")
-    assert out.splitlines()[1].split()[:5] == ["alias", "field", "default", "unit", "meaning"]
+    count = len(dataclasses.fields(EKFParams))
+    assert out.splitlines()[0].startswith(f"ekf: {count} parameters")
+    assert out.splitlines()[1].split() == ["alias", "field", "default", "unit", "search", "range"]
     rows, former = _rows(out)
+    details = _details(out)
     hints = typing.get_type_hints(EKFParams)
-    assert len(rows) == len(dataclasses.fields(EKFParams)) == 47
+    assert len(rows) == count
     for f in dataclasses.fields(EKFParams):
         alias = f.metadata.get("alias", f.name)
         cells = rows[alias].split()
         assert cells[1] == f.name
+        # the whole meaning, the valid range and the reference below the row, wrapped, never cut
+        assert f.metadata["meaning"] in details[alias], alias
+        assert f"valid: {f.metadata['valid']}" in details[alias], alias
+        assert not f.metadata["reference"] or f"reference: {f.metadata['reference']}" in details[alias], alias
         default = f.default
         expect = str(default).lower() if isinstance(default, bool) else f"{default:g}" if isinstance(default, float) else str(default)
         assert cells[2] == expect, (alias, cells)
         unit = unit_of(f.name, f.metadata, hints[f.name])
         if unit:
-            assert f"  {unit}  " in rows[alias], (alias, unit)
+            assert f"  {unit}  " in rows[alias] + "  ", (alias, unit)
         if "search" in f.metadata:
             search = f.metadata["search"]
             assert rows[alias].endswith(search.describe() + ("; 9-D only" if search.magnetometer else ""))
-    assert "gyro (attitude process) noise density" in rows["Q"]
+    assert details["Q"].startswith("Gyro (attitude process) noise density")
+    assert "..." not in out and max(len(line) for line in out.splitlines() if line.startswith(" ")) <= 100
     assert rows["Q"].endswith("[3e-06, 0.03] log; grid 0.0001, 0.0003, 0.001")
     assert "  rad^2 s  " in rows["Rm"] and rows["Rm"].endswith("9-D only") and "  rad^2/s^3  " in rows["Qb"]
     # the former spellings: at the end, not among the parameters, each with what it is now

@@ -166,7 +166,7 @@ def test_gd_and_gn_reach_the_same_minimum():
     assert np.all(np.diff(gd.diagnostics["loss"]) <= 0) and np.all(np.diff(gn.diagnostics["loss"]) <= 0)
 
 
-@pytest.mark.parametrize("spec", ["gn", "gn:bias=xy,scale=xy", "gd", "gd:update=normalise", "gd:weighting=scalar",
+@pytest.mark.parametrize("spec", ["gn", "gn:baxes=xy,saxes=xy", "gd", "gd:update=normalise", "gd:weighting=scalar",
                                   "gd:precond=none,iters=20", "gd:precond=block,iters=20,update=normalise"])
 def test_unit_norm_after_every_iteration(spec):
     imu, _, q0 = _sim_imu(5.0)
@@ -221,7 +221,7 @@ def test_self_calibration_recovers_the_observable_scales():
     (-0.0875, -0.0410 measured vs -0.0826, -0.0385)."""
     imu, _, q0 = _sim_imu(60.0)
     # the cost as it was measured: accelerometer density 0.005 g sqrt(s), no bias or velocity model
-    est = build("gn:scale=xy,bias=none,Qv=inf,Rv=inf,R=2.5e-5,Ps0=0.04,tol=1e-7,progress=false").estimate(imu, q0)
+    est = build("gn:saxes=xy,baxes=none,Qv=inf,Rv=inf,R=2.5e-5,Ps0=0.04,tol=1e-7,progress=false").estimate(imu, q0)
     k = est.diagnostics["gyr_scale_error"]
     np.testing.assert_allclose(k[:2], [1 / 1.09 - 1, 1 / 1.04 - 1], atol=0.01)
     assert np.all(est.diagnostics["theta_std"] < 0.1 * est.diagnostics["theta_prior_std"])

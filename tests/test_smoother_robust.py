@@ -87,7 +87,7 @@ def _random_problem(weights: Weights, T: int = 18, seed: int = 0):
 VELOCITY = dict(velocity_acc_noise_g2_s=1e-4, velocity_bound_m2_s=0.09)
 # The settings measured on BROAD (not yet the defaults: they cost accuracy on the course board,
 # whose gyro scale errors need the stronger accelerometer weight of the defaults).
-ROBUST = "gn:bias=xyz,scale=none,R=2.5e-3,Qv=1e-4,Rv=0.25,tol=1e-5,progress=false"
+ROBUST = "gn:baxes=xyz,saxes=none,R=2.5e-3,Qv=1e-4,Rv=0.25,tol=1e-5,progress=false"
 
 
 @pytest.mark.parametrize("loss", ["huber", "cauchy", "geman-mcclure", "none"])
@@ -274,7 +274,7 @@ def test_scale_errors_without_information_are_not_released():
     gyr[:, 0] *= 1.05  # a 5 % scale error on x (correction 1/1.05 - 1)
     acc = quat.gravity_in_body(q) + rng.normal(size=(len(t), 3)) * 1e-3
     imu = ImuSamples(t, gyr, acc, gyr_timing="start")
-    est = build("gn:scale=xyz,progress=false,sig=1").estimate(imu, q[0])
+    est = build("gn:saxes=xyz,progress=false,sig=1").estimate(imu, q[0])
     d = est.diagnostics
     assert list(d["scale_released"]) == [True, False, False]
     assert np.all(d["gyr_scale_error"][1:] == 0.0)

@@ -33,7 +33,7 @@ def test_stage_one_cut_at_its_cap_without_a_release_goes_on(sim, name):
     2 iterations, well before tol); gn used to stop there and report converged."""
     imu, q0 = sim
     staged = _run(f"{name}:release=0.01,iters=4", imu, q0)
-    single = _run(f"{name}:scale=none,iters=6", imu, q0)  # budget: 4 + 4 // 2
+    single = _run(f"{name}:saxes=none,iters=6", imu, q0)  # budget: 4 + 4 // 2
     assert not staged["scale_released"].any()
     assert staged["iterations"] > 2
     assert staged["iterations"] == single["iterations"] and staged["converged"] == single["converged"]

@@ -233,7 +233,7 @@ for name, run in runs.items():
 
 # %%
 trajectories = {"ekf (a filter)": estimators.build("ekf").estimate(imu, q0), "gn": result,
-                "gn (scalar cost)": estimators.build("gn:weighting=scalar,bias=none,scale=none").estimate(imu, q0),
+                "gn (scalar cost)": estimators.build("gn:weighting=scalar,baxes=none,saxes=none").estimate(imu, q0),
                 "gd": runs["gd (chain preconditioner)"]}
 scores = {name: score(rec.truth, trajectory) for name, trajectory in trajectories.items()}
 print(f"{'estimator':<18}{'total':>8}{'inclination':>13}{'heading':>9}   RMSE, deg")

@@ -198,4 +198,4 @@ plt.show()
 #   (`<data>/<course>/cam/camN.p`), the same functions stitch the real frames.
 #
 # **Try it:** stitch with `ukf:hf=true` (no accelerometer correction about the vertical) and with
-# `gn:scale=none`: which panorama gets sharper, and does the heading RMSE say the same?
+# `gn:saxes=none`: which panorama gets sharper, and does the heading RMSE say the same?

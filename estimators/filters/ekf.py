@@ -155,7 +155,7 @@ the filter looks: the step's sequence in `kalman_base.KalmanFilter.step` (shared
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -165,9 +165,10 @@ from fusion.quaternion import (exp_floats, gravity_in_body_floats, multiply_floa
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples
 
 from ..kernels._linalg import inv_sym3, repair_covariance
+from ..params import param, param_as
 from ..search import Tunable
 from .steps._error_state import ATTITUDE, BIAS, BIAS_AT, SCALE, ErrorLayout, axes_mask
-from .filter_params import BiasFilterParams
+from .filter_params import SOLA_NOISE, VQF, BiasFilterParams
 from .kalman_base import KalmanFilter, Motion, error_state_covariances, initial_quaternion
 from .steps._accel import AccDisturbance, SlowDisturbance, models_lag
 from .steps._magnetometer import HardIron, MagReference
@@ -178,31 +179,9 @@ from .steps._stuck import stuck_gyro_state
 
 @dataclass(frozen=True)
 class EKFParams(BiasFilterParams):
-    """Parameters of `ekf`: the fields of `BiasFilterParams` (and through it `FilterParams`,
-    where every field, its unit and alias is documented) with their defaults, plus
-
-    estimate_bias (bias): False drops the bias from the state (and needs scale=false); the
-        bias and rest-detection fields apply only with it.
-    velocity_acc_noise_g2_s (Qv): density of the white acceleration noise in the velocity
-        states' integration, g^2 s (the smoothers' default).
-    velocity_bound_m2_s (Rv): density of the pseudo-measurement v = 0, m^2/s: per second, one
-        observation "v = 0" of variance Rv (m/s)^2 (inf: no velocity states; see the module
-        docstring).
-    lowpass_calibration (lpcal): whether, with the velocity states, the low-passed accelerometer
-        sample also corrects the gyro bias and scale (False, the default: the attitude and
-        velocity only; see "Velocity" in the module docstring). Without the velocity states it
-        always does.
-    slow_disturbance_corr_s (tauslow): correlation time, s, of the slow external acceleration
-        (a sustained linear acceleration, as of a slow translation), whose power the raw
-        accelerometer sample's noise takes from the deviation of the disturbance window's mean
-        from the low-pass, less what the calibration's uncertainty and gross samples explain
-        (`_accel.AccDisturbance.slow_power`; "Update" in the module docstring; a Gauss-Markov
-        external acceleration as in Lee, Park & Robinovitch 2012, IEEE TIM 61(8)). 0: no slow
-        component (the model before it); it needs the low-pass's lag (bias states, `tauc` > 0,
-        `taulp` > 0). 1-5 s change little (`docs/results.md`, "Slow translation, simulated").
-    impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled_ekf`) | numpy (`estimate` loops the numpy `step`, the reference). The same
-        numbers either way (to rounding); `reset`/`step` are the numpy code in both.
+    """Parameters of `ekf`: the fields of `BiasFilterParams` (and through it `FilterParams`) with
+    their defaults, plus the velocity states, the slow disturbance and the implementation; each
+    field's unit, meaning, reference and valid range are at the field (`fusion list ekf`).
 
     The defaults are one set for every recording and rate. `acc_lowpass_s` (taulp) is 2 s here
     (1 s in `BiasFilterParams`): chosen by leave-one-recording-out over the nine course
@@ -218,14 +197,42 @@ class EKFParams(BiasFilterParams):
     # Search ranges (`fusion.estimators.search`): taulp as in `FilterParams` (0.3-10 s, around the
     # leave-one-out choice); Qv and Rv two decades either side (cross_validate.py tries 9e-6-9e-4 and
     # 0.25-4; BROAD's fast trials move at about 1 m/s).
-    acc_lowpass_s: float = field(default=2.0, metadata={"alias": "taulp", "search": Tunable(0.3, 10.0)})
+    acc_lowpass_s: float = param_as(BiasFilterParams, "acc_lowpass_s", 2.0)
 
-    estimate_bias: bool = field(default=True, metadata={"alias": "bias"})
-    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
-    velocity_bound_m2_s: float = field(default=1.0, metadata={"alias": "Rv", "search": Tunable(1e-2, 1e2)})
-    lowpass_calibration: bool = field(default=False, metadata={"alias": "lpcal"})
-    slow_disturbance_corr_s: float = field(default=2.0, metadata={"alias": "tauslow"})
-    impl: Literal["compiled", "numpy"] = "compiled"
+    estimate_bias: bool = param(
+        True, alias="bias", unit="", valid="true | false (false needs estimate_scale=false)",
+        meaning="Keep the gyro bias in the state; false drops it (and needs scale=false), and the bias and "
+                "rest-detection fields apply only with it.")
+    velocity_acc_noise_g2_s: float = param(
+        1e-4, alias="Qv", unit="g^2 s", valid="> 0, finite", reference=SOLA_NOISE,
+        meaning="Density of the white acceleration noise in the velocity states' integration (the smoothers' "
+                "default).",
+        search=Tunable(1e-6, 1e-2))
+    velocity_bound_m2_s: float = param(
+        1.0, alias="Rv", unit="m^2/s", valid="> 0; inf: no velocity states",
+        reference="Titterton & Weston 2004, Ch. 3 (strapdown velocity integration); " + VQF + ", Sec. 3.2",
+        meaning='Density of the pseudo-measurement v = 0 that bounds the horizontal velocity states: per second, '
+                'one observation "v = 0" of variance Rv (m/s)^2 ("Velocity" in the module docstring).',
+        search=Tunable(1e-2, 1e2))
+    lowpass_calibration: bool = param(
+        False, alias="lpcal", unit="", valid="true | false",
+        meaning="With the velocity states, let the low-passed accelerometer sample also correct the gyro bias and "
+                "scale (false, the default, corrects the attitude and velocity only); without the velocity states "
+                "it always does.")
+    # 1-5 s change little (docs/results.md, "Slow translation, simulated")
+    slow_disturbance_corr_s: float = param(
+        2.0, alias="tauslow", unit="s", valid=">= 0, finite; 0: no slow component",
+        reference="Lee, Park & Robinovitch 2012, IEEE TIM 61(8) (a Gauss-Markov external acceleration)",
+        meaning="Correlation time of the slow external acceleration (a sustained linear acceleration, as of a slow "
+                "translation), whose power the raw sample's noise takes from the deviation of the disturbance "
+                "window's mean from the low-pass, less what the calibration's uncertainty and gross samples "
+                "explain (`_accel.AccDisturbance.slow_power`); 0 turns it off, and it needs the bias states, "
+                "tauc > 0 and taulp > 0.")
+    impl: Literal["compiled", "numpy"] = param(
+        "compiled", unit="", valid="compiled | numpy",
+        meaning="Which code runs `estimate`: compiled (the whole recording in the numba kernel of `_compiled_ekf`) "
+                "or numpy (a loop of the numpy `step`, the reference), the same numbers either way to rounding; "
+                "`reset` and `step` are the numpy code in both.")
 
     def _check(self) -> None:
         super()._check()

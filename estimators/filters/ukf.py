@@ -105,7 +105,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -115,6 +115,7 @@ from fusion.quaternion import exp_floats, multiply_floats, unit_array
 from fusion.types import ImuSamples
 
 from ..kernels._linalg import inv_sym3, repair_covariance
+from ..params import param, param_as
 from ..search import Tunable
 from .steps._error_state import X_BIAS, X_CALIBRATION, X_QUAT, X_SCALE, ErrorLayout, axes_mask
 from .filter_params import BiasFilterParams, FilterParams, check_nonneg
@@ -139,26 +140,37 @@ def error_dim(p: Any) -> int:
 
 @dataclass(frozen=True)
 class UKFOptions(FilterParams):
-    """The unscented-transform fields of `ukf` and `ukf-bias` (on top of `FilterParams`).
+    """The unscented-transform fields of `ukf` and `ukf-bias` (on top of `FilterParams`); each
+    field's unit, meaning, reference and valid range are at the field (`fusion list ukf`)."""
 
-    sigma: sigma-point scheme, kraft (Kraft 2003) | julier | merwe; kappa, alpha, beta their
-        parameters (kappa for julier and merwe, alpha and beta for merwe only; setting one
-        for a scheme that ignores it is an error).
-    mean_tol_rad (tol), mean_max_iter (iters): stopping rule of the iterative mean (step 5).
-    impl: compiled (default: `estimate` runs the whole recording in the numba kernel of
-        `_compiled_ukf`, the numpy step's arithmetic) | numpy (the vectorised numpy step, the
-        reference; "lean", its former name, still works with a warning) | filterpy (per-point
-        hooks + FilterPy's update), same numbers. `reset`/`step` (streaming) run the numpy step
-        for compiled and numpy.
-    """
-
-    sigma: Sigma = "kraft"
-    kappa: float = 1.0
-    alpha: float = 1.0
-    beta: float = 2.0
-    mean_tol_rad: float = field(default=1e-9, metadata={"alias": "tol"})
-    mean_max_iter: int = field(default=20, metadata={"alias": "iters"})
-    impl: Impl = "compiled"
+    sigma: Sigma = param(
+        "kraft", unit="", valid="kraft | julier | merwe",
+        reference="Kraft 2003 (kraft); Julier & Uhlmann 1997 (julier); van der Merwe 2004 (merwe, scaled points)",
+        meaning="The sigma-point scheme: kraft (+-sqrt(n P), equal weights, the centre only starting the iterative "
+                "mean), julier (+-sqrt((n + kappa) P), centre weight kappa / (n + kappa)) or merwe (scaled points, "
+                "lambda = alpha^2 (n + kappa) - n).")
+    kappa: float = param(1.0, unit="1", valid="finite; >= 0 for julier; applies only with sigma=julier or merwe",
+                         reference="Julier & Uhlmann 1997; van der Merwe 2004",
+                         meaning="The sigma points' spread parameter kappa of the julier and merwe schemes.")
+    alpha: float = param(1.0, unit="1", valid="> 0, finite; applies only with sigma=merwe",
+                         reference="van der Merwe 2004",
+                         meaning="The merwe scheme's scaling alpha of the sigma points about the mean.")
+    beta: float = param(2.0, unit="1", valid="finite, with a non-negative centre weight; applies only with sigma=merwe",
+                        reference="van der Merwe 2004",
+                        meaning="The merwe scheme's beta, added to the centre point's covariance weight (2 is "
+                                "optimal for a Gaussian).")
+    mean_tol_rad: float = param(
+        1e-9, alias="tol", unit="rad", valid="> 0, finite", reference="Kraft 2003 (step 5, the iterative mean)",
+        meaning="The iterative quaternion mean stops once its correction is smaller than this.")
+    mean_max_iter: int = param(
+        20, alias="iters", unit="", valid="a whole number >= 1", reference="Kraft 2003 (step 5, the iterative mean)",
+        meaning="The iterative quaternion mean stops after this many iterations at most.")
+    impl: Impl = param(
+        "compiled", unit="", valid="compiled | numpy | filterpy (lean: the former name of numpy, with a warning)",
+        meaning="Which code runs `estimate`: compiled (the whole recording in the numba kernel of `_compiled_ukf`, "
+                "the numpy step's arithmetic), numpy (the vectorised numpy step, the reference) or filterpy "
+                "(per-point hooks and FilterPy's update), the same numbers; `reset` and `step` run the numpy step "
+                "for compiled and numpy.")
 
     def _check(self) -> None:
         super()._check()
@@ -190,17 +202,13 @@ class UKFOptions(FilterParams):
 
 @dataclass(frozen=True)
 class UKFParams(UKFOptions):
-    """Parameters of `ukf`, the quaternion UKF after Kraft 2003.
-
-    The fields of `FilterParams` (Q, R, P0, tauc, tauw, acc, gate, gate_g, hf, Qinvalid) and
-    `UKFOptions` (sigma, kappa, alpha, beta, tol, iters, impl), with these defaults of its own:
-    process_noise_rad2_s (Q) = 1e-3 rad^2/s, disturbance_corr_s (tauc) = 0.5 s, gate_g = 0.1 g,
-    heading_free (hf) = False (not in Kraft 2003; see the module docstring), acc_lowpass_s
-    (taulp) = 0 (raw accelerometer samples only, as in Kraft 2003: with the low-passed samples
-    `ukf` gains inclination but loses more in heading on both the course recordings and
-    BROAD: `fusion compare --estimators ukf,ukf:taulp=1` shows by how much); plus
-    scale_noise_s (Qs): rate-dependent attitude process noise, s: `Qs w_i^2 dt` is added to
-        the step variance of axis i (a stand-in for an unmodelled gyro scale error).
+    """Parameters of `ukf`, the quaternion UKF after Kraft 2003: the fields of `FilterParams` and
+    `UKFOptions`, some with defaults of their own (Q = 1e-3 rad^2/s, tauc = 0.5 s, gate_g = 0.1 g,
+    hf = false, taulp = 0: raw accelerometer samples only, as in Kraft 2003, since with the
+    low-passed samples `ukf` gains inclination but loses more in heading on both the course
+    recordings and BROAD: `fusion compare --estimators ukf,ukf:taulp=1` shows by how much), plus
+    scale_noise_s (Qs). Each field's unit, meaning, reference and valid range are at the field
+    (`fusion list ukf`).
 
     Defaults: Q = 1e-3 rad^2/s, R = 3e-5 g^2 s (the `FilterParams` density), not tuned on
     the recordings. With the adaptive accelerometer noise the scores hardly depend on Q and
@@ -213,15 +221,21 @@ class UKFParams(UKFOptions):
 
     # Search ranges (`fusion.estimators.search`; R's is `FilterParams`'): Q two decades either side,
     # its grid the sweep above (Q=1e-4,1e-3,1e-2); tauc a decade either side, its grid a factor of 3.
-    process_noise_rad2_s: float = field(default=1e-3, metadata={
-        "alias": "Q", "search": Tunable(1e-5, 1e-1, grid=(1e-4, 1e-3, 1e-2))})
-    disturbance_corr_s: float = field(default=0.5, metadata={
-        "alias": "tauc", "search": Tunable(0.05, 5.0, grid=(0.15, 0.5, 1.5))})
-    gate_g: float = 0.1
-    heading_free: bool = field(default=False, metadata={"alias": "hf"})
-    acc_lowpass_s: float = field(default=0.0, metadata={"alias": "taulp"})
+    process_noise_rad2_s: float = param_as(FilterParams, "process_noise_rad2_s", 1e-3,
+                                           search=Tunable(1e-5, 1e-1, grid=(1e-4, 1e-3, 1e-2)))
+    disturbance_corr_s: float = param_as(FilterParams, "disturbance_corr_s", 0.5,
+                                         search=Tunable(0.05, 5.0, grid=(0.15, 0.5, 1.5)))
+    gate_g: float = param_as(FilterParams, "gate_g", 0.1)
+    # not in Kraft 2003; see the module docstring
+    heading_free: bool = param_as(FilterParams, "heading_free", False)
+    # 0: Kraft's filter, raw samples only (no search range: 0 is outside a log range)
+    acc_lowpass_s: float = param_as(FilterParams, "acc_lowpass_s", 0.0, search=None)
     # two decades either side (0, Kraft's filter, is outside a log range)
-    scale_noise_s: float = field(default=2e-2, metadata={"alias": "Qs", "search": Tunable(2e-4, 2.0)})
+    scale_noise_s: float = param(
+        2e-2, alias="Qs", unit="s", valid=">= 0, finite; 0: Kraft's process noise",
+        meaning="Rate-dependent attitude process noise: Qs w_i^2 dt is added to the step variance of axis i, a "
+                "stand-in for an unmodelled gyro scale error.",
+        search=Tunable(2e-4, 2.0))
 
     def _check(self) -> None:
         check_nonneg(self.owner, scale_noise_s=self.scale_noise_s)

@@ -5,7 +5,7 @@ adapter shares are `fusion.estimators.peers.vqf_fusion`' module docstring; its h
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, Literal
 
@@ -15,6 +15,7 @@ from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 from ..base import RecursiveEstimator
+from ..params import param
 from ..search import Tunable
 from .vqf_fusion import (
     _RZ90, _TINY_RATE_RAD_S, _acc_m_s2, _check_length, _mag_or_zero, _marg_loop, _non_negative, _positive,
@@ -74,22 +75,32 @@ def _twin_start(imu: ImuSamples, init_quat_wxyz: np.ndarray, nwu: bool) -> tuple
     return out, np.ascontiguousarray(q, dtype=np.float64)
 
 
+# The references the fields cite (their "reference" metadata, `fusion list NAME`).
+_MADGWICK = ('Madgwick 2010, "An efficient orientation filter for inertial and inertial/magnetic sensor '
+             'arrays", report, University of Bristol')
+_MAHONY = ('Mahony, Hamel & Pflimlin 2008, "Nonlinear complementary filters on the special orthogonal group", '
+           "IEEE TAC 53(5)")
+_AHRS_EKF = "the ahrs package's documentation of ahrs.filters.EKF (its parameters and defaults)"
+
+
 @dataclass(frozen=True)
 class MadgwickParams:
-    """`ahrs.filters.Madgwick` parameters (its IMU default gain).
-
-    gain: beta, rad/s: the rate of the gradient step (Madgwick 2010, eq. 33), in 6-D and 9-D alike.
-    impl: compiled (the default: `estimate` runs the numba twin) | library (`estimate` calls the
-        library per sample: the reference). `reset`/`step` are the library's either way.
-    """
+    """`ahrs.filters.Madgwick` parameters (its IMU default gain), documented at the fields
+    (`fusion list madgwick`)."""
 
     # Range: from nearly pure gyro integration (1e-3) to an accelerometer-dominated filter (1).
     # Grid: BROAD's example code searches beta = 0.01-0.30 in steps of 0.01 and finds 0.12 best
     # over all 39 trials (9-D; Laidig et al., Data 2021); 0.033 is the library's default; 0.06 lies
     # between, 0.01 and 0.3 at the ends of BROAD's search.
-    gain: float = field(default=0.033, metadata={"alias": "beta", "search": Tunable(
-        1e-3, 1.0, log=True, grid=(0.01, 0.033, 0.06, 0.12, 0.3))})
-    impl: Literal["compiled", "library"] = "compiled"
+    gain: float = param(
+        0.033, alias="beta", unit="rad/s", valid=">= 0 (the library takes > 0 only; 0: the gyro alone)",
+        reference=_MADGWICK + ", eq. 33", search=Tunable(1e-3, 1.0, log=True, grid=(0.01, 0.033, 0.06, 0.12, 0.3)),
+        meaning="The rate beta of the gradient step towards the accelerometer (and magnetometer), in 6-D and 9-D "
+                "alike.")
+    impl: Literal["compiled", "library"] = param(
+        "compiled", unit="", valid="compiled | library",
+        meaning="compiled makes `estimate` run the numba twin, library makes it call the library per sample (the "
+                "reference); `reset` and `step` are the library's either way.")
 
     def __post_init__(self) -> None:
         _non_negative("madgwick", gain=self.gain)
@@ -147,23 +158,25 @@ class MadgwickPeer(RecursiveEstimator):
 
 @dataclass(frozen=True)
 class MahonyParams:
-    """`ahrs.filters.Mahony` parameters (its defaults).
-
-    k_p: proportional gain, rad/s per unit of error (Mahony et al. 2008, eq. 32).
-    k_i: integral gain of the gyro-bias estimate, rad/s^2 per unit of error (eq. 32).
-    impl: compiled (the default: `estimate` runs the numba twin) | library (`estimate` calls the
-        library per sample: the reference). `reset`/`step` are the library's either way.
-    """
+    """`ahrs.filters.Mahony` parameters (its defaults), documented at the fields (`fusion list
+    mahony`)."""
 
     # Ranges span two decades either side of the published settings, on a log scale. Grids: BROAD's
     # example code searches Kp = 0.02-2.0 (steps of 0.02) x Ki = 0-0.004 (steps of 0.0001) and finds
     # Kp = 0.74, Ki = 0.0012 best over all 39 trials (9-D; Laidig et al., Data 2021); 1.0 and 0.3 are
     # the library's defaults; the others spread the grid over each range (5 x 4 = 20 settings).
-    k_p: float = field(default=1.0, metadata={"alias": "kp", "search": Tunable(
-        0.01, 10.0, log=True, grid=(0.1, 0.3, 0.74, 1.0, 3.0))})
-    k_i: float = field(default=0.3, metadata={"alias": "ki", "search": Tunable(
-        1e-4, 1.0, log=True, grid=(0.0003, 0.0012, 0.01, 0.3))})
-    impl: Literal["compiled", "library"] = "compiled"
+    k_p: float = param(
+        1.0, alias="kp", unit="rad/s", valid=">= 0 (the library takes > 0 only)", reference=_MAHONY + ", eq. 32",
+        search=Tunable(0.01, 10.0, log=True, grid=(0.1, 0.3, 0.74, 1.0, 3.0)),
+        meaning="Proportional gain: the correction rate per unit of the attitude error.")
+    k_i: float = param(
+        0.3, alias="ki", unit="rad/s^2", valid=">= 0 (the library takes > 0 only; 0: no bias estimate)",
+        reference=_MAHONY + ", eq. 32", search=Tunable(1e-4, 1.0, log=True, grid=(0.0003, 0.0012, 0.01, 0.3)),
+        meaning="Integral gain of the gyro-bias estimate per unit of the attitude error.")
+    impl: Literal["compiled", "library"] = param(
+        "compiled", unit="", valid="compiled | library",
+        meaning="compiled makes `estimate` run the numba twin, library makes it call the library per sample (the "
+                "reference); `reset` and `step` are the library's either way.")
 
     def __post_init__(self) -> None:
         _non_negative("mahony", k_p=self.k_p, k_i=self.k_i)
@@ -226,16 +239,8 @@ class MahonyPeer(RecursiveEstimator):
 
 @dataclass(frozen=True)
 class AhrsEKFParams:
-    """`ahrs.filters.EKF` parameters (its defaults).
-
-    gyr_var_rad2_s2: gyro noise variance, (rad/s)^2 (`var_gyr`, default 0.3^2).
-    acc_var: accelerometer noise variance on the normalised reading (`var_acc`, 0.5^2).
-    mag_var: magnetometer noise variance on the normalised reading (`var_mag`, 0.8^2; 9-D only).
-    init_cov: initial state covariance, `init_cov * I_4` on the quaternion components
-        (`P0`; the library's default identity means "orientation unknown").
-    impl: compiled (the default: `estimate` runs the numba twin) | library (`estimate` calls the
-        library per sample: the reference). `reset`/`step` are the library's either way.
-    """
+    """`ahrs.filters.EKF` parameters (its defaults), documented at the fields (`fusion list
+    ahrs-ekf`)."""
 
     # The filter's gain depends on the ratios of these variances, so each spans several decades
     # (log scale) from the library's defaults (0.3^2, 0.5^2, 0.8^2, the `ahrs` documentation) down:
@@ -244,14 +249,27 @@ class AhrsEKFParams:
     # but what the filter must absorb is the motion's acceleration (tenths of a g: variances of
     # 0.01-1) and, in 9-D, magnetic disturbances. Grids: the defaults and one to three values below
     # them (4 x 3 x 2 = 24 settings in 9-D, 12 in 6-D).
-    gyr_var_rad2_s2: float = field(default=0.3**2, metadata={"alias": "var_gyr", "search": Tunable(
-        1e-6, 1.0, log=True, grid=(1e-4, 1e-3, 1e-2, 0.3**2))})
-    acc_var: float = field(default=0.5**2, metadata={"alias": "var_acc", "search": Tunable(
-        1e-4, 10.0, log=True, grid=(0.01, 0.5**2, 1.0))})
-    mag_var: float = field(default=0.8**2, metadata={"alias": "var_mag", "search": Tunable(
-        1e-3, 10.0, log=True, grid=(0.1, 0.8**2), magnetometer=True)})
-    init_cov: float = field(default=1.0, metadata={"alias": "P0"})
-    impl: Literal["compiled", "library"] = "compiled"
+    gyr_var_rad2_s2: float = param(
+        0.3**2, alias="var_gyr", unit="rad^2/s^2", valid=">= 0", reference=_AHRS_EKF,
+        search=Tunable(1e-6, 1.0, log=True, grid=(1e-4, 1e-3, 1e-2, 0.3**2)),
+        meaning="The gyro's noise variance (the library's var_gyr, 0.3^2 by default).")
+    acc_var: float = param(
+        0.5**2, alias="var_acc", unit="1", valid="> 0", reference=_AHRS_EKF,
+        search=Tunable(1e-4, 10.0, log=True, grid=(0.01, 0.5**2, 1.0)),
+        meaning="The accelerometer's noise variance on the normalised reading (the library's var_acc, 0.5^2).")
+    mag_var: float = param(
+        0.8**2, alias="var_mag", unit="1", valid="> 0", reference=_AHRS_EKF,
+        search=Tunable(1e-3, 10.0, log=True, grid=(0.1, 0.8**2), magnetometer=True),
+        meaning="The magnetometer's noise variance on the normalised reading (the library's var_mag, 0.8^2; 9-D "
+                "only).")
+    init_cov: float = param(
+        1.0, alias="P0", unit="1", valid=">= 0", reference=_AHRS_EKF,
+        meaning="Initial state covariance, init_cov I_4 on the quaternion's components (the library's default "
+                "identity means that the orientation is unknown).")
+    impl: Literal["compiled", "library"] = param(
+        "compiled", unit="", valid="compiled | library",
+        meaning="compiled makes `estimate` run the numba twin, library makes it call the library per sample (the "
+                "reference); `reset` and `step` are the library's either way.")
 
     def __post_init__(self) -> None:
         _non_negative("ahrs-ekf", gyr_var_rad2_s2=self.gyr_var_rad2_s2, init_cov=self.init_cov)

@@ -52,7 +52,7 @@ the library's (alpha 1e-3: a centre weight near -1e6).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, Callable, ClassVar, Literal
 
@@ -62,6 +62,7 @@ from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
+from ..params import param
 from ..search import Tunable
 from .ahrs_filters import _check_impl
 from .ahrs_single import MT_PER_UT, measured_dip_deg
@@ -169,29 +170,46 @@ class _AhrsRecursive(Estimator):
 # ------------------------------------------------------------------------------ AQUA
 
 
+# The references the fields cite (their "reference" metadata, `fusion list NAME`).
+_AHRS_DOCS = "the ahrs package's documentation of the filter (its parameters and defaults)"
+_VALENTI = 'Valenti, Dryanovski & Xiao 2015, "Keeping a good attitude", Sensors 15(8)'
+_GUO = "Guo et al. 2017 (the fast Kalman filter, FKF)"
+_FOURATI = "Fourati et al. 2011 (the nonlinear complementary filter)"
+_ZHOU = "Zhou et al. 2018 (OLEQ and its recursive form, ROLEQ)"
+_WAN = 'Wan & van der Merwe 2000, "The unscented Kalman filter for nonlinear estimation"'
+
+
+def _impl() -> Any:
+    """The `impl` field of the recursive ahrs peers."""
+    return param("compiled", unit="", valid="compiled | library",
+                 meaning="compiled runs the numba twin of the library's update (`peers._compiled_ahrs_recursive`), "
+                         "library the library per sample (the reference).")
+
+
 @dataclass(frozen=True)
 class AQUAParams:
-    """`ahrs.filters.AQUA` parameters (its defaults).
-
-    alpha: the accelerometer correction's interpolation gain, 0-1 (Valenti et al. 2015, eqs. 50-52:
-        LERP/SLERP of the correction quaternion towards identity).
-    beta: the magnetometer correction's gain, 0-1 (eq. 59; 9-D only).
-    threshold: the correction's scalar part above which LERP replaces SLERP (eq. 50).
-    adaptive: the accelerometer gain from the acceleration's magnitude error (eqs. 60-61; the
-        library's `adaptive_gain`, with its own alpha_bar 0.1).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
+    """`ahrs.filters.AQUA` parameters (its defaults), documented at the fields (`fusion list aqua`)."""
 
     # Range: a correction from 1e-4 to 1 per sample (log scale). Grids: the library's 0.01, and a
     # decade of gains around it (at 100-300 Hz a gain of 0.01 per sample is a time constant of
     # 0.3-1 s): 3 x 2 = 6 settings in 9-D, 3 in 6-D.
-    alpha: float = field(default=0.01, metadata={"search": Tunable(1e-4, 1.0, log=True, grid=(0.003, 0.01, 0.03))})
-    beta: float = field(default=0.01, metadata={"search": Tunable(1e-4, 1.0, log=True, grid=(0.001, 0.01),
-                                                                  magnetometer=True)})
-    threshold: float = 0.9
-    adaptive: bool = False
-    impl: Literal["compiled", "library"] = "compiled"
+    alpha: float = param(
+        0.01, unit="1", valid="(0, 1]", reference=_VALENTI + ", eqs. 50-52",
+        search=Tunable(1e-4, 1.0, log=True, grid=(0.003, 0.01, 0.03)),
+        meaning="The accelerometer correction's interpolation gain per sample (LERP or SLERP of the correction "
+                "quaternion towards identity).")
+    beta: float = param(
+        0.01, unit="1", valid="(0, 1]", reference=_VALENTI + ", eq. 59",
+        search=Tunable(1e-4, 1.0, log=True, grid=(0.001, 0.01), magnetometer=True),
+        meaning="The magnetometer correction's interpolation gain per sample (9-D only).")
+    threshold: float = param(
+        0.9, unit="1", valid="> 0", reference=_VALENTI + ", eq. 50",
+        meaning="The correction quaternion's scalar part above which LERP replaces SLERP.")
+    adaptive: bool = param(
+        False, unit="", valid="true | false", reference=_VALENTI + ", eqs. 60-61",
+        meaning="Adapt the accelerometer gain to the acceleration's magnitude error (the library's adaptive_gain, "
+                "with its own alpha_bar of 0.1).")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _positive("aqua", alpha=self.alpha, beta=self.beta, threshold=self.threshold)
@@ -235,16 +253,15 @@ class AQUAPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class ComplementaryParams:
-    """`ahrs.filters.Complementary` parameters (its default).
-
-    gain: the weight of the gyro-propagated angles, 0-1; 1 - gain that of the accelerometer's
-        (and magnetometer's) angles, per sample.
-    """
+    """`ahrs.filters.Complementary` parameters (its default), documented at the field."""
 
     # Grid: the library's 0.9 (a time constant of some 10 samples) and gains up to a time constant
     # of 1000 samples (4-10 s at 100-286 Hz): 4 settings.
-    gain: float = field(default=0.9, metadata={"search": Tunable(0.5, 0.9999, log=False,
-                                                                 grid=(0.9, 0.98, 0.995, 0.999))})
+    gain: float = param(
+        0.9, unit="1", valid="[0, 1]", reference=_AHRS_DOCS,
+        search=Tunable(0.5, 0.9999, log=False, grid=(0.9, 0.98, 0.995, 0.999)),
+        meaning="The weight of the gyro-propagated angles per sample, 1 - gain being that of the accelerometer's "
+                "(and magnetometer's) angles.")
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gain <= 1.0:
@@ -301,24 +318,22 @@ class ComplementaryPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class FKFParams:
-    """`ahrs.filters.FKF` parameters (its defaults; Guo et al. 2017).
-
-    gyr_var: the gyro's noise variance (`sigma_g`, the library's name for it).
-    acc_var, mag_var: the normalised accelerometer's and magnetometer's noise variances (`sigma_a`,
-        `sigma_m`).
-    init_cov: the initial covariance, `init_cov * I_4` (`Pk`).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
+    """`ahrs.filters.FKF` parameters (its defaults; Guo et al. 2017), documented at the fields."""
 
     # Ranges: several decades around the library's 0.01, log scale. Grid: 3 x 2 = 6 settings.
-    gyr_var: float = field(default=0.01, metadata={"alias": "sigma_g", "search": Tunable(
-        1e-6, 1.0, log=True, grid=(1e-4, 1e-3, 0.01))})
-    acc_var: float = field(default=0.01, metadata={"alias": "sigma_a", "search": Tunable(
-        1e-4, 10.0, log=True, grid=(0.01, 0.1))})
-    mag_var: float = field(default=0.01, metadata={"alias": "sigma_m"})
-    init_cov: float = field(default=0.01, metadata={"alias": "Pk"})
-    impl: Literal["compiled", "library"] = "compiled"
+    gyr_var: float = param(
+        0.01, alias="sigma_g", unit="rad^2/s^2", valid="> 0", reference=_GUO,
+        search=Tunable(1e-6, 1.0, log=True, grid=(1e-4, 1e-3, 0.01)),
+        meaning="The gyro's noise variance (the library's sigma_g).")
+    acc_var: float = param(
+        0.01, alias="sigma_a", unit="1", valid="> 0", reference=_GUO,
+        search=Tunable(1e-4, 10.0, log=True, grid=(0.01, 0.1)),
+        meaning="The normalised accelerometer's noise variance (the library's sigma_a).")
+    mag_var: float = param(0.01, alias="sigma_m", unit="1", valid="> 0", reference=_GUO,
+                           meaning="The normalised magnetometer's noise variance (the library's sigma_m).")
+    init_cov: float = param(0.01, alias="Pk", unit="1", valid=">= 0", reference=_GUO,
+                            meaning="The initial covariance, init_cov I_4 (the library's Pk).")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _positive("fkf", gyr_var=self.gyr_var, acc_var=self.acc_var, mag_var=self.mag_var)
@@ -373,17 +388,15 @@ class FKFPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class FouratiParams:
-    """`ahrs.filters.Fourati` parameters (its default).
-
-    gain: the gain of the Levenberg-Marquardt correction (Fourati et al. 2011, eq. 31: k).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
+    """`ahrs.filters.Fourati` parameters (its default), documented at the fields."""
 
     # Range: from nearly the gyro alone to a correction dominating it, log scale. Grid: the
     # library's 0.1 and a factor 3 either side: 3 settings.
-    gain: float = field(default=0.1, metadata={"search": Tunable(1e-3, 10.0, log=True, grid=(0.03, 0.1, 0.3))})
-    impl: Literal["compiled", "library"] = "compiled"
+    gain: float = param(
+        0.1, unit="1", valid="> 0", reference=_FOURATI + ", eq. 31",
+        search=Tunable(1e-3, 10.0, log=True, grid=(0.03, 0.1, 0.3)),
+        meaning="The gain k of the Levenberg-Marquardt correction.")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _positive("fourati", gain=self.gain)
@@ -424,18 +437,16 @@ class FouratiPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class ROLEQParams:
-    """`ahrs.filters.ROLEQ` parameters (its defaults).
+    """`ahrs.filters.ROLEQ` parameters (its defaults), documented at the fields."""
 
-    acc_weight, mag_weight: the weights of the normalised accelerometer and magnetometer in OLEQ's
-        matrix (`weights`; Zhou et al. 2018).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
-
-    acc_weight: float = 1.0
-    mag_weight: float = field(default=1.0, metadata={"search": Tunable(
-        1e-3, 1e3, log=True, grid=(0.1, 1.0, 10.0), magnetometer=True)})
-    impl: Literal["compiled", "library"] = "compiled"
+    acc_weight: float = param(1.0, unit="1", valid="> 0", reference=_ZHOU,
+                              meaning="The weight of the normalised accelerometer in OLEQ's matrix (the library's "
+                                      "weights).")
+    mag_weight: float = param(
+        1.0, unit="1", valid=">= 0", reference=_ZHOU,
+        search=Tunable(1e-3, 1e3, log=True, grid=(0.1, 1.0, 10.0), magnetometer=True),
+        meaning="The weight of the normalised magnetometer in OLEQ's matrix (the library's weights).")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _non_negative("roleq", acc_weight=self.acc_weight, mag_weight=self.mag_weight)
@@ -482,28 +493,28 @@ class ROLEQPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class AhrsUKFParams:
-    """`ahrs.filters.UKF` parameters (its defaults).
-
-    process_var: the process noise, `process_var * I_4` on the quaternion (`process_noise_covariance`).
-    meas_var: the measurement noise of each normalised vector, `meas_var * I_3`
-        (`measurement_noise_covariance`).
-    init_cov: the initial covariance, `init_cov * I_4` (`P`).
-    alpha, beta, kappa: the unscented transform's spread, prior and scaling (Wan & van der Merwe 2000).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
+    """`ahrs.filters.UKF` parameters (its defaults), documented at the fields."""
 
     # Grids: the library's defaults and a decade below (the UKF costs some 0.5 ms a sample in the
     # library: 2 x 2 = 4 settings).
-    process_var: float = field(default=1e-4, metadata={"alias": "Q", "search": Tunable(
-        1e-8, 1e-1, log=True, grid=(1e-5, 1e-4))})
-    meas_var: float = field(default=1e-2, metadata={"alias": "R", "search": Tunable(
-        1e-5, 10.0, log=True, grid=(1e-3, 1e-2))})
-    init_cov: float = field(default=1e-2, metadata={"alias": "P"})
-    alpha: float = 1e-3
-    beta: float = 2.0
-    kappa: float = 0.0
-    impl: Literal["compiled", "library"] = "compiled"
+    process_var: float = param(
+        1e-4, alias="Q", unit="1", valid="> 0", reference=_AHRS_DOCS,
+        search=Tunable(1e-8, 1e-1, log=True, grid=(1e-5, 1e-4)),
+        meaning="The process noise, process_var I_4 on the quaternion (the library's process_noise_covariance).")
+    meas_var: float = param(
+        1e-2, alias="R", unit="1", valid="> 0", reference=_AHRS_DOCS,
+        search=Tunable(1e-5, 10.0, log=True, grid=(1e-3, 1e-2)),
+        meaning="The measurement noise of each normalised vector, meas_var I_3 (the library's "
+                "measurement_noise_covariance).")
+    init_cov: float = param(1e-2, alias="P", unit="1", valid=">= 0", reference=_AHRS_DOCS,
+                            meaning="The initial covariance, init_cov I_4 (the library's P).")
+    alpha: float = param(1e-3, unit="1", valid="> 0", reference=_WAN,
+                         meaning="The unscented transform's spread of the sigma points.")
+    beta: float = param(2.0, unit="1", valid="a number", reference=_WAN,
+                        meaning="The unscented transform's prior knowledge of the distribution (2: Gaussian).")
+    kappa: float = param(0.0, unit="1", valid="a number", reference=_WAN,
+                         meaning="The unscented transform's secondary scaling.")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _positive("ahrs-ukf", process_var=self.process_var, meas_var=self.meas_var, alpha=self.alpha)
@@ -557,17 +568,14 @@ class AhrsUKFPeer(_AhrsRecursive):
 
 @dataclass(frozen=True)
 class AngularRateParams:
-    """`ahrs.filters.AngularRate.update` parameters (its defaults).
+    """`ahrs.filters.AngularRate.update` parameters (its defaults), documented at the fields."""
 
-    method: closed (the exponential of the rate over dt) | series (its truncated series).
-    order: the series' order (method series only).
-    impl: compiled (the default: the numba twin of the library's update,
-        `peers._compiled_ahrs_recursive`) | library (the library per sample: the reference).
-    """
-
-    method: str = "closed"
-    order: int = 1
-    impl: Literal["compiled", "library"] = "compiled"
+    method: str = param("closed", unit="", valid="closed | series", reference=_AHRS_DOCS,
+                        meaning="closed integrates by the exponential of the rate over dt, series by its truncated "
+                                "series.")
+    order: int = param(1, unit="", valid="a whole number >= 0; applies only with method=series",
+                       reference=_AHRS_DOCS, meaning="The series' order.")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         if self.method not in ("closed", "series"):

@@ -57,7 +57,7 @@ rounding; Davenport's method keeps the eigenvector's sign from `np.linalg.eig`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar, Literal
 
@@ -67,6 +67,7 @@ from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
+from ..params import param
 from ..search import Tunable
 from .ahrs_filters import _check_impl
 from .vqf_fusion import _RZ90, _acc_m_s2, _check_length, _non_negative, _require, align_heading
@@ -190,6 +191,16 @@ def _weights(owner: str, acc_weight: float, mag_weight: float) -> None:
         raise ValueError(f"{owner}: acc_weight must be positive, got {acc_weight}")
 
 
+_ZHOU = "Zhou et al. 2018 (OLEQ)"
+
+
+def _impl() -> Any:
+    """The `impl` field of the single-sample ahrs peers."""
+    return param("compiled", unit="", valid="compiled | library",
+                 meaning="compiled runs the library's `estimate` on all samples at once as its twin in "
+                         "`peers._compiled_ahrs_single`, library the library's batch call (the reference).")
+
+
 # Magnetometer weight, searched in 9-D only (in 6-D the virtual field agrees with the accelerometer
 # and no weight changes the estimate): the library's default and a decade either side, log scale.
 def _mag_weight_search(default: float) -> Tunable:
@@ -202,22 +213,21 @@ def _mag_weight_search(default: float) -> Tunable:
 
 @dataclass(frozen=True)
 class DavenportParams:
-    """`ahrs.filters.Davenport` parameters (its defaults).
+    """`ahrs.filters.Davenport` parameters (its defaults), documented at the fields."""
 
-    acc_weight, mag_weight: the weights of the accelerometer's and magnetometer's terms in the
-        attitude profile matrix B (`weights`; Davenport 1968; the library does not normalise the
-        vectors: see the module docstring).
-    gravity_m_s2: the gravity reference's length (`gravity`; the library's default: the normal
-        gravity at Munich).
-    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
-        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
-    """
-
-    acc_weight: float = 1.0
-    mag_weight: float = field(default=1.0, metadata={"search": Tunable(
-        1e-2, 1e6, log=True, grid=(1.0, 100.0, 1e4), magnetometer=True)})
-    gravity_m_s2: float | None = field(default=None, metadata={"alias": "gravity"})
-    impl: Literal["compiled", "library"] = "compiled"
+    acc_weight: float = param(
+        1.0, unit="1", valid="> 0", reference="Davenport 1968 (the q method)",
+        meaning="The weight of the accelerometer's term in the attitude profile matrix B (the library's weights; it "
+                "does not normalise the vectors, module docstring).")
+    mag_weight: float = param(
+        1.0, unit="1", valid=">= 0", reference="Davenport 1968 (the q method)",
+        search=Tunable(1e-2, 1e6, log=True, grid=(1.0, 100.0, 1e4), magnetometer=True),
+        meaning="The weight of the magnetometer's term in the attitude profile matrix B (the library's weights).")
+    gravity_m_s2: float | None = param(
+        None, alias="gravity", unit="m/s^2", valid="> 0, or none for the library's default",
+        meaning="The gravity reference's length (the library's gravity; none: its default, the normal gravity at "
+                "Munich).")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _weights("davenport", self.acc_weight, self.mag_weight)
@@ -247,16 +257,14 @@ class DavenportPeer(SingleSampleEstimator):
 
 @dataclass(frozen=True)
 class QUESTParams:
-    """`ahrs.filters.QUEST` parameters (its defaults).
+    """`ahrs.filters.QUEST` parameters (its defaults), documented at the fields."""
 
-    acc_weight, mag_weight: the weights of the two normalised vectors (`weights`; Shuster & Oh 1981).
-    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
-        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
-    """
-
-    acc_weight: float = 0.5
-    mag_weight: float = field(default=0.5, metadata={"search": _mag_weight_search(0.5)})
-    impl: Literal["compiled", "library"] = "compiled"
+    acc_weight: float = param(0.5, unit="1", valid="> 0", reference="Shuster & Oh 1981 (QUEST)",
+                              meaning="The weight of the normalised accelerometer vector (the library's weights).")
+    mag_weight: float = param(0.5, unit="1", valid=">= 0", reference="Shuster & Oh 1981 (QUEST)",
+                              search=_mag_weight_search(0.5),
+                              meaning="The weight of the normalised magnetometer vector (the library's weights).")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _weights("quest", self.acc_weight, self.mag_weight)
@@ -286,18 +294,16 @@ class QUESTPeer(SingleSampleEstimator):
 
 @dataclass(frozen=True)
 class OLEQParams:
-    """`ahrs.filters.OLEQ` parameters (its defaults).
+    """`ahrs.filters.OLEQ` parameters (its defaults), documented at the fields."""
 
-    acc_weight, mag_weight: the weights of the two normalised vectors (`weights`; Zhou et al. 2018).
-    seed: NumPy's global random seed for the call (the library starts its iteration at random).
-    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
-        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
-    """
-
-    acc_weight: float = 1.0
-    mag_weight: float = field(default=1.0, metadata={"search": _mag_weight_search(1.0)})
-    seed: int = 0
-    impl: Literal["compiled", "library"] = "compiled"
+    acc_weight: float = param(1.0, unit="1", valid="> 0", reference=_ZHOU,
+                              meaning="The weight of the normalised accelerometer vector (the library's weights).")
+    mag_weight: float = param(1.0, unit="1", valid=">= 0", reference=_ZHOU, search=_mag_weight_search(1.0),
+                              meaning="The weight of the normalised magnetometer vector (the library's weights).")
+    seed: int = param(0, unit="", valid="a whole number >= 0",
+                      meaning="NumPy's global random seed for the call, since the library starts its iteration at "
+                              "random.")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _weights("oleq", self.acc_weight, self.mag_weight)
@@ -340,19 +346,21 @@ class OLEQPeer(SingleSampleEstimator):
 
 @dataclass(frozen=True)
 class FLAEParams:
-    """`ahrs.filters.FLAE` parameters (its defaults).
+    """`ahrs.filters.FLAE` parameters (its defaults), documented at the fields."""
 
-    acc_weight, mag_weight: the weights of the two normalised vectors (`weights`, normalised to sum
-        1 by the library; Wu et al. 2018).
-    method: symbolic (the library's default: the eigenvalue in closed form) | eig | newton.
-    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
-        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
-    """
-
-    acc_weight: float = 0.5
-    mag_weight: float = field(default=0.5, metadata={"search": _mag_weight_search(0.5)})
-    method: Literal["symbolic", "eig", "newton"] = "symbolic"
-    impl: Literal["compiled", "library"] = "compiled"
+    acc_weight: float = param(
+        0.5, unit="1", valid="> 0", reference="Wu et al. 2018 (FLAE)",
+        meaning="The weight of the normalised accelerometer vector (the library's weights, which it normalises to "
+                "sum 1).")
+    mag_weight: float = param(
+        0.5, unit="1", valid=">= 0", reference="Wu et al. 2018 (FLAE)", search=_mag_weight_search(0.5),
+        meaning="The weight of the normalised magnetometer vector (the library's weights, which it normalises to "
+                "sum 1).")
+    method: Literal["symbolic", "eig", "newton"] = param(
+        "symbolic", unit="", valid="symbolic | eig | newton", reference="Wu et al. 2018 (FLAE)",
+        meaning="How the largest eigenvalue is found: symbolic (the library's default, in closed form), eig or "
+                "newton.")
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _weights("flae", self.acc_weight, self.mag_weight)
@@ -389,13 +397,10 @@ class NoTunedParams:
 
 @dataclass(frozen=True)
 class TwinParams:
-    """No parameters of the method's own (its reference field is the recording's, module docstring).
+    """No parameters of the method's own (its reference field is the recording's, module docstring):
+    only the implementation, documented at the field."""
 
-    impl: compiled (the default: the library's `estimate` on all samples at once, its twin in
-        `peers._compiled_ahrs_single`) | library (the library's batch call: the reference).
-    """
-
-    impl: Literal["compiled", "library"] = "compiled"
+    impl: Literal["compiled", "library"] = _impl()
 
     def __post_init__(self) -> None:
         _check_impl("ahrs", self.impl)

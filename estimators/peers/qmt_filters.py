@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
@@ -43,7 +43,9 @@ from fusion import quaternion as quat
 from fusion.types import ImuSamples, Trajectory
 
 from ..base import Estimator
+from ..params import param
 from ..search import Tunable
+from .ahrs_filters import _MADGWICK, _MAHONY
 from .vqf_fusion import (
     _RZ90, PeerUnavailable, _acc_m_s2, _check_length, _mag_or_zero, _non_negative, _positive, _rate_for_constant_ts,
 )
@@ -96,25 +98,30 @@ def _nwu_seed(init_quat_wxyz: np.ndarray) -> np.ndarray:
 # estimates of inertial sensors", IFAC-PapersOnLine 50(1), 2017)
 
 
+# The references the fields cite (their "reference" metadata, `fusion list NAME`).
+_SEEL = "Seel & Ruppin 2017 (oriEstIMU)"
+
+
 @dataclass(frozen=True)
 class OriEstIMUParams:
-    """`qmt.oriEstIMU` parameters (its defaults).
-
-    tau_acc_s: time constant of the inclination correction, s (50 % time, Seel & Ruppin 2017).
-    tau_mag_s: time constant of the heading correction, s (9-D only).
-    zeta: strength of the gyro-bias estimation (0: off).
-    acc_rating: the down-rating of the accelerometer in fast motion (0: off).
-    """
+    """`qmt.oriEstIMU` parameters (its defaults), documented at the fields (`fusion list
+    qmt-oriestimu`)."""
 
     # Ranges: a correction faster than most motions (0.1 s) to one slower than most recordings'
     # disturbances (30 s, 100 s), log scale. Grids around qmt's defaults (1 s and 3 s, the values
     # Seel & Ruppin 2017 use): 4 x 3 = 12 settings in 9-D, 4 in 6-D.
-    tau_acc_s: float = field(default=1.0, metadata={"alias": "tauAcc", "search": Tunable(
-        0.1, 30.0, log=True, grid=(0.5, 1.0, 2.0, 4.0))})
-    tau_mag_s: float = field(default=3.0, metadata={"alias": "tauMag", "search": Tunable(
-        0.3, 100.0, log=True, grid=(1.0, 3.0, 9.0), magnetometer=True)})
-    zeta: float = 0.0
-    acc_rating: float = field(default=1.0, metadata={"alias": "accRating"})
+    tau_acc_s: float = param(
+        1.0, alias="tauAcc", unit="s", valid="> 0", reference=_SEEL,
+        search=Tunable(0.1, 30.0, log=True, grid=(0.5, 1.0, 2.0, 4.0)),
+        meaning="Time constant of the inclination correction (its 50 % time).")
+    tau_mag_s: float = param(
+        3.0, alias="tauMag", unit="s", valid="> 0", reference=_SEEL,
+        search=Tunable(0.3, 100.0, log=True, grid=(1.0, 3.0, 9.0), magnetometer=True),
+        meaning="Time constant of the heading correction (9-D only).")
+    zeta: float = param(0.0, unit="1", valid=">= 0; 0: off", reference=_SEEL,
+                        meaning="Strength of the gyro-bias estimation.")
+    acc_rating: float = param(1.0, alias="accRating", unit="1", valid=">= 0; 0: off", reference=_SEEL,
+                              meaning="The down-rating of the accelerometer in fast motion.")
 
     def __post_init__(self) -> None:
         _positive("qmt-oriestimu", tau_acc_s=self.tau_acc_s, tau_mag_s=self.tau_mag_s)
@@ -151,15 +158,15 @@ class OriEstIMUPeer(Estimator):
 
 @dataclass(frozen=True)
 class QmtMadgwickParams:
-    """`qmt.oriEstMadgwick` parameters (its default).
-
-    gain: beta, rad/s (Madgwick 2010, eq. 33), in 6-D and 9-D alike.
-    """
+    """`qmt.oriEstMadgwick` parameters (its default), documented at the field."""
 
     # Grid: qmt's default 0.1 (the C code's `betaDef`), the `ahrs` package's 0.033, and BROAD's
     # search (0.01-0.30; 0.12 best over its 39 trials, 9-D; Laidig et al., Data 2021): 6 settings.
-    gain: float = field(default=0.1, metadata={"alias": "beta", "search": Tunable(
-        1e-3, 1.0, log=True, grid=(0.01, 0.033, 0.06, 0.1, 0.12, 0.3))})
+    gain: float = param(
+        0.1, alias="beta", unit="rad/s", valid=">= 0", reference=_MADGWICK + ", eq. 33",
+        search=Tunable(1e-3, 1.0, log=True, grid=(0.01, 0.033, 0.06, 0.1, 0.12, 0.3)),
+        meaning="The rate beta of the gradient step towards the accelerometer (and magnetometer), in 6-D and 9-D "
+                "alike.")
 
     def __post_init__(self) -> None:
         _non_negative("qmt-madgwick", gain=self.gain)
@@ -209,19 +216,21 @@ class QmtMadgwickPeer(Estimator):
 
 @dataclass(frozen=True)
 class QmtMahonyParams:
-    """`qmt.oriEstMahony` parameters (its defaults).
-
-    k_p: proportional gain (Mahony et al. 2008, eq. 32; the C code's `twoKp` is 2 k_p).
-    k_i: integral gain of the gyro-bias estimate (0: none; the C code's `twoKi` is 2 k_i).
-    """
+    """`qmt.oriEstMahony` parameters (its defaults), documented at the fields."""
 
     # Grids: qmt's defaults (Kp = 0.5, Ki = 0), BROAD's best over its 39 trials with this very code
     # (Kp = 0.74, Ki = 0.0012, 9-D; Laidig et al., Data 2021), and values spreading each range
     # (5 x 4 = 20 settings). Ki is searched on a linear scale: its default is 0.
-    k_p: float = field(default=0.5, metadata={"alias": "Kp", "search": Tunable(
-        0.01, 10.0, log=True, grid=(0.1, 0.3, 0.5, 0.74, 2.0))})
-    k_i: float = field(default=0.0, metadata={"alias": "Ki", "search": Tunable(
-        0.0, 0.1, log=False, grid=(0.0, 0.0003, 0.0012, 0.01))})
+    k_p: float = param(
+        0.5, alias="Kp", unit="rad/s", valid=">= 0", reference=_MAHONY + ", eq. 32",
+        search=Tunable(0.01, 10.0, log=True, grid=(0.1, 0.3, 0.5, 0.74, 2.0)),
+        meaning="Proportional gain: the correction rate per unit of the attitude error (the C code's twoKp is "
+                "2 k_p).")
+    k_i: float = param(
+        0.0, alias="Ki", unit="rad/s^2", valid=">= 0; 0: no bias estimate", reference=_MAHONY + ", eq. 32",
+        search=Tunable(0.0, 0.1, log=False, grid=(0.0, 0.0003, 0.0012, 0.01)),
+        meaning="Integral gain of the gyro-bias estimate per unit of the attitude error (the C code's twoKi is "
+                "2 k_i).")
 
     def __post_init__(self) -> None:
         _non_negative("qmt-mahony", k_p=self.k_p, k_i=self.k_i)

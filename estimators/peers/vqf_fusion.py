@@ -82,7 +82,7 @@ zero so that the correction still runs.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar
 
@@ -92,6 +92,7 @@ from fusion import quaternion as quat
 from fusion.types import STANDARD_GRAVITY_M_S2, ImuSamples, Trajectory
 
 from ..base import Estimator, RecursiveEstimator
+from ..params import param, param_as
 from ..search import Tunable
 
 INSTALL_HINT = "pip install -e '.[peers]'"
@@ -207,6 +208,11 @@ def _check_length(imu: ImuSamples, name: str) -> None:
 # estimation and magnetic disturbance rejection", Information Fusion 2023)
 
 
+# The references the fields cite (their "reference" metadata, `fusion list NAME`).
+_VQF = ('Laidig & Seel 2023, "VQF: Highly accurate IMU orientation estimation with bias estimation and magnetic '
+        'disturbance rejection", Information Fusion 91')
+_FUSION = "x-io Technologies, Fusion's README (the AHRS algorithm and its settings)"
+
 # Search ranges of VQF's and BasicVQF's time constants (log scale): from a correction faster than
 # most motions (0.3 s: corner 0.5 Hz) to one slower than most recordings' disturbances (30 s and
 # 100 s). Grids around VQF's documented defaults, 3 s and 9 s (Laidig & Seel 2023; the `vqf`
@@ -217,29 +223,58 @@ _TAU_MAG_SEARCH = Tunable(1.0, 100.0, log=True, grid=(3.0, 9.0, 20.0), magnetome
 
 @dataclass(frozen=True)
 class VQFParams:
-    """`vqf.VQF` parameters (its defaults; units in the names, VQF's keyword as alias).
+    """`vqf.VQF` parameters (its defaults; units in the names, VQF's keyword as alias), each
+    documented at its field after VQF's own `VQFParams` documentation (`fusion list vqf`)."""
 
-    tau_acc_s: time constant of the inclination correction, s (a first-order low-pass filter,
-        its corner at 1 / (2 pi tau)).
-    tau_mag_s: time constant of the heading correction, s (9-D only).
-    mag_dist_rejection: magnetic disturbance detection and rejection (9-D only).
-    """
-
-    tau_acc_s: float = field(default=3.0, metadata={"alias": "tauAcc", "search": _TAU_ACC_SEARCH})
-    tau_mag_s: float = field(default=9.0, metadata={"alias": "tauMag", "search": _TAU_MAG_SEARCH})
-    mag_dist_rejection: bool = field(default=True, metadata={"alias": "magDistRejectionEnabled"})
-    motion_bias_est: bool = field(default=True, metadata={"alias": "motionBiasEstEnabled"})
-    rest_bias_est: bool = field(default=True, metadata={"alias": "restBiasEstEnabled"})
-    bias_sigma_init_deg_s: float = field(default=0.5, metadata={"alias": "biasSigmaInit"})
-    bias_forgetting_time_s: float = field(default=100.0, metadata={"alias": "biasForgettingTime"})
-    bias_clip_deg_s: float = field(default=2.0, metadata={"alias": "biasClip"})
-    bias_sigma_motion_deg_s: float = field(default=0.1, metadata={"alias": "biasSigmaMotion"})
-    bias_vertical_forgetting_factor: float = field(default=0.0001, metadata={"alias": "biasVerticalForgettingFactor"})
-    bias_sigma_rest_deg_s: float = field(default=0.03, metadata={"alias": "biasSigmaRest"})
-    rest_min_t_s: float = field(default=1.5, metadata={"alias": "restMinT"})
-    rest_filter_tau_s: float = field(default=0.5, metadata={"alias": "restFilterTau"})
-    rest_th_gyr_deg_s: float = field(default=2.0, metadata={"alias": "restThGyr"})
-    rest_th_acc_m_s2: float = field(default=0.5, metadata={"alias": "restThAcc"})
+    tau_acc_s: float = param(
+        3.0, alias="tauAcc", unit="s", valid="> 0", reference=_VQF + ", Sec. 3.2", search=_TAU_ACC_SEARCH,
+        meaning="Time constant of the inclination correction: the accelerometer is low-passed in the almost "
+                "inertial frame with this time constant (a first-order low-pass, its corner at 1 / (2 pi tau)), so "
+                "a larger value trusts the gyro longer.")
+    tau_mag_s: float = param(
+        9.0, alias="tauMag", unit="s", valid="> 0", reference=_VQF + ", Sec. 3.3", search=_TAU_MAG_SEARCH,
+        meaning="Time constant of the heading correction by the magnetometer (9-D only).")
+    mag_dist_rejection: bool = param(
+        True, alias="magDistRejectionEnabled", unit="", valid="true | false", reference=_VQF + ", Sec. 3.3",
+        meaning="Detect magnetic disturbances and reject the magnetometer while they last (9-D only).")
+    motion_bias_est: bool = param(
+        True, alias="motionBiasEstEnabled", unit="", valid="true | false", reference=_VQF + ", Sec. 3.4",
+        meaning="Estimate the gyro bias during motion, from the inclination correction only.")
+    rest_bias_est: bool = param(
+        True, alias="restBiasEstEnabled", unit="", valid="true | false", reference=_VQF + ", Sec. 3.4",
+        meaning="Detect rest and estimate the gyro bias during it.")
+    bias_sigma_init_deg_s: float = param(
+        0.5, alias="biasSigmaInit", unit="deg/s", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Standard deviation of the initial bias estimate's uncertainty.")
+    bias_forgetting_time_s: float = param(
+        100.0, alias="biasForgettingTime", unit="s", valid="> 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Time in which the bias estimate's uncertainty grows from 0 to 0.1 deg/s.")
+    bias_clip_deg_s: float = param(
+        2.0, alias="biasClip", unit="deg/s", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="The largest gyro bias expected: the bias estimate and the bias update's measurement error are "
+                "clipped to it, and rest detection does not take a larger constant rate for rest.")
+    bias_sigma_motion_deg_s: float = param(
+        0.1, alias="biasSigmaMotion", unit="deg/s", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Standard deviation of the converted bias update during motion.")
+    bias_vertical_forgetting_factor: float = param(
+        0.0001, alias="biasVerticalForgettingFactor", unit="1", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Relative weight of an artificial zero measurement that lets the bias about the vertical, which "
+                "the motion bias estimation cannot observe, decay to zero.")
+    bias_sigma_rest_deg_s: float = param(
+        0.03, alias="biasSigmaRest", unit="deg/s", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Standard deviation of the converted bias update during rest.")
+    rest_min_t_s: float = param(
+        1.5, alias="restMinT", unit="s", valid="> 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Rest is detected once the measurements have stayed close to their low-passed reference this long.")
+    rest_filter_tau_s: float = param(
+        0.5, alias="restFilterTau", unit="s", valid="> 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Time constant of the low-pass that gives rest detection its reference.")
+    rest_th_gyr_deg_s: float = param(
+        2.0, alias="restThGyr", unit="deg/s", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Rest detection's threshold on the gyro's deviation from its low-passed reference.")
+    rest_th_acc_m_s2: float = param(
+        0.5, alias="restThAcc", unit="m/s^2", valid=">= 0", reference=_VQF + ", Sec. 3.4",
+        meaning="Rest detection's threshold on the accelerometer's deviation from its low-passed reference.")
 
     def __post_init__(self) -> None:
         _positive("vqf", tau_acc_s=self.tau_acc_s, tau_mag_s=self.tau_mag_s,
@@ -258,14 +293,10 @@ class VQFParams:
 
 @dataclass(frozen=True)
 class BasicVQFParams:
-    """`vqf.BasicVQF` parameters (its defaults).
+    """`vqf.BasicVQF` parameters (its defaults), documented at the fields as `VQFParams`'."""
 
-    tau_acc_s: time constant of the inclination correction, s (as `VQFParams`).
-    tau_mag_s: time constant of the heading correction, s (9-D only).
-    """
-
-    tau_acc_s: float = field(default=3.0, metadata={"alias": "tauAcc", "search": _TAU_ACC_SEARCH})
-    tau_mag_s: float = field(default=9.0, metadata={"alias": "tauMag", "search": _TAU_MAG_SEARCH})
+    tau_acc_s: float = param_as(VQFParams, "tau_acc_s", 3.0)
+    tau_mag_s: float = param_as(VQFParams, "tau_mag_s", 9.0)
 
     def __post_init__(self) -> None:
         _positive("vqf-basic", tau_acc_s=self.tau_acc_s, tau_mag_s=self.tau_mag_s)
@@ -382,18 +413,8 @@ class OfflineVQFPeer(Estimator):
 
 @dataclass(frozen=True)
 class FusionParams:
-    """`imufusion.Ahrs` settings (the defaults of `imufusion.AhrsSettings()` in 1.3.3).
-
-    gain: complementary-filter gain. gyroscope_range_deg_s: over-range detection (0 off).
-    acceleration_rejection_deg: the angle between the estimate's inclination and the
-        accelerometer's above which the accelerometer is ignored for the update (0 off).
-    magnetic_rejection_deg: the angle between the estimate's heading and the magnetometer's above
-        which the magnetometer is ignored for the update (0 off; 9-D only).
-    rejection_timeout: Fusion's recovery trigger period, samples: how long a sensor may be
-        rejected before it is trusted again (0 turns both rejections off, whatever the thresholds).
-    startup: run Fusion's start-up phase (3 s with the gyro ignored and a gain ramp),
-        meant for an unknown initial orientation; off because the adapter seeds it.
-    """
+    """`imufusion.Ahrs` settings (the defaults of `imufusion.AhrsSettings()` in 1.3.3), each
+    documented at its field after Fusion's README (`fusion list fusion-ahrs`)."""
 
     # Ranges and grids from Fusion's README (x-io Technologies), which calls a gain of 0.5 and
     # thresholds of 10 deg "appropriate for most applications" and a recovery trigger period of 5 s:
@@ -403,15 +424,31 @@ class FusionParams:
     # or 10 deg x one trigger period, 5 s at 100 Hz (1.75 s at BROAD's 286 Hz; with both thresholds
     # 0 the period changes nothing, so the grid's settings include the library's defaults): 16
     # settings in 9-D, 8 in 6-D.
-    gain: float = field(default=0.5, metadata={"search": Tunable(0.01, 10.0, log=True, grid=(0.1, 0.25, 0.5, 1.0))})
-    gyroscope_range_deg_s: float = field(default=0.0, metadata={"alias": "gyroscope_range"})
-    acceleration_rejection_deg: float = field(default=0.0, metadata={
-        "alias": "acceleration_rejection", "search": Tunable(0.0, 90.0, log=False, grid=(0.0, 10.0))})
-    magnetic_rejection_deg: float = field(default=0.0, metadata={
-        "alias": "magnetic_rejection", "search": Tunable(0.0, 90.0, log=False, grid=(0.0, 10.0), magnetometer=True)})
-    rejection_timeout: int = field(default=0, metadata={
-        "search": Tunable(0, 5000, log=False, integer=True, grid=(500,))})
-    startup: bool = False
+    gain: float = param(
+        0.5, unit="1", valid=">= 0", reference=_FUSION, search=Tunable(0.01, 10.0, log=True, grid=(0.1, 0.25, 0.5, 1.0)),
+        meaning="The complementary filter's gain, which weighs the accelerometer and magnetometer against the gyro.")
+    gyroscope_range_deg_s: float = param(
+        0.0, alias="gyroscope_range", unit="deg/s", valid=">= 0; 0: off", reference=_FUSION,
+        meaning="The gyro's range: a reading beyond 98 % of it starts the angular-rate recovery (over-range "
+                "detection).")
+    acceleration_rejection_deg: float = param(
+        0.0, alias="acceleration_rejection", unit="deg", valid=">= 0; 0: off", reference=_FUSION,
+        search=Tunable(0.0, 90.0, log=False, grid=(0.0, 10.0)),
+        meaning="The angle between the estimate's inclination and the accelerometer's above which the "
+                "accelerometer is ignored for the update.")
+    magnetic_rejection_deg: float = param(
+        0.0, alias="magnetic_rejection", unit="deg", valid=">= 0; 0: off", reference=_FUSION,
+        search=Tunable(0.0, 90.0, log=False, grid=(0.0, 10.0), magnetometer=True),
+        meaning="The angle between the estimate's heading and the magnetometer's above which the magnetometer is "
+                "ignored for the update (9-D only).")
+    rejection_timeout: int = param(
+        0, unit="samples", valid="a whole number >= 0; 0 turns both rejections off, whatever the thresholds",
+        reference=_FUSION, search=Tunable(0, 5000, log=False, integer=True, grid=(500,)),
+        meaning="Fusion's recovery trigger period: how long a sensor may be rejected before it is trusted again.")
+    startup: bool = param(
+        False, unit="", valid="true | false",
+        meaning="Run Fusion's start-up phase (3 s with the gyro ignored and a gain ramp), meant for an unknown "
+                "initial orientation; off because the adapter seeds the estimate.")
 
     def __post_init__(self) -> None:
         _non_negative("fusion-ahrs", gain=self.gain, gyroscope_range_deg_s=self.gyroscope_range_deg_s,

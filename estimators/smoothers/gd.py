@@ -84,13 +84,14 @@ Analytic gradients only (no autodiff). Cost per iteration -> diagnostics["loss"]
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
 
+from ..params import param, param_as
 from .cost import Linearization, SmootherProblem
 from .gn import released_scales
 from .smoother import (BatchSmoother, SmootherParams, SolverLog, inclination_step, progress_bar, retract,
@@ -105,23 +106,31 @@ RIDGE = 1e-12  # relative ridge on M's diagonal, for the factorisation's safety;
 
 @dataclass(frozen=True)
 class GDParams(SmootherParams):
-    """`SmootherParams` (the cost: the same defaults as `gn`) plus the descent's own settings.
-
-    precond: "chain" (the block-tridiagonal Gauss-Newton matrix, solved along the whole
-        chain), "block" (its per-sample diagonal blocks only) or "none" (plain gradient).
-    precond_every (every): rebuild the preconditioner every this many iterations (and after a
-        shortened step, before stopping, and when calibration variables are released).
-    update: "geodesic" (exponential map on the sphere) or "normalise" (step in R^4, normalise).
-    max_iter (iters), tol: stop when an iteration with a freshly built preconditioner lowers
-        the cost by less than the fraction tol, or after max_iter iterations.
-    """
+    """`SmootherParams` (the cost: the same defaults as `gn`) plus the descent's own settings; each
+    field's unit, meaning, reference and valid range are at the field (`fusion list gd`)."""
 
     owner: ClassVar[str] = "gd"
 
-    max_iter: int = field(default=100, metadata={"alias": "iters"})
-    precond: Literal["chain", "block", "none"] = "chain"
-    precond_every: int = field(default=1, metadata={"alias": "every"})
-    update: Literal["geodesic", "normalise"] = "geodesic"
+    max_iter: int = param_as(SmootherParams, "max_iter", 100)
+    tol: float = param_as(SmootherParams, "tol", 1e-4, meaning=(
+        "The descent stops when an iteration with a freshly built preconditioner lowers the cost by less than "
+        "this fraction."))
+    precond: Literal["chain", "block", "none"] = param(
+        "chain", unit="", valid="chain | block | none",
+        reference='Nocedal & Wright 2006, "Numerical Optimization", 2nd ed., sec. 10.3, eq. 10.23 (the Gauss-Newton '
+                  "matrix)",
+        meaning="The preconditioner: chain (the block-tridiagonal Gauss-Newton matrix, solved along the whole "
+                "chain), block (its per-sample diagonal blocks only) or none (the plain gradient).")
+    precond_every: int = param(
+        1, alias="every", unit="", valid="a whole number >= 1",
+        reference='Kelley 1995, "Iterative Methods for Linear and Nonlinear Equations", SIAM, ch. 5 (the chord method)',
+        meaning="Rebuild the preconditioner every this many iterations (and after a shortened step, before stopping, "
+                "and when calibration variables are released).")
+    update: Literal["geodesic", "normalise"] = param(
+        "geodesic", unit="", valid="geodesic | normalise",
+        reference='Absil, Mahony & Sepulchre 2008, "Optimization Algorithms on Matrix Manifolds", sec. 4.1',
+        meaning="How a step moves an orientation on the sphere: geodesic (the exponential map) or normalise (a step in "
+                "R^4, then normalised, the projection retraction).")
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -18,7 +18,7 @@ import math
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -33,13 +33,20 @@ from ..base import Estimator
 from ..dr import DeadReckoning
 from ..filters.steps._error_state import axes_mask
 from ..filters.ekf import EKF
+from ..filters.filter_params import HARD_IRON_FIT, VQF, BiasFilterParams
 from ..filters.steps._rest import REST_ACC_G, REST_GYR_RAD_S, REST_TIME_S
 from ..filters.ukf import UKF, UKFBias
-from ..params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, parse_specs
+from ..params import SMOOTHER_FORMER_STD, FormerSpellings, make_params, param, param_as, parse_specs
 from ..search import Tunable
 from .cost import AXES, LOSSES, Linearization, SmootherProblem, Weights, sample_durations
 from .mag import MagSettings, heading_correction, measurements
 from .solve import solve_normal_equations, theta_posterior_std
+
+# The references the fields cite (each field's "reference" metadata, `fusion list gn`).
+ARW = "IEEE Std 952-1997, Annex C (the angle random walk)"
+M_ESTIMATORS = ('Huber 1964; Geman & McClure 1987; as tabulated by Zhang 1997, "Parameter estimation techniques: a '
+                'tutorial with application to conic fitting", Image and Vision Computing 15')
+RTS = ('Rauch, Tung & Striebel 1965, "Maximum likelihood estimates of linear dynamic systems", AIAA Journal 3(8)')
 
 # Estimators that may start the optimisation (`SmootherParams.init`), by registry name.
 INIT_ESTIMATORS: dict[str, type[Estimator]] = {"dr": DeadReckoning, "ukf": UKF, "ukf-bias": UKFBias, "ekf": EKF}
@@ -54,43 +61,9 @@ class SmootherParams(FormerSpellings):
     continuous-time white noise, so one value means the same at any sampling rate (see
     `fusion.estimators.smoothers.cost.Weights`); the former standard-deviation spellings (sg,
     sa, p0, sdrop, sv, vb, srest, mwalk, bias_prior_rad_s, scale_prior) are accepted for one
-    release, squared, with a warning (`fusion.estimators.params.FORMERLY_STD`):
-    process_noise_rad2_s (Q): gyro noise density, rad^2/s; a step of dt s has angle variance
-        Q dt.
-    acc_noise_g2_s (R): accelerometer noise density, g^2 s; a sample standing for dt s has
-        variance R / dt.
-    loss: robust loss on the accelerometer residual: "huber", "cauchy", "geman-mcclure", "none".
-    loss_scale_g (huber, the alias it had when the loss was always Huber): the loss's scale on
-        the accelerometer residual norm, g (inf: plain least squares).
-    init_var_rad2 (P0): variance of the anchor of the first orientation at the initial one, rad^2.
-    dropout_noise_rad2_s (Qdrop): angle random walk density where `gyr_valid` is False, rad^2/s.
-    use_gyr_valid (dropout): honour `imu.gyr_valid` (False: integrate every sample).
-    find_freezes (freezes): with use_gyr_valid, gyro freezes that nobody flagged (`--dropouts
-        off`, or an IMU whose freezes the loader does not know) are found over the whole
-        recording (`fusion.checks.detect_freezes`: all gyro channels flat while the accelerometer
-        moves) and treated as invalid, as the filters' online check (`stuck`) treats them; on
-        samples whose freezes are already flagged it finds the same ones.
-    bias_axes (bias): gyro bias variables, e.g. "xy" ("" or "none": none). scale_axes (scale):
-        scale errors, likewise.
-    init_bias_var_rad2_s2 (Pb0), init_scale_var (Ps0): prior variance of those variables
-        around zero, (rad/s)^2 and dimensionless.
-    scale_release_ratio (release): a requested scale error is estimated only if the recording
-        determines it: its posterior std at the stage-1 solution (scales held at zero) is
-        below this fraction of its prior std (`released_scales`); the others stay zero.
-        Stage 1 ends at `tol` or after half of `max_iter`; stage 2 then has at least `max_iter`.
-    scale_significance (sig): released scale errors are kept only if they lower the cost
-        significantly at this level (a likelihood-ratio test, `BatchSmoother.significant_scales`;
-        1: no test).
-    scale_max: a scale error estimated beyond this (in either direction) is not a gyro's but
-        the fit absorbing motion the cost does not model; that axis is solved again with its
-        scale error held at zero (diagnostics "scale_rejected").
-    velocity_acc_noise_g2_s (Qv), velocity_bound_m2_s (Rv): the horizontal velocity model (see
-        `fusion.estimators.smoothers.cost`), g^2 s and m^2/s; inf switches it off.
-    rest_gyr_rad_s, rest_acc_g, rest_time_s: rest detection (the filters' `RestDetector`, with
-        their thresholds); rest_noise_rad2_s (Rrest): density of the gyro reading at rest in
-        the rest term (`smoothers.cost`), rad^2/s. Where the recording is at rest, the biases with a
-        variable are pulled to what the gyro reads there; an axis without one takes that
-        reading as a fixed bias. Rest detection is off with weighting="scalar" or no bias axes.
+    release, squared, with a warning (`fusion.estimators.params.FORMERLY_STD`). Each field's unit,
+    meaning, reference and valid range are at the field (`fusion list gn`). The axis options are
+    `baxes` and `saxes` (`bias` and `scale`, their former aliases, are the filters' switches).
 
     Defaults, one set for every IMU: the accelerometer is trusted as a gravity sensor only on
     average (R = 0.04 g^2 s, a standard deviation density of 0.2 g sqrt(s): a hand-held or
@@ -108,31 +81,6 @@ class SmootherParams(FormerSpellings):
     without the significance test, the fast-translation trial fits -5 and -4 % and loses 0.3
     deg of inclination. The figures these defaults reach are in the README's Results section
     and `docs/results.md`, with the commands.
-    weighting: "noise" (information matrices from the noise variances above) or "scalar" (one
-        scalar weight per term: motion `scalar_motion_weight`, accelerometer 1, no robust loss,
-        no velocity model). "seed", its former name, is still accepted, with a warning.
-    scalar_motion_weight (wm): the motion term's weight with weighting="scalar".
-    init: estimator whose output starts the optimisation ("dr", "ukf", ...).
-    init_level_s (level): re-level the start every this many seconds with the accelerometer
-        (`levelled`; 0: the init estimator's output as it is).
-    max_iter (iters), tol: stopping rule (relative cost decrease below tol). At 1e-4 what is
-        left is mostly the heading of long recordings, which a gyro and an accelerometer barely
-        observe: with 1e-5, `gn` takes 43 iterations instead of 28 on an hour at 100 Hz
-        (`benchmarks/bench_long.py`), for the same BROAD and course scores.
-    presolve_tol_rad (ptol): on a recording with a magnetometer (mag_term="cost"), the 6-D solve
-        that the magnetometer's measurements are taken at holds the scale errors at zero and
-        stops as soon as an accepted step changes no sample's inclination by more than this,
-        rad (`inclination_step`; 0: it solves to `tol`, in two stages). Those measurements see
-        the 6-D solution's inclination only (`smoothers.mag.measurements`), and the 9-D solve
-        that follows estimates the calibration again and converges the heading; what the 6-D
-        solve would still do after the inclination has settled is mostly a slow drift of its
-        heading, which only the velocity model observes (through the horizontal accelerations
-        it rotates): 4 of its 30 iterations on BROAD trial 15.
-    progress: tqdm bar over iterations on stderr (shown only on a terminal).
-    impl: "compiled" (default: cost, linearisation and solves in the numba kernels of
-        `fusion.estimators.smoothers._compiled`) or "numpy" (the reference they are checked
-        against: `SmootherProblem` and the banded LAPACK solves). The two differ in rounding only.
-
     The magnetometer (9-D; recordings with one, `--mag off` or none: the 6-D result unchanged)
     corrects the heading only. By default (mag_term="cost") its heading residual is a term of
     the cost (`smoothers.cost`, the magnetometer term), with the gates, hard-iron fit and measured
@@ -144,28 +92,19 @@ class SmootherParams(FormerSpellings):
     heading-error random walk of density Qm, started at the anchor's variance `init_var_rad2`,
     smoothed over the same headings), a rotation about the world vertical that leaves the
     inclination exactly as in 6-D.
-    mag_term (mterm): "cost" or "stage", as above.
-    mag_heading_noise_rad2_s (Rm): density of the magnetometer's heading measurement, rad^2 s
-        (sample variance Rm / dt).
-    mag_heading_walk_rad2_s (Qm): mag_term="stage" only: density of the 6-D solution's
-        heading-error random walk, rad^2/s; more than the gyro's noise density, since it also
-        carries what the 6-D cost leaves unmodelled about the vertical (the z gyro's scale
-        error, its bias between rests). With Rm it sets the stage's time constant,
-        sqrt(Rm / Qm) (about 10 s).
-    mag_rate_rad_s (mrate): that variance grows as (1 + (w / mrate)^2), w the rate about the
-        vertical, rad/s (a magnetometer lagging the gyro; inf: constant).
-    mag_loss (mloss), mag_loss_scale_rad (mhuber): robust loss on the heading residual and its
-        scale, rad ("none": plain least squares).
-    mag_norm_gate_frac (mnorm), mag_dip_gate_rad (mdip): a sample counts while its norm is
-        within this fraction of the reference norm and its dip within this of the reference
-        dip, rad (the references: medians of the recording's own undisturbed samples) ...
-    mag_min_undisturbed_s (mtime): ... in an uninterrupted run of such samples this long, s.
-    mag_hard_iron (mhi): fit a magnet carried with the sensor (a sphere fit over each disturbed
-        stretch, else over windows of mag_hard_iron_window_s (mhiw) s) and use its samples
-        with the offset removed; the fit is trusted with an RMS residual below
-        mag_hard_iron_residual_ut (mhires) uT and a spread of at least mag_hard_iron_coverage
-        (mhicov) of its radius (the filters' `_magnetometer.hard_iron_fit`).
     The magnetometer's defaults are the filters' (`BiasFilterParams`) where they mean the same.
+
+    Stopping: stage 1 (scale errors held at zero) ends at `tol` or after half of `max_iter`;
+    stage 2, with the released scale errors, then has at least `max_iter`. At tol = 1e-4 what is
+    left is mostly the heading of long recordings, which a gyro and an accelerometer barely
+    observe: with 1e-5, `gn` takes 43 iterations instead of 28 on an hour at 100 Hz
+    (`benchmarks/bench_long.py`), for the same BROAD and course scores. The 6-D solve under a
+    magnetometer stops early (`presolve_tol_rad`) because the magnetometer's measurements see the
+    6-D solution's inclination only (`smoothers.mag.measurements`), and the 9-D solve that follows
+    estimates the calibration again and converges the heading; what the 6-D solve would still do
+    after the inclination has settled is mostly a slow drift of its heading, which only the
+    velocity model observes (through the horizontal accelerations it rotates): 4 of its 30
+    iterations on BROAD trial 15.
     """
 
     owner: ClassVar[str] = "gn"  # the registry name in messages
@@ -175,56 +114,160 @@ class SmootherParams(FormerSpellings):
     # default; the grid (Q x R x huber, 27 settings) a factor of about 3 (R: 4) either side. R's grid
     # is the standard deviation densities 0.1, 0.2 and 0.4 g sqrt(s); the loss scale's spans a decade
     # either side of 0.1 g, the size of a hand's linear accelerations (tenths of a g).
-    process_noise_rad2_s: float = field(default=1e-4, metadata={
-        "alias": "Q", "search": Tunable(1e-6, 1e-2, grid=(3e-5, 1e-4, 3e-4))})
-    acc_noise_g2_s: float = field(default=0.04, metadata={
-        "alias": "R", "search": Tunable(4e-4, 4.0, grid=(0.01, 0.04, 0.16))})
-    loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = "huber"
-    loss_scale_g: float = field(default=0.1, metadata={
-        "alias": "huber", "search": Tunable(0.01, 1.0, grid=(0.03, 0.1, 0.3))})
-    init_var_rad2: float = field(default=1e-4, metadata={"alias": "P0"})
-    dropout_noise_rad2_s: float = field(default=0.09, metadata={"alias": "Qdrop"})
-    use_gyr_valid: bool = field(default=True, metadata={"alias": "dropout"})
-    find_freezes: bool = field(default=True, metadata={"alias": "freezes"})
-    bias_axes: str = field(default="xy", metadata={"alias": "bias"})
-    scale_axes: str = field(default="xy", metadata={"alias": "scale"})
-    init_bias_var_rad2_s2: float = field(default=2.5e-3, metadata={"alias": "Pb0"})
-    init_scale_var: float = field(default=1e-2, metadata={"alias": "Ps0"})
-    scale_max: float = 0.2
-    scale_release_ratio: float = field(default=0.5, metadata={"alias": "release"})
-    scale_significance: float = field(default=0.05, metadata={"alias": "sig"})
+    process_noise_rad2_s: float = param(
+        1e-4, alias="Q", unit="rad^2/s", valid="> 0, finite", reference=ARW,
+        meaning="Gyro noise density: a step of dt s has the angle variance Q dt in the motion term.",
+        search=Tunable(1e-6, 1e-2, grid=(3e-5, 1e-4, 3e-4)))
+    acc_noise_g2_s: float = param(
+        0.04, alias="R", unit="g^2 s", valid="> 0; inf: no accelerometer term",
+        meaning="Accelerometer noise density: a sample standing for dt s has the variance R / dt.",
+        search=Tunable(4e-4, 4.0, grid=(0.01, 0.04, 0.16)))
+    loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = param(
+        "huber", unit="", valid="huber | cauchy | geman-mcclure | none", reference=M_ESTIMATORS,
+        meaning="The robust loss on the accelerometer residual's norm (none: plain least squares).")
+    loss_scale_g: float = param(
+        0.1, alias="huber", unit="g", valid="> 0; inf: plain least squares", reference=M_ESTIMATORS,
+        meaning="The robust loss's scale on the accelerometer residual's norm (the alias is the one it had when the "
+                "loss was always Huber's).",
+        search=Tunable(0.01, 1.0, grid=(0.03, 0.1, 0.3)))
+    init_var_rad2: float = param(1e-4, alias="P0", unit="rad^2", valid="> 0, finite",
+                                 meaning="Variance of the anchor that holds the first orientation at the initial one.")
+    dropout_noise_rad2_s: float = param(
+        0.09, alias="Qdrop", unit="rad^2/s", valid="> 0, finite",
+        meaning="Angle random-walk density of the motion term on the steps whose gyro sample is invalid.")
+    use_gyr_valid: bool = param(True, alias="dropout", unit="", valid="true | false",
+                                meaning="Honour `imu.gyr_valid` (false integrates every sample as valid).")
+    find_freezes: bool = param(
+        True, alias="freezes", unit="", valid="true | false; applies only with use_gyr_valid",
+        meaning="Find the gyro freezes that nobody flagged over the whole recording (`fusion.checks.detect_freezes`: "
+                "all channels flat while the accelerometer moves) and treat them as invalid, as the filters' online "
+                "check (stuck) does.")
+    bias_axes: str = param(
+        "xy", alias="baxes", formerly=("bias",), unit="", valid="distinct letters from xyz, or none",
+        meaning="The body axes with a gyro-bias variable; an axis without one takes the gyro's reading at rest as "
+                "a fixed bias.")
+    scale_axes: str = param(
+        "xy", alias="saxes", formerly=("scale",), unit="", valid="distinct letters from xyz, or none",
+        meaning="The body axes with a gyro scale-error variable.")
+    init_bias_var_rad2_s2: float = param(
+        2.5e-3, alias="Pb0", unit="rad^2/s^2", valid="> 0, finite",
+        meaning="Prior variance of each gyro-bias variable around zero.")
+    init_scale_var: float = param(1e-2, alias="Ps0", unit="1", valid="> 0, finite",
+                                  meaning="Prior variance of each scale-error variable around zero.")
+    scale_max: float = param(
+        0.2, unit="1", valid="> 0",
+        meaning="A scale error estimated beyond this, in either direction, is taken for the fit absorbing motion the "
+                "cost does not model, and that axis is solved again with its scale error held at zero (diagnostics "
+                "scale_rejected).")
+    scale_release_ratio: float = param(
+        0.5, alias="release", unit="1", valid="(0, 1]",
+        meaning="A requested scale error is estimated only if the recording determines it, its posterior standard "
+                "deviation at the stage-1 solution (scales held at zero) being below this fraction of its prior "
+                "one (`released_scales`); the others stay zero.")
+    scale_significance: float = param(
+        0.05, alias="sig", unit="1", valid="(0, 1]; 1: no test",
+        meaning="Released scale errors are kept only if they lower the cost significantly at this level, by a "
+                "likelihood-ratio test (`BatchSmoother.significant_scales`).")
     # two decades either side of the defaults, no grid
-    velocity_acc_noise_g2_s: float = field(default=1e-4, metadata={"alias": "Qv", "search": Tunable(1e-6, 1e-2)})
-    velocity_bound_m2_s: float = field(default=0.25, metadata={"alias": "Rv", "search": Tunable(2.5e-3, 25.0)})
-    rest_gyr_rad_s: float = REST_GYR_RAD_S
-    rest_acc_g: float = REST_ACC_G
-    rest_time_s: float = REST_TIME_S
-    rest_noise_rad2_s: float = field(default=1e-4, metadata={"alias": "Rrest"})
-    weighting: Literal["noise", "scalar", "seed"] = "noise"
-    scalar_motion_weight: float = field(default=10.0, metadata={"alias": "wm"})
-    init: str = "dr"
-    init_level_s: float = field(default=10.0, metadata={"alias": "level"})
-    max_iter: int = field(default=50, metadata={"alias": "iters"})
-    tol: float = 1e-4
-    presolve_tol_rad: float = field(default=math.radians(0.01), metadata={"alias": "ptol"})
-    progress: bool = True
-    impl: Literal["compiled", "numpy"] = "compiled"
+    velocity_acc_noise_g2_s: float = param(
+        1e-4, alias="Qv", unit="g^2 s", valid="> 0; inf: no velocity model", reference=VQF + ", Sec. 3.2",
+        meaning="Density of the white acceleration noise in the velocity model's integration of the world-frame "
+                "acceleration into the horizontal velocity (`fusion.estimators.smoothers.cost`).",
+        search=Tunable(1e-6, 1e-2))
+    velocity_bound_m2_s: float = param(
+        0.25, alias="Rv", unit="m^2/s", valid="> 0; inf: no velocity model", reference=VQF + ", Sec. 3.2",
+        meaning="Density of the pseudo-measurement v = 0 on the horizontal velocity in the velocity model, which "
+                "keeps the integral of the linear acceleration bounded.",
+        search=Tunable(2.5e-3, 25.0))
+    rest_gyr_rad_s: float = param_as(BiasFilterParams, "rest_gyr_rad_s", REST_GYR_RAD_S,
+                                     valid="> 0, finite")
+    rest_acc_g: float = param_as(BiasFilterParams, "rest_acc_g", REST_ACC_G, valid="> 0, finite")
+    rest_time_s: float = param_as(BiasFilterParams, "rest_time_s", REST_TIME_S)
+    rest_noise_rad2_s: float = param(
+        1e-4, alias="Rrest", unit="rad^2/s", valid="> 0, finite", reference=VQF + ", Sec. 3.4",
+        meaning="Density of the gyro reading at rest in the rest term, which pulls the biases with a variable to "
+                "what the gyro reads where the recording is at rest (off with weighting=scalar or no bias axes).")
+    weighting: Literal["noise", "scalar", "seed"] = param(
+        "noise", unit="", valid="noise | scalar (seed: its former name, with a warning)",
+        meaning="noise weighs each term by the information of the noise variances above, scalar by one weight per "
+                "term (motion scalar_motion_weight, accelerometer 1, no robust loss, no velocity model).")
+    scalar_motion_weight: float = param(10.0, alias="wm", unit="1", valid="> 0, finite",
+                                        meaning="The motion term's weight with weighting=scalar.")
+    init: str = param("dr", unit="", valid="dr | ukf | ukf-bias | ekf",
+                      meaning="The estimator whose output starts the optimisation.")
+    init_level_s: float = param(
+        10.0, alias="level", unit="s", valid="0, or >= 0.1 and finite; 0: off",
+        meaning="Re-level the start with the accelerometer every this many seconds (`levelled`; 0 keeps the init "
+                "estimator's output as it is).")
+    max_iter: int = param(50, alias="iters", unit="", valid="a whole number >= 1",
+                          meaning="The solve stops after this many iterations at most.")
+    tol: float = param(
+        1e-4, unit="1", valid=">= 0, finite",
+        meaning="The solve stops when an iteration lowers the cost by less than this fraction.")
+    presolve_tol_rad: float = param(
+        math.radians(0.01), alias="ptol", unit="rad", valid=">= 0, finite; 0: solve to tol",
+        meaning="On a recording with a magnetometer (mag_term=cost), the 6-D solve that the magnetometer's "
+                "measurements are taken at holds the scale errors at zero and stops as soon as an accepted step "
+                "changes no sample's inclination by more than this (`inclination_step`).")
+    progress: bool = param(True, unit="", valid="true | false",
+                           meaning="Show a tqdm bar over the iterations on stderr (on a terminal only).")
+    impl: Literal["compiled", "numpy"] = param(
+        "compiled", unit="", valid="compiled | numpy",
+        meaning="compiled runs the cost, linearisation and solves in the numba kernels of "
+                "`fusion.estimators.smoothers._compiled`, numpy the reference they are checked against "
+                "(`SmootherProblem` and the banded LAPACK solves); the two differ in rounding only.")
     # two decades either side (benchmarks/broad_9d_smoothers.py --leave-one-out tries 0.03-0.3); the
     # unit is rad^2 s, not the rad^2/s its suffix reads as elsewhere (a measurement's density)
-    mag_heading_noise_rad2_s: float = field(default=0.1, metadata={
-        "alias": "Rm", "unit": "rad^2 s", "search": Tunable(1e-3, 10.0, magnetometer=True)})
-    mag_heading_walk_rad2_s: float = field(default=9e-4, metadata={"alias": "Qm"})
-    mag_rate_rad_s: float = field(default=2.0, metadata={"alias": "mrate"})
-    mag_loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = field(default="huber", metadata={"alias": "mloss"})
-    mag_loss_scale_rad: float = field(default=0.1, metadata={"alias": "mhuber"})
-    mag_norm_gate_frac: float = field(default=0.1, metadata={"alias": "mnorm"})
-    mag_dip_gate_rad: float = field(default=math.radians(10.0), metadata={"alias": "mdip"})
-    mag_min_undisturbed_s: float = field(default=3.0, metadata={"alias": "mtime"})
-    mag_hard_iron: bool = field(default=True, metadata={"alias": "mhi"})
-    mag_hard_iron_window_s: float = field(default=10.0, metadata={"alias": "mhiw"})
-    mag_hard_iron_residual_ut: float = field(default=2.0, metadata={"alias": "mhires"})
-    mag_hard_iron_coverage: float = field(default=0.3, metadata={"alias": "mhicov"})
-    mag_term: Literal["cost", "stage"] = field(default="cost", metadata={"alias": "mterm"})
+    mag_heading_noise_rad2_s: float = param(
+        0.1, alias="Rm", unit="rad^2 s", valid="> 0, finite", reference=VQF + ", Sec. 3.3 (heading-only correction)",
+        meaning="Density of the magnetometer's heading measurement: a sample has the variance Rm / dt.",
+        search=Tunable(1e-3, 10.0, magnetometer=True))
+    mag_heading_walk_rad2_s: float = param(
+        9e-4, alias="Qm", unit="rad^2/s", valid="> 0, finite; applies only with mag_term=stage", reference=RTS,
+        meaning="Density of the 6-D solution's heading-error random walk that the stage smooths, more than the gyro's "
+                "noise density since it also carries what the 6-D cost leaves unmodelled about the vertical; with Rm "
+                "it sets the stage's time constant, sqrt(Rm / Qm) (about 10 s).")
+    mag_rate_rad_s: float = param(
+        2.0, alias="mrate", unit="rad/s", valid="> 0; inf: a constant variance",
+        meaning="The heading measurement's variance grows as (1 + (w / mrate)^2), w the rate about the vertical, for "
+                "a magnetometer that lags the gyro.")
+    mag_loss: Literal["huber", "cauchy", "geman-mcclure", "none"] = param(
+        "huber", alias="mloss", unit="", valid="huber | cauchy | geman-mcclure | none", reference=M_ESTIMATORS,
+        meaning="The robust loss on the heading residual (none: plain least squares).")
+    mag_loss_scale_rad: float = param(0.1, alias="mhuber", unit="rad", valid="> 0, finite", reference=M_ESTIMATORS,
+                                      meaning="The robust loss's scale on the heading residual.")
+    mag_norm_gate_frac: float = param(
+        0.1, alias="mnorm", unit="fraction", valid="> 0, finite", reference=VQF + ", Sec. 3.3",
+        meaning="A magnetometer sample counts while its norm is within this fraction of the reference norm (the "
+                "median of the recording's own undisturbed samples).")
+    mag_dip_gate_rad: float = param(
+        math.radians(10.0), alias="mdip", unit="rad", valid="> 0, finite", reference=VQF + ", Sec. 3.3",
+        meaning="A magnetometer sample counts while its dip is within this of the reference dip (the median of the "
+                "recording's own undisturbed samples).")
+    mag_min_undisturbed_s: float = param(
+        3.0, alias="mtime", unit="s", valid=">= 0, finite", reference=VQF + ", Sec. 3.3",
+        meaning="A magnetometer sample counts only in an uninterrupted run of samples inside the norm and dip gates "
+                "this long.")
+    mag_hard_iron: bool = param(
+        True, alias="mhi", unit="", valid="true | false", reference=HARD_IRON_FIT,
+        meaning="Fit a magnet carried with the sensor (a sphere fit over each disturbed stretch, else over windows "
+                "of mag_hard_iron_window_s) and use its samples with the offset removed; the mag_hard_iron_* "
+                "fields apply only with it.")
+    mag_hard_iron_window_s: float = param(
+        10.0, alias="mhiw", unit="s", valid="> 0, finite", reference=HARD_IRON_FIT,
+        meaning="Length of the windows the hard-iron sphere is fitted over outside the disturbed stretches.")
+    mag_hard_iron_residual_ut: float = param(
+        2.0, alias="mhires", unit="uT", valid="> 0, finite",
+        meaning="The hard-iron fit is trusted while its RMS residual is below this.")
+    mag_hard_iron_coverage: float = param(
+        0.3, alias="mhicov", unit="1", valid="> 0, finite",
+        meaning="The hard-iron fit is trusted only while the samples' spread is at least this fraction of its "
+                "radius.")
+    mag_term: Literal["cost", "stage"] = param(
+        "cost", alias="mterm", unit="", valid="cost | stage", reference=RTS + " (stage)",
+        meaning="cost makes the heading residual a term of the cost, solved again from the 6-D solution; stage "
+                "corrects the 6-D solution afterwards by a rotation about the world vertical (a smoothed "
+                "heading-error random walk), leaving the inclination exactly as in 6-D.")
 
     def __post_init__(self) -> None:
         if self.weighting == "seed":  # the former name of "scalar", to be removed
