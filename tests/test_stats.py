@@ -202,6 +202,20 @@ def test_recordings_without_a_finite_score_are_dropped_and_counted():
            "rec05 (est0, est2))" in text
 
 
+def test_a_row_that_failed_on_most_recordings_costs_only_itself():
+    """Scored on 4 of 8 recordings (at most half), a row is left out of the ranking instead of dropping
+    the other four recordings from every row's comparison; scored on 5 of 8, it stays and they drop."""
+    scores = _scores(rows=3, recordings=8)
+    scores["flaky"] = {r: (1.0 if j < 4 else None) for j, r in enumerate(scores["est0"])}
+    s = paired_statistics(scores, "total")
+    assert s.left_out == ("flaky",) and len(s.recordings) == 8 and not s.dropped
+    text = stats.table_column(RunStatistics((stats.Comparison("total", None, None, s.labels, s),)), "total")[2][0]
+    assert "over the 8 recordings every row scored; scored on at most half of them, not ranked: flaky" in text
+    scores["flaky"]["rec04"] = 1.0
+    s = paired_statistics(scores, "total")
+    assert s.left_out == () and len(s.recordings) == 5 and "flaky" in s.labels
+
+
 @pytest.mark.parametrize("recordings", [1, 2, 4])
 def test_fewer_than_five_recordings_give_none_and_a_one_line_reason(recordings):
     scores = _scores(rows=3, recordings=recordings)

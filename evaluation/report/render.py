@@ -770,7 +770,8 @@ def _statistics_parts(statistics: RunStatistics, cd_figures: dict[tuple, tuple[s
             continue
         text = f"{len(s.recordings)} recordings every row scored"
         text += f" ({dropped_text(s.dropped)})" if s.dropped else ""
-        text += f"; rows without any score, left out: {', '.join(s.left_out)}" if s.left_out else ""
+        text += (f"; rows scored on at most half of the recordings, not ranked: {', '.join(s.left_out)}"
+                 if s.left_out else "")
         text += f"; best (lowest mean): {s.best}"
         if s.friedman_p is not None:
             text += f"; Friedman chi-square {s.friedman_statistic:.2f}, p = {s.friedman_p:.2g}"

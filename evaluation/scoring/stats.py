@@ -125,8 +125,9 @@ class Statistics:
     rows: one per row compared, in the order given.
     best: the label of the row with the lowest mean (ties: the first label in sorted order).
     recordings: the complete recordings, sorted: the order every computation uses.
-    dropped: the recordings left out, sorted; left_out: rows without a finite score anywhere (left
-        out before the complete cases are taken, else they would drop every recording).
+    dropped: the recordings left out, sorted; left_out: rows with a finite score on at most half of the
+        recordings, none included (left out before the complete cases are taken, else their failures
+        would drop most recordings from every row's comparison).
     friedman_statistic, friedman_p: Friedman's chi-square and its p-value (Demsar 2006, sec. 3.2.2,
         the chi-square form); None with fewer than three rows or when every recording ties.
     nemenyi_p: (k, k) Nemenyi p-values between the rows, in `rows` order (None below three rows);
@@ -227,18 +228,22 @@ def _normalised(scores: Mapping[str, Mapping[Any, float | None]]) -> _Scores:
 @dataclass(frozen=True)
 class _Cases:
     labels: list[str]  # rows with a finite score somewhere, in the order given
-    left_out: list[str]  # rows without any
+    left_out: list[str]  # rows scored on at most half of the recordings (none included)
     recordings: list[str]  # complete, sorted
     dropped: list[Dropped]
     scores: np.ndarray  # (k, n): labels x recordings
 
 
 def _complete_cases(scores: _Scores) -> _Cases:
+    """The rows and recordings the statistics compare. A row scored on at most half of the recordings
+    (one that failed on most of them) is left out, as a row without any score is, rather than drop
+    the recordings it lacks from every other row's comparison: its failures cost only itself."""
     finite = {label: {rec: v for rec, v in row if v is not None} for label, row in scores}
-    labels = [lab for lab, f in finite.items() if f]
-    left_out = [lab for lab, f in finite.items() if not f]
+    every = sorted({rec for _, row in scores for rec, _ in row})
+    labels = [lab for lab, f in finite.items() if 2 * len(f) > len(every)]
+    left_out = [lab for lab in finite if lab not in labels]
     recordings, dropped = [], []
-    for recording in sorted({rec for _, row in scores for rec, _ in row}):
+    for recording in every:
         missing = tuple(lab for lab in labels if recording not in finite[lab])
         if missing:
             dropped.append(Dropped(recording, missing))
@@ -606,7 +611,8 @@ def table_column(run: RunStatistics, metric: str) -> tuple[str, dict[tuple[str |
             interval = "[-, -]" if r.ci_low is None else f"[{r.ci_low:.2f}, {r.ci_high:.2f}]"
             cells[(c.group, r.label)] = interval + (f" {MARK}" if marked and r.not_worse else "  ")
         note = (f"{metric} 95% CI{where}: {s.ci_method} bootstrap interval of the mean over the {len(s.recordings)} "
-                "recordings every row scored") + (f" ({dropped_text(s.dropped)})" if s.dropped else "")
+                "recordings every row scored") + (f" ({dropped_text(s.dropped)})" if s.dropped else "") + (
+                f"; scored on at most half of them, not ranked: {', '.join(s.left_out)}" if s.left_out else "")
         if marked:
             note += (f"; {MARK}: not significantly worse than {s.best} (best; Wilcoxon signed-rank, "
                      f"Holm p >= {s.alpha:g})")
