@@ -1,11 +1,13 @@
-"""The code's shape, measured: parameters of the functions in `evaluation/` below the public
-entry points, and the length of every module in `estimators/`.
+"""The code's shape, measured: parameters of the functions in `evaluation/` and `estimators/` (every
+room) below the public entry points, the positional parameters of the compiled kernels, and the
+length of every module in `estimators/`.
 
-    python benchmarks/house_targets.py [--max-params 8] [--max-lines 700]
+    python benchmarks/house_targets.py [--max-params 8] [--max-positional 12] [--max-lines 700]
 
-Prints every function of `evaluation/` that takes more than `--max-params` parameters (`self` and
-`cls` not counted; `*args` and `**kwargs` count one each) and every module of `estimators/` over
-`--max-lines` lines, then one line of counts. The command entry points (`ENTRY_POINTS`: `runs.py`'s
+Prints every function that takes more than `--max-params` parameters (`self` and `cls` not counted;
+`*args` and `**kwargs` count one each), every function of a `_compiled_*` module with more than
+`--max-positional` positional parameters and every module of `estimators/` over `--max-lines` lines,
+then one line of counts. The command entry points (`ENTRY_POINTS`: `runs.py`'s
 `run_*` and `tune.run_tune`, the keyword APIs the commands call) are listed apart; everything below
 them counts, `fusion.evaluation.run.runner.run` included (it takes the run's settings as one
 `RunSettings`, or their fields as keywords).
@@ -29,25 +31,42 @@ def parameters(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     return len([n for n in names if n not in ("self", "cls")])
 
 
+def positional(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    args = node.args
+    return len([a.arg for a in args.posonlyargs + args.args if a.arg not in ("self", "cls")])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--max-params", type=int, default=8)
+    parser.add_argument("--max-positional", type=int, default=12, help="for the compiled kernels (_compiled_*)")
     parser.add_argument("--max-lines", type=int, default=700)
     args = parser.parse_args()
-    over, entries = [], []
-    for path in sorted((ROOT / "evaluation").glob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and parameters(node) > args.max_params:
-                where = f"evaluation/{path.name}:{node.lineno} {node.name}: {parameters(node)} parameters"
-                (entries if (path.name, node.name) in ENTRY_POINTS else over).append(where)
-    long = [(len(p.read_text().splitlines()), p) for p in sorted((ROOT / "estimators").glob("*.py"))]
-    long = [f"estimators/{p.name}: {n} lines" for n, p in long if n > args.max_lines]
+    over, entries, kernels, long = [], [], [], []
+    for room in ("evaluation", "estimators"):
+        for path in sorted((ROOT / room).rglob("*.py")):
+            text = path.read_text()
+            where_file = path.relative_to(ROOT)
+            if room == "estimators" and len(text.splitlines()) > args.max_lines:
+                long.append(f"{where_file}: {len(text.splitlines())} lines")
+            for node in ast.walk(ast.parse(text)):
+                if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                where = f"{where_file}:{node.lineno} {node.name}"
+                if parameters(node) > args.max_params:
+                    (entries if (path.name, node.name) in ENTRY_POINTS else over).append(
+                        f"{where}: {parameters(node)} parameters")
+                if path.name.startswith("_compiled") and positional(node) > args.max_positional:
+                    kernels.append(f"{where}: {positional(node)} positional")
     print(f"public entry points over {args.max_params} parameters (allowed): " + ("; ".join(entries) or "none"))
-    print(f"functions below them over {args.max_params} parameters:")
-    print("\n".join("  " + line for line in over) or "  none")
-    print(f"modules of estimators/ over {args.max_lines} lines:")
-    print("\n".join("  " + line for line in long) or "  none")
-    print(f"{len(over)} functions over {args.max_params} parameters, {len(long)} modules over {args.max_lines} lines")
+    for title, lines in ((f"functions below them over {args.max_params} parameters", over),
+                         (f"compiled functions over {args.max_positional} positional parameters", kernels),
+                         (f"modules of estimators/ over {args.max_lines} lines", long)):
+        print(f"{title}:")
+        print("\n".join("  " + line for line in lines) or "  none")
+    print(f"{len(over)} functions over {args.max_params} parameters ({sum('/peers/' in o for o in over)} of them "
+          f"in the peers' twins, whose signatures follow their libraries'), {len(kernels)} compiled functions over "
+          f"{args.max_positional} positional, {len(long)} modules over {args.max_lines} lines")
 
 
 if __name__ == "__main__":
