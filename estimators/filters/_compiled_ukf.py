@@ -22,7 +22,7 @@ import numpy as np
 
 from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
 from ..kernels._compiled_quaternion import exp_floats, gravity_floats, log_floats, multiply_floats, normalize_floats
-from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
+from ..kernels._numba import _clip, _jit_leaf, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
@@ -36,7 +36,7 @@ forget_stale(__file__)
 HELPERS = ("weighted_outer_sum", "weighted_cross3")
 
 
-@_jit
+@_jit_leaf
 def weighted_outer_sum(E, WE, P, m, n):
     """P = sum_i E[i]^T WE[i] (n x n) over the m rows of E and WE (= Wc E), symmetric: the upper
     triangle, mirrored. Four entries of a row at a time: each sums its terms in the rows' order
@@ -63,7 +63,7 @@ def weighted_outer_sum(E, WE, P, m, n):
             P[c, a] = P[a, c]
 
 
-@_jit
+@_jit_leaf
 def weighted_cross3(E, WZ, out, n, m):
     """out[:n, :3] = sum_i E[i, :n]^T WZ[i, :3] over the m rows (the UKF's P_zz and P_xz, step 8):
     the three entries of a row at a time, each summed in the rows' order."""
