@@ -21,7 +21,7 @@ from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BOD
 
 forget_stale(__file__)
 
-HELPERS = ("gravity_jacobian",)
+HELPERS = ("gravity_jacobian", "_rotate")
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 
 
@@ -202,6 +202,13 @@ def step(st, u, gain, h, fresh, updated, lowpass_s):
 
 
 @_jit_leaf
+def _rotate(r, vx, vy, vz):
+    """R v for R given as its nine entries, row by row (`rotation_floats`): `rotate_floats` with
+    the matrix computed once for several vectors, the same products and sums."""
+    return (r[0] * vx + r[1] * vy + r[2] * vz, r[3] * vx + r[4] * vy + r[5] * vz, r[6] * vx + r[7] * vy + r[8] * vz)
+
+
+@_jit_leaf
 def gravity_jacobian(H, hx, hy, hz, n):
     """H (3 x n) <- [[h]x, 0]: the accelerometer's Jacobian `[h]x` for the raw sample."""
     H[0, 0], H[0, 1], H[0, 2] = 0.0, -hz, hy
@@ -218,12 +225,12 @@ def lag_jacobian(H, st, scale):
     H[:, BIAS] = A N_b, and with scale states H[:, SCALE] = -A N_s, with A = [h]x R_I^T (N_b, N_s
     in the state `st`)."""
     f = DIST_FRAME
-    qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
+    r = rotation_floats((st[f], -st[f + 1], -st[f + 2], -st[f + 3]))  # R_I^T, once for the columns
     for m in range(2 if scale else 1):
         sign = 1.0 if m == 0 else -1.0
         for j in range(3):
             c = (DIST_LAG_B if m == 0 else DIST_LAG_S) + j
-            vx, vy, vz = rotate_floats(qi, st[c], st[c + 3], st[c + 6])
+            vx, vy, vz = _rotate(r, st[c], st[c + 3], st[c + 6])
             for i in range(3):
                 H[i, BIAS_AT + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
@@ -240,11 +247,11 @@ def slow_power(st, h, P_cal, scale_prior_var, lowpass_s, Hc):
     ex, ey, ez = st[m] - st[lp], st[m + 1] - st[lp + 1], st[m + 2] - st[lp + 2]
     dev = ex * ex + ey * ey + ez * ez
     f = DIST_FRAME
-    qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
+    r = rotation_floats((st[f], -st[f + 1], -st[f + 2], -st[f + 3]))  # R_I^T, once for the six columns
     for c in range(6):  # [H_b, H_s] = [A N_b, -A N_s], A = [h]x R_I^T (`LowpassLag.jacobian`)
         sign = 1.0 if c < 3 else -1.0
         o = (DIST_LAG_B if c < 3 else DIST_LAG_S) + c % 3
-        vx, vy, vz = rotate_floats(qi, st[o], st[o + 3], st[o + 6])
+        vx, vy, vz = _rotate(r, st[o], st[o + 3], st[o + 6])
         Hc[0, c] = sign * (-hz * vy + hy * vz)  # [h]x v
         Hc[1, c] = sign * (hz * vx - hx * vz)
         Hc[2, c] = sign * (-hy * vx + hx * vy)
