@@ -20,7 +20,7 @@ from ._numba import _jit, _jit_leaf, forget_stale, mirrors
 
 forget_stale(__file__)
 
-HELPERS = ("cholesky", "joseph", "joseph2", "_nis", "_project_heading", "_upper_sum")
+HELPERS = ("cholesky", "joseph", "joseph2", "_nis", "_project_heading")
 
 
 class KalmanUpdateWork(NamedTuple):
@@ -111,36 +111,18 @@ def sqrt_psd(A, L, n, floor):
     return True
 
 
-_BOUND = 1e300
-
-
-@_jit_leaf
-def _upper_sum(P, n):
-    """The sum of a symmetric P's entries, from its upper triangle (off-diagonal entries twice)."""
-    total = 0.0
-    for i in range(n):
-        for j in range(i, n):
-            v = P[i, j]
-            total += v if i == j else 2.0 * v
-    return total
-
-
 @mirrors("fusion.estimators.kernels._linalg.repair_covariance")
 def repair_covariance(P, n, o, L):
     """In place, `_linalg.repair_covariance`: symmetrise; a non-finite P becomes o.reset * I;
     a P that is not positive definite gets its eigenvalues clipped to o.floor. -> repaired."""
-    bounded = True  # every entry finite and below _BOUND in magnitude
+    total = 0.0
     for i in range(n):
         for j in range(i, n):
             v = 0.5 * (P[i, j] + P[j, i])
             P[i, j] = v
             P[j, i] = v
-            if not abs(v) < _BOUND:
-                bounded = False
-    # P's sum is finite if every entry is below _BOUND (n(n + 1) / 2 terms of at most 2 _BOUND
-    # cannot overflow for n < 10^4); only otherwise is the sum taken, one term after the other
-    # (a chain of additions that each wait for the last, which every step would otherwise pay).
-    if not bounded and not math.isfinite(_upper_sum(P, n)):
+            total += v if i == j else 2.0 * v
+    if not math.isfinite(total):
         for i in range(n):
             for j in range(n):
                 P[i, j] = o.reset if i == j else 0.0
