@@ -1,13 +1,17 @@
 """Microseconds per sample of each recursive filter on recording ece276a/1, and the compile times.
 
-    python benchmarks/bench_filters.py [--data-dir DIR] [--repeat 5] [--profile SPEC] [--no-compile-times]
+    python benchmarks/bench_filters.py [--data-dir DIR] [--dataset ID] [--mag off] [--repeat 5] [--cpu]
+                                       [--specs SPEC;SPEC...] [--profile SPEC] [--no-compile-times]
 
 Prints, per estimator, the best of at least `--repeat` runs (more for the fast ones, up to
 about a second each) of the whole-recording `estimate` (the loop and the per-sample
 diagnostics recording included): the compiled filters (`impl=compiled`, the default), their
 numpy references (`ekf:impl=numpy`, the UKFs' `impl=numpy` and `impl=filterpy`) and VQF (the
 `vqf` package: `VQF.updateBatch` and `offlineVQF`, through this toolkit's adapters) on the
-same recording, with the ratio to VQF. Then the compile time of the two numba kernels
+same recording, with the ratio to VQF (`--specs`: these estimators instead, separated by `;`;
+`--mag off`: without the magnetometer, 6-D; `--cpu`: the process's CPU time instead of the wall
+clock, less disturbed by other work on a shared machine; each estimator is run in turn, round after
+round, so that a change in the machine's load reaches them all). Then the compile time of the two numba kernels
 (`_compiled_ekf.estimate`, `_compiled_ukf.estimate`, which serves `ukf` and `ukf-bias`; a
 compiled filter compiles or loads them when it is built, `_compiled.load`), measured in a
 fresh process with an empty cache (`NUMBA_CACHE_DIR` pointed at a new temporary folder: numba
@@ -58,16 +62,28 @@ print(json.dumps({"import": t1 - t0, "kernels": time.perf_counter() - t1}))
 """
 
 
-def time_estimate(spec: str, imu, q0, repeat: int) -> float:
-    """Best wall time of `build(spec).estimate(imu, q0)`, s (one untimed warm-up run first)."""
-    build(spec).estimate(imu, q0)
-    best, total, runs = float("inf"), 0.0, 0
-    while runs < repeat or (total < MIN_SECONDS and runs < 50):
-        est = build(spec)
-        start = time.perf_counter()
-        est.estimate(imu, q0)
-        elapsed = time.perf_counter() - start
-        best, total, runs = min(best, elapsed), total + elapsed, runs + 1
+def time_estimate(spec: str, imu, q0, repeat: int, clock=time.perf_counter) -> float:
+    """Best time of `build(spec).estimate(imu, q0)` by `clock`, s (one untimed warm-up run first)."""
+    return time_estimates([spec], imu, q0, repeat, clock)[spec]
+
+
+def time_estimates(specs, imu, q0, repeat: int, clock=time.perf_counter) -> dict[str, float]:
+    """{spec: best time of `build(spec).estimate(imu, q0)` by `clock`, s}: one untimed warm-up run
+    each, then rounds of one run of each spec in turn, at least `repeat` rounds and until every
+    spec has run for `MIN_SECONDS` (at most 50 rounds)."""
+    for spec in specs:
+        build(spec).estimate(imu, q0)
+    best = {spec: float("inf") for spec in specs}
+    total = {spec: 0.0 for spec in specs}
+    runs = 0
+    while runs < repeat or (min(total.values()) < MIN_SECONDS and runs < 50):
+        for spec in specs:
+            est = build(spec)
+            start = clock()
+            est.estimate(imu, q0)
+            elapsed = clock() - start
+            best[spec], total[spec] = min(best[spec], elapsed), total[spec] + elapsed
+        runs += 1
     return best
 
 
@@ -86,7 +102,11 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data-dir", default=None, help="folder holding ece276a/ (default: $FUSION_DATA, else ./data)")
     ap.add_argument("--dataset", default="ece276a/1")
+    ap.add_argument("--mag", choices=("on", "off"), default="on", help="off: drop the magnetometer (6-D)")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--cpu", action="store_true", help="time with the process's CPU time, not the wall clock")
+    ap.add_argument("--specs", default=None, help="the estimators to time, separated by ';' (default: all; vqf is "
+                    "always added for the ratio)")
     ap.add_argument("--profile", default=None, metavar="SPEC", help="cProfile one run of this estimator")
     ap.add_argument("--no-compile-times", action="store_true", help="skip the compile-time measurement")
     args = ap.parse_args(argv)
@@ -96,12 +116,16 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{args.dataset} not available ({err}); using the simulated recording 'sim'")
         rec = datasets.load("sim")
     q0 = datasets.initial_orientation(rec, "truth" if rec.truth is not None else None)
-    n = len(rec.imu)
-    print(f"{rec.id}: {n} samples; best of >= {args.repeat} runs of the whole estimate")
+    imu = rec.imu if args.mag == "on" else rec.imu.replace(mag_ut=None)
+    n = len(imu)
+    specs = list(SPECS) if args.specs is None else [spec for spec in args.specs.split(";") if spec]
+    if "vqf" not in specs:
+        specs.append("vqf")
+    clock = time.process_time if args.cpu else time.perf_counter
+    print(f"{rec.id}{' (6-D)' if args.mag == 'off' else ''}: {n} samples; best of >= {args.repeat} runs of the "
+          f"whole estimate, {'CPU time' if args.cpu else 'wall clock'}")
     print(f"{'estimator':40s} {'us/sample':>10s} {'x vqf':>8s}")
-    times = {}
-    for spec in SPECS:
-        times[spec] = time_estimate(spec, rec.imu, q0, args.repeat) / n * 1e6
+    times = {spec: best / n * 1e6 for spec, best in time_estimates(specs, imu, q0, args.repeat, clock).items()}
     for spec, us in times.items():
         print(f"{spec:40s} {us:10.2f} {us / times['vqf']:8.2f}")
     if not args.no_compile_times:
@@ -113,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.profile:
         prof = cProfile.Profile()
         est = build(args.profile)
-        prof.runcall(est.estimate, rec.imu, q0)
+        prof.runcall(est.estimate, imu, q0)
         pstats.Stats(prof).sort_stats("tottime").print_stats(20)
 
 

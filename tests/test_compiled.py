@@ -249,6 +249,31 @@ def test_covariance_repair_and_square_root_recovery_agree(spec):
         assert a.diagnostics["sqrt_recoveries"] > 0
 
 
+def test_covariance_repair_kernel_agrees_where_an_entry_is_huge_or_not_finite():
+    """The kernel of `repair_covariance` resets P where the reference does: finite entries whose
+    sum overflows, a non-finite entry; a huge entry whose sum is finite, or a large P, is kept."""
+    from fusion.estimators.filters import _compiled  # noqa: F401  (the kernels, compiled or loaded)
+    from fusion.estimators.kernels import _compiled_linalg, _linalg
+
+    o = _compiled_linalg.cov_settings()
+    nan = np.eye(4)
+    nan[1, 2] = nan[2, 1] = np.nan
+    cases = {"sum overflows": np.full((11, 11), 9e306) + np.eye(11) * 1e307,
+             "huge, sum finite": np.diag([5e300, 1.0, 2.0]),
+             "large": np.eye(11) * 1e299,
+             "not finite": nan}
+    outcomes = {}
+    for name, P0 in cases.items():
+        P = P0.copy()
+        repaired = _compiled_linalg.repair_covariance(P, len(P), o, np.empty_like(P))
+        with np.errstate(over="ignore"):  # the reference's sum overflows: what the case is about
+            ref, ref_repaired = _linalg.repair_covariance(P0.copy())
+        assert repaired == ref_repaired, name
+        np.testing.assert_array_equal(P, ref, err_msg=name)
+        outcomes[name] = repaired
+    assert outcomes == {"sum overflows": True, "huge, sum finite": False, "large": False, "not finite": True}
+
+
 @pytest.mark.parametrize("spec", ["ekf", "ukf", "ukf-bias"])
 def test_compiled_estimate_leaves_the_filter_where_the_steps_do(sim, spec):
     """After `estimate`, `current()` and further `step`s continue as after the reference's loop."""

@@ -23,7 +23,7 @@ import numpy as np
 from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, joseph2, repair_covariance
 from ..kernels._compiled_quaternion import (exp_floats, gravity_floats, multiply_floats, normalize_floats, right_jacobian_dt,
                                    rotation_floats)
-from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
+from ..kernels._numba import _clip, _jit_leaf, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
@@ -37,7 +37,7 @@ forget_stale(__file__)
 HELPERS = ("predict_covariance",)
 
 
-@_jit
+@_jit_leaf
 def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
     """P <- F P F^T + Q (`EKF._predict`, Sola 2017, Sec. 5.4) for F = [[A, B, 0], [0, I]]: A (3 x 3) and
     B (3 x (n - 3)) in F's first three rows, the velocity columns zero, the identity below (only
@@ -72,7 +72,7 @@ def predict_covariance(P, F, Qrate, Qbad, h, ok, n, N, T):
             P[c, i] = v
 
 
-@mirrors("fusion.estimators.filters.ekf.EKF._correct")
+@mirrors("fusion.estimators.filters.ekf.EKF._correct", leaf=True)
 def _correct(q, b, s, v, dx, n, N, small):
     """`EKF._correct`: inject an error-state correction dx (N,): q exp(dx_e / 2), b + dx_b, s + dx_s, v + dx_v (in place); -> the new q."""
     for i in range(3):
@@ -85,7 +85,7 @@ def _correct(q, b, s, v, dx, n, N, small):
     return multiply_floats(q, exp_floats(dx[0], dx[1], dx[2], small))
 
 
-@mirrors("fusion.estimators.filters.ekf.EKF._velocity_step")
+@mirrors("fusion.estimators.filters.ekf.EKF._velocity_step", leaf=True)
 def _velocity_step(P, n, N, q, v, acc, h, o, w):
     """`EKF._velocity_step`: the horizontal world velocity v (2,) integrates the specific force at
     the attitude q, P <- V P V^T with V = I but V[velocity, ATTITUDE] = -(R [a]x)_xy g dt, then the
@@ -167,9 +167,18 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
     Gm = np.empty(N)
     skipped = 0
     repaired = 0
-    for k in range(inp.dt.shape[0]):
-        h = inp.dt[k]
-        gx, gy, gz, ax, ay, az, ok = _sample(inp.gyr, inp.valid, inp.acc, k)
+    # The arrays of the named tuples, taken out once: an array read from a tuple inside the loop
+    # costs a reference count increment and decrement each time.
+    dts, gyr, valid, acc, mag, mag_ok = inp.dt, inp.gyr, inp.valid, inp.acc, inp.mag, inp.mag_ok
+    dist, rest_st, mag_st, hard_iron, test = st.dist, st.rest, st.mag, st.hard_iron, st.test
+    (quat_out, cov_out, bias_out, scale_out, vel_out, var_out, rest_out, nis_out, guarded_out, lowpassed_out,
+     mag_used_out, hard_iron_out, llr_out) = (out.quat, out.cov, out.gyr_bias_rad_s, out.gyr_scale, out.velocity_m_s,
+                                              out.acc_var_g2, out.at_rest, out.nis, out.bias_guarded,
+                                              out.acc_lowpassed, out.mag_used, out.mag_hard_iron, out.scale_llr)
+    P_cal = P[BIAS_AT:n, BIAS_AT:n]  # the calibration block (a view, for the slow disturbance)
+    for k in range(dts.shape[0]):
+        h = dts[k]
+        gx, gy, gz, ax, ay, az, ok = _sample(gyr, valid, acc, k)
         ux, uy, uz = gx, gy, gz
         sx, sy, sz = 1.0, 1.0, 1.0
         if ok:
@@ -182,7 +191,7 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
                 tx, ty, tz = ux * h, uy * h, uz * h
         else:  # no rate integration; the attitude noise is inflated below
             tx, ty, tz = 0.0, 0.0, 0.0
-            accel.lose_frame(st.dist)
+            accel.lose_frame(dist)
         d = exp_floats(tx, ty, tz, small)
         q = multiply_floats(q, d)
         # F[ATTITUDE, ATTITUDE] = R(theta)^T; F[ATTITUDE, BIAS] = -J_r diag(1 + s) dt; F[ATTITUDE, SCALE] = J_r diag(w - b) dt
@@ -214,7 +223,7 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
             _velocity_step(P, n, N, q, v, (ax, ay, az), h, o, uw)
             q = _correct(q, b, s, v, dx, n, N, small)
         at_rest = False
-        if o.bias and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
+        if o.bias and ok and o.rest_on and rest.update(rest_st, gx, gy, gz, ax, ay, az, h, o.rest):
             # Zero-rate update at rest (VQF, Sec. 3.4; `KalmanFilter._rest_update`): the gyro reads the bias.
             rest.bias_rest_update((b[0], b[1], b[2]), P, (gx, gy, gz), o.rest_noise / h, N, uw)
             q = _correct(q, b, s, v, dx, n, N, small)
@@ -229,13 +238,13 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         if scale < math.inf:  # the accelerometer (`KalmanFilter._acc_update`, `EKF._acc_correct`)
             hx, hy, hz = gravity_floats(q)
             step = accel.AccStep(d, h, scale, o.process_noise, (ux, uy, uz), gain)
-            slow = accel.SlowDisturbance(o.slow_corr, (hx, hy, hz), P[BIAS_AT:n, BIAS_AT:n], o.slow_scale_var)
-            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, (ax, ay, az), step, slow, o.acc,
+            slow = accel.SlowDisturbance(o.slow_corr, (hx, hy, hz), P_cal, o.slow_scale_var)
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(dist, (ax, ay, az), step, slow, o.acc,
                                                                         H)  # H: scratch until filled below
             var = r
             accel.gravity_jacobian(H, hx, hy, hz, N)  # H = [[h]x, 0, 0]
             if with_lag and lowpassed:  # the low-pass's lag: H = [[h]x, A N_b, -A N_s] (`_accel.LowpassLag`)
-                accel.lag_jacobian(H, st.dist, o.scale)
+                accel.lag_jacobian(H, dist, o.scale)
             nh = n if with_lag and lowpassed else 3  # H's columns nh.. are zero
             for i in range(N):  # P H^T
                 for j in range(3):
@@ -273,15 +282,15 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         else:
             skipped += 1
             if o.acc.corr_s > 0.0:  # the strapdown frame follows the gyro through skipped updates
-                accel.turn(st.dist, d, h, (ux, uy, uz), gain, o.acc)
+                accel.turn(dist, d, h, (ux, uy, uz), gain, o.acc)
         mag_used = False
         hi_used = False
-        if use_mag and inp.mag_ok[k + 1]:  # 9-D: the gated heading-only update (`KalmanFilter._mag_update`)
-            mx, my, mz = inp.mag[k + 1, 0], inp.mag[k + 1, 1], inp.mag[k + 1, 2]
+        if use_mag and mag_ok[k + 1]:  # 9-D: the gated heading-only update (`KalmanFilter._mag_update`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
-                if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
-                    st.test[TEST_ON], st.test[TEST_LLR] = 0.0, math.nan
-                usable, east, north, hi_used = magnetometer.magnetometer_input(q, P, mx, my, mz, st.mag, st.hard_iron, o.mag,
+                if test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
+                    test[TEST_ON], test[TEST_LLR] = 0.0, math.nan
+                usable, east, north, hi_used = magnetometer.magnetometer_input(q, P, mx, my, mz, mag_st, hard_iron, o.mag,
                                                                                h, hi_fit, hi_work)
                 if usable:
                     r_mag = magnetometer.heading_variance(q, tx, ty, tz, h, o.mag)
@@ -289,8 +298,8 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
                     q = _correct(q, b, s, v, dx, n, N, small)
                     mag_used = True
         # Wald's test: a scale error, or a calibrated gyro? (`KalmanFilter._scale_test_update`)
-        if o.test.axes and st.test[TEST_ON] == 1.0 and st.test[TEST_DECISION] == 0.0:
-            if scale_test.step(P, s, st.test, q, o.test, o.heading_free, N, uw):
+        if o.test.axes and test[TEST_ON] == 1.0 and test[TEST_DECISION] == 0.0:
+            if scale_test.step(P, s, test, q, o.test, o.heading_free, N, uw):
                 q = _correct(q, b, s, v, dx, n, N, small)
         if o.bias:  # finish (`EKF._finish`)
             for i in range(3):
@@ -301,18 +310,21 @@ def estimate(inp, qio, b, s, v, P, Qrate, Qbad, st, o, out):
         q = normalize_floats(q)
         if repair_covariance(P, N, o.cov, L):
             repaired += 1
-        out.quat[k + 1, 0], out.quat[k + 1, 1], out.quat[k + 1, 2], out.quat[k + 1, 3] = q
-        out.cov[k + 1, :, :] = P
-        out.gyr_bias_rad_s[k + 1, :] = b
-        out.gyr_scale[k + 1, :] = s
-        out.velocity_m_s[k + 1, :] = v
-        out.acc_var_g2[k + 1] = var
-        out.at_rest[k + 1] = at_rest
-        out.nis[k + 1] = nis
-        out.bias_guarded[k + 1] = guarded
-        out.acc_lowpassed[k + 1] = lowpassed
-        out.mag_used[k + 1] = mag_used
-        out.mag_hard_iron[k + 1] = hi_used
-        out.scale_llr[k + 1] = st.test[TEST_LLR]
+        quat_out[k + 1, 0], quat_out[k + 1, 1], quat_out[k + 1, 2], quat_out[k + 1, 3] = q
+        for i in range(N):  # element by element: a slice would be a view, counted as a reference
+            for j in range(N):
+                cov_out[k + 1, i, j] = P[i, j]
+        for i in range(3):
+            bias_out[k + 1, i] = b[i]
+            scale_out[k + 1, i] = s[i]
+        vel_out[k + 1, 0], vel_out[k + 1, 1] = v[0], v[1]
+        var_out[k + 1] = var
+        rest_out[k + 1] = at_rest
+        nis_out[k + 1] = nis
+        guarded_out[k + 1] = guarded
+        lowpassed_out[k + 1] = lowpassed
+        mag_used_out[k + 1] = mag_used
+        hard_iron_out[k + 1] = hi_used
+        llr_out[k + 1] = test[TEST_LLR]
     qio[0], qio[1], qio[2], qio[3] = q
     return skipped, repaired

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..kernels._compiled_linalg import KalmanUpdateWork, _nis, _project_heading, inv_sym3, joseph, repair_covariance, sqrt_psd
 from ..kernels._compiled_quaternion import exp_floats, gravity_floats, log_floats, multiply_floats, normalize_floats
-from ..kernels._numba import _clip, _jit, _sample, forget_stale, mirrors
+from ..kernels._numba import _clip, _jit_leaf, _sample, forget_stale, mirrors
 from .steps import _compiled_accel as accel
 from .steps import _compiled_magnetometer as magnetometer
 from .steps import _compiled_rest as rest
@@ -36,7 +36,7 @@ forget_stale(__file__)
 HELPERS = ("weighted_outer_sum", "weighted_cross3")
 
 
-@_jit
+@_jit_leaf
 def weighted_outer_sum(E, WE, P, m, n):
     """P = sum_i E[i]^T WE[i] (n x n) over the m rows of E and WE (= Wc E), symmetric: the upper
     triangle, mirrored. Four entries of a row at a time: each sums its terms in the rows' order
@@ -63,7 +63,7 @@ def weighted_outer_sum(E, WE, P, m, n):
             P[c, a] = P[a, c]
 
 
-@_jit
+@_jit_leaf
 def weighted_cross3(E, WZ, out, n, m):
     """out[:n, :3] = sum_i E[i, :n]^T WZ[i, :3] over the m rows (the UKF's P_zz and P_xz, step 8):
     the three entries of a row at a time, each summed in the rows' order."""
@@ -121,9 +121,19 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
     repaired = 0
     capped = 0
     iters = 0
-    for k in range(inp.dt.shape[0]):
-        h = inp.dt[k]
-        gx, gy, gz, ax, ay, az, ok = _sample(inp.gyr, inp.valid, inp.acc, k)
+    # The arrays of the named tuples and the views the loop passes, taken out once: an array read
+    # from a tuple or sliced inside the loop costs a reference count increment and decrement each time.
+    dts, gyr, valid, acc, mag, mag_ok = inp.dt, inp.gyr, inp.valid, inp.acc, inp.mag, inp.mag_ok
+    dist, rest_st, mag_st, hard_iron, test = st.dist, st.rest, st.mag, st.hard_iron, st.test
+    (quat_out, cov_out, bias_out, scale_out, iter_out, var_out, rest_out, nis_out, lowpassed_out, mag_used_out,
+     hard_iron_out, llr_out) = (out.quat, out.cov, out.gyr_bias_rad_s, out.gyr_scale, out.mean_iterations,
+                                out.acc_var_g2, out.at_rest, out.nis, out.acc_lowpassed, out.mag_used,
+                                out.mag_hard_iron, out.scale_llr)
+    P_cal = P[BIAS_AT:n, BIAS_AT:n]  # the calibration block (a view)
+    x_scale = x[X_SCALE_AT:X_SCALE_AT + 3]  # the scale (a view; with scale states)
+    for k in range(dts.shape[0]):
+        h = dts[k]
+        gx, gy, gz, ax, ay, az, ok = _sample(gyr, valid, acc, k)
         hh = h * h
         scale_noise = ok and o.scale_noise > 0.0  # ukf only: Qs w_i^2 dt added to the attitude noise
         for i in range(n):  # A = P + Q
@@ -146,7 +156,7 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         else:
             wx, wy, wz = 0.0, 0.0, 0.0
             dq = (1.0, 0.0, 0.0, 0.0)
-            accel.lose_frame(st.dist)
+            accel.lose_frame(dist)
         # ---- predict (steps 1-5)
         recovered = sqrt_psd(A, L, n, o.cov.sqrt_floor)
         if recovered:  # step 2: +- columns of sqrt(c (P + Q))
@@ -224,7 +234,7 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         weighted_outer_sum(res, Wres, P, m, n)
         # ---- rest update (ukf-bias)
         at_rest = False
-        if o.bias and ok and o.rest_on and rest.update(st.rest, gx, gy, gz, ax, ay, az, h, o.rest):
+        if o.bias and ok and o.rest_on and rest.update(rest_st, gx, gy, gz, ax, ay, az, h, o.rest):
             rest.bias_rest_update((x[X_BIAS_AT], x[X_BIAS_AT + 1], x[X_BIAS_AT + 2]), P, (gx, gy, gz), o.rest_noise / h,
                                   n, uw)
             qn4 = normalize_floats(multiply_floats((x[0], x[1], x[2], x[3]), exp_floats(dx[0], dx[1], dx[2], small)))
@@ -247,14 +257,14 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
             if ok and o.scale_noise > 0.0:
                 q_rate += o.scale_noise * max(gx * gx, gy * gy, gz * gz)
             step = accel.AccStep(dq, h, scale, q_rate, u, gain)
-            slow = accel.SlowDisturbance(0.0, (0.0, 0.0, 0.0), P[BIAS_AT:n, BIAS_AT:n], 0.0)  # no slow component
-            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(st.dist, (ax, ay, az), step, slow, o.acc, H)
+            slow = accel.SlowDisturbance(0.0, (0.0, 0.0, 0.0), P_cal, 0.0)  # no slow component
+            mx, my, mz, r, lowpassed = accel.accelerometer_update_input(dist, (ax, ay, az), step, slow, o.acc, H)
             var = r
             lagged = with_lag and lowpassed
             if lagged:  # the low-passed sample's lag (`AccDisturbance.lag_jacobian`)
                 hx, hy, hz = gravity_floats((x[0], x[1], x[2], x[3]))
                 accel.gravity_jacobian(H, hx, hy, hz, n)
-                accel.lag_jacobian(H, st.dist, o.scale)
+                accel.lag_jacobian(H, dist, o.scale)
             zx, zy, zz = 0.0, 0.0, 0.0
             for i in range(m):  # step 6
                 g0, g1, g2 = gravity_floats((sig[i, 0], sig[i, 1], sig[i, 2], sig[i, 3]))
@@ -306,16 +316,16 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
         else:
             skipped += 1
             if o.acc.corr_s > 0.0:
-                accel.turn(st.dist, dq, h, u, gain, o.acc)
+                accel.turn(dist, dq, h, u, gain, o.acc)
         mag_used = False
         hi_used = False
-        if use_mag and inp.mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
-            mx, my, mz = inp.mag[k + 1, 0], inp.mag[k + 1, 1], inp.mag[k + 1, 2]
+        if use_mag and mag_ok[k + 1]:  # 9-D (ukf-bias): the gated heading-only update (`UKF.step`)
+            mx, my, mz = mag[k + 1, 0], mag[k + 1, 1], mag[k + 1, 2]
             if math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz):
-                if st.test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
-                    st.test[TEST_ON], st.test[TEST_LLR] = 0.0, math.nan
+                if test[TEST_DECISION] == 0.0:  # 9-D: no scale test (`ScaleTest.stop`)
+                    test[TEST_ON], test[TEST_LLR] = 0.0, math.nan
                 q4 = (x[0], x[1], x[2], x[3])
-                usable, east, north, hi_used = magnetometer.magnetometer_input(q4, P, mx, my, mz, st.mag, st.hard_iron,
+                usable, east, north, hi_used = magnetometer.magnetometer_input(q4, P, mx, my, mz, mag_st, hard_iron,
                                                                                o.mag, h, hi_fit, hi_work)
                 if usable:
                     r_mag = magnetometer.heading_variance(q4, wx * h, wy * h, wz * h, h, o.mag)
@@ -326,9 +336,9 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                         x[j + 1] = x[j + 1] + dx[j]
                     mag_used = True
         # Wald's test on the scale (`_scale_test.ScaleTest`, as in `_compiled_ekf.estimate`)
-        if o.test.axes and st.test[TEST_ON] == 1.0 and st.test[TEST_DECISION] == 0.0:
+        if o.test.axes and test[TEST_ON] == 1.0 and test[TEST_DECISION] == 0.0:
             q4 = (x[0], x[1], x[2], x[3])
-            if scale_test.step(P, x[X_SCALE_AT:X_SCALE_AT + 3], st.test, q4, o.test, o.heading_free, n, uw):
+            if scale_test.step(P, x_scale, test, q4, o.test, o.heading_free, n, uw):
                 x[0], x[1], x[2], x[3] = normalize_floats(multiply_floats(q4, exp_floats(dx[0], dx[1], dx[2], small)))
                 for j in range(CALIBRATION_AT, n):
                     x[j + 1] = x[j + 1] + dx[j]
@@ -340,18 +350,23 @@ def estimate(inp, x, P, Qrate, Qbad, Wm, Wc, st, o, out):
                 x[i] = _clip(x[i], -o.scale_max, o.scale_max)
         if repair_covariance(P, n, o.cov, L):
             repaired += 1
-        out.quat[k + 1, :] = x[:4]
-        out.cov[k + 1, :, :] = P
+        for i in range(4):  # element by element: a slice would be a view, counted as a reference
+            quat_out[k + 1, i] = x[i]
+        for i in range(n):
+            for j in range(n):
+                cov_out[k + 1, i, j] = P[i, j]
         if o.bias:
-            out.gyr_bias_rad_s[k + 1, :] = x[X_BIAS_AT:X_BIAS_AT + 3]
+            for i in range(3):
+                bias_out[k + 1, i] = x[X_BIAS_AT + i]
         if o.scale:
-            out.gyr_scale[k + 1, :] = x[X_SCALE_AT:X_SCALE_AT + 3]
-        out.mean_iterations[k + 1] = iters
-        out.acc_var_g2[k + 1] = var
-        out.at_rest[k + 1] = at_rest
-        out.nis[k + 1] = nis
-        out.acc_lowpassed[k + 1] = lowpassed
-        out.mag_used[k + 1] = mag_used
-        out.mag_hard_iron[k + 1] = hi_used
-        out.scale_llr[k + 1] = st.test[TEST_LLR]
+            for i in range(3):
+                scale_out[k + 1, i] = x[X_SCALE_AT + i]
+        iter_out[k + 1] = iters
+        var_out[k + 1] = var
+        rest_out[k + 1] = at_rest
+        nis_out[k + 1] = nis
+        lowpassed_out[k + 1] = lowpassed
+        mag_used_out[k + 1] = mag_used
+        hard_iron_out[k + 1] = hi_used
+        llr_out[k + 1] = test[TEST_LLR]
     return skipped, sqrt_recovered, repaired, capped

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._linalg import COV_FLOOR, COV_RESET_VAR, SQRT_FLOOR
-from ._numba import _jit, forget_stale, mirrors
+from ._numba import _jit, _jit_leaf, forget_stale, mirrors
 
 forget_stale(__file__)
 
@@ -47,7 +47,7 @@ def cov_settings() -> CovSettings:
     return CovSettings(floor=float(COV_FLOOR), reset=float(COV_RESET_VAR), sqrt_floor=float(SQRT_FLOOR))
 
 
-@mirrors("fusion.estimators.kernels._linalg.inv_sym3")
+@mirrors("fusion.estimators.kernels._linalg.inv_sym3", leaf=True)
 def inv_sym3(S, out):
     """Inverse of a symmetric 3x3 matrix by its adjugate, from its upper triangle (`_linalg.inv_sym3`);
     -> its determinant."""
@@ -61,7 +61,7 @@ def inv_sym3(S, out):
     return det
 
 
-@_jit
+@_jit_leaf
 def cholesky(A, L, n):
     """Lower Cholesky factor of A (n x n, lower triangle read) into L, upper part zeroed; False
     (instead of an exception) if A is not positive definite, as LAPACK's dpotrf reports it."""
@@ -142,7 +142,7 @@ def repair_covariance(P, n, o, L):
     return True
 
 
-@_jit
+@_jit_leaf
 def joseph(P, K, PHt, S, n, D):
     """P <- (I - K H) P (I - K H)^T + K R K^T for a measurement of up to three rows (the Joseph
     form of `ekf`, `EKF._velocity_step` and `_rest.bias_rest_update`), any gain K (n x 3),
@@ -164,7 +164,7 @@ def joseph(P, K, PHt, S, n, D):
             P[c, a] = v
 
 
-@_jit
+@_jit_leaf
 def joseph2(P, K, PHt, S, n, D):
     """`joseph` for a two-row measurement (the velocity pseudo-measurement): K, PHt (n x 2 used),
     S (2 x 2 used); four products per entry instead of six (D: n x 3 scratch, two columns used)."""
@@ -179,7 +179,7 @@ def joseph2(P, K, PHt, S, n, D):
             P[c, a] = v
 
 
-@_jit
+@_jit_leaf
 def _nis(yx, yy, yz, Sinv):
     """y^T S^-1 y, as (y @ Sinv) @ y."""
     t0 = yx * Sinv[0, 0] + yy * Sinv[1, 0] + yz * Sinv[2, 0]
@@ -188,7 +188,7 @@ def _nis(yx, yy, yz, Sinv):
     return t0 * yx + t1 * yy + t2 * yz
 
 
-@_jit
+@_jit_leaf
 def _project_heading(K, row0, hx, hy, hz):
     """K[row0:row0+3] <- (I - h h^T) K[row0:row0+3]: no correction about the vertical h."""
     for j in range(K.shape[1]):

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 from fusion import quaternion as quat
 
-from ._numba import _jit, compiled, forget_stale, mirrors
+from ._numba import _jit, _jit_leaf, compiled, forget_stale, mirrors
 
 forget_stale(__file__)
 
@@ -52,7 +52,7 @@ def rotate_floats(q, vx, vy, vz):
     return (r[0] * vx + r[1] * vy + r[2] * vz, r[3] * vx + r[4] * vy + r[5] * vz, r[6] * vx + r[7] * vy + r[8] * vz)
 
 
-@_jit
+@_jit_leaf
 def right_jacobian_dt(tx, ty, tz, dt, o, out):
     """out = J_r(t) dt, the SO(3) right Jacobian (`quaternion.right_jacobian_floats`) times dt."""
     t = math.sqrt(tx * tx + ty * ty + tz * tz)

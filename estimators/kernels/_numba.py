@@ -62,28 +62,39 @@ _OPTIONS = dict(error_model="numpy", nogil=True)
 _cache = True  # False once numba has found no writable cache folder
 
 
-def _jit(func):
+def _jit(func, leaf: bool = False):
     """`numba.njit` with the on-disk cache, IEEE division (`error_model="numpy"`: x / 0 is inf
     or nan as in numpy, never an exception) and the GIL released. Without a writable cache
-    folder (numba raises at decoration), one warning and no cache."""
+    folder (numba raises at decoration), one warning and no cache.
+
+    `leaf`: a kernel that allocates no array (the small kernels a filter's loop calls every step),
+    compiled without numba's reference counting (`_nrt=False`): numba otherwise counts every array
+    argument on entry and exit, an atomic increment and decrement each, a tenth of a filter's time.
+    The arithmetic is the same; a leaf that tried to allocate would not compile."""
     global _cache
+    options = dict(_OPTIONS, _nrt=False) if leaf else _OPTIONS
     if _cache:
         try:
-            return numba.njit(cache=True, **_OPTIONS)(func)
+            return numba.njit(cache=True, **options)(func)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             _cache = False
             warnings.warn(f"fusion.estimators: the compiled filters cannot be cached ({exc}); they are "
                           "compiled in every process. Set NUMBA_CACHE_DIR to a writable folder to cache them.",
                           RuntimeWarning, stacklevel=2)
-    return numba.njit(**_OPTIONS)(func)
+    return numba.njit(**options)(func)
 
 
-def mirrors(reference: str) -> Callable:
+def _jit_leaf(func):
+    """`_jit` for a kernel that allocates nothing (`leaf`)."""
+    return _jit(func, leaf=True)
+
+
+def mirrors(reference: str, leaf: bool = False) -> Callable:
     """Decorator: `_jit` for a kernel that implements `reference` (a dotted name, e.g.
-    "fusion.estimators.filters.ekf.EKF._correct"), recorded in `REFERENCES`."""
+    "fusion.estimators.filters.ekf.EKF._correct"), recorded in `REFERENCES` (leaf: see `_jit`)."""
     def decorate(func):
         REFERENCES[(func.__module__, func.__name__)] = reference
-        return _jit(func)
+        return _jit(func, leaf)
     return decorate
 
 
@@ -104,7 +115,7 @@ def _clip(x, lo, hi):
     return x
 
 
-@_jit
+@_jit_leaf
 def _sample(gyr, valid, acc, k):
     """Step k's gyro reading, the accelerometer sample at its end, and whether the gyro is usable
     (marked valid and finite)."""

@@ -12,7 +12,7 @@ import math
 from typing import NamedTuple
 
 from ...kernels._compiled_quaternion import multiply_floats, normalize_floats, rotate_floats, rotation_floats
-from ...kernels._numba import forget_stale, mirrors, _jit
+from ...kernels._numba import _jit, _jit_leaf, forget_stale, mirrors
 from ._accel import models_lag
 from ._error_state import BIAS_AT
 from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BODY, DIST_HAS_LOWPASS, DIST_HAS_MEAN,
@@ -21,7 +21,7 @@ from ._accel import (DIST_AGE, DIST_BODY, DIST_DENSITY, DIST_FRAME, DIST_HAS_BOD
 
 forget_stale(__file__)
 
-HELPERS = ("gravity_jacobian",)
+HELPERS = ("gravity_jacobian", "_rotate")
 _GATES = {"off": 0, "skip": 1, "inflate": 2}
 
 
@@ -81,7 +81,7 @@ def acc_variance_scale(ax, ay, az, gate, gate_g):
     return 1.0 + r * r
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.lose_frame")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.lose_frame", leaf=True)
 def lose_frame(st):
     """`AccDisturbance.lose_frame` on its packed state (`AccDisturbance.state`)."""
     st[DIST_HAS_MEAN] = 0.0  # no mean
@@ -95,7 +95,7 @@ def lose_frame(st):
     st[DIST_LOWPASS_NORM] = 0.0  # lp_norm
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance._turn")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance._turn", leaf=True)
 def _turn(st, dq):
     f = DIST_FRAME
     qi = normalize_floats(multiply_floats((st[f], st[f + 1], st[f + 2], st[f + 3]), dq))
@@ -103,7 +103,7 @@ def _turn(st, dq):
     return qi
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.turn")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.turn", leaf=True)
 def turn(st, dq, dt, u, gain, o):
     """`AccDisturbance.turn` on its state array: the frame follows the rate increment dq; with
     the lag (o.lag), N_b and N_s follow it (`step`, u and gain as there)."""
@@ -113,7 +113,7 @@ def turn(st, dq, dt, u, gain, o):
         step(st, u, gain, dt, fresh, False, o.lowpass_s)
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.update")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.update", leaf=True)
 def update(st, dq, acc, dt, u, gain, o):
     """`AccDisturbance.update` (and `_lowpass` with o.lowpass_s > 0, the lag with o.lag) on its
     state array, acc the sample (3 floats, g); -> d, g^2."""
@@ -145,7 +145,7 @@ def update(st, dq, acc, dt, u, gain, o):
     return d
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance._lowpass")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance._lowpass", leaf=True)
 def _lowpass(st, qi, wx, wy, wz, norm_dev, dt, o):
     """`AccDisturbance._lowpass`: a_I low-passed, its density, its direction in the body frame, the
     norm deviation low-passed."""
@@ -174,7 +174,7 @@ def _lowpass(st, qi, wx, wy, wz, norm_dev, dt, o):
         st[DIST_HAS_BODY] = 0.0
 
 
-@mirrors("fusion.estimators.filters.steps._accel.LowpassLag.step")
+@mirrors("fusion.estimators.filters.steps._accel.LowpassLag.step", leaf=True)
 def step(st, u, gain, h, fresh, updated, lowpass_s):
     """`_accel.LowpassLag.step` on the disturbance state `st`: N_b and N_s advanced with its
     strapdown frame (q_I at DIST_FRAME); u, gain (3 floats each): the bias-corrected rate and the
@@ -201,7 +201,14 @@ def step(st, u, gain, h, fresh, updated, lowpass_s):
             st[c] *= decay
 
 
-@_jit
+@_jit_leaf
+def _rotate(r, vx, vy, vz):
+    """R v for R given as its nine entries, row by row (`rotation_floats`): `rotate_floats` with
+    the matrix computed once for several vectors, the same products and sums."""
+    return (r[0] * vx + r[1] * vy + r[2] * vz, r[3] * vx + r[4] * vy + r[5] * vz, r[6] * vx + r[7] * vy + r[8] * vz)
+
+
+@_jit_leaf
 def gravity_jacobian(H, hx, hy, hz, n):
     """H (3 x n) <- [[h]x, 0]: the accelerometer's Jacobian `[h]x` for the raw sample."""
     H[0, 0], H[0, 1], H[0, 2] = 0.0, -hz, hy
@@ -212,23 +219,23 @@ def gravity_jacobian(H, hx, hy, hz, n):
             H[i, j] = 0.0
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.lag_jacobian")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.lag_jacobian", leaf=True)
 def lag_jacobian(H, st, scale):
     """`AccDisturbance.lag_jacobian` into H (3 x n) holding `[h]x` in its first three columns:
     H[:, BIAS] = A N_b, and with scale states H[:, SCALE] = -A N_s, with A = [h]x R_I^T (N_b, N_s
     in the state `st`)."""
     f = DIST_FRAME
-    qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
+    r = rotation_floats((st[f], -st[f + 1], -st[f + 2], -st[f + 3]))  # R_I^T, once for the columns
     for m in range(2 if scale else 1):
         sign = 1.0 if m == 0 else -1.0
         for j in range(3):
             c = (DIST_LAG_B if m == 0 else DIST_LAG_S) + j
-            vx, vy, vz = rotate_floats(qi, st[c], st[c + 3], st[c + 6])
+            vx, vy, vz = _rotate(r, st[c], st[c + 3], st[c + 6])
             for i in range(3):
                 H[i, BIAS_AT + 3 * m + j] = sign * (H[i, 0] * vx + H[i, 1] * vy + H[i, 2] * vz)
 
 
-@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.slow_power")
+@mirrors("fusion.estimators.filters.steps._accel.AccDisturbance.slow_power", leaf=True)
 def slow_power(st, h, P_cal, scale_prior_var, lowpass_s, Hc):
     """`AccDisturbance.slow_power` on the disturbance state `st`, for the gravity direction h
     (3 floats, body) and the filter's calibration covariance P_cal ((3, 3) bias or (6, 6) bias and
@@ -240,11 +247,11 @@ def slow_power(st, h, P_cal, scale_prior_var, lowpass_s, Hc):
     ex, ey, ez = st[m] - st[lp], st[m + 1] - st[lp + 1], st[m + 2] - st[lp + 2]
     dev = ex * ex + ey * ey + ez * ez
     f = DIST_FRAME
-    qi = (st[f], -st[f + 1], -st[f + 2], -st[f + 3])  # R_I^T
+    r = rotation_floats((st[f], -st[f + 1], -st[f + 2], -st[f + 3]))  # R_I^T, once for the six columns
     for c in range(6):  # [H_b, H_s] = [A N_b, -A N_s], A = [h]x R_I^T (`LowpassLag.jacobian`)
         sign = 1.0 if c < 3 else -1.0
         o = (DIST_LAG_B if c < 3 else DIST_LAG_S) + c % 3
-        vx, vy, vz = rotate_floats(qi, st[o], st[o + 3], st[o + 6])
+        vx, vy, vz = _rotate(r, st[o], st[o + 3], st[o + 6])
         Hc[0, c] = sign * (-hz * vy + hy * vz)  # [h]x v
         Hc[1, c] = sign * (hz * vx - hx * vz)
         Hc[2, c] = sign * (-hy * vx + hx * vy)
@@ -276,7 +283,7 @@ def lowpass_residual_density(density, lowpass_s, rate_noise):
     return (density * lowpass_s * math.sqrt(rate_noise)) ** (2.0 / 3.0)
 
 
-@mirrors("fusion.estimators.filters.steps._accel.acc_measurement")
+@mirrors("fusion.estimators.filters.steps._accel.acc_measurement", leaf=True)
 def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
     """`_accel.acc_measurement`: the raw sample or the low-passed direction, whichever has the
     smaller noise density; -> (z (3 floats), density g^2 s, low-passed)."""
@@ -288,7 +295,7 @@ def acc_measurement(st, ax, ay, az, o, d, drift, rate_noise):
     return ax, ay, az, raw, False
 
 
-@mirrors("fusion.estimators.filters.steps._accel.accelerometer_update_input")
+@mirrors("fusion.estimators.filters.steps._accel.accelerometer_update_input", leaf=True)
 def accelerometer_update_input(dist, acc, step, slow, o, work):
     """`_accel.accelerometer_update_input`: the measurement and variance of one accelerometer
     update, as the filters' steps choose them, for the sample acc (3 floats, g) with the step's

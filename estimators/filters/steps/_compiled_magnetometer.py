@@ -56,7 +56,7 @@ def mag_settings(p: Any) -> MagSettings:
         hi_coverage=float(getattr(p, "mag_hard_iron_coverage", 0.0)))
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.update")
+@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.update", leaf=True)
 def update(st, norm, dip, dt, o):
     """`MagReference.update` on its packed state st (`MagReference.state`);
     -> the sample may correct the heading."""
@@ -75,14 +75,14 @@ def update(st, norm, dip, dt, o):
     return st[MAG_TIME_OK] >= o.min_time
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.in_gates")
+@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.in_gates", leaf=True)
 def in_gates(st, norm, dip, o):
     """`MagReference.in_gates` on its packed state st (`MagReference.state`)."""
     return (st[MAG_HAS_REF] != 0.0 and abs(norm - st[MAG_NORM]) < o.norm_gate * st[MAG_NORM]
             and abs(dip - st[MAG_DIP]) < o.dip_gate)
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.heading_gate_update")
+@mirrors("fusion.estimators.filters.steps._magnetometer.MagReference.heading_gate_update", leaf=True)
 def heading_gate_update(st, psi, var, dt, o):
     """`MagReference.heading_gate_update` on its packed state st (`MagReference.state`);
     -> the sample may correct the heading."""
@@ -94,7 +94,7 @@ def heading_gate_update(st, psi, var, dt, o):
     return st[MAG_REJECTED] > o.heading_gate_max_s
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.heading_innovation")
+@mirrors("fusion.estimators.filters.steps._magnetometer.heading_innovation", leaf=True)
 def heading_innovation(q, P, east, north):
     """`heading_innovation`: (psi, v^T P_attitude v) with v = R(q)^T e_z."""
     vx, vy, vz = gravity_floats(q)
@@ -103,7 +103,7 @@ def heading_innovation(q, P, east, north):
     return math.atan2(-east, north), var
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.magnetometer_input")
+@mirrors("fusion.estimators.filters.steps._magnetometer.magnetometer_input", leaf=True)
 def magnetometer_input(q, P, mx, my, mz, mag_ref, hard_iron, o, h, hi_fit, hi_work):
     """`magnetometer_input`: one finite sample (uT, body) through the sphere fit, the gates and the
     heading gate (the packed states mag_ref of `MagReference` and hard_iron of `HardIron`, advanced
@@ -139,7 +139,7 @@ def heading_variance(q, tx, ty, tz, h, o):
     return o.noise / h * (1.0 + (w_up / o.rate) ** 2)
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.hard_iron_add")
+@mirrors("fusion.estimators.filters.steps._magnetometer.hard_iron_add", leaf=True)
 def hard_iron_add(s, mx, my, mz, alpha):
     """`hard_iron_add`: the sphere fit's sums s (`HardIron.state`) <- (1 - alpha) s + alpha (the
     sample's terms)."""
@@ -155,7 +155,7 @@ def hard_iron_add(s, mx, my, mz, alpha):
     s[HARD_IRON_W] = keep * s[HARD_IRON_W] + alpha
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.hard_iron_fit")
+@mirrors("fusion.estimators.filters.steps._magnetometer.hard_iron_fit", leaf=True)
 def hard_iron_fit(s, residual_ut, coverage, out, a):
     """`hard_iron_fit` (with `solve4`): True and out (4,) = (ox, oy, oz, r) when the sphere fit is
     trusted (a: 4 x 5 scratch)."""
@@ -221,7 +221,7 @@ def hard_iron_fit(s, residual_ut, coverage, out, a):
     return True
 
 
-@mirrors("fusion.estimators.filters.steps._magnetometer.heading_update")
+@mirrors("fusion.estimators.filters.steps._magnetometer.heading_update", leaf=True)
 def heading_update(P, n, N, q, east, north, r, K, G, dx):
     """`_magnetometer.heading_update`: the heading-only update with H = [v^T, 0] (v = R(q)^T e_z), the
     gain restricted to v on the attitude and bias rows and 0 on the velocity rows, Joseph form for a scalar

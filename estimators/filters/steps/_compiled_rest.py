@@ -41,7 +41,7 @@ def rest_settings(rest: Any) -> RestSettings:
                         window=float(rest.window_s), tilt=float(rest.tilt))
 
 
-@mirrors("fusion.estimators.filters.steps._rest.RestDetector.update")
+@mirrors("fusion.estimators.filters.steps._rest.RestDetector.update", leaf=True)
 def update(st, gx, gy, gz, ax, ay, az, dt, o):
     """`RestDetector.update` on its packed state (`RestDetector.state`); -> at rest."""
     if not (math.isfinite(ax + ay + az) and math.isfinite(gx + gy + gz)):
@@ -103,7 +103,7 @@ def rest_steps(imu: Any, gyr_th_rad_s: float, acc_th_g: float, min_time_s: float
     return out
 
 
-@mirrors("fusion.estimators.filters.steps._rest.bias_rest_update")
+@mirrors("fusion.estimators.filters.steps._rest.bias_rest_update", leaf=True)
 def bias_rest_update(b, P, gyr, r, n, w):
     """`_rest.bias_rest_update`: the zero-rate update gyr = b + noise (b, gyr: 3 floats, rad/s),
     H = [0, I, 0] (3 x n), so that P H^T = P[:, BIAS] and H P H^T = P[BIAS, BIAS]; P updated in

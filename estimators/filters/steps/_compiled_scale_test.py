@@ -37,7 +37,7 @@ def scale_test_settings(test: Any) -> ScaleTestSettings:
                              bound=float(test.bound))
 
 
-@mirrors("fusion.estimators.filters.steps._scale_test.ScaleTest.step")
+@mirrors("fusion.estimators.filters.steps._scale_test.ScaleTest.step", leaf=True)
 def step(P, s, st, q, o, heading_free, N, w):
     """`ScaleTest.step` on its packed state st (`ScaleTest.state`) while on and undecided, with the
     attitude q and o its `ScaleTestSettings`: -> whether it accepted H0 now, with the
