@@ -36,15 +36,17 @@ is its decimal mark. Its traps, handled here:
   "RepoIMU's held samples"), keeping them scores every estimator as well as, or better than,
   keeping only the rows where the gyro (or any sensor) changed;
 - the T-stick's gyro saturates at about +-7.3 rad/s (420 deg/s; Test05: 600-850 samples per sign):
-  the loader's dropout step finds the flat tops (`fusion.checks.FlatTopDetector`) and marks those
-  samples invalid, as a frozen or clipped gyro is elsewhere;
+  the flat tops are found from the data (`fusion.checks.FlatTopDetector`) and reported (`fusion
+  inspect`, the report's events), not marked invalid: integrating the clipped reading scores every
+  estimator far better than holding the orientation across it (`docs/results.md`, "RepoIMU's
+  clipped gyro");
 - the Vicon orientation is the marker body's in the Vicon frame, neither the IMU's axes nor an
   up-pointing world: its recordings say so (`Recording.truth_needs_alignment`), and every run
   scores them through an alignment (`fusion.evaluation.scoring.align` fits the constant world tilt and
-  IMU-to-marker rotation from the recording's own gyro, accelerometer and truth), as `--align` does. The fitted
-  world rotation is a tilt only: the Vicon frame's heading against magnetic north stays, so a 9-D
-  row's heading error includes that constant angle (its inclination does not; with `--mag off`
-  the 6-D rows start from the truth's heading and only drift from it);
+  IMU-to-marker rotation from the recording's own gyro, accelerometer and truth), as `--align` does. With
+  a magnetometer the world rotation also turns the Vicon frame to magnetic north, fitted from the
+  field and the truth alone (the same for every estimator), so a 9-D row's heading error is its own
+  and not the room's (`docs/align.md`);
 - the magnetometer reads about 1: the Xsens MTx sensor used reports the field in arbitrary units
   normalised to its strength where it was calibrated. The toolkit keeps magnetometers in uT, so
   such values (a median norm of 0.2-5) are multiplied by `FIELD_UT`, a typical Earth field
