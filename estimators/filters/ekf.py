@@ -272,8 +272,9 @@ VELOCITY_INIT_STD_M_S = 0.1
 
 
 class EKF(KalmanFilter):
-    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring). Its
-    step is `KalmanFilter.step`; this class supplies the prediction, the velocity model, the
+    """`ekf`: multiplicative error-state EKF with analytic Jacobians (see module docstring).
+
+    Its step is `KalmanFilter.step`; this class supplies the prediction, the velocity model, the
     accelerometer correction and the injection."""
 
     Params = EKFParams
