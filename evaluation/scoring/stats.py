@@ -227,7 +227,7 @@ def _normalised(scores: Mapping[str, Mapping[Any, float | None]]) -> _Scores:
 
 @dataclass(frozen=True)
 class _Cases:
-    labels: list[str]  # rows with a finite score somewhere, in the order given
+    labels: list[str]  # rows scored on more than half of the recordings, in the order given
     left_out: list[str]  # rows scored on at most half of the recordings (none included)
     recordings: list[str]  # complete, sorted
     dropped: list[Dropped]
