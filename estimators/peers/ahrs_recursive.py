@@ -4,7 +4,7 @@
 the gyro's integration alone (`AngularRate`). Madgwick, Mahony and the EKF are
 `peers.ahrs_filters`; the conventions every peer shares, `peers.vqf_fusion`' module docstring.
 
-Every adapter seeds the filter with the initial orientation, steps it with the real per-sample dt
+Every adapter starts the filter at the initial orientation, steps it with the real per-sample dt
 (the complementary filter, which has no per-sample update, with one constant sample time:
 `_rate_for_constant_ts`), and calls the library's own update per sample: step k with the gyro
 reading of the interval [t[k], t[k+1]] and the accelerometer (and magnetometer) sample k + 1, the
@@ -43,8 +43,8 @@ accelerometer's correction included, on an exactly zero rate: there a rate of 1e
 for zero (as for Madgwick and Mahony).
 
 Library traps: the complementary filter's 6-D heading is held at 0 by the library (it updates roll
-and pitch only): the adapter starts it at the seed's roll and pitch and turns the result by the
-seed's yaw, so its heading stays the initial one; its angles are filtered as numbers (a yaw wrapping
+and pitch only): the adapter starts it at the initial orientation's roll and pitch and turns the result by
+its yaw, so its heading stays the initial one; its angles are filtered as numbers (a yaw wrapping
 past +-180 deg is averaged with one near the other end), as published. AQUA's `adaptive=True`
 replaces `alpha` after the first step by the library's `adaptive_gain(acc)`, whose own default
 alpha_bar is 0.1 (not `alpha`). The UKF's `Omega`-based prediction and its sigma-point weights are
@@ -105,8 +105,8 @@ def _inputs(imu: ImuSamples, invalid_rate: np.ndarray) -> tuple[np.ndarray, ...]
 def _loop(imu: ImuSamples, init_quat_wxyz: np.ndarray, step: Callable | None, lib_from_enu: Callable,
           enu_from_lib: Callable, invalid_rate: np.ndarray = _ZERO, kernel: Callable | None = None) -> Trajectory:
     """The library's update over the recording: `step(q, rate, acc, acc_ok, mag, mag_ok, dt)` in the
-    library's own convention, seeded with `lib_from_enu(seed)`; rows 1.. are `enu_from_lib` of its
-    outputs (vectorised over the rows), row 0 the seed as given. With `kernel` (a compiled twin's
+    library's own convention, started at `lib_from_enu(q0)`; rows 1.. are `enu_from_lib` of its
+    outputs (vectorised over the rows), row 0 the initial orientation as given. With `kernel` (a compiled twin's
     loop, `peers._compiled_ahrs_recursive`), `kernel(rates, dt, acc, acc_ok, mag, mag_ok, q0, out)`
     writes the outputs (N-1, 4) instead, from the same inputs."""
     _check_length(imu, "ahrs")
@@ -295,19 +295,19 @@ class ComplementaryPeer(_AhrsRecursive):
         if not np.any(acc_ok):
             raise ValueError(f"complementary: {imu.source or 'input'} has no usable accelerometer sample")
         acc = _fill_forward(acc, acc_ok)
-        seed = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
+        q0 = np.asarray(init_quat_wxyz, dtype=float) / np.linalg.norm(init_quat_wxyz)
         kw: dict[str, Any] = {}
         if imu.has_mag:
             mag = _fill_forward(np.where(imu.mag_valid[:, None], imu.mag_ut, 0.0) * MT_PER_UT, imu.mag_valid)
             kw["mag"] = mag
-            seed = _to_nwu(seed)
-        yaw, pitch, roll = Rotation.from_quat(seed, scalar_first=True).as_euler("ZYX")
+            q0 = _to_nwu(q0)
+        yaw, pitch, roll = Rotation.from_quat(q0, scalar_first=True).as_euler("ZYX")
         w0 = np.array([roll, pitch, yaw if imu.has_mag else 0.0])
         filt = self._filters.Complementary(gyr=gyr, acc=acc, frequency=1.0 / ts, gain=self.params.gain, w0=w0, **kw)
         q = np.asarray(filt.Q, dtype=float)
         if imu.has_mag:
             q = _from_nwu(q)
-        else:  # the library holds the 6-D yaw at 0: turned by the seed's (module docstring)
+        else:  # the library holds the 6-D yaw at 0: turned by the initial one's (module docstring)
             q = quat.multiply(np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), q)
         q[0] = init_quat_wxyz
         return Trajectory(imu.t, q)
